@@ -1,0 +1,388 @@
+"""Plug-in physical effects.
+
+An effect is a small class with named, SI-unit parameters.  It acts through one
+or more of these hooks, each an ``@njit`` kernel with a fixed signature, which
+:mod:`twin_nodes.physics.model` composes into the stepper at build time (the
+core is never edited to add an effect):
+
+``command_kernel(p, ext, sref)``
+    change the per-rotor reference (rotor state the lag converges to) in place.
+``rotor_kernel(p, x, ext, omega, T, Q)``
+    change per-rotor thrust ``T`` [N] / reaction torque ``Q`` [N m] in place.
+``wrench_kernel(p, x, R, ext, omega, T, Fb, Mb, Fw)``
+    add a body-frame force ``Fb`` [N, FLU], body moment ``Mb`` [N m, FLU] about the
+    centre of mass, and/or a world force ``Fw`` [N, ENU].
+
+Other effects are parameter changes (``apply_to_params``: mass, thrust
+coefficient, inertia...), a command delay (``command_delay_s``) or an
+exogenous input (``exogenous``: wind velocity).
+
+Arguments: ``p`` the effect's parameter vector (order of ``param_names``);
+``x`` the state ``[p_enu(3), v_enu(3), q_wxyz(4) FLU->ENU, w_flu(3), s(N)]``;
+``R`` the body->world rotation; ``ext = [battery_v, wind_e, wind_n, wind_u]``
+(NaN voltage = unknown); ``omega`` rotor speeds [rad/s].
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+from numba import njit
+
+if TYPE_CHECKING:  # pragma: no cover
+    from twin_nodes.params import VehicleParams
+
+EXT_SIZE = 4
+EXT_VOLTAGE, EXT_WIND = 0, 1
+
+
+def default_ext() -> np.ndarray:
+    """Exogenous inputs with nothing known: voltage NaN, no wind."""
+    e = np.zeros(EXT_SIZE)
+    e[EXT_VOLTAGE] = np.nan
+    return e
+
+
+class Effect:
+    """Base class; subclasses set the class attributes and the hooks they use."""
+
+    name: ClassVar[str] = ""
+    param_names: ClassVar[tuple[str, ...]] = ()
+    defaults: ClassVar[dict[str, float]] = {}
+    units: ClassVar[dict[str, str]] = {}
+    description: ClassVar[str] = ""
+    command_kernel: ClassVar[Any] = None
+    rotor_kernel: ClassVar[Any] = None
+    wrench_kernel: ClassVar[Any] = None
+
+    def __init__(self, **params: float):
+        unknown = set(params) - set(self.param_names)
+        if unknown:
+            raise ValueError(f"effect {self.name}: unknown parameter(s) {sorted(unknown)}; "
+                             f"expected {list(self.param_names)}")
+        values = {}
+        for k in self.param_names:
+            if k in params:
+                values[k] = float(params[k])
+            elif k in self.defaults:
+                values[k] = float(self.defaults[k])
+            else:
+                raise ValueError(f"effect {self.name}: parameter {k!r} is required")
+        self.params = values
+
+    def vector(self) -> np.ndarray:
+        """Parameters as the float64 vector the kernels read (``param_names`` order)."""
+        return np.array([self.params[k] for k in self.param_names], dtype=np.float64)
+
+    def apply_to_params(self, vp: "VehicleParams") -> "VehicleParams":
+        """Parameter-type effects return a changed copy; others return ``vp``."""
+        return vp
+
+    def command_delay_s(self) -> float:
+        return 0.0
+
+    def exogenous(self, t: np.ndarray, ext: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Fill/modify the exogenous input series ``ext`` (shape (T, EXT_SIZE)) for times ``t``."""
+        return ext
+
+    @property
+    def has_kernel(self) -> bool:
+        return any(k is not None for k in (self.command_kernel, self.rotor_kernel, self.wrench_kernel))
+
+    def __repr__(self) -> str:
+        inner = ", ".join(f"{k}={v:g}" for k, v in self.params.items())
+        return f"{type(self).__name__}({inner})"
+
+
+# ---------------------------------------------------------------- kernels
+
+
+@njit(cache=True)
+def _air_body(x, R, ext):
+    """Air-relative velocity in body FLU [m/s] (vehicle velocity minus wind)."""
+    va0 = x[3] - ext[1]
+    va1 = x[4] - ext[2]
+    va2 = x[5] - ext[3]
+    # R^T v
+    return (R[0, 0] * va0 + R[1, 0] * va1 + R[2, 0] * va2,
+            R[0, 1] * va0 + R[1, 1] * va1 + R[2, 1] * va2,
+            R[0, 2] * va0 + R[1, 2] * va1 + R[2, 2] * va2)
+
+
+@njit(cache=True)
+def _k_linear_drag(p, x, R, ext, omega, T, Fb, Mb, Fw):
+    k = p[0]
+    Fw[0] -= k * (x[3] - ext[1])
+    Fw[1] -= k * (x[4] - ext[2])
+    Fw[2] -= k * (x[5] - ext[3])
+
+
+@njit(cache=True)
+def _k_angular_damping(p, x, R, ext, omega, T, Fb, Mb, Fw):
+    k = p[0]
+    Mb[0] -= k * x[10]
+    Mb[1] -= k * x[11]
+    Mb[2] -= k * x[12]
+
+
+@njit(cache=True)
+def _k_rotor_drag(p, x, R, ext, omega, T, Fb, Mb, Fw):
+    k = p[0]
+    s = 0.0
+    for i in range(omega.shape[0]):
+        s += abs(omega[i])
+    vb0, vb1, _ = _air_body(x, R, ext)
+    Fb[0] -= k * s * vb0
+    Fb[1] -= k * s * vb1
+
+
+@njit(cache=True)
+def _k_body_drag(p, x, R, ext, omega, T, Fb, Mb, Fw):
+    vb0, vb1, vb2 = _air_body(x, R, ext)
+    Fb[0] -= p[0] * abs(vb0) * vb0
+    Fb[1] -= p[1] * abs(vb1) * vb1
+    Fb[2] -= p[2] * abs(vb2) * vb2
+
+
+@njit(cache=True)
+def _k_com_offset(p, x, R, ext, omega, T, Fb, Mb, Fw):
+    # Thrust (body +z) acting at rotors measured from a CoM displaced by d=(dx,dy,0):
+    # extra moment -d x F = (-dy*Tz, dx*Tz, 0).
+    tz = 0.0
+    for i in range(T.shape[0]):
+        tz += T[i]
+    Mb[0] -= p[1] * tz
+    Mb[1] += p[0] * tz
+
+
+@njit(cache=True)
+def _k_battery_sag(p, ext, sref):
+    v = ext[0]
+    if v == v and v > 0.0 and p[0] > 0.0:  # v == v: not NaN
+        scale = (v / p[0]) ** p[1]
+        for i in range(sref.shape[0]):
+            sref[i] *= scale
+
+
+@njit(cache=True)
+def _k_motor_efficiency(p, x, ext, omega, T, Q):
+    i = int(p[0]) - 1
+    if 0 <= i < T.shape[0]:
+        T[i] *= p[1]
+        Q[i] *= p[1]
+
+
+@njit(cache=True)
+def _k_ground_effect(p, x, ext, omega, T, Q):
+    h = x[2]
+    if h < 0.0:
+        h = 0.0
+    gain = 1.0 + p[0] * np.exp(-h / p[1])
+    for i in range(T.shape[0]):
+        T[i] *= gain
+
+
+# ---------------------------------------------------------------- effect classes
+
+
+class LinearDrag(Effect):
+    name = "linear_drag"
+    param_names = ("k_n_s_m",)
+    defaults = {"k_n_s_m": 0.0}
+    units = {"k_n_s_m": "N/(m/s)"}
+    description = "isotropic drag linear in air-relative velocity, world frame (PX4 SIH_KDV)"
+    wrench_kernel = staticmethod(_k_linear_drag)
+
+
+class AngularDamping(Effect):
+    name = "angular_damping"
+    param_names = ("k_nm_s_rad",)
+    defaults = {"k_nm_s_rad": 0.0}
+    units = {"k_nm_s_rad": "N m/(rad/s)"}
+    description = "moment opposing body rates (PX4 SIH_KDW)"
+    wrench_kernel = staticmethod(_k_angular_damping)
+
+
+class RotorDrag(Effect):
+    name = "rotor_drag"
+    param_names = ("k_d",)
+    defaults = {"k_d": 0.0}
+    units = {"k_d": "N/((rad/s)(m/s))"}
+    description = "in-plane rotor H-force drag, proportional to summed rotor speed x in-plane airspeed"
+    wrench_kernel = staticmethod(_k_rotor_drag)
+
+
+class BodyDrag(Effect):
+    name = "body_drag"
+    param_names = ("c_dx", "c_dy", "c_dz")
+    defaults = {"c_dx": 0.0, "c_dy": 0.0, "c_dz": 0.0}
+    units = {"c_dx": "N/(m/s)^2", "c_dy": "N/(m/s)^2", "c_dz": "N/(m/s)^2"}
+    description = "parasitic drag quadratic in air-relative velocity per body axis"
+    wrench_kernel = staticmethod(_k_body_drag)
+
+
+class BatterySag(Effect):
+    name = "battery_sag"
+    param_names = ("v_ref", "exponent")
+    defaults = {"v_ref": 12.6, "exponent": 1.0}
+    units = {"v_ref": "V", "exponent": "-"}
+    description = "rotor speed reached at a given command scales with (V/v_ref)^exponent"
+    command_kernel = staticmethod(_k_battery_sag)
+
+
+class MotorEfficiency(Effect):
+    name = "motor_efficiency"
+    param_names = ("motor", "efficiency")
+    defaults = {"motor": 1.0, "efficiency": 1.0}
+    units = {"motor": "1-based PX4 index", "efficiency": "thrust ratio"}
+    description = "one motor gives a fraction of the thrust (and torque) it should"
+    rotor_kernel = staticmethod(_k_motor_efficiency)
+
+
+class GroundEffect(Effect):
+    name = "ground_effect"
+    param_names = ("coefficient", "height_scale")
+    defaults = {"coefficient": 0.0, "height_scale": 0.5}
+    units = {"coefficient": "-", "height_scale": "m"}
+    description = "thrust multiplied by 1 + coefficient*exp(-height/height_scale) near the ground"
+    rotor_kernel = staticmethod(_k_ground_effect)
+
+
+class ComOffset(Effect):
+    name = "com_offset"
+    param_names = ("dx", "dy")
+    defaults = {"dx": 0.0, "dy": 0.0}
+    units = {"dx": "m (body forward)", "dy": "m (body left)"}
+    description = "centre of mass displaced from the geometric centre the rotors are placed about"
+    wrench_kernel = staticmethod(_k_com_offset)
+
+
+class Wind(Effect):
+    name = "wind"
+    param_names = ("vx", "vy", "gust_std")
+    defaults = {"vx": 0.0, "vy": 0.0, "gust_std": 0.0}
+    units = {"vx": "m/s (ENU east)", "vy": "m/s (ENU north)", "gust_std": "m/s"}
+    description = "steady wind plus first-order (2 s) gusts; acts through the model's drag terms"
+    gust_time_constant_s: ClassVar[float] = 2.0
+
+    def exogenous(self, t, ext, rng):
+        ext = ext.copy()
+        n = len(t)
+        gust = np.zeros((n, 3))
+        if self.params["gust_std"] > 0 and n > 1:
+            dt = float(np.median(np.diff(t)))
+            a = np.exp(-dt / self.gust_time_constant_s)
+            w = rng.standard_normal((n, 3)) * self.params["gust_std"] * np.sqrt(1 - a * a)
+            g = rng.standard_normal(3) * self.params["gust_std"]
+            for i in range(n):
+                g = a * g + w[i]
+                gust[i] = g
+            gust[:, 2] *= 0.3  # vertical gusts are weaker
+        ext[:, EXT_WIND] += self.params["vx"] + gust[:, 0]
+        ext[:, EXT_WIND + 1] += self.params["vy"] + gust[:, 1]
+        ext[:, EXT_WIND + 2] += gust[:, 2]
+        return ext
+
+
+class ActuatorDelay(Effect):
+    name = "actuator_delay"
+    param_names = ("delay",)
+    defaults = {"delay": 0.0}
+    units = {"delay": "s"}
+    description = "pure delay between motor command and rotor response"
+
+    def command_delay_s(self) -> float:
+        return self.params["delay"]
+
+
+class MotorTimeConstant(Effect):
+    name = "motor_time_constant"
+    param_names = ("tau_up", "tau_down")
+    units = {"tau_up": "s", "tau_down": "s"}
+    description = "rotor lag time constants differ from the model"
+
+    def apply_to_params(self, vp):
+        return vp.replace_rotors(tau_up_s=self.params["tau_up"], tau_down_s=self.params["tau_down"])
+
+
+class Mass(Effect):
+    name = "mass"
+    param_names = ("mass",)
+    units = {"mass": "kg"}
+    description = "vehicle heavier or lighter than modelled (payload)"
+
+    def apply_to_params(self, vp):
+        return vp.replace(mass_kg=self.params["mass"])
+
+
+class ThrustCoefficient(Effect):
+    name = "thrust_coefficient"
+    param_names = ("kt_scale",)
+    defaults = {"kt_scale": 1.0}
+    units = {"kt_scale": "ratio"}
+    description = "every rotor gives more/less thrust per command than modelled"
+
+    def apply_to_params(self, vp):
+        r = vp.rotors
+        s = self.params["kt_scale"]
+        # Q = km T, so the reaction torque scales with the thrust too.
+        return vp.replace_rotors(kt_n_s2_rad2=r.kt_n_s2_rad2 * s, thrust_max_n=r.thrust_max_n * s)
+
+
+class YawMoment(Effect):
+    name = "yaw_moment"
+    param_names = ("km",)
+    units = {"km": "m"}
+    description = "rotor reaction-torque constant differs (Q = km T)"
+
+    def apply_to_params(self, vp):
+        return vp.replace_rotors(km_m=self.params["km"])
+
+
+class Inertia(Effect):
+    name = "inertia"
+    param_names = ("ixx", "iyy", "izz")
+    units = {"ixx": "kg m^2", "iyy": "kg m^2", "izz": "kg m^2"}
+    description = "principal moments of inertia differ"
+
+    def apply_to_params(self, vp):
+        inertia = vp.inertia.copy()
+        inertia[0, 0], inertia[1, 1], inertia[2, 2] = (self.params[k] for k in ("ixx", "iyy", "izz"))
+        return vp.replace(inertia_kg_m2=tuple(tuple(float(e) for e in row) for row in inertia))
+
+
+EFFECTS: dict[str, type[Effect]] = {
+    cls.name: cls
+    for cls in (LinearDrag, AngularDamping, RotorDrag, BodyDrag, BatterySag, MotorEfficiency,
+                MotorTimeConstant, ActuatorDelay, Mass, ThrustCoefficient, YawMoment, ComOffset,
+                Wind, GroundEffect, Inertia)
+}
+
+
+def make_effect(name: str, **params: float) -> Effect:
+    if name not in EFFECTS:
+        raise ValueError(f"unknown effect {name!r}; known: {', '.join(sorted(EFFECTS))}")
+    return EFFECTS[name](**params)
+
+
+def effects_from_params(vp: "VehicleParams") -> list[Effect]:
+    return [make_effect(n, **dict(p)) for n, p in vp.effects]
+
+
+def effective_params(vp: "VehicleParams") -> "VehicleParams":
+    """Apply every parameter-type effect in ``vp.effects`` and return the result."""
+    out = vp
+    for eff in effects_from_params(vp):
+        out = eff.apply_to_params(out)
+    return out
+
+
+def replace_params(eff: Effect, **changes: float) -> Effect:
+    new = dict(eff.params)
+    new.update(changes)
+    return type(eff)(**new)
+
+
+__all__ = ["Effect", "EFFECTS", "EXT_SIZE", "default_ext", "make_effect", "effects_from_params",
+           "effective_params", "replace_params"]
