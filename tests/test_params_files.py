@@ -1,0 +1,247 @@
+"""Shipped files under params/, bad params files, and the ``rotortwin params`` CLI.
+
+``params/derive_*.yaml`` are derivation specs (inputs of ``rotortwin params
+derive``), every other ``params/*.yaml`` is a vehicle params file.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from twin_nodes.cli import main
+from twin_nodes.derive import RPM_TO_RAD_S, derive_file
+from twin_nodes.errors import ParamsError
+from twin_nodes.params import VehicleParams, load_params
+
+PARAMS = Path(__file__).resolve().parent.parent / "params"
+SPECS = sorted(PARAMS.glob("derive_*.yaml"))
+PARAM_FILES = sorted(p for p in PARAMS.glob("*.yaml") if not p.name.startswith("derive_"))
+
+
+def test_there_are_files():
+    names = {p.name for p in PARAM_FILES}
+    assert {"buho_negro.yaml", "px4_sih_quadx.yaml", "quad_c_3dr.yaml"} <= names
+    assert {"derive_buho_negro.yaml", "derive_quad_c_3dr.yaml"} <= {p.name for p in SPECS}
+
+
+@pytest.mark.parametrize("path", PARAM_FILES, ids=lambda p: p.name)
+def test_every_params_file_loads(path):
+    vp = load_params(path)
+    assert vp.mass_kg > 0
+    assert 0.0 < vp.hover_command < 1.0
+
+
+@pytest.mark.parametrize("path", SPECS, ids=lambda p: p.name)
+def test_every_spec_derives(path):
+    d = derive_file(path)
+    assert isinstance(d.params, VehicleParams)
+
+
+def _assert_same(a: VehicleParams, b: VehicleParams, rel: float, abs_pos: float) -> None:
+    assert a.name == b.name
+    assert a.mass_kg == pytest.approx(b.mass_kg, rel=rel)
+    np.testing.assert_allclose(a.inertia, b.inertia, rtol=rel, atol=1e-15)
+    ra, rb = a.rotors, b.rotors
+    np.testing.assert_allclose(ra.positions_flu_m, rb.positions_flu_m, atol=abs_pos)
+    assert ra.direction == rb.direction
+    assert ra.thrust_model == rb.thrust_model
+    for f in ("kt_n_s2_rad2", "km_m", "omega_min_rad_s", "omega_cmd_max_rad_s", "omega_max_rad_s",
+              "tau_up_s", "tau_down_s"):
+        assert getattr(ra, f) == pytest.approx(getattr(rb, f), rel=rel), f
+
+
+def test_buho_spec_reproduces_buho_params():
+    # buho_negro.yaml was written by hand from the paper (positions to 6 decimals).
+    _assert_same(derive_file(PARAMS / "derive_buho_negro.yaml").params,
+                 load_params(PARAMS / "buho_negro.yaml"), rel=1e-9, abs_pos=1e-6)
+
+
+def test_buho_paper_numbers_from_spec():
+    d = derive_file(PARAMS / "derive_buho_negro.yaml")
+    r = d.params.rotors
+    assert r.kt_n_s2_rad2 == pytest.approx(2.4066e-4, rel=1e-3)
+    assert r.omega_max_rad_s == pytest.approx(487.0, abs=1.0)
+    assert r.tau_up_s == pytest.approx(0.0227, abs=5e-4)
+    assert r.tau_down_s == pytest.approx(0.028, abs=1e-9)
+    assert r.omega_min_rad_s == pytest.approx(97.4)
+    assert r.omega_cmd_max_rad_s == pytest.approx(462.65)
+    assert d.value("omega_hover_rad_s") == pytest.approx(244.4, abs=0.1)
+    assert d.value("thrust_to_weight_at_cmd_max") == pytest.approx(3.58, abs=0.01)
+
+
+def test_quad_c_spec_regenerates_quad_c_params_exactly():
+    _assert_same(derive_file(PARAMS / "derive_quad_c_3dr.yaml").params,
+                 load_params(PARAMS / "quad_c_3dr.yaml"), rel=1e-12, abs_pos=1e-15)
+
+
+def test_quad_c_numbers():
+    d = derive_file(PARAMS / "derive_quad_c_3dr.yaml")
+    vp = d.params
+    r = vp.rotors
+    assert r.tau_up_s == 0.15 and r.tau_down_s == 0.15
+    # kt from the datasheet point: 1.380 kg-force at 7350 rpm.
+    assert r.kt_n_s2_rad2 == pytest.approx(1.380 * 9.80665 / (7350 * RPM_TO_RAD_S) ** 2, rel=1e-4)
+    # Mass that kt carries at 3745 rpm (ref 2: kt = m g / (4 w_h^2)).
+    assert vp.mass_kg == pytest.approx(1.433, abs=1e-3)
+    assert vp.hover_omega_rad_s / RPM_TO_RAD_S == pytest.approx(3745, abs=2)
+    # PWM map: 3745 + 6.5 (pwm - 1425) rpm over 1000..2000 us; hover command = (1425-1000)/1000.
+    assert r.omega_min_rad_s / RPM_TO_RAD_S == pytest.approx(982.5, abs=0.5)
+    assert r.omega_cmd_max_rad_s / RPM_TO_RAD_S == pytest.approx(7482.5, abs=0.5)
+    assert vp.hover_command == pytest.approx(0.425, abs=1e-3)
+    slope = (r.omega_cmd_max_rad_s - r.omega_min_rad_s) / 1000.0 / RPM_TO_RAD_S
+    assert slope == pytest.approx(6.5, abs=1e-3)
+    # Inertia from shapes: symmetric, Izz about the sum of Ixx and Iyy for a flat frame.
+    i = vp.inertia
+    assert i[0, 0] == i[1, 1] and np.count_nonzero(i - np.diag(np.diag(i))) == 0
+    assert i[0, 0] == pytest.approx(0.01948) and i[2, 2] == pytest.approx(0.03511)
+    assert d.value("stack_mass_kg") == pytest.approx(0.893)
+    assert any("above the stated maximum" in n for n in d.notes)
+
+
+# --------------------------------------------------------------------------- bad params files
+
+
+def _buho_doc() -> dict:
+    return yaml.safe_load((PARAMS / "buho_negro.yaml").read_text())
+
+
+def _write(tmp_path: Path, doc, name="bad.yaml") -> Path:
+    p = tmp_path / name
+    p.write_text(doc if isinstance(doc, str) else yaml.safe_dump(doc))
+    return p
+
+
+def _params(doc: dict) -> dict:
+    return doc["/**"]["ros__parameters"]
+
+
+def _mutate_missing(d):
+    del _params(d)["rotors"]["kt_n_s2_rad2"]
+
+
+def _mutate_negative_mass(d):
+    _params(d)["vehicle"]["mass_kg"] = -5.86
+
+
+def _mutate_inertia(d):
+    _params(d)["vehicle"]["ixy_kg_m2"] = 0.5
+
+
+def _mutate_omega(d):
+    _params(d)["rotors"]["omega_min_rad_s"] = 470.0
+
+
+def _mutate_unknown(d):
+    _params(d)["vehicle"]["masss_kg"] = 5.0
+
+
+BAD = [
+    ("missing key", _mutate_missing, "rotors.kt_n_s2_rad2", "missing"),
+    ("negative mass", _mutate_negative_mass, "vehicle.mass_kg", "expected > 0"),
+    ("inertia not positive definite", _mutate_inertia, "vehicle.ixx_kg_m2", "inertia tensor must be positive definite"),
+    ("omega_min >= omega_cmd_max", _mutate_omega, "rotors.omega_min_rad_s",
+     "expected omega_min_rad_s < omega_cmd_max_rad_s"),
+    ("unknown key", _mutate_unknown, "vehicle.masss_kg", "unknown key"),
+]
+
+
+@pytest.mark.parametrize("what,mutate,key,expected", BAD, ids=[b[0] for b in BAD])
+def test_bad_params_file(tmp_path, what, mutate, key, expected):
+    doc = _buho_doc()
+    mutate(doc)
+    path = _write(tmp_path, doc)
+    with pytest.raises(ParamsError, match=re.escape(f"{path}: {key}: {expected}")) as info:
+        load_params(path)
+    assert "\n" not in str(info.value)
+    assert info.value.key == key
+
+
+def test_not_yaml(tmp_path):
+    path = _write(tmp_path, "/**:\n  ros__parameters:\n    vehicle: [unclosed\n")
+    with pytest.raises(ParamsError, match=re.escape(f"{path}: line ") + r"\d+: not valid YAML") as info:
+        load_params(path)
+    assert "\n" not in str(info.value)
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def test_cli_check(capsys):
+    assert main(["params", "check", str(PARAMS / "buho_negro.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "244.33 rad/s" in out and "0.4023" in out and "3.586" in out
+
+
+def test_cli_derive_writes_everything(tmp_path, capsys):
+    out, sdf, px4, af = (tmp_path / n for n in ("p.yaml", "m.sdf", "p.params", "airframe"))
+    rc = main(["params", "derive", str(PARAMS / "derive_buho_negro.yaml"), "--out", str(out),
+               "--sdf", str(sdf), "--px4", str(px4), "--airframe", str(af)])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "kt1 (D2/D1)^3 (P2/P1)" in printed and "omega_hover_rad_s" in printed
+    _assert_same(load_params(out), load_params(PARAMS / "buho_negro.yaml"), rel=1e-9, abs_pos=1e-6)
+    assert sdf.read_text().count("<plugin ") == 4
+    assert "SIM_GZ_EC_MAX4\t463\t6" in px4.read_text()
+    assert "param set-default CA_ROTOR3_KM -0.0238" in af.read_text()
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_cli_export(tmp_path):
+    sdf = tmp_path / "m.sdf"
+    assert main(["params", "export", str(PARAMS / "quad_c_3dr.yaml"), "--sdf", str(sdf)]) == 0
+    assert "<motorConstant>2.2844e-05</motorConstant>" in sdf.read_text()
+
+
+@pytest.mark.parametrize("what,mutate,key,expected", BAD[:2], ids=[b[0] for b in BAD[:2]])
+def test_cli_bad_params_file_writes_nothing(tmp_path, capsys, what, mutate, key, expected):
+    doc = _buho_doc()
+    mutate(doc)
+    bad = _write(tmp_path, doc)
+    sdf = tmp_path / "out.sdf"
+    sdf.write_text("keep me")  # an existing output must not be overwritten
+    px4 = tmp_path / "out.params"
+    assert main(["params", "export", str(bad), "--sdf", str(sdf), "--px4", str(px4)]) != 0
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"rotortwin: error: {bad}: {key}: {expected}")
+    assert "\n" not in err
+    assert sdf.read_text() == "keep me"
+    assert not px4.exists()
+    assert main(["params", "check", str(bad)]) != 0
+
+
+def test_cli_bad_spec_writes_nothing(tmp_path, capsys):
+    spec = yaml.safe_load((PARAMS / "derive_buho_negro.yaml").read_text())
+    spec["torque"]["km_m"] = -0.1
+    bad = _write(tmp_path, spec, "spec.yaml")
+    out = tmp_path / "p.yaml"
+    out.write_text("keep me")
+    sdf = tmp_path / "p.sdf"
+    assert main(["params", "derive", str(bad), "--out", str(out), "--sdf", str(sdf)]) != 0
+    err = capsys.readouterr().err
+    assert f"{bad}: torque.km_m: expected >= 0" in err
+    assert out.read_text() == "keep me" and not sdf.exists()
+
+
+def test_cli_bad_output_dir_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "p.yaml"
+    rc = main(["params", "derive", str(PARAMS / "derive_buho_negro.yaml"), "--out", str(out),
+               "--sdf", str(tmp_path / "missing" / "m.sdf")])
+    assert rc != 0
+    assert "does not exist" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_cli_entry_point_exit_code(tmp_path):
+    bad = _write(tmp_path, "vehicle: [", "bad.yaml")
+    res = subprocess.run([sys.executable, "-m", "twin_nodes", "params", "check", str(bad)],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"rotortwin: error: {bad}: line ")

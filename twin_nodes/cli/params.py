@@ -1,0 +1,154 @@
+"""``rotortwin params``: derive, check and export vehicle parameter files.
+
+::
+
+    rotortwin params derive SPEC.yaml [--out P.yaml] [--sdf OUT.sdf] [--px4 OUT.params] [--airframe OUT]
+    rotortwin params check P.yaml
+    rotortwin params export P.yaml [--sdf OUT.sdf] [--px4 OUT.params] [--airframe OUT]
+
+``derive`` runs the Búho Negro pipeline (:mod:`twin_nodes.derive`) on a
+derivation spec and prints each derived quantity with its formula; ``--out``
+writes the params file (with the table as its comment header).  ``--sdf``
+writes the Gazebo motor plugin blocks, ``--px4`` a QGroundControl ``.params``
+table and ``--airframe`` ``param set-default`` lines (:mod:`twin_nodes.export_px4`).
+
+Every output is prepared and every output path checked before anything is
+written, so a bad input leaves no file behind and overwrites nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+from twin_nodes.derive import derivation_header, derive, load_spec
+from twin_nodes.errors import ParamsError
+from twin_nodes.export_px4 import px4_airframe_script, qgc_params_table, sdf_motor_plugins
+from twin_nodes.params import VehicleParams, load_params, write_params
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("params", help="derive, check and export vehicle parameter files",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="params_command", metavar="ACTION")
+    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+
+    d = sub.add_parser("derive", help="run the parameter pipeline on a derivation spec")
+    d.add_argument("spec", help="derivation spec YAML (e.g. params/derive_buho_negro.yaml)")
+    d.add_argument("--out", help="write the derived params YAML here")
+    _export_args(d)
+    d.set_defaults(func=_cmd_derive)
+
+    c = sub.add_parser("check", help="validate a params file and print hover speed, command and T/W")
+    c.add_argument("params", help="params YAML")
+    c.set_defaults(func=_cmd_check)
+
+    e = sub.add_parser("export", help="write Gazebo SDF motor plugins and PX4 parameters for a params file")
+    e.add_argument("params", help="params YAML")
+    _export_args(e)
+    e.set_defaults(func=_cmd_export)
+
+
+def _export_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sdf", help="write MulticopterMotorModel <plugin> blocks here")
+    p.add_argument("--px4", help="write a QGroundControl .params table here")
+    p.add_argument("--airframe", help="write PX4 airframe 'param set-default' lines here")
+
+
+def _summary(vp: VehicleParams) -> str:
+    r = vp.rotors
+    tw = r.count * r.thrust_at_full_command_n / (vp.mass_kg * vp.gravity_m_s2)
+    rows = [
+        ("file", vp.source),
+        ("name", vp.name),
+        ("rotors", f"{r.count} ({r.thrust_model})"),
+        ("mass", f"{vp.mass_kg:.4g} kg"),
+        ("hover omega", f"{vp.hover_omega_rad_s:.2f} rad/s ({vp.hover_omega_rad_s * 60 / 6.283185307179586:.0f} rpm)"
+                        + ("" if r.thrust_model == "omega_squared" else ", reported speed only")),
+        ("hover command", f"{vp.hover_command:.4f} (of 0..1)"),
+        ("T/W at full command", f"{tw:.3f}"),
+        ("thrust per rotor at full", f"{r.thrust_at_full_command_n:.4g} N"),
+    ]
+    w = max(len(k) for k, _ in rows)
+    return "\n".join(f"{k:<{w}}  {v}" for k, v in rows)
+
+
+def _exports(vp: VehicleParams, args: argparse.Namespace) -> list[tuple[str, str]]:
+    out = []
+    if args.sdf:
+        out.append((args.sdf, sdf_motor_plugins(vp)))
+    if args.px4:
+        out.append((args.px4, qgc_params_table(vp)))
+    if args.airframe:
+        out.append((args.airframe, px4_airframe_script(vp)))
+    return out
+
+
+def _check_targets(paths: list[str]) -> None:
+    """Fail before writing anything if any output cannot be written."""
+    seen: set[str] = set()
+    for path in paths:
+        real = os.path.realpath(path)
+        if real in seen:
+            raise ParamsError(path, "<output>", "the same output file is named twice")
+        seen.add(real)
+        p = Path(path)
+        if p.is_dir():
+            raise ParamsError(path, "<output>", "is a directory, expected a file path")
+        parent = p.parent if str(p.parent) else Path(".")
+        if not parent.is_dir():
+            raise ParamsError(path, "<output>", f"directory {str(parent)!r} does not exist")
+        if not os.access(parent, os.W_OK):
+            raise ParamsError(path, "<output>", f"directory {str(parent)!r} is not writable")
+
+
+def _write_text(path: str, text: str) -> None:
+    tmp = Path(path + ".tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        tmp.replace(path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise ParamsError(path, "<output>", f"cannot write ({exc.strerror or exc})") from None
+
+
+def _cmd_derive(args: argparse.Namespace) -> int:
+    spec = load_spec(args.spec)
+    d = derive(spec, args.spec)
+    exports = _exports(d.params, args)
+    targets = ([args.out] if args.out else []) + [p for p, _ in exports]
+    _check_targets(targets)
+    print(d.table())
+    print()
+    print(_summary(d.params))
+    notes = spec.get("notes", "")
+    if args.out:
+        header = derivation_header(d, args.spec, notes if isinstance(notes, str) else "")
+        try:
+            write_params(d.params, args.out, header)
+        except OSError as exc:
+            raise ParamsError(args.out, "<output>", f"cannot write ({exc.strerror or exc})") from None
+        print(f"wrote {args.out}")
+    for path, text in exports:
+        _write_text(path, text)
+        print(f"wrote {path}")
+    return 0
+
+
+def _cmd_check(args: argparse.Namespace) -> int:
+    vp = load_params(args.params)
+    print(_summary(vp))
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    vp = load_params(args.params)
+    exports = _exports(vp, args)
+    if not exports:
+        raise ParamsError(args.params, "<arguments>", "nothing to export: give --sdf, --px4 and/or --airframe")
+    _check_targets([p for p, _ in exports])
+    for path, text in exports:
+        _write_text(path, text)
+        print(f"wrote {path}")
+    return 0
