@@ -89,7 +89,7 @@ def _generate_source(kinds: Sequence[type[Effect]]) -> str:
 import numpy as np
 from numba import njit
 from twin_nodes.physics.core import (quat_to_R, command_to_ref, rotor_outputs, rotor_wrench,
-                                     rigid_body, post_step, NX_BODY, I_N, I_MASS, I_G)
+                                     rigid_body, post_step, NX_BODY, I_N, I_MASS, I_G, I_TUP, I_TDN)
 {"from twin_nodes.physics.effects import " + imp if imp else ""}
 
 N_TERMS = {len(term_calls) + 1}
@@ -168,6 +168,29 @@ def step_batch(PB{ebatch_sig}, X, U, EXT, dt, nsub):
 
 
 @njit(cache=True)
+def rotor_states(P{eargs}, U, EXT, dt, delay_steps, s0):
+    """Rotor states (T, N) from commands U (T, N) on a uniform grid of step dt: command hooks,
+    a pure delay of delay_steps samples, then the first-order lag (exact for a held reference)."""
+    n = int(P[I_N])
+    nt = U.shape[0]
+    S = np.empty((nt, n))
+    s = s0.copy()
+    sref = np.empty(n)
+    a_up = 1.0 - np.exp(-dt / P[I_TUP]) if P[I_TUP] > 1e-9 else 1.0
+    a_dn = 1.0 - np.exp(-dt / P[I_TDN]) if P[I_TDN] > 1e-9 else 1.0
+    for t in range(nt):
+        S[t] = s
+        k = t - delay_steps
+        if k < 0:
+            k = 0
+        reference(P{eargs}, U[k], EXT[k], sref)
+        for i in range(n):
+            e = sref[i] - s[i]
+            s[i] += e * (a_up if e > 0.0 else a_dn)
+    return S
+
+
+@njit(cache=True)
 def specific_force(P{eargs}, x, u, ext):
     """Accelerometer reading (specific force) in body FLU [m/s^2]."""
     n = int(P[I_N])
@@ -221,8 +244,14 @@ def wrench_terms(P{eargs}, X, EXT, F, M):
 {term_block}'''
 
 
+_BY_KINDS: dict[tuple, object] = {}
+
+
 def _load_generated(kinds: Sequence[type[Effect]]):
     """Import (generating if needed) the stepper module for this ordered set of effect kinds."""
+    kinds_key = tuple(kinds)
+    if kinds_key in _BY_KINDS:
+        return _BY_KINDS[kinds_key]
     key_src = _generate_source(kinds)
     # The cache key covers the generated text and the kernels it calls, so an edited
     # kernel never runs from a stale numba cache.
@@ -243,6 +272,7 @@ def _load_generated(kinds: Sequence[type[Effect]]):
     sys.modules[modname] = mod
     spec.loader.exec_module(mod)
     _GENERATED[digest] = mod
+    _BY_KINDS[kinds_key] = mod
     return mod
 
 

@@ -1,0 +1,120 @@
+"""The candidate library: each missing-physics hypothesis as (parameters, bounds, build).
+
+A candidate turns a parameter vector into a changed vehicle (the nominal one
+plus one effect from :mod:`twin_nodes.physics.effects`).  Its *resolution floor*
+is the smallest change that the measurement chain can tell apart from the
+nominal model, from physical reasoning, not from any generator:
+
+- scale-type effects (mass, thrust, inertia, efficiency, km): a MEMS
+  accelerometer's scale-factor tolerance and ESC-to-ESC thrust spread are about
+  2 %, so a change under 3 % is not claimed;
+- time effects (delay, time constants): nothing shorter than one logging
+  interval of the motor topic can be resolved from the log;
+- aerodynamic effects: they must change the force by at least 1 % of the
+  weight at the flight's own speeds;
+- offsets: a CoM offset must move the hover moment by 1 % of the arm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from twin_nodes.params import VehicleParams
+from twin_nodes.physics.effects import EFFECTS, effective_params
+
+
+@dataclass
+class Candidate:
+    name: str                      # effect name (physics/effects.py vocabulary)
+    param_names: tuple[str, ...]   # names of the fitted parameters (the effect's own)
+    x0: np.ndarray                 # initial guess = the nominal (no-effect) value
+    lower: np.ndarray
+    upper: np.ndarray
+    build: Callable[[np.ndarray], VehicleParams]   # theta -> vehicle with the effect
+    fixed: dict                    # effect parameters that are not fitted (e.g. motor index)
+    floor: Callable[[np.ndarray], bool]            # theta -> True if the change is resolvable
+    label: str = ""
+
+    def params_dict(self, theta: np.ndarray) -> dict[str, float]:
+        out = {k: float(v) for k, v in self.fixed.items()}
+        out.update({k: float(v) for k, v in zip(self.param_names, theta)})
+        # present them in the effect's declared order
+        order = EFFECTS[self.name].param_names
+        return {k: out[k] for k in order if k in out}
+
+
+def _rel(a: float, b: float) -> float:
+    return abs(a - b) / max(abs(b), 1e-12)
+
+
+def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
+    """Every applicable candidate for this vehicle and this flight's data."""
+    nominal = effective_params(vp)
+    r = nominal.rotors
+    n = r.count
+    arm = float(np.median(np.hypot(r.x_flu_m, r.y_flu_m)))
+    inertia = nominal.inertia
+    weight = nominal.mass_kg * nominal.gravity_m_s2
+    speed = np.linalg.norm(data.v[data.valid], axis=1)
+    v_typ = float(np.percentile(speed, 90)) if speed.size else 0.0
+    omega_hover = nominal.hover_omega_rad_s
+    dt_log = max(data.motor_dt_s, data.dt)
+    existing = {name for name, _ in vp.effects}
+    out: list[Candidate] = []
+
+    def add(name, pnames, x0, lo, hi, floor, fixed=None, label=""):
+        if name in existing:
+            return  # already modelled: refitting it is the user's nominal, not missing physics
+        fixed = dict(fixed or {})
+
+        def build(theta, name=name, pnames=pnames, fixed=fixed):
+            params = dict(fixed)
+            params.update({k: float(v) for k, v in zip(pnames, theta)})
+            return vp.with_effect(name, **params)
+
+        out.append(Candidate(name, tuple(pnames), np.asarray(x0, float), np.asarray(lo, float),
+                             np.asarray(hi, float), build, fixed, floor, label or name))
+
+    m0 = nominal.mass_kg
+    lift_kg = n * r.thrust_at_full_command_n / nominal.gravity_m_s2  # the rotors must still lift it
+    add("mass", ["mass"], [m0], [0.4 * m0], [min(3.0 * m0, 0.95 * lift_kg)], lambda th: _rel(th[0], m0) > 0.03)
+    add("thrust_coefficient", ["kt_scale"], [1.0], [max(0.4, 1.05 * m0 / lift_kg)], [2.0],
+        lambda th: abs(th[0] - 1) > 0.03)
+    for i in range(n):
+        add("motor_efficiency", ["efficiency"], [1.0], [0.3], [1.5], lambda th: abs(th[0] - 1) > 0.03,
+            fixed={"motor": float(i + 1)}, label=f"motor_efficiency(motor {i + 1})")
+    tu, td = r.tau_up_s, r.tau_down_s
+    add("motor_time_constant", ["tau_up", "tau_down"], [tu, td], [0.002, 0.002], [max(5 * tu, 0.3), max(5 * td, 0.3)],
+        lambda th: max(abs(th[0] - tu), abs(th[1] - td)) > dt_log)
+    add("actuator_delay", ["delay"], [0.0], [0.0], [0.3], lambda th: th[0] > dt_log)
+    km = r.km_m
+    add("yaw_moment", ["km"], [km], [0.2 * km], [5.0 * km], lambda th: _rel(th[0], km) > 0.03)
+    add("com_offset", ["dx", "dy"], [0.0, 0.0], [-0.3 * arm, -0.3 * arm], [0.3 * arm, 0.3 * arm],
+        lambda th: np.hypot(th[0], th[1]) > 0.01 * arm)
+    ix, iy, iz = inertia[0, 0], inertia[1, 1], inertia[2, 2]
+    add("inertia", ["ixx", "iyy", "izz"], [ix, iy, iz], [0.2 * ix, 0.2 * iy, 0.2 * iz], [5 * ix, 5 * iy, 5 * iz],
+        lambda th: max(_rel(th[0], ix), _rel(th[1], iy), _rel(th[2], iz)) > 0.03)
+    if v_typ > 0.5:
+        kd_floor = 0.01 * weight / (n * omega_hover * v_typ)
+        add("rotor_drag", ["k_d"], [0.0], [0.0], [1000 * kd_floor], lambda th: th[0] > kd_floor)
+        cd_floor = 0.01 * weight / (v_typ ** 2)
+        add("body_drag", ["c_dx", "c_dy", "c_dz"], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0],
+            [500 * cd_floor] * 3, lambda th: max(th) > cd_floor)
+        has_drag = bool(existing & {"linear_drag", "rotor_drag", "body_drag"})
+        if has_drag:
+            # wind acts only through drag; the gust level is estimated after the fit
+            add("wind", ["vx", "vy"], [0.0, 0.0], [-20.0, -20.0], [20.0, 20.0],
+                lambda th: np.hypot(th[0], th[1]) > 0.3, fixed={"gust_std": 0.0})
+    low = data.valid & (data.height < 3.0)
+    if low.sum() > 1.0 / data.dt:  # at least 1 s flown low
+        add("ground_effect", ["coefficient", "height_scale"], [0.0, 0.5], [0.0, 0.05], [2.0, 5.0],
+            lambda th: th[0] * np.exp(-0.3 / max(th[1], 1e-3)) > 0.03)
+    batt = data.battery_v[data.valid]
+    if np.isfinite(batt).mean() > 0.8 and np.nanmax(batt) - np.nanmin(batt) > 0.02 * np.nanmax(batt):
+        vmax = float(np.nanmax(batt))
+        add("battery_sag", ["v_ref", "exponent"], [vmax, 0.0], [0.5 * vmax, 0.0], [2.0 * vmax, 4.0],
+            lambda th, lo=float(np.nanmin(batt)), hi=vmax: abs((lo / th[0]) ** th[1] - (hi / th[0]) ** th[1]) > 0.03)
+    return out

@@ -1,0 +1,213 @@
+"""Equation-error residuals: what the log measured minus what the model says the
+logged motor commands produce, expressed as per-motor thrust errors.
+
+The controller hides most model errors from position, but not from forces: the
+accelerometer measures the specific force and the gyro the rotation, both of
+which the model predicts from the motor commands alone.  For a parameter set
+``vp`` (nominal vehicle + candidate effects) and every sample:
+
+    r_F = m f_meas - F_model                 body force error   [N]   (FLU)
+    r_M = J alpha_meas + w x J w - M_model   body moment error  [N m]
+
+``[r_Fz, r_M]`` is mapped through the allocation pseudo-inverse to one thrust
+error per rotor; rotor and horizontal errors are divided by the nominal
+maximum rotor thrust, so every channel is in *fraction of full motor output*,
+the unit of PX4's motor outputs and throttle.  Channels: ``motor1..N``,
+``force_x``, ``force_y`` (horizontal force / (N T_max)).
+
+All quantities are computed through :class:`~twin_nodes.physics.model.Multirotor`,
+so any effect that plugs into the model is a discovery candidate with no
+separate regression formula.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.signal import butter, savgol_filter, sosfiltfilt
+
+from twin_nodes.control import allocation_matrix
+from twin_nodes.errors import LogError
+from twin_nodes.params import VehicleParams
+from twin_nodes.physics.core import NX_BODY
+from twin_nodes.physics.model import Multirotor
+
+DEFAULT_RATE_HZ = 50.0
+LOWPASS_HZ = 2.0
+
+
+@dataclass
+class EquationData:
+    """A flight log prepared for equation-error identification (uniform grid, ROS frames)."""
+
+    path: str
+    t: np.ndarray                 # (T,) s since log start
+    valid: np.ndarray             # (T,) bool: airborne, not on the ground, data finite
+    p: np.ndarray                 # (T, 3) position ENU
+    v: np.ndarray                 # (T, 3) velocity ENU
+    q: np.ndarray                 # (T, 4) attitude wxyz FLU->ENU
+    w: np.ndarray                 # (T, 3) body rates FLU
+    alpha: np.ndarray             # (T, 3) angular acceleration FLU
+    f: np.ndarray                 # (T, 3) specific force FLU
+    u_fine: np.ndarray            # (T * up, N) commands on the fine grid (NaN stopped)
+    up: int                       # fine-grid oversampling
+    battery_v: np.ndarray         # (T,) V (NaN unknown)
+    height: np.ndarray            # (T,) m above the take-off ground level
+    motor_dt_s: float             # logging interval of the motor topic
+    info: dict = field(default_factory=dict)
+
+    @property
+    def dt(self) -> float:
+        return float(self.t[1] - self.t[0])
+
+    @property
+    def n(self) -> int:
+        return len(self.t)
+
+
+def _lowpass(x: np.ndarray, rate_hz: float, cutoff_hz: float) -> np.ndarray:
+    sos = butter(2, cutoff_hz / (0.5 * rate_hz), output="sos")
+    return sosfiltfilt(sos, x, axis=0)
+
+
+def _fill_nan(x: np.ndarray) -> np.ndarray:
+    """Linear fill of NaN gaps per column (for filtering only; the mask keeps them out)."""
+    x = np.array(x, float, copy=True)
+    if x.ndim == 1:
+        x = x[:, None]
+    idx = np.arange(len(x))
+    for c in range(x.shape[1]):
+        good = np.isfinite(x[:, c])
+        if good.sum() >= 2:
+            x[~good, c] = np.interp(idx[~good], idx[good], x[good, c])
+        else:
+            x[:, c] = 0.0
+    return x
+
+
+def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample: int = 10) -> EquationData:
+    """Resample what equation error needs onto one grid and mark the usable samples."""
+    need = ["position_enu", "velocity_enu", "attitude_q", "motors", "specific_force_flu"]
+    for name in need:
+        log.require(name)
+    rates_name = "body_rates_flu" if log.get("body_rates_flu") is not None else "gyro_flu"
+    log.require(rates_name)
+    t0, t1 = log.airborne_interval()
+    if not t1 - t0 > 5.0:
+        raise LogError(log.path, "vehicle_land_detected", f"expected at least 5 s airborne, got {t1 - t0:.1f} s")
+    # start a little before take-off and end a little after landing: ground effect lives there
+    lo = max(t0 - 2.0, 0.0)
+    hi = min(t1 + 1.0, log.duration_s)
+    names = need + [rates_name] + [n for n in ("battery_v",) if log.get(n) is not None]
+    t, d = log.resample(names, rate_hz, lo, hi)
+    n = len(t)
+    dt = 1.0 / rate_hz
+    # high-rate IMU: average down before resampling would be ideal; low-pass the grid instead
+    f = _lowpass(_fill_nan(d["specific_force_flu"]), rate_hz, min(10.0, 0.4 * rate_hz))
+    w = _fill_nan(d[rates_name])
+    # Angular acceleration from the body rates (Savitzky-Golay, 0.2 s).  PX4's own
+    # vehicle_angular_velocity.xyz_derivative is the D-term's filtered derivative: on the
+    # SIH logs its roll axis even anti-correlates with the true moment, so it is not used.
+    win = max(int(round(0.2 * rate_hz)) | 1, 5)
+    alpha = savgol_filter(w, win, 2, deriv=1, delta=dt, axis=0)
+    # commands on a fine grid: linear between logged samples, NaN (stopped) kept
+    ms = log.require("motors")
+    t_fine = lo + np.arange(n * oversample) * (dt / oversample)
+    u_fine = np.empty((len(t_fine), ms.values.shape[1]))
+    for i in range(ms.values.shape[1]):
+        col = ms.values[:, i]
+        fin = np.isfinite(col)
+        u_fine[:, i] = np.interp(t_fine, ms.t_s[fin], col[fin]) if fin.sum() >= 2 else np.nan
+        stopped = np.interp(t_fine, ms.t_s, (~fin).astype(float)) > 0.5
+        u_fine[stopped, i] = np.nan
+    motor_dt = float(np.median(np.diff(ms.t_s))) if len(ms.t_s) > 1 else dt
+    p = d["position_enu"]
+    # ground level: median height while landed before take-off (or the lowest airborne height)
+    pre = (t < t0) & np.isfinite(p[:, 2])
+    ground = float(np.median(p[pre, 2])) if pre.sum() > 5 else float(np.nanpercentile(p[:, 2], 1))
+    height = p[:, 2] - ground
+    batt = d["battery_v"].reshape(n) if "battery_v" in d else np.full(n, np.nan)
+    finite = (np.isfinite(p).all(1) & np.isfinite(d["velocity_enu"]).all(1) & np.isfinite(d["attitude_q"]).all(1)
+              & np.isfinite(w).all(1) & np.isfinite(f).all(1))
+    u_grid = u_fine[::oversample][:n]
+    armed = np.isfinite(u_grid).all(1)
+    data = EquationData(path=log.path, t=t, valid=finite & armed, p=p, v=d["velocity_enu"], q=d["attitude_q"],
+                        w=w, alpha=alpha, f=f, u_fine=u_fine, up=oversample, battery_v=batt, height=height,
+                        motor_dt_s=motor_dt, info={"airborne": (t0, t1), "ground_enu_z": ground})
+    # exclude ground contact: low, slow, and the model's thrust well below the weight
+    model = Multirotor(vp)
+    S = model_rotor_states(model, data)
+    thrust = model.params.rotors.thrust_from_state(np.maximum(S, 0)).sum(1)
+    weight = vp.mass_kg * vp.gravity_m_s2
+    contact = (height < 0.5) & (np.linalg.norm(data.v, axis=1) < 0.3) & (thrust < 0.7 * weight)
+    contact |= height < 0.05
+    # pad contact by 0.5 s either side (touchdown transients)
+    pad = int(round(0.5 * rate_hz))
+    contact = np.convolve(contact.astype(float), np.ones(2 * pad + 1), mode="same") > 0
+    data.valid &= ~contact
+    data.info["contact_samples"] = int(contact.sum())
+    if data.valid.sum() < 5 * rate_hz:
+        raise LogError(log.path, "airborne samples", "expected at least 5 s of usable airborne data")
+    return data
+
+
+def exogenous(model: Multirotor, data: EquationData, n: int, up: int = 1) -> np.ndarray:
+    """Exogenous inputs (battery voltage; wind from a wind effect) on the grid (n samples, step/up)."""
+    t = data.t[0] + np.arange(n) * (data.dt / up)
+    batt = np.interp(t, data.t, _fill_nan(data.battery_v)[:, 0]) if np.isfinite(data.battery_v).any() else None
+    return model.exogenous(t, np.random.default_rng(0), batt)
+
+
+def model_rotor_states(model: Multirotor, data: EquationData) -> np.ndarray:
+    """Rotor states on the grid, from the logged commands through the model's command path."""
+    up = data.up
+    ext = exogenous(model, data, len(data.u_fine), up)
+    dt_f = data.dt / up
+    delay_steps = int(round(model.command_delay_s / dt_f))
+    s0 = np.zeros(model.n_rotors)
+    S = model._mod.rotor_states(model.P, *model.E, np.ascontiguousarray(data.u_fine), np.ascontiguousarray(ext),
+                                dt_f, delay_steps, s0)
+    return S[::up][:data.n]
+
+
+def residual_channels(data: EquationData, vp: VehicleParams, norm_params: VehicleParams | None = None,
+                      extra_effects=(), lowpass_hz: float | None = LOWPASS_HZ) -> np.ndarray:
+    """Residual channels (T, N + 2) in fraction of full motor output (see module doc).
+
+    ``norm_params`` fixes the normalisation and allocation (the nominal vehicle), so
+    candidates are compared in the same units.
+    """
+    model = Multirotor(vp, extra_effects)
+    nominal = norm_params or vp
+    S = model_rotor_states(model, data)
+    X = np.empty((data.n, model.nx))
+    X[:, 0:3] = data.p
+    X[:, 3:6] = data.v
+    X[:, 6:10] = data.q
+    X[:, 10:13] = data.w
+    X[:, NX_BODY:] = S
+    X = np.nan_to_num(X)
+    ext = exogenous(model, data, data.n)
+    terms = model.wrench_terms(X, ext)
+    F = sum(v[0] for v in terms.values())
+    M = sum(v[1] for v in terms.values())
+    mp = model.params
+    J = mp.inertia
+    w = data.w
+    rF = mp.mass_kg * data.f - F
+    rM = data.alpha @ J.T + np.cross(w, w @ J.T) - M
+    A = allocation_matrix(nominal)
+    tmax = nominal.rotors.thrust_at_full_command_n
+    n_rot = nominal.rotors.count
+    per_motor = np.column_stack([rF[:, 2], rM]) @ A.T / tmax
+    horiz = rF[:, :2] / (n_rot * tmax)
+    R = np.column_stack([per_motor, horiz])
+    R = np.where(np.isfinite(R), R, 0.0)
+    if lowpass_hz:
+        R = _lowpass(R, 1.0 / data.dt, lowpass_hz)
+    return R
+
+
+def channel_names(n_rotors: int) -> list[str]:
+    return [f"motor{i + 1}" for i in range(n_rotors)] + ["force_x", "force_y"]
