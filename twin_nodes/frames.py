@@ -277,10 +277,9 @@ def euler_from_quat(q: np.ndarray) -> np.ndarray:
 
 def quat_angle_between(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
     """Rotation angle [rad, 0..pi] between two attitudes; insensitive to ``q ≡ -q``."""
-    a = quat_normalize(q1)
-    b = quat_normalize(q2)
-    d = np.abs(np.sum(a * b, axis=-1))
-    return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))
+    # atan2 of the relative rotation keeps full precision near 0 (arccos does not)
+    rel = quat_multiply(quat_conjugate(quat_normalize(q1)), quat_normalize(q2))
+    return 2.0 * np.arctan2(np.linalg.norm(rel[..., 1:], axis=-1), np.abs(rel[..., 0]))
 
 
 def wrap_pi(angle: np.ndarray) -> np.ndarray:

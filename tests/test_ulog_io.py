@@ -1,0 +1,384 @@
+"""ulog_io.read_ulog on every shared log, bad input, and time_sync (the clock-alignment module).
+
+The frame conversions are checked on real data through physics: the specific
+force rotated to ENU by the attitude, minus gravity, equals d(velocity)/dt; on
+the ground it is +g up; d(position)/dt equals velocity; the mean PWM-derived
+motor command equals the collective thrust command.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import need_log, shared_log, ulog_params
+
+from twin_nodes import frames as F
+from twin_nodes import time_sync as TS
+from twin_nodes import ulog_io as U
+from twin_nodes.errors import LogError
+from twin_nodes.ulog_io import read_ulog
+from twin_nodes.ulog_write import write_px4_ulog
+
+ALL_LOGS = ulog_params("real") + ulog_params("sitl")
+AM = "actuator_motors.control[0..3]"
+PWM0 = "actuator_outputs[0].output[0,1,2,3]"
+#: file stem -> (duration from MANIFEST [s], motor source prefix)
+EXPECTED = {
+    "real_x500v2_mission_rtl": (80.0, PWM0),
+    "real_s500_rcac_mission1": (58.4, PWM0),
+    "real_s500_rcac_mission2": (40.5, PWM0),
+    "real_quadx_v6c_climb35m": (70.4, AM),
+    "real_quadx_v6c_mission_noload": (62.6, AM),
+    "real_quadx_v6c_mission_2hops": (60.6, AM),
+    "real_cubeorange_takeoff_land": (32.8, AM),
+    "sitl_iris_takeoff_land": (31.1, AM),
+    "px4sih_default_triangle": (104.9, AM),
+    "px4sih_default_grid": (139.9, AM),
+}
+CORE = ("position_enu", "velocity_enu", "accel_enu", "attitude_q", "body_rates_flu", "motors",
+        "throttle", "battery_v", "battery_a", "specific_force_flu", "gyro_flu",
+        "setpoint_position_enu", "setpoint_velocity_enu", "setpoint_yaw_enu", "nav_state",
+        "armed", "landed", "hover_thrust")
+
+_CACHE: dict[Path, U.FlightLog] = {}
+
+
+def load(path: Path) -> U.FlightLog:
+    if path not in _CACHE:
+        _CACHE[path] = read_ulog(path)
+    return _CACHE[path]
+
+
+# --------------------------------------------------------------------------- shared logs
+
+
+@pytest.mark.parametrize("log", ALL_LOGS)
+def test_reads_every_shared_log(log):
+    path = need_log(log)
+    t0 = time.perf_counter()
+    fl = read_ulog(path)
+    assert time.perf_counter() - t0 < 3.0
+    _CACHE[path] = fl
+    dur, motor_src = EXPECTED[path.stem]
+    assert abs(fl.duration_s - dur) < 1.0, (fl.duration_s, dur)
+    assert fl.n_motors == 4
+    assert fl.require("motors").source.startswith(motor_src)
+    assert fl.info["sys_name"] == "PX4" and "ver_sw" in fl.info
+    assert isinstance(fl.params["MPC_THR_HOVER"], float)
+    for name in CORE:
+        s = fl.require(name)
+        assert s.values.dtype == np.float64 and s.values.ndim == 2
+        assert s.values.shape[0] == s.t_s.shape[0] > 0
+        assert np.all(np.diff(s.t_s) > 0), name
+        assert s.t_s[0] >= 0 and s.t_s[-1] <= fl.duration_s + 1e-9
+        units, frame, _ = U.SERIES_SPEC[name]
+        assert (s.units, s.frame) == (units, frame)
+    q = fl.require("attitude_q").values
+    assert np.allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-6)
+    m = fl.require("motors").values
+    assert np.all((m[np.isfinite(m)] >= 0) & (m[np.isfinite(m)] <= 1))
+    assert fl.require("motors").values.shape[1] == 4
+
+
+@pytest.mark.parametrize("log", ALL_LOGS)
+def test_frames_and_scaling_consistent_with_physics(log):
+    fl = load(need_log(log))
+    a0, a1 = fl.airborne_interval()
+    assert 0 <= a0 < a1 <= fl.duration_s
+    t, d = fl.resample(["motors", "throttle", "position_enu", "velocity_enu", "attitude_q",
+                        "specific_force_flu"], 10.0, a0 + 3, a1 - 3)
+    # ENU z is up: the vehicle climbed more than 2 m above its lowest point
+    z = fl.require("position_enu").values[:, 2]
+    assert np.nanmax(d["position_enu"][:, 2]) - np.nanmin(z) > 2.0
+    # d(position)/dt = velocity (same frame conversion for both)
+    dpos = np.gradient(d["position_enu"], t, axis=0)
+    assert np.all(np.nanmedian(np.abs(dpos - d["velocity_enu"]), axis=0) < 0.3)
+    # specific force rotated FLU->ENU by the attitude, minus gravity = d(velocity)/dt
+    f_enu = F.quat_rotate(d["attitude_q"], d["specific_force_flu"])
+    resid = f_enu - [0.0, 0.0, 9.81] - np.gradient(d["velocity_enu"], t, axis=0)
+    assert np.all(np.abs(np.nanmedian(resid, axis=0)) < 0.5)
+    # the mean motor command is the collective thrust command
+    mean_motor = np.nanmean(d["motors"], axis=1)
+    assert abs(np.nanmedian(mean_motor - d["throttle"][:, 0])) < 0.02
+    # on the ground before take-off the accelerometer reads +g up
+    if a0 > 1.5:
+        _, g = fl.resample(["attitude_q", "specific_force_flu"], 10.0, 0.5, a0 - 0.5)
+        up = np.nanmedian(F.quat_rotate(g["attitude_q"], g["specific_force_flu"]), axis=0)
+        assert np.allclose(up, [0, 0, 9.81], atol=0.3)
+
+
+def test_stray_late_sample_does_not_inflate_duration():
+    fl = load(shared_log("real", "real_s500_rcac_mission2.ulg"))
+    assert 39.5 < fl.duration_s < 41.5  # pyulog's last_timestamp says 379 s
+    topics = dict(((n, m), (c, r)) for n, m, c, r in
+                  U.list_topics(shared_log("real", "real_s500_rcac_mission2.ulg")))
+    assert topics[("mission", 0)][0] == 1
+    assert 9.0 < topics[("vehicle_local_position", 0)][1] < 11.0
+    assert 45 < topics[("vehicle_angular_velocity", 0)][1] < 55
+
+
+def test_pwm_motor_channels_from_output_functions():
+    """flugdrohne: PWM_AUX_FUNC5..8 = 101,102,104,103 -> ao[1] ch 4,5,7,6; the PWM route
+    agrees with actuator_motors (median 0.0005)."""
+    path = shared_log("real", "real_quadx_v6c_climb35m.ulg")
+    ulog, _ = U._open_ulog(path, list(U.TOPICS))
+    topics, _ = U._load_topics(ulog)
+    warnings: list[str] = []
+    s = U._motors_from_pwm(topics, U._ulog_params(ulog), 4, warnings)
+    assert s is not None and warnings == []
+    assert s.source.startswith("actuator_outputs[1].output[4,5,7,6] (PWM_AUX_FUNCn")
+    am = load(path).require("motors").at(s.t_s)
+    assert np.nanmedian(np.abs(s.values - am)) < 0.002
+
+
+def test_sitl_airborne_groundtruth_and_esc():
+    fl = load(shared_log("sitl", "px4sih_default_triangle.ulg"))
+    a0, a1 = fl.airborne_interval()
+    assert abs(a0 - 9.0) < 0.3 and abs(a1 - 101.9) < 0.3  # MANIFEST: take-off 9.0, landed 101.9
+    t, d = fl.resample(["position_enu", "groundtruth_position_enu", "attitude_q",
+                        "groundtruth_attitude_q"], 5.0, a0, a1)
+    assert np.nanmax(np.linalg.norm(d["position_enu"] - d["groundtruth_position_enu"], axis=1)) < 1.5
+    # tilt agrees closely (body up axis in ENU); EKF heading is off by ~4 deg (median)
+    up_est = F.quat_rotate(d["attitude_q"], [0.0, 0.0, 1.0])
+    up_true = F.quat_rotate(d["groundtruth_attitude_q"], [0.0, 0.0, 1.0])
+    tilt_err = np.degrees(np.arccos(np.clip(np.sum(up_est * up_true, axis=1), -1, 1)))
+    tilt_true = np.degrees(np.arccos(np.clip(up_true[:, 2], -1, 1)))
+    assert np.percentile(tilt_true, 90) > 20.0  # the vehicle really tilts ...
+    assert np.median(tilt_err) < 2.5 and np.percentile(tilt_err, 90) < 4.0  # ... and we agree
+    assert np.degrees(np.median(F.quat_angle_between(d["attitude_q"],
+                                                     d["groundtruth_attitude_q"]))) < 8.0
+
+    iris = load(shared_log("real", "sitl_iris_takeoff_land.ulg"))
+    esc = iris.require("esc_rpm")
+    m = iris.require("motors").at(esc.t_s)
+    ok = np.isfinite(m) & (m > 0.2)
+    assert np.allclose(esc.values[ok] / m[ok], 6000.0, rtol=0.05)  # SITL rpm = control * 6000
+    assert iris.airborne_intervals() == [pytest.approx((16.74, 28.13), abs=0.05)]
+
+
+def test_two_hop_log_has_two_airborne_intervals_and_reset_warning():
+    fl = load(shared_log("real", "real_quadx_v6c_mission_2hops.ulg"))
+    iv = fl.airborne_intervals()
+    assert len(iv) == 2 and iv[0][1] < iv[1][0]
+    assert fl.airborne_interval() == (iv[0][0], iv[1][1])
+    assert any("EKF reset" in w for w in fl.warnings)
+
+
+def test_resample_holds_discrete_and_interpolates():
+    fl = load(shared_log("real", "real_cubeorange_takeoff_land.ulg"))
+    t, d = fl.resample(["position_enu", "landed", "armed", "attitude_q"], 20.0)
+    assert np.allclose(np.diff(t), 0.05)
+    assert set(np.unique(d["landed"][np.isfinite(d["landed"])])) <= {0.0, 1.0}
+    assert np.isfinite(d["landed"]).all()  # re-stamped initial state + hold
+    assert np.allclose(np.linalg.norm(d["attitude_q"], axis=1), 1.0)
+    with pytest.raises(LogError, match=r"groundtruth_position_enu: expected series"):
+        fl.resample(["groundtruth_position_enu"], 10.0)
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(LogError, match=r"nope\.ulg: file: expected an existing ULog file"):
+        read_ulog(tmp_path / "nope.ulg")
+
+
+def test_not_a_ulog(tmp_path):
+    p = tmp_path / "x.ulg"
+    p.write_bytes(b"this is a CSV, not a ULog\n" * 3)
+    with pytest.raises(LogError, match=r"x\.ulg: header: not a ULog: bad magic 74 68 69 73"):
+        read_ulog(p)
+    p.write_bytes(b"ULo")
+    with pytest.raises(LogError, match=r"header: expected a 16-byte ULog header"):
+        read_ulog(p)
+
+
+def _synthetic(tmp_path: Path, name: str = "s.ulg", **extra) -> Path:
+    n = 200
+    t = (np.arange(n) * 10_000 + 5_000_000).astype(np.uint64)
+    topics = {
+        "vehicle_local_position": {"timestamp": t, "x": np.zeros(n), "y": np.zeros(n),
+                                   "z": -np.linspace(0, 5, n), "vx": np.zeros(n),
+                                   "vy": np.zeros(n), "vz": np.zeros(n)},
+        "battery_status": {"timestamp": t[::10], "voltage_v": np.full(n // 10, 12.0),
+                           "current_a": np.full(n // 10, -1.0)},
+    }
+    topics.update(extra)
+    return write_px4_ulog(tmp_path / name, topics, {"MAV_TYPE": 2}, {})
+
+
+def test_missing_topics_are_warnings(tmp_path):
+    fl = read_ulog(_synthetic(tmp_path))
+    assert "position_enu" in fl.series and "attitude_q" not in fl.series
+    assert any(w.startswith("no vehicle_attitude in log: attitude_q unavailable") for w in fl.warnings)
+    assert fl.n_motors == 4  # from MAV_TYPE 2
+    assert np.all(np.isnan(fl.require("battery_a").values))  # -1 = unknown
+    # height fallback for the airborne interval
+    assert fl.airborne_interval()[0] > 0
+    with pytest.raises(LogError, match=r"s\.ulg: attitude_q: expected series 'attitude_q'"):
+        fl.require("attitude_q")
+
+
+def test_no_local_position_is_an_error(tmp_path):
+    p = write_px4_ulog(tmp_path / "b.ulg", {"battery_status": {
+        "timestamp": np.arange(10, dtype=np.uint64) * 1000, "voltage_v": np.ones(10)}}, {}, {})
+    with pytest.raises(LogError, match=r"b\.ulg: vehicle_local_position: expected at least one "
+                                       r"sample .* found topics: battery_status"):
+        read_ulog(p)
+
+
+def test_truncated_real_log(tmp_path):
+    src = shared_log("real", "real_cubeorange_takeoff_land.ulg")
+    data = src.read_bytes()
+    cut = tmp_path / "cut.ulg"
+    cut.write_bytes(data[: len(data) // 2])
+    fl = read_ulog(cut)  # a cut data section loses the tail only
+    assert 5.0 < fl.duration_s < load(src).duration_s - 5.0
+    tiny = tmp_path / "tiny.ulg"
+    tiny.write_bytes(data[:3000])  # inside the definitions section
+    with pytest.raises(LogError, match=r"tiny\.ulg: vehicle_local_position: .*found no data "
+                                       r"messages at all \(file of 3000 bytes: truncated"):
+        read_ulog(tiny)
+
+
+def test_prestart_and_stray_samples(tmp_path):
+    """A sample before the header start is dropped (state topics: re-stamped to 0);
+    one absurdly late sample is dropped with a warning."""
+    n = 100
+    t = (np.arange(n) * 100_000 + 1_000_000).astype(np.uint64)
+    lpos_t = t.copy()
+    lpos_t[-1] = 900_000_000  # stray: 900 s
+    p = write_px4_ulog(tmp_path / "p.ulg", {
+        "vehicle_local_position": {"timestamp": lpos_t, "x": np.arange(n, dtype=float),
+                                   "y": np.zeros(n), "z": np.zeros(n)},
+        "vehicle_status": {"timestamp": np.array([1_000_000, 3_000_000], np.uint64),
+                           "arming_state": np.array([2, 1]), "nav_state": np.array([4, 3])},
+        "vehicle_land_detected": {"timestamp": np.array([1_000_000, 2_000_000], np.uint64),
+                                  "landed": np.array([True, False])},
+    }, {}, {}, start_us=1_000_000)
+    raw = bytearray(p.read_bytes())
+    raw[8:16] = struct.pack("<Q", 1_500_000)  # move the log start after the first samples
+    p.write_bytes(bytes(raw))
+    fl = read_ulog(p)
+    pos = fl.require("position_enu")
+    assert pos.t_s[0] == 0.0 and len(pos) == n - 5 - 1  # 1.0..1.4 s and the stray dropped
+    assert pos.t_s[-1] < 10.0 and fl.duration_s < 10.0
+    assert any("far after the log end" in w for w in fl.warnings)
+    armed = fl.require("armed")
+    assert armed.t_s[0] == 0.0 and armed.values[0, 0] == 1.0  # state at log start kept
+    landed = fl.require("landed")
+    assert landed.t_s.tolist() == [0.0, 0.5] and landed.values[:, 0].tolist() == [1.0, 0.0]
+
+
+def test_duplicate_timestamps_keep_last(tmp_path):
+    t = np.array([1_000_000, 1_100_000, 1_100_000, 1_200_000], np.uint64)
+    p = write_px4_ulog(tmp_path / "d.ulg", {"vehicle_local_position": {
+        "timestamp": t, "x": np.array([0.0, 1.0, 2.0, 3.0]), "y": np.zeros(4), "z": np.zeros(4)}},
+        {}, {})
+    pos = read_ulog(p).require("position_enu")
+    assert pos.t_s.tolist() == pytest.approx([0.0, 0.1, 0.2])
+    assert pos.values[:, 1].tolist() == [0.0, 2.0, 3.0]  # NED x -> ENU y
+
+
+# --------------------------------------------------------------------------- time_sync
+
+
+def test_common_grid():
+    g = TS.common_grid(1.0, 2.0, 10.0)
+    assert len(g) == 11 and g[0] == 1.0 and g[-1] == pytest.approx(2.0)
+    with pytest.raises(ValueError, match=r"rate_hz: expected a finite rate > 0 Hz, got 0"):
+        TS.common_grid(0, 1, 0)
+    with pytest.raises(ValueError, match=r"t1: expected t1 >= t0"):
+        TS.common_grid(2, 1, 10)
+
+
+def test_interp_linear_nan_and_gaps():
+    t = np.array([0.0, 1.0, 2.0, 3.0, 40.0, 41.0])
+    v = np.array([0.0, 1.0, np.nan, 3.0, 40.0, 41.0])
+    out = TS.interp_to(t, v, np.array([-1.0, 0.5, 1.0, 1.5, 3.0, 5.0, 40.5, 42.0]), max_gap_s=2.0)
+    assert np.isnan(out[0]) and np.isnan(out[-1])  # outside
+    assert out[1] == 0.5 and out[2] == 1.0  # on a sample next to a NaN: the sample
+    assert np.isnan(out[3])  # next to NaN
+    assert out[4] == 3.0
+    assert np.isnan(out[5])  # inside the 37 s gap
+    assert out[6] == 40.5
+    # default gap threshold: 10 x median dt
+    assert np.isnan(TS.interp_to(t, v, np.array([5.0]))[0])
+    assert TS.interp_to(t, v, np.array([5.0]), max_gap_s=np.inf)[0] == pytest.approx(5.0)
+
+
+def test_interp_previous_and_nearest_2d():
+    t = np.array([0.0, 1.0, 5.0])
+    v = np.array([[1.0, 10.0], [2.0, 20.0], [3.0, 30.0]])
+    prev = TS.interp_to(t, v, np.array([-0.5, 0.0, 0.9, 4.9, 7.0]), kind="previous")
+    assert np.isnan(prev[0]).all()
+    assert prev[1:, 0].tolist() == [1.0, 1.0, 2.0, 3.0]  # holds after the last sample
+    near = TS.interp_to(t, v, np.array([0.4, 0.6]), kind="nearest")
+    assert near[:, 1].tolist() == [10.0, 20.0]
+    with pytest.raises(ValueError, match=r"kind: expected one of"):
+        TS.interp_to(t, v, t, kind="cubic")
+    with pytest.raises(ValueError, match=r"t_src: expected strictly increasing"):
+        TS.interp_to(np.array([0.0, 0.0]), np.zeros(2), t)
+    with pytest.raises(ValueError, match=r"values: expected shape \(3,\) or \(3, k\)"):
+        TS.interp_to(t, np.zeros(4), t)
+
+
+@pytest.mark.parametrize("kind", ["slerp", "nlerp"])
+def test_interp_quaternion_sign_consistent(kind):
+    q0 = F.quat_from_euler(0.0, 0.0, 0.0)
+    q1 = -F.quat_from_euler(0.0, 0.0, 1.0)  # same as yaw 1 rad, opposite sign
+    out = TS.interp_to(np.array([0.0, 1.0]), np.vstack([q0, q1]), np.linspace(0, 1, 5), kind=kind)
+    yaw = F.euler_from_quat(out)[:, 2]
+    assert np.all(np.diff(yaw) > 0) and yaw[-1] == pytest.approx(1.0)  # shortest path
+    assert np.allclose(np.linalg.norm(out, axis=1), 1.0)
+    assert np.all(np.einsum("ij,ij->i", out[1:], out[:-1]) > 0)  # continuous sign
+    if kind == "slerp":
+        assert yaw[2] == pytest.approx(0.5)
+
+
+def test_align_series_overlap():
+    a = U.Series(np.linspace(0, 10, 101), np.arange(101.0)[:, None], "m", "ENU", "a")
+    b = (np.linspace(5, 20, 16), np.arange(16.0), "previous")
+    t, va, vb = TS.align(a, b, 2.0)
+    assert t[0] == 5.0 and t[-1] == 10.0
+    assert va[:, 0].tolist() == pytest.approx((t * 10).tolist())
+    assert vb.tolist() == pytest.approx(np.floor(t - 5).tolist())
+    with pytest.raises(ValueError, match=r"do not overlap"):
+        TS.align((np.array([0.0, 1.0]), np.zeros(2)), (np.array([2.0, 3.0]), np.zeros(2)), 1.0)
+
+
+def test_pwm_route_with_functions_and_thrust_model(tmp_path):
+    """No actuator_motors: Motor1..4 on AUX channels 3,4,2,1 (PWM_AUX_FUNCn), per-channel
+    MIN/MAX, THR_MDL_FAC 0.3 undone, 900 us and disarmed samples -> NaN."""
+    n = 50
+    t = (np.arange(n) * 20_000 + 1_000_000).astype(np.uint64)
+    u = np.linspace(0.1, 0.9, n)  # normalised thrust we expect back
+    f = 0.3
+    s_out = (-(1 - f) + np.sqrt((1 - f) ** 2 + 4 * f * u)) / (2 * f)  # PX4's inverse model
+    out = np.zeros((n, 16))
+    lo = {3: 1100.0, 4: 1000.0, 2: 1050.0, 1: 1000.0}  # 1-based AUX channel -> PWM_AUX_MINn
+    for motor, ch in enumerate((3, 4, 2, 1)):
+        out[:, ch - 1] = lo[ch] + (2000.0 - lo[ch]) * s_out
+    out[:5, :4] = 900.0  # disarm value
+    out[:, 7] = 1500.0  # a servo
+    params = {"PWM_AUX_FUNC3": 101, "PWM_AUX_FUNC4": 102, "PWM_AUX_FUNC2": 103,
+              "PWM_AUX_FUNC1": 104, "THR_MDL_FAC": f, "CA_ROTOR_COUNT": 4}
+    for ch, v in lo.items():
+        params[f"PWM_AUX_MIN{ch}"] = int(v)
+        params[f"PWM_AUX_MAX{ch}"] = 2000
+    p = write_px4_ulog(tmp_path / "pwm.ulg", {
+        "vehicle_local_position": {"timestamp": t, "x": np.zeros(n), "y": np.zeros(n), "z": np.zeros(n)},
+        "actuator_outputs:1": {"timestamp": t, "noutputs": np.full(n, 8), "output": out},
+        "vehicle_status": {"timestamp": t[[0, 3, 45]], "arming_state": np.array([1, 2, 1]),
+                           "nav_state": np.array([4, 4, 4])},
+    }, params, {})
+    fl = read_ulog(p)
+    m = fl.require("motors")
+    assert m.source.startswith("actuator_outputs[1].output[2,3,1,0] (PWM_AUX_FUNCn")
+    assert "THR_MDL_FAC 0.3 undone" in m.source
+    assert np.isnan(m.values[:5]).all() and np.isnan(m.values[45:]).all()
+    np.testing.assert_allclose(m.values[5:45], np.repeat(u[5:45, None], 4, axis=1), atol=2e-6)
