@@ -67,7 +67,7 @@ def suite(vp: VehicleParams, size: str = "full") -> list[tuple[Hidden, int]]:
         Hidden("com_offset", {"dx": 0.08 * arm, "dy": -0.06 * arm}),
         Hidden("inertia", {"ixx": 1.6 * inertia[0, 0], "iyy": 1.6 * inertia[1, 1], "izz": 1.5 * inertia[2, 2]}),
         Hidden("rotor_drag", {"k_d": 0.06 * weight / (r.count * omega_h * 5.0)}),
-        Hidden("body_drag", {"c_dx": 0.02 * weight, "c_dy": 0.02 * weight, "c_dz": 0.04 * weight}),
+        Hidden("body_drag", {"c_dx": 0.004 * weight, "c_dy": 0.004 * weight, "c_dz": 0.008 * weight}),
         Hidden("wind", {"vx": 3.0, "vy": -2.0, "gust_std": 0.3}),
         Hidden("ground_effect", {"coefficient": 0.4, "height_scale": 0.4}),
         Hidden("battery_sag", {"v_ref": 16.8, "exponent": 1.0}),
@@ -154,9 +154,11 @@ def mission_setpoints(rng: np.random.Generator, rate_hz: float = 25.0):
                 emit(pos, u * v, u * ac, yaw)
             pos = b.copy()
         elif kind == "land":
+            # PX4 lands at MPC_LAND_SPEED, then crawls (MPC_LAND_CRWL 0.3 m/s) the last 1.5 m
             while pos[2] > -0.5:
-                pos[2] -= 0.7 * dt
-                emit(pos, np.array([0, 0, -0.7]), np.zeros(3), yaw)
+                vz = -0.7 if pos[2] > 1.5 else -0.3
+                pos[2] += vz * dt
+                emit(pos, np.array([0, 0, vz]), np.zeros(3), yaw)
             armed_until = tt + 1.5
     t = np.array(t)
     SP = np.full((len(t), 11), np.nan)
