@@ -1,0 +1,132 @@
+"""Twin versus real: put both on one grid and compute the Table-2 metrics (pure; no ROS).
+
+The same functions serve the offline path (``compare_log``: a whole ULog through
+:func:`twin_nodes.twin.run_twin_on_log`) and the live graph (the metrics node
+builds a :class:`~twin_nodes.ulog_io.FlightLog` and a
+:class:`~twin_nodes.twin.TwinRun` from the topics it received and calls
+:func:`align` + :func:`~twin_nodes.metrics.flight_metrics` at the end), so the
+numbers are computed one way only.
+
+What is compared (twin minus real):
+
+- XY, Z: twin position vs the real (EKF) ``position_enu``.
+- throttle: the twin's collective thrust command (``TwinRun.throttle``) vs the
+  real ``throttle`` series (PX4 ``vehicle_thrust_setpoint``; on PX4 <= 1.13
+  ``actuator_controls_0[3]``).
+- motors: the twin's motor commands vs the real ``motors`` (0..1, PX4 order).
+
+Modes: ``closed`` — our PX4-like controller flies the real setpoints (the
+paper's method).  ``open`` — the real motor commands drive the model, re-synced
+to the real state every ``horizon_s``: XY/Z are then the re-synced prediction
+errors, and the twin's motors *are* the real ones by construction (their errors
+are zero and say nothing); the twin's throttle is the mean real motor command.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from twin_nodes import time_sync
+from twin_nodes.metrics import Aligned, flight_metrics
+from twin_nodes.twin import TwinRun, run_twin_on_log
+
+__all__ = ["align", "compare_log", "CompareResult", "OPEN_LOOP_NOTE", "DEFAULT_RATE_HZ", "mask_from_intervals"]
+
+#: default comparison grid [Hz] (the Table-2 numbers are computed on it)
+DEFAULT_RATE_HZ = 50.0
+OPEN_LOOP_NOTE = ("open loop: XY/Z errors are re-synced prediction errors (re-sync every horizon_s); the twin's "
+                  "motor commands are the real ones by construction (held at the twin rate, so motor errors "
+                  "only show resampling), its throttle is the mean real motor command")
+
+
+@dataclass
+class CompareResult:
+    metrics: dict[str, Any]
+    aligned: Aligned
+    run: TwinRun
+
+
+def mask_from_intervals(t: np.ndarray, intervals: list[tuple[float, float]]) -> np.ndarray:
+    """Boolean mask of the times inside any ``[start, end]`` interval."""
+    t = np.asarray(t, float)
+    m = np.zeros(t.shape, bool)
+    for a, b in intervals:
+        m |= (t >= a) & (t <= b)
+    return m
+
+
+def _interp(t_src: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:
+    if len(t_src) == 0:
+        shape = (len(t),) + np.asarray(values).shape[1:]
+        return np.full(shape, np.nan)
+    return time_sync.interp_to(np.asarray(t_src, float), np.asarray(values, float), t, kind="linear")
+
+
+def align(run: TwinRun, log: Any, rate_hz: float = DEFAULT_RATE_HZ, t0: float | None = None,
+          t1: float | None = None, airborne_only: bool = True) -> Aligned:
+    """Twin outputs and the real log on one uniform grid (via :mod:`twin_nodes.time_sync`).
+
+    The grid spans the overlap of the twin run and the real position (clipped to
+    ``[t0, t1]`` when given).  ``mask`` keeps samples where both XY are finite
+    and, with ``airborne_only``, the vehicle is airborne
+    (:meth:`FlightLog.airborne_intervals`: land detector, else armed, else height)."""
+    pos = log.require("position_enu")
+    if len(run.t) == 0:
+        raise ValueError("align: the twin run has no samples (did the log have state data?)")
+    lo = max(float(run.t[0]), float(pos.t_s[0]))
+    hi = min(float(run.t[-1]), float(pos.t_s[-1]))
+    if t0 is not None:
+        lo = max(lo, float(t0))
+    if t1 is not None:
+        hi = min(hi, float(t1))
+    if hi <= lo:
+        raise ValueError(f"align: twin [{run.t[0]:.2f}, {run.t[-1]:.2f}] s and real position "
+                         f"[{pos.t_s[0]:.2f}, {pos.t_s[-1]:.2f}] s do not overlap")
+    t = time_sync.common_grid(lo, hi, rate_hz)
+    p_real = pos.at(t, "linear")
+    x_twin = _interp(run.t, run.x[:, 0:3], t)
+    thr = log.get("throttle")
+    thr_real = thr.at(t, "linear")[:, 0] if thr is not None and len(thr) else np.full(len(t), np.nan)
+    mot = log.get("motors")
+    n = run.motors.shape[1]
+    m_real = mot.at(t, "linear") if mot is not None and len(mot) else np.full((len(t), n), np.nan)
+    if m_real.shape[1] != n:
+        raise ValueError(f"align: the log has {m_real.shape[1]} motors, the twin {n}")
+    thr_twin = _interp(run.t, run.throttle, t)
+    m_twin = _interp(run.t, run.motors, t)
+    mask = np.all(np.isfinite(p_real[:, :2]), axis=1) & np.all(np.isfinite(x_twin[:, :2]), axis=1)
+    notes: list[str] = []
+    if airborne_only:
+        iv = log.airborne_intervals()
+        if iv:
+            mask &= mask_from_intervals(t, iv)
+        else:
+            notes.append("no airborne interval found: the whole overlap is compared")
+    if run.mode == "open":
+        notes.append(OPEN_LOOP_NOTE)
+    return Aligned(t=t, xy_twin=x_twin[:, :2], xy_real=p_real[:, :2], z_twin=x_twin[:, 2], z_real=p_real[:, 2],
+                   throttle_twin=thr_twin, throttle_real=thr_real, motors_twin=m_twin, motors_real=m_real,
+                   mask=mask, mode=run.mode, notes=notes)
+
+
+def compare_log(log: Any, vp: Any, mode: str = "closed", horizon_s: float = 2.0, airborne_only: bool = True,
+                rate_hz: float = DEFAULT_RATE_HZ, progress: bool = False) -> CompareResult:
+    """Run the twin beside a whole log and compute the whole-flight metrics.
+
+    ``log``: :class:`~twin_nodes.ulog_io.FlightLog`; ``vp``: vehicle parameters.
+    Returns :class:`CompareResult` with ``metrics`` (see
+    :func:`~twin_nodes.metrics.flight_metrics`), the aligned series and the run."""
+    run = run_twin_on_log(log, vp, mode=mode, horizon_s=horizon_s, progress=progress)
+    al = align(run, log, rate_hz=rate_hz, airborne_only=airborne_only)
+    m = flight_metrics(al)
+    m["params"] = getattr(vp, "name", "")
+    m["log"] = str(getattr(log, "path", ""))
+    if mode == "open":
+        m["horizon_s"] = float(horizon_s)
+    if not math.isfinite(float(m.get("throttle_rmse", math.nan))) and log.get("throttle") is None:
+        m.setdefault("notes", []).append("the log has no throttle series: throttle metrics are n/a")
+    return CompareResult(metrics=m, aligned=al, run=run)
