@@ -252,6 +252,14 @@ def controller_update(G, C, P, J, A, x, sp, dt, u, info):
         base[i] = A[i, 0] * thrust
         rp[i] = A[i, 1] * tau[0] + A[i, 2] * tau[1]
         yw[i] = A[i, 3] * tau[2]
+    # PX4-style desaturation (airmode off): lower the collective until roll/pitch fit
+    cut = 0.0
+    for i in range(n):
+        if A[i, 0] > 1e-12:
+            cut = max(cut, (base[i] + rp[i] - tmax_r) / A[i, 0])
+    cut = min(cut, thrust)
+    for i in range(n):
+        base[i] -= cut * A[i, 0]
     scale_y = 1.0
     for i in range(n):
         t = base[i] + rp[i] + yw[i]

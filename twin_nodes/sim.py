@@ -49,7 +49,8 @@ class Simulator:
         self.model = Multirotor(vp, extra_effects)
         self.dt = float(dt_s or vp.dt_s)
         self.rng = rng or np.random.default_rng(0)
-        self.ext = default_ext()
+        # steady exogenous inputs from the params' effects (e.g. a wind effect); gusts need fly_closed_loop
+        self.ext = self.model.exogenous(np.zeros(1), self.rng)[0]
         self.t = 0.0
         self.state = self.model.initial_state()
         self._delay = DelayLine(self.model.command_delay_s, self.dt, np.full(self.model.n_rotors, np.nan))

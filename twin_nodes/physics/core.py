@@ -96,6 +96,15 @@ def command_to_ref(P, u, sref):
 
 
 @njit(cache=True)
+def limit_ref(P, sref):
+    """Clamp the reference to omega_max after the command hooks (battery_sag may raise it)."""
+    if P[I_MODE] == 0.0:
+        for i in range(int(P[I_N])):
+            if sref[i] > P[I_WMAX]:
+                sref[i] = P[I_WMAX]
+
+
+@njit(cache=True)
 def rotor_outputs(P, s, omega, T, Q):
     """Rotor speed [rad/s], thrust [N] and reaction torque magnitude [N m] from rotor states."""
     n = int(P[I_N])
