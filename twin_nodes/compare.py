@@ -34,7 +34,8 @@ from twin_nodes import time_sync
 from twin_nodes.metrics import Aligned, flight_metrics
 from twin_nodes.twin import TwinRun, run_twin_on_log
 
-__all__ = ["align", "compare_log", "CompareResult", "OPEN_LOOP_NOTE", "DEFAULT_RATE_HZ", "mask_from_intervals"]
+__all__ = ["align", "compare_log", "CompareResult", "OPEN_LOOP_NOTE", "DEFAULT_RATE_HZ", "mask_from_intervals",
+           "streams_to_log_and_run", "metrics_from_streams"]
 
 #: default comparison grid [Hz] (the Table-2 numbers are computed on it)
 DEFAULT_RATE_HZ = 50.0
@@ -130,3 +131,61 @@ def compare_log(log: Any, vp: Any, mode: str = "closed", horizon_s: float = 2.0,
     if not math.isfinite(float(m.get("throttle_rmse", math.nan))) and log.get("throttle") is None:
         m.setdefault("notes", []).append("the log has no throttle series: throttle metrics are n/a")
     return CompareResult(metrics=m, aligned=al, run=run)
+
+
+def _series_of(t: np.ndarray, v: np.ndarray, units: str, frame: str, source: str, interp: str = "linear"):
+    from twin_nodes.ulog_io import Series
+
+    t = np.asarray(t, float)
+    v = np.asarray(v, float).reshape(len(t), -1)
+    if len(t) > 1:
+        keep = np.concatenate([[True], np.diff(t) > 0])  # strictly increasing for time_sync
+        t, v = t[keep], v[keep]
+    return Series(t, v, units, frame, source, interp)
+
+
+def streams_to_log_and_run(real: dict[str, tuple[np.ndarray, np.ndarray]], twin: dict[str, np.ndarray],
+                           mode: str, n_motors: int, source: str = "topics") -> tuple[Any, TwinRun]:
+    """A :class:`FlightLog` and a :class:`TwinRun` from received topic data (times in s).
+
+    ``real``: ``{'position_enu': (t, (n,3)), 'throttle': (t, (n,)), 'motors': (t, (n,N)),
+    'status': (t, (n,3) [armed, nav_state, landed])}`` (any may be missing);
+    ``twin``: ``{'t': (m,), 'p': (m,3), 'throttle': (m,), 'motors': (m,N)}``.
+    Used by the metrics node and ``rotortwin regress`` so that they compute the
+    whole-flight metrics exactly like the offline :func:`compare_log`."""
+    from twin_nodes.ulog_io import FlightLog
+
+    series = {}
+    if "position_enu" in real:
+        series["position_enu"] = _series_of(*real["position_enu"], "m", "ENU", source)
+    if "throttle" in real:
+        series["throttle"] = _series_of(*real["throttle"], "-", "-", source)
+    if "motors" in real:
+        series["motors"] = _series_of(*real["motors"], "-", "PX4 motor order", source)
+    if "status" in real:
+        t, v = real["status"]
+        v = np.asarray(v, float).reshape(len(t), 3)
+        for i, name in ((0, "armed"), (2, "landed")):
+            ok = np.isfinite(v[:, i])
+            if ok.any():
+                series[name] = _series_of(np.asarray(t)[ok], v[ok, i], "-", "bool", source, "previous")
+    t_all = [float(s.t_s[-1]) for s in series.values() if len(s)]
+    log = FlightLog(path=source, start_us=0, duration_s=max(t_all) if t_all else 0.0, params={}, info={},
+                    series=series, warnings=[], n_motors=n_motors)
+    tt = np.asarray(twin["t"], float)
+    x = np.zeros((len(tt), 13))
+    x[:, 0:3] = np.asarray(twin["p"], float).reshape(len(tt), 3)
+    x[:, 6] = 1.0
+    run = TwinRun(t=tt, x=x, motors=np.asarray(twin["motors"], float).reshape(len(tt), n_motors),
+                  throttle=np.asarray(twin["throttle"], float).reshape(len(tt)),
+                  specific_force=np.zeros((len(tt), 3)), mode=mode)
+    return log, run
+
+
+def metrics_from_streams(real: dict[str, tuple[np.ndarray, np.ndarray]], twin: dict[str, np.ndarray], mode: str,
+                         n_motors: int, rate_hz: float = DEFAULT_RATE_HZ, airborne_only: bool = True,
+                         source: str = "topics") -> CompareResult:
+    """Whole-flight metrics of received topic data (see :func:`streams_to_log_and_run`)."""
+    log, run = streams_to_log_and_run(real, twin, mode, n_motors, source)
+    al = align(run, log, rate_hz=rate_hz, airborne_only=airborne_only)
+    return CompareResult(metrics=flight_metrics(al), aligned=al, run=run)

@@ -1,0 +1,310 @@
+"""What every rotortwin node shares: QoS, the run loop, flow control, time of messages.
+
+Pure helpers (no rclpy at import time): :class:`Timeline` (time of header-less
+replayed messages), :class:`ReorderBuffer` (process inputs in time order).
+rclpy is imported inside the functions that need it.
+
+The graph protocol (see :mod:`msgs_py.topics` for the topics):
+
+1. The replay node publishes the latched ``/replay/plan`` (JSON: the message count
+   of every topic it will publish, the log span) and ``/replay/timeline`` (one
+   ``Float64MultiArray`` per header-less topic: the times of all its messages),
+   then waits until every node in its ``wait_for`` list says ``ready`` on
+   ``/replay/ack`` and all its publishers are matched.
+2. Consumers time header-less message *k* of topic X as ``timeline[X][k]``
+   (per-topic order is kept by reliable QoS with deep queues), header messages by
+   their stamp; they acknowledge the ``/clock`` they processed every
+   ``ack_period_s`` of log time; the replay never gets more than ``window_s``
+   ahead of the slowest one.
+3. ``/replay/done`` ends the replay; a consumer finishes once it also holds every
+   message the plan announced for the topics it subscribes to.
+"""
+
+from __future__ import annotations
+
+import bisect
+import heapq
+import itertools
+import json
+import math
+import os
+import signal
+import sys
+import time
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from msgs_py.topics import ACK_READY, DEPTH
+
+__all__ = ["Timeline", "ReorderBuffer", "reliable_qos", "make_executor", "run_node", "GraphNode",
+           "NS", "declare"]
+
+NS = 1_000_000_000
+
+
+class Timeline:
+    """Times of the messages of header-less topics (from the replay's ``/replay/timeline``).
+
+    ``take(topic)`` returns the time [ns] of the next message of that topic, or None
+    when the topic has no timeline (live data: the caller uses its clock)."""
+
+    def __init__(self) -> None:
+        self._t: dict[str, np.ndarray] = {}
+        self._i: dict[str, int] = {}
+
+    def set(self, topic: str, t_ns: Iterable[int]) -> None:
+        self._t[topic] = np.asarray(list(t_ns) if not isinstance(t_ns, np.ndarray) else t_ns, dtype=np.int64)
+        self._i.setdefault(topic, 0)
+
+    def has(self, topic: str) -> bool:
+        return topic in self._t
+
+    def take(self, topic: str) -> int | None:
+        t = self._t.get(topic)
+        if t is None:
+            return None
+        i = self._i[topic]
+        self._i[topic] = i + 1
+        if i >= len(t):
+            raise IndexError(f"{topic}: message {i + 1} beyond the {len(t)} announced by /replay/timeline")
+        return int(t[i])
+
+
+class ReorderBuffer:
+    """Releases ``(t, item)`` in time order once the watermark has passed ``t + lag``.
+
+    Inputs may arrive out of order by up to ``lag_ns``; equal times keep arrival order."""
+
+    def __init__(self, lag_ns: int):
+        self.lag_ns = int(lag_ns)
+        self._heap: list[tuple[int, int, Any]] = []
+        self._seq = itertools.count()
+        self.watermark = -(2 ** 62)
+        self.released_until = -(2 ** 62)
+        self.late = 0  # items that arrived after their time had been released (processed late)
+
+    def __len__(self) -> int:
+        return len(self._heap)
+
+    def push(self, t_ns: int, item: Any) -> None:
+        if t_ns < self.released_until:
+            self.late += 1
+        heapq.heappush(self._heap, (int(t_ns), next(self._seq), item))
+
+    def advance(self, watermark_ns: int) -> None:
+        self.watermark = max(self.watermark, int(watermark_ns))
+
+    def pop_ready(self, flush: bool = False) -> list[tuple[int, Any]]:
+        lim = 2 ** 62 if flush else self.watermark - self.lag_ns
+        out = []
+        h = self._heap
+        while h and h[0][0] <= lim:
+            t, _, item = heapq.heappop(h)
+            out.append((t, item))
+        if out:
+            self.released_until = max(self.released_until, out[-1][0])
+        return out
+
+
+# ============================================================================ rclpy parts
+
+
+def reliable_qos(depth: int = DEPTH, latched: bool = False) -> Any:
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+def make_executor() -> Any:
+    """rclpy's EventsExecutor (several times faster than the SingleThreadedExecutor for
+    high-rate topics); ``ROTORTWIN_EXECUTOR=single`` selects the classic one."""
+    if os.environ.get("ROTORTWIN_EXECUTOR", "events") == "single":
+        from rclpy.executors import SingleThreadedExecutor
+        return SingleThreadedExecutor()
+    try:
+        from rclpy.experimental import EventsExecutor
+        return EventsExecutor()
+    except ImportError:  # older rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        return SingleThreadedExecutor()
+
+
+def declare(node: Any, name: str, default: Any, description: str = "") -> Any:
+    """Declare a parameter with a description and return its value."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    return node.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+
+
+def run_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
+    """Init rclpy, build the node, spin until it finishes or SIGINT/SIGTERM, clean up.
+
+    Signals only set a flag (rclpy's own handlers are disabled), so the node's
+    ``close()`` runs with the context still alive (the recorder drains and finalises
+    its bag there).  Returns the node's ``exit_code``."""
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    argv = sys.argv if args is None else args
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    stop = {"sig": 0}
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        stop["sig"] = signum
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    node = None
+    code = 0
+    try:
+        try:
+            node = factory()
+        except Exception as exc:  # a clear one-line error, not a traceback
+            from twin_nodes.errors import TwinError
+            if isinstance(exc, (TwinError, ValueError, FileNotFoundError)):
+                print(f"rotortwin node: error: {exc}", file=sys.stderr, flush=True)
+                return 2
+            raise
+        ex = make_executor()
+        ex.add_node(node)
+        node.executor_ref = ex
+        while rclpy.ok() and not stop["sig"] and not node.finished:
+            ex.spin_once(timeout_sec=node.spin_timeout_s)
+            node.step()
+        if stop["sig"]:
+            node.get_logger().info(f"signal {stop['sig']}: stopping")
+        node.close(interrupted=bool(stop["sig"]))
+        code = int(node.exit_code)
+    finally:
+        if node is not None:
+            try:
+                node.destroy_node()
+            except Exception:
+                pass
+        try:
+            rclpy.shutdown()
+        except Exception:
+            pass
+    return code
+
+
+def _node_base() -> type:
+    from rclpy.node import Node
+
+    return Node
+
+
+class GraphNode(_node_base()):  # type: ignore[misc]
+    """Base of the rotortwin nodes: replay flow control, timelines, plan, done handling.
+
+    Subclasses set ``self.inputs`` (the /real topics they count against the plan),
+    implement ``on_clock(t_ns)`` / ``on_finish()`` as needed and may override
+    ``is_ready()``.  ``finished`` ends the run loop, ``exit_code`` is returned."""
+
+    def __init__(self, name: str, consumer: bool = True, **kw: Any):
+        from rclpy.clock import Clock, ClockType
+
+        super().__init__(name, **kw)
+        from msgs_py.topics import msg_class
+
+        self.finished = False
+        self.exit_code = 0
+        self.spin_timeout_s = 0.05
+        self.executor_ref: Any = None
+        self.consumer = consumer
+        self.timeline = Timeline()
+        self.plan: dict[str, Any] | None = None
+        self.replay_done = False
+        self.received: dict[str, int] = {}
+        self.inputs: tuple[str, ...] = ()
+        self.clock_ns: int | None = None
+        self._last_ack = -(2 ** 62)
+        self.ack_period_ns = int(declare(self, "ack_period_s", 0.05,
+                                         "acknowledge the replay clock every this much log time [s]") * NS)
+        self._wall = Clock(clock_type=ClockType.STEADY_TIME)
+        if consumer:
+            q = reliable_qos()
+            latched = reliable_qos(depth=50, latched=True)
+            self._ack_pub = self.create_publisher(msg_class("diagnostic_msgs/msg/KeyValue"), "/replay/ack", q)
+            self.create_subscription(msg_class("rosgraph_msgs/msg/Clock"), "/clock", self._on_clock, q)
+            self.create_subscription(msg_class("std_msgs/msg/String"), "/replay/plan", self._on_plan, latched)
+            self.create_subscription(msg_class("std_msgs/msg/Float64MultiArray"), "/replay/timeline",
+                                     self._on_timeline, latched)
+            self.create_subscription(msg_class("std_msgs/msg/Bool"), "/replay/done", self._on_done, latched)
+            self.create_timer(0.2, self._ready_tick, clock=self._wall)
+
+    # ------------------------------------------------------------------ protocol
+    def wall_timer(self, period_s: float, cb: Callable[[], None]) -> Any:
+        return self.create_timer(period_s, cb, clock=self._wall)
+
+    def is_ready(self) -> bool:
+        return True
+
+    def plan_received(self) -> bool:
+        """The replay's plan and the timelines of all its header-less topics are here."""
+        return self.plan is not None and all(self.timeline.has(t) for t in self.plan.get("headerless", []))
+
+    def _ready_tick(self) -> None:
+        if self.clock_ns is None and self.plan_received() and self.is_ready():
+            from twin_nodes.conversions import ack_msg
+            self._ack_pub.publish(ack_msg(self.get_name(), ACK_READY))
+
+    def _on_clock(self, msg: Any) -> None:
+        from twin_nodes.conversions import ack_msg, clock_ns
+
+        t = clock_ns(msg)
+        self.clock_ns = t if self.clock_ns is None else max(self.clock_ns, t)
+        self.on_clock(t)
+        last = self.plan is not None and t >= int(self.plan.get("t1_ns", 2 ** 62))
+        if t - self._last_ack >= self.ack_period_ns or last:
+            self._last_ack = t
+            self._ack_pub.publish(ack_msg(self.get_name(), str(t)))
+
+    def ack_now(self) -> None:
+        """Acknowledge the latest clock immediately (used at the end of the replay)."""
+        from twin_nodes.conversions import ack_msg
+
+        if self.clock_ns is not None:
+            self._ack_pub.publish(ack_msg(self.get_name(), str(self.clock_ns)))
+
+    def _on_plan(self, msg: Any) -> None:
+        self.plan = json.loads(msg.data)
+
+    def _on_timeline(self, msg: Any) -> None:
+        topic = msg.layout.dim[0].label
+        if not self.timeline.has(topic):
+            self.timeline.set(topic, np.round(np.asarray(msg.data) * NS).astype(np.int64))
+
+    def _on_done(self, msg: Any) -> None:
+        if msg.data:
+            self.replay_done = True
+
+    def count(self, topic: str) -> None:
+        self.received[topic] = self.received.get(topic, 0) + 1
+
+    def inputs_complete(self) -> bool:
+        """The replay is done and every announced message of ``self.inputs`` arrived."""
+        if not self.replay_done or self.plan is None:
+            return False
+        counts = self.plan.get("counts", {})
+        return all(self.received.get(t, 0) >= int(counts.get(t, 0)) for t in self.inputs)
+
+    def stamp_of(self, topic: str) -> int:
+        """Time [ns] of the next header-less message of ``topic``: its timeline entry on
+        replay, else the node's clock now (live)."""
+        t = self.timeline.take(topic)
+        if t is None:
+            return int(self.get_clock().now().nanoseconds)
+        return t
+
+    # ------------------------------------------------------------------ hooks
+    def on_clock(self, t_ns: int) -> None:
+        pass
+
+    def step(self) -> None:
+        """Called after every executor turn."""
+
+    def close(self, interrupted: bool = False) -> None:
+        pass

@@ -1,0 +1,294 @@
+"""Metrics node: live twin-versus-real error topics and the whole-flight totals.
+
+    python -m twin_nodes.nodes.metrics_node --ros-args -p window_s:=5.0 -p json_out:=final.json \
+        -p use_sim_time:=true
+
+Rolling window (``window_s`` of log time, incremental :class:`twin_nodes.metrics.RollingStats`):
+one ``std_msgs/Float64`` per channel and statistic, ``/twin_error/<channel>/<stat>``
+(channels ``xy``, ``z`` [m, suffix ``_m``], ``throttle``, ``motor1..N``
+[fraction]; stats ``rmse``, ``p75``, ``median``, ``max``), plus the same numbers in
+one ``/twin_error/diagnostics`` array, published every ``1/publish_rate_hz`` s of
+log time.  Each twin sample is compared with the real signals interpolated at its
+time, counted only while airborne (``/real/status``: not landed; else armed).
+
+End of flight (replay done, all announced inputs and ``/twin/done`` received):
+the whole-flight metrics computed exactly like ``rotortwin compare``'s offline
+path (:func:`twin_nodes.compare.metrics_from_streams`) are published latched on
+``/twin_error/final_json`` (JSON) and ``/twin_error/final_table`` (Table-2 text)
+and written to ``json_out`` (and the aligned series to ``aligned_out`` .npz)
+when those parameters are set.
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import math
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+from msgs_py.topics import METRIC_STATS, TOPICS, metric_channels, metric_topic, msg_class
+from twin_nodes import conversions as cv
+from twin_nodes.metrics import RollingStats, table2, to_jsonable
+from twin_nodes.nodes.common import NS, GraphNode, declare, reliable_qos, run_node
+
+REAL_INPUTS = ("/real/odom", "/real/throttle", "/real/motors", "/real/status")
+TWIN_INPUTS = ("/twin/odom", "/twin/throttle", "/twin/motors")
+
+
+class _Track:
+    """A growing real signal: times [ns] and values, linear interpolation by bisect."""
+
+    def __init__(self) -> None:
+        self.t: list[int] = []
+        self.v: list[Any] = []
+
+    def add(self, t: int, v: Any) -> None:
+        if self.t and t <= self.t[-1]:
+            if t == self.t[-1]:
+                self.v[-1] = v
+            return  # out of order: the replay keeps per-topic order, so this is a duplicate time
+        self.t.append(t)
+        self.v.append(v)
+
+    @property
+    def last(self) -> int:
+        return self.t[-1] if self.t else -(2 ** 62)
+
+    def at(self, t: int) -> Any:
+        i = bisect.bisect_right(self.t, t)
+        if i == 0:
+            return None
+        if i == len(self.t):
+            return self.v[-1] if self.t[-1] == t else None
+        t0, t1 = self.t[i - 1], self.t[i]
+        w = (t - t0) / (t1 - t0)
+        return self.v[i - 1] + (self.v[i] - self.v[i - 1]) * w
+
+    def hold(self, t: int) -> Any:
+        i = bisect.bisect_right(self.t, t)
+        return self.v[i - 1] if i else None
+
+
+class MetricsNode(GraphNode):
+    def __init__(self) -> None:
+        super().__init__("metrics")
+        self.window_s = float(declare(self, "window_s", 5.0, "rolling window [s of log time]"))
+        self.pub_period_ns = int(NS / float(declare(self, "publish_rate_hz", 2.0, "rolling metrics rate [Hz]")))
+        self.n_motors = int(declare(self, "n_motors", 4, "number of motors (metric topics are made at start)"))
+        self.rate_hz = float(declare(self, "rate_hz", 50.0, "whole-flight comparison grid [Hz]"))
+        self.airborne_only = bool(declare(self, "airborne_only", True, "count only airborne samples"))
+        self.mode = declare(self, "mode", "closed", "label of the twin's mode in the totals")
+        self.json_out = declare(self, "json_out", "", "write the whole-flight metrics here (JSON)")
+        self.aligned_out = declare(self, "aligned_out", "", "write the aligned series here (.npz) for reports")
+        self.twin_timeout_s = float(declare(self, "twin_timeout_s", 20.0, "wait this long for /twin/done"))
+        self.channels = metric_channels(self.n_motors)
+        self.rolling = {ch: RollingStats(self.window_s) for ch in self.channels}
+        q = reliable_qos()
+        latched = reliable_qos(depth=1, latched=True)
+        f64 = msg_class("std_msgs/msg/Float64")
+        self.metric_pubs = {(ch, st): self.create_publisher(f64, metric_topic(ch, st), q)
+                            for ch in self.channels for st in METRIC_STATS}
+        self.diag_pub = self.create_publisher(msg_class("diagnostic_msgs/msg/DiagnosticArray"),
+                                              "/twin_error/diagnostics", q)
+        self.final_json_pub = self.create_publisher(msg_class("std_msgs/msg/String"), "/twin_error/final_json",
+                                                    latched)
+        self.final_table_pub = self.create_publisher(msg_class("std_msgs/msg/String"), "/twin_error/final_table",
+                                                     latched)
+        self.inputs = REAL_INPUTS
+        self.real = {k: _Track() for k in ("p", "throttle", "motors", "status")}
+        self.twin_q: dict[str, list] = {t: [] for t in TWIN_INPUTS}
+        self.twin: list[tuple[int, np.ndarray, float, np.ndarray]] = []
+        self.k_eval = 0
+        self.twin_done: int | None = None
+        self.next_pub_ns: int | None = None
+        self.final: dict[str, Any] | None = None
+        self.t_replay_done: float | None = None
+        for topic in REAL_INPUTS + TWIN_INPUTS:
+            self.create_subscription(msg_class(TOPICS[topic].type), topic, self._make_cb(topic), q)
+        self.create_subscription(msg_class("std_msgs/msg/UInt64"), "/twin/done", self._on_twin_done,
+                                 reliable_qos(depth=1, latched=True))
+
+    # ------------------------------------------------------------------ inputs
+    def _make_cb(self, topic: str):
+        stamped = TOPICS[topic].stamped
+        if topic.startswith("/twin/"):
+            def twin_cb(msg: Any) -> None:
+                self.twin_q[topic].append(msg)
+                self._pair_twin()
+            return twin_cb
+
+        def cb(msg: Any) -> None:
+            self.count(topic)
+            t = cv.stamp_to_ns(msg.header.stamp) if stamped else self.stamp_of(topic)
+            if topic == "/real/odom":
+                self.real["p"].add(t, cv.odom_arrays(msg)[1])
+            elif topic == "/real/throttle":
+                self.real["throttle"].add(t, cv.float_value(msg))
+            elif topic == "/real/motors":
+                self.real["motors"].add(t, cv.motors_array(msg))
+            elif topic == "/real/status":
+                self.real["status"].add(t, cv.status_array(msg))
+        return cb
+
+    def _on_twin_done(self, msg: Any) -> None:
+        self.twin_done = int(msg.data)
+
+    def _pair_twin(self) -> None:
+        qo, qt, qm = (self.twin_q[t] for t in TWIN_INPUTS)
+        n = min(len(qo), len(qt), len(qm))
+        for i in range(n):
+            t_ns, p, *_ = cv.odom_arrays(qo[i])
+            self.twin.append((t_ns, p, cv.float_value(qt[i]), cv.motors_array(qm[i])))
+        if n:
+            del qo[:n], qt[:n], qm[:n]
+
+    def is_ready(self) -> bool:
+        subs_ok = all(s.get_publisher_count() > 0 for s in self.subscriptions
+                      if s.topic_name in ("/real/odom", "/twin/odom"))
+        pubs_ok = all(p.get_subscription_count() >= len(self.get_subscriptions_info_by_topic(p.topic_name))
+                      for p in list(self.metric_pubs.values())[:1] + [self.diag_pub])
+        return subs_ok and pubs_ok
+
+    # ------------------------------------------------------------------ rolling metrics
+    def _airborne(self, t: int) -> bool:
+        st = self.real["status"].hold(t)
+        if st is None:
+            return not self.airborne_only
+        armed, _, landed = st
+        if math.isfinite(landed):
+            return landed < 0.5
+        if math.isfinite(armed):
+            return armed > 0.5
+        return True
+
+    def _evaluate(self, final: bool = False) -> None:
+        real_until = min(self.real["p"].last, self.real["throttle"].last if self.real["throttle"].t else 2 ** 62,
+                         self.real["motors"].last if self.real["motors"].t else 2 ** 62)
+        while self.k_eval < len(self.twin):
+            t, p, thr, mot = self.twin[self.k_eval]
+            if t > real_until and not final:
+                break
+            self.k_eval += 1
+            ok = (not self.airborne_only) or self._airborne(t)
+            rp = self.real["p"].at(t)
+            errs = {ch: math.nan for ch in self.channels}
+            if ok and rp is not None:
+                errs["xy"] = float(math.hypot(p[0] - rp[0], p[1] - rp[1]))
+                errs["z"] = float(p[2] - rp[2])
+                rt = self.real["throttle"].at(t)
+                if rt is not None:
+                    errs["throttle"] = float(thr - rt)
+                rm = self.real["motors"].at(t)
+                if rm is not None:
+                    for i in range(min(self.n_motors, len(rm), len(mot))):
+                        errs[f"motor{i + 1}"] = float(mot[i] - rm[i])
+            ts = t / NS
+            for ch, e in errs.items():
+                self.rolling[ch].add(ts, e)
+            if self.next_pub_ns is None or t >= self.next_pub_ns:
+                self.next_pub_ns = t + self.pub_period_ns
+                self._publish_rolling(t)
+
+    def _publish_rolling(self, t: int) -> None:
+        f64 = msg_class("std_msgs/msg/Float64")
+        stats = {ch: r.stats() for ch, r in self.rolling.items()}
+        for (ch, st), pub in self.metric_pubs.items():
+            pub.publish(f64(data=float(stats[ch][st])))
+        self.diag_pub.publish(cv.diagnostics_msg(t, stats))
+
+    # ------------------------------------------------------------------ end of flight
+    def step(self) -> None:
+        self._evaluate()
+        if self.final is not None or not self.inputs_complete():
+            return
+        if self.t_replay_done is None:
+            self.t_replay_done = time.monotonic()
+        waited = time.monotonic() - self.t_replay_done
+        twin_ok = self.twin_done is not None and len(self.twin) >= self.twin_done
+        if not twin_ok and waited < self.twin_timeout_s:
+            return
+        if not twin_ok:
+            self.get_logger().warning(f"/twin/done not complete after {self.twin_timeout_s:.0f} s "
+                                      f"({len(self.twin)} twin samples, announced {self.twin_done})")
+        self._evaluate(final=True)
+        self._finalise()
+
+    def _finalise(self) -> None:
+        from twin_nodes.compare import metrics_from_streams
+
+        start = int(self.plan.get("start_ns", 0)) if self.plan else 0
+
+        def arr(track: _Track, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+            t = (np.asarray(track.t, dtype=np.int64) - start) / NS
+            v = np.asarray(track.v, float)
+            return t, (v if k is None else v.reshape(len(t), k))
+
+        real = {}
+        if self.real["p"].t:
+            real["position_enu"] = arr(self.real["p"], 3)
+        if self.real["throttle"].t:
+            real["throttle"] = arr(self.real["throttle"])
+        if self.real["motors"].t:
+            real["motors"] = arr(self.real["motors"], self.n_motors)
+        if self.real["status"].t:
+            real["status"] = arr(self.real["status"], 3)
+        tw = self.twin
+        twin = {"t": (np.array([s[0] for s in tw], dtype=np.int64) - start) / NS,
+                "p": np.array([s[1] for s in tw]).reshape(-1, 3), "throttle": np.array([s[2] for s in tw]),
+                "motors": np.array([s[3] for s in tw]).reshape(-1, self.n_motors)}
+        try:
+            res = metrics_from_streams(real, twin, self.mode, self.n_motors, self.rate_hz, self.airborne_only,
+                                       source=str(self.plan.get("ulog", "topics")) if self.plan else "topics")
+        except Exception as exc:  # report, don't hang the graph
+            self.get_logger().error(f"whole-flight metrics failed: {exc}")
+            self.final = {"error": str(exc)}
+            self.exit_code = 4
+            self._write(self.final)
+            return
+        m = res.metrics
+        m["log"] = self.plan.get("ulog", "") if self.plan else ""
+        m["source"] = "rotortwin graph (replay -> twin -> metrics nodes)"
+        m["received"] = {**self.received, "/twin/*": len(tw)}
+        if self.mode == "open":
+            from twin_nodes.compare import OPEN_LOOP_NOTE
+            m.setdefault("notes", []).append(OPEN_LOOP_NOTE)
+        self.final = m
+        text = table2(m, title=f"Twin vs real (Table 2 layout): {m['log']}")
+        self.final_json_pub.publish(cv.string_msg(json.dumps(to_jsonable(m))))
+        self.final_table_pub.publish(cv.string_msg(text))
+        self.get_logger().info("whole flight:\n" + text)
+        if self.aligned_out:
+            al = res.aligned
+            np.savez_compressed(self.aligned_out, t=al.t, xy_twin=al.xy_twin, xy_real=al.xy_real, z_twin=al.z_twin,
+                                z_real=al.z_real, throttle_twin=al.throttle_twin, throttle_real=al.throttle_real,
+                                motors_twin=al.motors_twin, motors_real=al.motors_real, mask=al.mask,
+                                mode=np.array(al.mode))
+        self._write(m)
+
+    def _write(self, m: dict[str, Any]) -> None:
+        if not self.json_out:
+            return
+        self.final_json_pub.wait_for_all_acked(_duration(5.0))
+        tmp = self.json_out + ".tmp"
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(to_jsonable(m), fh, indent=1)
+        import os
+        os.replace(tmp, self.json_out)  # the CLI waits for this file: write it atomically
+
+
+def _duration(s: float) -> Any:
+    from rclpy.duration import Duration
+
+    return Duration(seconds=s)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(MetricsNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
