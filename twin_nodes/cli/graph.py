@@ -179,7 +179,8 @@ class Graph:
 def run_graph(ulog: str | os.PathLike[str], params_file: str | os.PathLike[str], *, mode: str = "closed",
               rate: float = 0.0, run_dir: str | os.PathLike[str] | None = None, bag: str | None = None,
               window_s: float = 5.0, horizon_s: float = 2.0, domain_id: int | None = None,
-              progress: bool = True, timeout_s: float = 900.0, n_motors: int | None = None) -> GraphResult:
+              progress: bool = True, timeout_s: float = 900.0, n_motors: int | None = None,
+              use_sim_time: bool = False, replay_params: dict[str, Any] | None = None) -> GraphResult:
     """Replay ``ulog`` through the process graph and return the metrics node's totals."""
     ulog = Path(ulog)
     if not ulog.is_file():
@@ -194,9 +195,13 @@ def run_graph(ulog: str | os.PathLike[str], params_file: str | os.PathLike[str],
     if n_motors is None:
         from twin_nodes.params import load_params
         n_motors = load_params(params_file).rotors.count
-    common = {"use_sim_time": True}
+    common = {"use_sim_time": use_sim_time}
     wait_for = ["twin", "metrics"]
     t_wall = time.monotonic()
+    old_term = None
+    if threading.current_thread() is threading.main_thread():
+        # a SIGTERM to the CLI must still stop the node processes (they run in their own sessions)
+        old_term = signal.signal(signal.SIGTERM, _raise_interrupt)
     try:
         if bag:
             if Path(bag).exists():
@@ -207,7 +212,8 @@ def run_graph(ulog: str | os.PathLike[str], params_file: str | os.PathLike[str],
                             "json_out": str(json_path), "aligned_out": str(aligned_path)})
         g.start("twin", {**common, "params_file": str(params_file), "mode": mode, "horizon_s": horizon_s})
         rp = g.start("replay", {"ulog": str(ulog), "rate": float(rate), "wait_for": wait_for,
-                                "stats_file": str(stats_path), "progress": True}, capture_stdout=True)
+                                "stats_file": str(stats_path), "progress": True, **(replay_params or {})},
+                     capture_stdout=True)
         _follow_replay(g, rp, progress, timeout_s, ulog)
         deadline = time.monotonic() + 120.0
         while not json_path.exists():
@@ -222,6 +228,8 @@ def run_graph(ulog: str | os.PathLike[str], params_file: str | os.PathLike[str],
         time.sleep(0.3)  # let the recorder take the latched final topics
     finally:
         codes = g.stop()
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
     metrics = json.loads(json_path.read_text())
     stats = json.loads(stats_path.read_text()) if stats_path.exists() else {}
     if "error" in metrics:
@@ -229,6 +237,10 @@ def run_graph(ulog: str | os.PathLike[str], params_file: str | os.PathLike[str],
     return GraphResult(metrics=metrics, json_path=json_path, aligned_path=aligned_path,
                        bag_path=Path(bag) if bag else None, replay_stats=stats, wall_s=time.monotonic() - t_wall,
                        run_dir=rd, domain_id=int(env["ROS_DOMAIN_ID"]), exit_codes=codes)
+
+
+def _raise_interrupt(signum: int, _frame: Any) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
 
 
 def _follow_replay(g: Graph, rp: subprocess.Popen, progress: bool, timeout_s: float, ulog: Path) -> None:

@@ -139,6 +139,21 @@ def declare(node: Any, name: str, default: Any, description: str = "") -> Any:
 
 
 def run_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
+    """Run a node (see :func:`_run_node`); ``ROTORTWIN_PROFILE=DIR`` writes a cProfile to
+    ``DIR/<pid>.prof`` for benchmarking."""
+    prof_dir = os.environ.get("ROTORTWIN_PROFILE")
+    if not prof_dir:
+        return _run_node(factory, args)
+    import cProfile
+
+    pr = cProfile.Profile()
+    try:
+        return pr.runcall(_run_node, factory, args)
+    finally:
+        pr.dump_stats(os.path.join(prof_dir, f"{getattr(factory, '__name__', 'node')}_{os.getpid()}.prof"))
+
+
+def _run_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
     """Init rclpy, build the node, spin until it finishes or SIGINT/SIGTERM, clean up.
 
     Signals only set a flag (rclpy's own handlers are disabled), so the node's
@@ -167,15 +182,31 @@ def run_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
                 print(f"rotortwin node: error: {exc}", file=sys.stderr, flush=True)
                 return 2
             raise
-        ex = make_executor()
-        ex.add_node(node)
-        node.executor_ref = ex
-        while rclpy.ok() and not stop["sig"] and not node.finished:
-            ex.spin_once(timeout_sec=node.spin_timeout_s)
+        from rclpy.task import Future
+
+        done = Future()
+
+        def tick() -> None:
+            # the node's periodic work; also how a signal or `finished` ends the spin
+            if stop["sig"] or node.finished or not rclpy.ok():
+                if not done.done():
+                    done.set_result(True)
+                return
             node.step()
+            if node.finished and not done.done():
+                done.set_result(True)
+
+        node.create_timer(node.step_period_s, tick, clock=node.wall_clock)
+        ex = make_executor()
+        ex.add_node(node)  # after every entity the node creates up front
+        node.executor_ref = ex
+        while not done.done():
+            # with a timeout: rclpy's EventsExecutor never returns from an untimed call
+            ex.spin_until_future_complete(done, timeout_sec=1.0)
         if stop["sig"]:
             node.get_logger().info(f"signal {stop['sig']}: stopping")
         node.close(interrupted=bool(stop["sig"]))
+        node.get_logger().info(f"cpu {time.process_time():.2f} s")
         code = int(node.exit_code)
     finally:
         if node is not None:
@@ -211,7 +242,7 @@ class GraphNode(_node_base()):  # type: ignore[misc]
 
         self.finished = False
         self.exit_code = 0
-        self.spin_timeout_s = 0.05
+        self.step_period_s = 0.005  # how often step() runs [s of wall time]
         self.executor_ref: Any = None
         self.consumer = consumer
         self.timeline = Timeline()
@@ -221,9 +252,9 @@ class GraphNode(_node_base()):  # type: ignore[misc]
         self.inputs: tuple[str, ...] = ()
         self.clock_ns: int | None = None
         self._last_ack = -(2 ** 62)
-        self.ack_period_ns = int(declare(self, "ack_period_s", 0.05,
+        self.ack_period_ns = int(declare(self, "ack_period_s", 0.1,
                                          "acknowledge the replay clock every this much log time [s]") * NS)
-        self._wall = Clock(clock_type=ClockType.STEADY_TIME)
+        self.wall_clock = Clock(clock_type=ClockType.STEADY_TIME)
         if consumer:
             q = reliable_qos()
             latched = reliable_qos(depth=50, latched=True)
@@ -233,11 +264,11 @@ class GraphNode(_node_base()):  # type: ignore[misc]
             self.create_subscription(msg_class("std_msgs/msg/Float64MultiArray"), "/replay/timeline",
                                      self._on_timeline, latched)
             self.create_subscription(msg_class("std_msgs/msg/Bool"), "/replay/done", self._on_done, latched)
-            self.create_timer(0.2, self._ready_tick, clock=self._wall)
+            self.create_timer(0.2, self._ready_tick, clock=self.wall_clock)
 
     # ------------------------------------------------------------------ protocol
     def wall_timer(self, period_s: float, cb: Callable[[], None]) -> Any:
-        return self.create_timer(period_s, cb, clock=self._wall)
+        return self.create_timer(period_s, cb, clock=self.wall_clock)
 
     def is_ready(self) -> bool:
         return True
@@ -304,7 +335,7 @@ class GraphNode(_node_base()):  # type: ignore[misc]
         pass
 
     def step(self) -> None:
-        """Called after every executor turn."""
+        """Called every ``step_period_s`` of wall time."""
 
     def close(self, interrupted: bool = False) -> None:
         pass

@@ -123,8 +123,7 @@ class TwinNode(GraphNode):
                 self._apply(t_ns, topic, msg)
             if self.buf.late:
                 self.get_logger().warning(f"{self.buf.late} inputs arrived later than reorder_lag_s")
-            for p in self.pub.values():
-                p.wait_for_all_acked(_duration(5.0))
+            # no wait_for_all_acked here: /twin/done carries the count, the metrics node waits for it
             self.done_pub.publish(cv.uint64_msg(self.n_out))
             self.done_sent = True
             self.ack_now()

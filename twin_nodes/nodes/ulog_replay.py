@@ -56,9 +56,9 @@ class UlogReplay(GraphNode):
         self.rate = float(declare(self, "rate", 1.0, "replay speed: 1 real time, 20 = 20x, 0 = as fast as "
                                                       "the wait_for consumers keep up"))
         self.wait_for = [n for n in declare(self, "wait_for", [""], "consumer node names to wait for") if n]
-        self.window_ns = int(float(declare(self, "window_s", 0.2, "max log time ahead of the slowest "
+        self.window_ns = int(float(declare(self, "window_s", 0.5, "max log time ahead of the slowest "
                                                                   "consumer [s]")) * NS)
-        self.clock_period_ns = int(float(declare(self, "clock_period_s", 0.02, "/clock spacing [s]")) * NS)
+        self.clock_period_ns = int(float(declare(self, "clock_period_s", 0.05, "/clock spacing [s]")) * NS)
         self.stats_file = declare(self, "stats_file", "", "write per-topic counts and throughput here (JSON)")
         self.progress = bool(declare(self, "progress", False, "print PROGRESS lines on stdout"))
         self.start_timeout_s = float(declare(self, "start_timeout_s", 60.0, "give up waiting for consumers"))
@@ -112,7 +112,7 @@ class UlogReplay(GraphNode):
         self.last_clock = -(2 ** 62)
         self.wall0 = 0.0
         self.last_progress = 0.0
-        self.spin_timeout_s = 0.02
+        self.step_period_s = 0.001
         self.get_logger().info(f"{path}: {self.n_ev} messages on {len(streams)} topics, "
                                f"{(self.ev_t[-1] - self.ev_t[0]) if self.n_ev else 0:.1f} s of log, "
                                f"rate {self.rate:g}, waiting for {self.wait_for or 'nobody'}")
@@ -155,7 +155,6 @@ class UlogReplay(GraphNode):
         elif self.state == "settling":
             if now - self.t_state > 0.3:
                 self.state, self.wall0 = "running", now
-                self.spin_timeout_s = 0.0
         elif self.state == "running":
             self._publish_batch(now)
         elif self.state == "ending":
@@ -165,7 +164,6 @@ class UlogReplay(GraphNode):
                 self.wall_end = now
                 self.done_pub.publish(cv.bool_msg(True))
                 self.state, self.t_state = "lingering", now
-                self.spin_timeout_s = 0.05
         elif self.state == "lingering":
             if now - self.t_state > 0.5:
                 self._write_stats()
@@ -201,7 +199,6 @@ class UlogReplay(GraphNode):
         if self.k >= self.n_ev:
             self._pub_clock(int(ev_ns[-1]))
             self.state, self.t_state = "ending", time.monotonic()
-            self.spin_timeout_s = 0.01
             if self.progress:
                 print(f"PROGRESS {ev_t[-1] - ev_t[0]:.3f} {ev_t[-1] - ev_t[0]:.3f}", flush=True)
 
