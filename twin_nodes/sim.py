@@ -22,7 +22,7 @@ import numpy as np
 from twin_nodes.control import INFO_SIZE, SP_SIZE, Controller
 from twin_nodes.params import VehicleParams
 from twin_nodes.physics.core import NX_BODY
-from twin_nodes.physics.effects import Effect, default_ext
+from twin_nodes.physics.effects import Effect, default_ext, effective_params
 from twin_nodes.physics.model import Multirotor
 
 
@@ -114,7 +114,8 @@ def fly_closed_loop(plant: VehicleParams, t_sp: np.ndarray, SP: np.ndarray, *,
     ``armed(t)`` -> bool array: when False the motors are stopped (NaN commands).
     """
     rng = rng or np.random.default_rng(0)
-    cparams = controller_params or plant
+    # by default the controller knows the plant as it is (parameter-type effects applied)
+    cparams = controller_params or effective_params(plant)
     ctrl = Controller(cparams)
     model = Multirotor(plant, extra_effects)
     rate = ctrl.gains.rate_hz

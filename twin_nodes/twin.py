@@ -54,7 +54,9 @@ class TwinRunner:
         self.mode = mode
         self.horizon_s = float(horizon_s)
         self.model = Multirotor(vp)
-        self.ctrl = Controller(vp)
+        # the controller knows the twin as it is (parameter-type effects applied), as PX4 knows
+        # the real vehicle through its hover-thrust estimate
+        self.ctrl = Controller(self.model.params)
         self.rate_hz = float(rate_hz or self.ctrl.gains.rate_hz)
         self.dt_c = 1.0 / self.rate_hz
         self.nsub = max(int(round(self.dt_c / vp.dt_s)), 1)

@@ -77,6 +77,7 @@ SERIES_SPEC: dict[str, tuple[str, str, str]] = {
     "position_enu": ("m", "ENU", "linear"),
     "velocity_enu": ("m/s", "ENU", "linear"),
     "accel_enu": ("m/s^2", "ENU", "linear"),
+    "height_agl": ("m", "up, above ground (distance sensor)", "linear"),
     "attitude_q": ("-", "q_wxyz FLU->ENU", "slerp"),
     "body_rates_flu": ("rad/s", "FLU", "linear"),
     "angular_accel_flu": ("rad/s^2", "FLU", "linear"),
@@ -564,6 +565,13 @@ def _lpos_series(tp: _Topic, prefix: str, out: dict[str, Series], warnings: list
             v[tp.col("v_z_valid") == 0, 2] = np.nan
         out[f"{prefix}velocity_enu"] = _series(f"{prefix}velocity_enu", t, frames.ned_to_enu(v),
                                                f"{source}.vx,vy,vz (NED)")
+    if not prefix and tp.has("dist_bottom"):
+        # height above ground from the downward distance sensor (PX4 sets dist_bottom_valid)
+        h = tp.col("dist_bottom").astype(float).copy()
+        if tp.has("dist_bottom_valid"):
+            h[tp.col("dist_bottom_valid") == 0] = np.nan
+        if np.isfinite(h).sum() > 10:
+            out["height_agl"] = _series("height_agl", t, h[:, None], f"{source}.dist_bottom")
     if not prefix and tp.has("ax", "ay", "az"):
         a = tp.cols(["ax", "ay", "az"])
         out["accel_enu"] = _series("accel_enu", t, frames.ned_to_enu(a), f"{source}.ax,ay,az (NED)")

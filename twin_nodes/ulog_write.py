@@ -86,7 +86,7 @@ _LPOS: list[F] = [
     ("float", 0, "heading"), ("float", 0, "ref_alt"), ("float", 0, "dist_bottom"),
     ("float", 0, "eph"), ("float", 0, "epv"), ("float", 0, "evh"), ("float", 0, "evv"),
     ("bool", 0, "xy_valid"), ("bool", 0, "z_valid"), ("bool", 0, "v_xy_valid"),
-    ("bool", 0, "v_z_valid"), ("uint8_t", 0, "xy_reset_counter"),
+    ("bool", 0, "v_z_valid"), ("bool", 0, "dist_bottom_valid"), ("uint8_t", 0, "xy_reset_counter"),
     ("uint8_t", 0, "z_reset_counter"), ("uint8_t", 0, "vxy_reset_counter"),
     ("uint8_t", 0, "vz_reset_counter"), ("bool", 0, "xy_global"), ("bool", 0, "z_global"),
     ("bool", 0, "dead_reckoning"),

@@ -82,14 +82,20 @@ def suite(vp: VehicleParams, size: str = "full") -> list[tuple[Hidden, int]]:
 
 def mission_setpoints(rng: np.random.Generator, rate_hz: float = 25.0):
     """A PX4-like mission as a trajectory_setpoint history (ENU): returns t, SP (T, 11), armed(t)."""
-    cruise = 5.0
     alt1, alt2 = 8.0 + rng.uniform(-1, 1), 14.0 + rng.uniform(-1, 1)
     wps = [np.array([0.0, 0.0, alt1]), np.array([40.0, 0.0, alt1]), np.array([40.0, 30.0, alt2]),
            np.array([0.0, 30.0, alt2]), np.array([0.0, 0.0, alt1])]
     seg: list[tuple[str, object]] = [("ground", 3.0), ("climb", alt1), ("hover", 4.0)]
-    for a, b in zip(wps[:-1], wps[1:]):
-        seg.append(("leg", (a, b)))
+    # missions fly legs at different speeds (MPC_XY_CRUISE or per-item speed changes)
+    # two legs keep their heading (PX4 yaw-hold) and so fly sideways or backwards; after the
+    # second leg the mission lands and takes off again (a two-hop mission, like the shared
+    # real flugdrohne logs)
+    for k, ((a, b), speed, hold) in enumerate(zip(zip(wps[:-1], wps[1:]), (3.0, 6.0, 8.0, 4.5),
+                                                  (False, True, False, True))):
+        seg.append(("leg", (a, b, speed, hold)))
         seg.append(("hover", 2.0))
+        if k == 1:
+            seg += [("land", None), ("ground", 2.0), ("climb", alt2), ("hover", 2.0)]
     seg += [("yaw", math.pi), ("hover", 3.0), ("descend", 1.5), ("hover", 3.0), ("land", None), ("ground", 2.0)]
     dt = 1.0 / rate_hz
     t, P, V, A, Y = [], [], [], [], []
@@ -124,16 +130,17 @@ def mission_setpoints(rng: np.random.Generator, rate_hz: float = 25.0):
             for _ in range(int(arg * rate_hz)):
                 emit(pos, np.zeros(3), np.zeros(3), yaw)
         elif kind == "yaw":
-            target = yaw + arg
-            while abs(target - yaw) > 0.6 * dt:
-                yaw += math.copysign(0.6 * dt, target - yaw)
-                emit(pos, np.zeros(3), np.zeros(3), yaw)
+            # a yaw turn at 45 deg/s (PX4 MPC_YAWRAUTO_MAX), there and back
+            for target in (yaw + arg, yaw):
+                while abs(target - yaw) > 0.8 * dt:
+                    yaw += math.copysign(0.8 * dt, target - yaw)
+                    emit(pos, np.zeros(3), np.zeros(3), yaw)
         elif kind == "leg":
-            a, b = arg
+            a, b, cruise, hold = arg
             d = b - a
             length = float(np.linalg.norm(d))
             u = d / length
-            heading = math.atan2(d[1], d[0]) if np.hypot(d[0], d[1]) > 1 else yaw
+            heading = math.atan2(d[1], d[0]) if np.hypot(d[0], d[1]) > 1 and not hold else yaw
             # turn first, then fly with a trapezoidal speed profile (accel 2 m/s^2)
             while abs(_wrap(heading - yaw)) > 0.8 * dt:
                 yaw += math.copysign(0.8 * dt, _wrap(heading - yaw))
@@ -248,7 +255,10 @@ def record_to_topics(rec, vp: VehicleParams, battery, sp_hist, rng: np.random.Ge
                                         "vx": v[:, 0], "vy": v[:, 1], "vz": v[:, 2],
                                         "ax": frames.enu_to_ned(acc[k])[:, 0], "ay": frames.enu_to_ned(acc[k])[:, 1],
                                         "az": frames.enu_to_ned(acc[k])[:, 2], "heading": yaw_ned,
-                                        "xy_valid": ones, "z_valid": ones, "v_xy_valid": ones, "v_z_valid": ones}
+                                        "xy_valid": ones, "z_valid": ones, "v_xy_valid": ones, "v_z_valid": ones,
+                                        # downward distance sensor (as SIH simulates one): 2 cm noise, 0..20 m
+                                        "dist_bottom": rec.x[k, 2] + rng.standard_normal(len(k)) * 0.02,
+                                        "dist_bottom_valid": rec.x[k, 2] < 20.0}
     k = idx(LOG_RATES_HZ["vehicle_attitude"])
     topics["vehicle_attitude"] = {"timestamp": ts(k), "q": frames.q_enu_flu_to_ned_frd(xe[k, 6:10])}
     k = idx(LOG_RATES_HZ["vehicle_angular_velocity"])

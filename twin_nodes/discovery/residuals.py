@@ -25,7 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import butter, savgol_filter, sosfiltfilt
+from scipy.signal import butter, sosfiltfilt
 
 from twin_nodes.control import allocation_matrix
 from twin_nodes.errors import LogError
@@ -99,18 +99,19 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     # start a little before take-off and end a little after landing: ground effect lives there
     lo = max(t0 - 2.0, 0.0)
     hi = min(t1 + 1.0, log.duration_s)
-    names = need + [rates_name] + [n for n in ("battery_v",) if log.get(n) is not None]
+    names = need + [rates_name] + [n for n in ("battery_v", "height_agl") if log.get(n) is not None]
     t, d = log.resample(names, rate_hz, lo, hi)
     n = len(t)
     dt = 1.0 / rate_hz
     # high-rate IMU: average down before resampling would be ideal; low-pass the grid instead
     f = _lowpass(_fill_nan(d["specific_force_flu"]), rate_hz, min(10.0, 0.4 * rate_hz))
     w = _fill_nan(d[rates_name])
-    # Angular acceleration from the body rates (Savitzky-Golay, 0.2 s).  PX4's own
-    # vehicle_angular_velocity.xyz_derivative is the D-term's filtered derivative: on the
-    # SIH logs its roll axis even anti-correlates with the true moment, so it is not used.
-    win = max(int(round(0.2 * rate_hz)) | 1, 5)
-    alpha = savgol_filter(w, win, 2, deriv=1, delta=dt, axis=0)
+    # Angular acceleration: central difference of the body rates; the 2 Hz low-pass every
+    # residual goes through does the smoothing, identically on the model side (a smoothing
+    # derivative here would shrink acceleration pulses and bias inertia up).  PX4's own
+    # vehicle_angular_velocity.xyz_derivative is the D-term's filtered derivative: on the SIH
+    # logs its roll axis even anti-correlates with the true moment, so it is not used.
+    alpha = np.gradient(w, dt, axis=0)
     # commands on a fine grid: linear between logged samples, NaN (stopped) kept
     ms = log.require("motors")
     t_fine = lo + np.arange(n * oversample) * (dt / oversample)
@@ -127,6 +128,10 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     pre = (t < t0) & np.isfinite(p[:, 2])
     ground = float(np.median(p[pre, 2])) if pre.sum() > 5 else float(np.nanpercentile(p[:, 2], 1))
     height = p[:, 2] - ground
+    if "height_agl" in d:
+        # the distance sensor where it is valid: EKF height is too noisy near the ground
+        agl = d["height_agl"].reshape(n)
+        height = np.where(np.isfinite(agl), agl, height)
     batt = d["battery_v"].reshape(n) if "battery_v" in d else np.full(n, np.nan)
     finite = (np.isfinite(p).all(1) & np.isfinite(d["velocity_enu"]).all(1) & np.isfinite(d["attitude_q"]).all(1)
               & np.isfinite(w).all(1) & np.isfinite(f).all(1))
@@ -183,6 +188,7 @@ def residual_channels(data: EquationData, vp: VehicleParams, norm_params: Vehicl
     S = model_rotor_states(model, data)
     X = np.empty((data.n, model.nx))
     X[:, 0:3] = data.p
+    X[:, 2] = data.height  # the model's z is height above the ground (ground contact, ground effect)
     X[:, 3:6] = data.v
     X[:, 6:10] = data.q
     X[:, 10:13] = data.w
@@ -211,3 +217,14 @@ def residual_channels(data: EquationData, vp: VehicleParams, norm_params: Vehicl
 
 def channel_names(n_rotors: int) -> list[str]:
     return [f"motor{i + 1}" for i in range(n_rotors)] + ["force_x", "force_y"]
+
+
+def modes(R: np.ndarray, vp: VehicleParams) -> tuple[np.ndarray, list[str]]:
+    """Residual channels rotated into physical modes: collective (throttle), roll, pitch and yaw
+    patterns of the per-motor errors (unit-norm rows of the effectiveness matrix, so the units
+    stay fraction of full motor output), plus the horizontal force channels."""
+    r = vp.rotors
+    n = r.count
+    b = np.vstack([np.ones(n), np.array(r.y_flu_m), -np.array(r.x_flu_m), -np.array(r.direction, float)])
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    return np.column_stack([R[:, :n] @ b.T, R[:, n:]]), ["throttle", "roll", "pitch", "yaw", "force_x", "force_y"]
