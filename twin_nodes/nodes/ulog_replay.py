@@ -180,8 +180,7 @@ class UlogReplay(GraphNode):
             if self.rate > 0:
                 due = self.wall0 + (ev_t[self.k] - ev_t[0]) / self.rate
                 if due > time.monotonic():
-                    time.sleep(min(due - time.monotonic(), 0.005))
-                    break
+                    break  # not due yet: step() runs again in step_period_s
             s_i = int(ev_s[self.k])
             stream = self.streams[s_i]
             if t - self.last_clock >= self.clock_period_ns:

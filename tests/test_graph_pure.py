@@ -1,0 +1,125 @@
+"""The graph's pure parts: replay streams vs the ULog, timelines, reorder buffer, params choice,
+topic-data metrics equal to the offline compare."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import need_log, shared_log, ulog_params
+
+from msgs_py.streams import HEADERLESS, event_order, replay_streams
+from twin_nodes.compare import compare_log, metrics_from_streams
+from twin_nodes.errors import TwinError
+from twin_nodes.nodes.common import ReorderBuffer, Timeline
+from twin_nodes.params import params_dir, shipped
+from twin_nodes.ulog_io import list_topics, read_ulog
+
+SOURCE = {"/real/odom": ["vehicle_local_position"], "/real/imu": ["sensor_combined"],
+          "/real/battery": ["battery_status"], "/real/setpoint": ["trajectory_setpoint"],
+          "/real/throttle": ["vehicle_thrust_setpoint", "actuator_controls_0"],
+          "/real/motors": ["actuator_motors", "actuator_outputs"]}
+
+
+@pytest.mark.parametrize("log_path", ulog_params("real") + ulog_params("sitl"))
+def test_replay_streams_match_ulog_counts(log_path):
+    """One message per logged sample of the source topic (less pre-start samples read_ulog drops)."""
+    path = need_log(log_path)
+    log = read_ulog(path)
+    streams, warns = replay_streams(log)
+    counts = {s.topic: len(s) for s in streams}
+    raw = {}
+    for name, mid, n, _ in list_topics(path):
+        raw.setdefault(name, {})[mid] = n
+    for topic, sources in SOURCE.items():
+        assert topic in counts, (topic, warns)
+        src = next(s for s in sources if s in raw)
+        series_src = [s for s in streams if s.topic == topic][0].source
+        mid = 1 if "[1]" in series_src else 0
+        assert abs(counts[topic] - raw[src][mid]) <= 1, (topic, counts[topic], src, raw[src])
+    assert counts["/real/odom"] == len(log.get("position_enu"))
+    assert counts["/real/imu"] == len(log.get("specific_force_flu"))
+    t, si, _ = event_order(streams)
+    assert np.all(np.diff(t) >= 0) and len(t) == sum(counts.values())
+
+
+def test_event_order_is_stable_for_ties():
+    from msgs_py.streams import Stream
+
+    a = Stream("/a", np.array([0.0, 1.0]))
+    b = Stream("/b", np.array([0.0, 0.5, 1.0]))
+    t, si, row = event_order([a, b])
+    assert t.tolist() == [0.0, 0.0, 0.5, 1.0, 1.0]
+    assert si.tolist() == [0, 1, 1, 0, 1] and row.tolist() == [0, 0, 1, 1, 2]
+
+
+def test_headerless_set_matches_topic_table():
+    from msgs_py.topics import TOPICS
+
+    for name in HEADERLESS:
+        assert not TOPICS[name].stamped
+    for name, spec in TOPICS.items():
+        if name.startswith("/real/") and not spec.stamped:
+            assert name in HEADERLESS
+
+
+def test_timeline_takes_in_order_and_refuses_extra():
+    tl = Timeline()
+    assert tl.take("/x") is None and not tl.has("/x")
+    tl.set("/x", np.array([5, 7], dtype=np.int64))
+    assert (tl.take("/x"), tl.take("/x")) == (5, 7)
+    with pytest.raises(IndexError, match="beyond the 2 announced"):
+        tl.take("/x")
+
+
+def test_reorder_buffer_releases_in_time_order_after_lag():
+    rb = ReorderBuffer(lag_ns=10)
+    for t in (5, 1, 3, 20, 3):
+        rb.push(t, t)
+    rb.advance(14)
+    assert [t for t, _ in rb.pop_ready()] == [1, 3, 3]
+    rb.push(2, "late")
+    assert rb.late == 1
+    assert [t for t, _ in rb.pop_ready(flush=True)] == [2, 5, 20]
+
+
+def test_default_params_from_sys_autostart():
+    from twin_nodes.cli.graph import default_params_for
+
+    p = default_params_for(shared_log("sitl", "px4sih_default_triangle.ulg"))
+    assert p == params_dir() / "px4_sih_quadx.yaml"
+    with pytest.raises(TwinError, match="SYS_AUTOSTART 4014 has no shipped params file.*--params"):
+        default_params_for(shared_log("real", "real_s500_rcac_mission1.ulg"))
+    explicit = params_dir() / "quad_c_3dr.yaml"
+    assert default_params_for(shared_log("real", "real_s500_rcac_mission1.ulg"), str(explicit)) == explicit
+
+
+def test_metrics_from_topic_data_equal_offline_compare():
+    """The metrics node's end-of-flight path (topic data -> FlightLog/TwinRun -> align) gives the
+    offline compare_log numbers when fed the same data."""
+    log = read_ulog(shared_log("sitl", "px4sih_default_triangle.ulg"))
+    res = compare_log(log, shipped("px4_sih_quadx"))
+    pos, thr, mot = log.get("position_enu"), log.get("throttle"), log.get("motors")
+    st_t = np.unique(np.concatenate([log.get("armed").t_s, log.get("landed").t_s]))
+    status = np.column_stack([log.get("armed").at(st_t, "previous")[:, 0], np.full(len(st_t), np.nan),
+                              log.get("landed").at(st_t, "previous")[:, 0]])
+    real = {"position_enu": (pos.t_s, pos.values), "throttle": (thr.t_s, thr.values[:, 0]),
+            "motors": (mot.t_s, mot.values), "status": (st_t, status)}
+    run = res.run
+    twin = {"t": run.t, "p": run.x[:, :3], "throttle": run.throttle, "motors": run.motors}
+    m2 = metrics_from_streams(real, twin, "closed", 4).metrics
+    for k in ("xy_rmse_m", "z_p75_m", "throttle_rmse", "throttle_median", "n_samples"):
+        assert m2[k] == pytest.approx(res.metrics[k], rel=1e-9), k
+    np.testing.assert_allclose(m2["motor_p75"], res.metrics["motor_p75"], rtol=1e-9)
+
+
+def test_monitor_table_format():
+    from twin_nodes.cli.graph import format_monitor
+
+    vals = {"/twin_error/xy/rmse_m": 0.5, "/twin_error/throttle/p75": 0.012, "/twin_error/motor2/max": 0.1,
+            "/twin_error/motor10/max": 0.2}
+    text = format_monitor(vals, 12.0)
+    lines = text.splitlines()
+    assert "12.0 s" in lines[0]
+    assert lines[3].startswith("xy [m]") and "0.500" in lines[3]
+    assert any(line.startswith("throttle [%]") and "1.200" in line for line in lines)
+    assert [ln.split()[0] for ln in lines[3:]] == ["xy", "throttle", "motor2", "motor10"]
