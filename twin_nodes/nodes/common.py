@@ -132,10 +132,20 @@ def make_executor() -> Any:
 
 
 def declare(node: Any, name: str, default: Any, description: str = "") -> Any:
-    """Declare a parameter with a description and return its value."""
+    """Declare a parameter with a description and return its value.
+
+    A float parameter also accepts an integer on the command line (``rate:=0``)."""
     from rcl_interfaces.msg import ParameterDescriptor
 
-    return node.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+    is_float = isinstance(default, float)
+    desc = ParameterDescriptor(description=description, dynamic_typing=is_float)
+    value = node.declare_parameter(name, default, desc).value
+    if is_float:
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"parameter '{name}': expected a number, got {value!r}") from None
+    return value
 
 
 def run_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
