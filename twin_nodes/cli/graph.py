@@ -446,6 +446,9 @@ def _spin_node(name: str, setup: Any, duration: float | None, until: Any = None)
                 break
     except KeyboardInterrupt:
         pass
+    except Exception as exc:  # Ctrl-C: rclpy's handler shuts the context down under the spin
+        if type(exc).__name__ != "ExternalShutdownException":
+            raise
     finally:
         node.destroy_node()
         try:
@@ -465,12 +468,12 @@ def format_monitor(values: dict[str, float], t_s: float | None) -> str:
             chans.append(ch)
     order = {c: i for i, c in enumerate(["xy", "z", "throttle"])}
     chans.sort(key=lambda c: (order.get(c, 3), len(c), c))
-    head = f"{'channel':<10}" + "".join(f"{s:>12}" for s in METRIC_STATS)
+    head = f"{'channel':<13}" + "".join(f"{s:>12}" for s in METRIC_STATS)
     lines = [f"twin error, rolling window  (log time {t_s:.1f} s)" if t_s is not None else "twin error, rolling window",
              head, "-" * len(head)]
     for ch in chans:
         unit = "m" if ch in ("xy", "z") else "%"
-        row = f"{ch + ' [' + unit + ']':<10}"
+        row = f"{ch + ' [' + unit + ']':<13}"
         for st in METRIC_STATS:
             topic = f"/twin_error/{ch}/{st}" + ("_m" if unit == "m" else "")
             v = values.get(topic, math.nan)

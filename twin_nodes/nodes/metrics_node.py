@@ -253,9 +253,6 @@ class MetricsNode(GraphNode):
         m["log"] = self.plan.get("ulog", "") if self.plan else ""
         m["source"] = "rotortwin graph (replay -> twin -> metrics nodes)"
         m["received"] = {**self.received, "/twin/*": len(tw)}
-        if self.mode == "open":
-            from twin_nodes.compare import OPEN_LOOP_NOTE
-            m.setdefault("notes", []).append(OPEN_LOOP_NOTE)
         self.final = m
         text = table2(m, title=f"Twin vs real (Table 2 layout): {m['log']}")
         self.final_json_pub.publish(cv.string_msg(json.dumps(to_jsonable(m))))
