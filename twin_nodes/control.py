@@ -66,10 +66,42 @@ class ControllerGains:
             if isinstance(v, bool) or not isinstance(v, (int, float)):
                 raise ParamsError(vp.source, f"controller.{k}", f"expected a number, got {v!r}")
             kwargs[k] = float(v)
-        g = cls(**kwargs)
+        g = cls(**{**cls.auto_defaults(vp), **kwargs})
         if g.rate_hz <= 0:
             raise ParamsError(vp.source, "controller.rate_hz", "expected > 0")
         return g
+
+    @classmethod
+    def auto_defaults(cls, vp: VehicleParams) -> dict[str, float]:
+        """Gains that keep the cascade stable for this vehicle's motor lag.
+
+        With a first-order motor lag tau the rate loop's phase margin is about
+        90 deg - atan(Kp tau), so Kp <= 0.7 / tau keeps it near 55 deg; each outer loop
+        is kept a factor ~2-3.5 slower than the loop inside it.  The values are capped at
+        the class defaults, so fast-motor vehicles (SIH tau 0.05 s, Búho Negro 0.028 s)
+        get exactly those; slow motors (the 3DR Quad-C, tau 0.15 s) get gentler loops.
+        Keys given in the params file's ``controller:`` section override these."""
+        d = cls()
+        tau = max(vp.rotors.tau_up_s, vp.rotors.tau_down_s, 1e-3)
+
+        def cap(default, value):  # the default wherever the limit does not bind (float-exact)
+            return default if value >= default * (1 - 1e-9) else value
+        rate_p = cap(d.rate_p_1_s, 0.7 / tau)
+        s = rate_p / d.rate_p_1_s  # exactly 1 when the cap does not bind
+        att_p = cap(d.roll_p_1_s, rate_p / 2.0)
+        yawrate_p = cap(d.yawrate_p_1_s, 0.3 / tau)
+        xy_vel_p = cap(d.xy_vel_p_1_s, 0.28 * att_p)
+        sv = xy_vel_p / d.xy_vel_p_1_s
+        return {
+            "rate_p_1_s": rate_p, "rate_i_1_s2": d.rate_i_1_s2 * s, "rate_d": d.rate_d * s,
+            "roll_p_1_s": att_p, "pitch_p_1_s": att_p,
+            "yawrate_p_1_s": yawrate_p,
+            "yawrate_i_1_s2": d.yawrate_i_1_s2 * (yawrate_p / d.yawrate_p_1_s),
+            "yaw_p_1_s": cap(d.yaw_p_1_s, yawrate_p / 2.0),
+            "xy_vel_p_1_s": xy_vel_p, "xy_vel_i_1_s2": d.xy_vel_i_1_s2 * sv, "xy_vel_d": d.xy_vel_d * sv,
+            "xy_p_1_s": cap(d.xy_p_1_s, 0.53 * xy_vel_p),
+            "z_vel_p_1_s": cap(d.z_vel_p_1_s, 0.6 / tau),
+        }
 
     def vector(self) -> np.ndarray:
         return np.array([getattr(self, f.name) for f in fields(self)], dtype=np.float64)
