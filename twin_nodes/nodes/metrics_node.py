@@ -217,6 +217,14 @@ class MetricsNode(GraphNode):
         self._evaluate(final=True)
         self._finalise()
 
+    def close(self, interrupted: bool = False) -> None:
+        # live data (no replay, so no /replay/done): the totals of what was seen, on Ctrl-C
+        if self.final is None and self.twin and self.real["p"].t:
+            self.get_logger().info("stopping before the end of a replay: totals of the data received so far")
+            self._pair_twin()
+            self._evaluate(final=True)
+            self._finalise()
+
     def _finalise(self) -> None:
         from twin_nodes.compare import metrics_from_streams
 
