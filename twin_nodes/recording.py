@@ -301,8 +301,8 @@ class McapRecorder:
         self.counts[topic] = 0
         return topic
 
-    def write(self, topic: str, msg: Any, t_ns: int) -> None:
-        """Serialise ``msg`` (typestore object, dict or attribute object) at time ``t_ns``."""
+    def _target(self, topic: str, t_ns: int) -> tuple[Any, str]:
+        """The connection of a registered topic, after checking the time stamp."""
         self._check_open()
         full = topic if topic.startswith("/") else "/" + topic
         conn = self._conns.get(full)
@@ -311,15 +311,31 @@ class McapRecorder:
         if isinstance(t_ns, bool) or not isinstance(t_ns, (int, np.integer)) or not 0 <= int(t_ns) < 2**63:
             raise LogError(str(self.path), f"{full}.t_ns",
                            f"expected integer nanoseconds in [0, 2**63), got {t_ns!r}")
+        return conn, full
+
+    def _put(self, conn: Any, full: str, t_ns: int, data: bytes) -> None:
+        self._writer.write(conn, int(t_ns), data)
+        self.counts[full] += 1
+        self._maybe_close_chunk(int(t_ns))
+
+    def write(self, topic: str, msg: Any, t_ns: int) -> None:
+        """Serialise ``msg`` (typestore object, dict or attribute object) at time ``t_ns``."""
+        conn, full = self._target(topic, t_ns)
         mt = self._types[full]
         obj = self._builder.build(msg, mt, full)
         try:
             data = self._ts.serialize_cdr(obj, mt)
         except Exception as exc:  # rosbags raises several types for a malformed object
             raise LogError(str(self.path), full, f"expected a serialisable {mt}: {exc}") from None
-        self._writer.write(conn, int(t_ns), data)
-        self.counts[full] += 1
-        self._maybe_close_chunk(int(t_ns))
+        self._put(conn, full, t_ns, data)
+
+    def write_raw(self, topic: str, data: bytes, t_ns: int) -> None:
+        """Write already-serialised CDR bytes (rclpy ``raw=True``) at ``t_ns``.
+
+        rclpy's and rosbags' CDR encodings are byte-identical (conventions.md §4), so the
+        bytes are written as they came."""
+        conn, full = self._target(topic, t_ns)
+        self._put(conn, full, t_ns, bytes(data))
 
     def _storage(self) -> Any:
         st = getattr(self._writer, "storage", None)

@@ -31,20 +31,6 @@ from twin_nodes.nodes.common import GraphNode, declare, run_node
 from twin_nodes.recording import McapRecorder
 
 
-class RawMcapRecorder(McapRecorder):
-    """McapRecorder that also takes already-serialised CDR bytes (rclpy ``raw=True``).
-
-    rclpy's and rosbags' CDR encodings are byte-identical (conventions.md §4), so the
-    bytes are written as they came."""
-
-    def write_raw(self, topic: str, data: bytes, t_ns: int) -> None:
-        self._check_open()
-        conn = self._conns[topic]
-        self._writer.write(conn, int(t_ns), bytes(data))
-        self.counts[topic] += 1
-        self._maybe_close_chunk(int(t_ns))
-
-
 class RecorderNode(GraphNode):
     def __init__(self) -> None:
         super().__init__("recorder")
@@ -55,7 +41,7 @@ class RecorderNode(GraphNode):
         chunk_s = float(declare(self, "chunk_period_s", 1.0, "close an MCAP chunk every ... s of message time"))
         if not out:
             raise ValueError("parameter 'out': expected a bag directory to create")
-        self.bag = RawMcapRecorder(out, chunk_period_s=chunk_s, fsync_chunks=fsync)
+        self.bag = McapRecorder(out, chunk_period_s=chunk_s, fsync_chunks=fsync)
         self.subs: dict[str, Any] = {}
         self.skipped: set[str] = set()
         self.n = 0
