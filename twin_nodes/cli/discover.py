@@ -134,8 +134,12 @@ def summary_text(res: dict) -> str:
     lines = [f"discover: {res['log']}  (nominal {res['params']})",
              f"  fit on {res['method']['fit_interval_s']} s, judged on held-out {res['method']['heldout_interval_s']} s"]
     if res["mismatch"]:
-        lines.append("  where the model and the flight disagree (top 5):")
-        for m in res["mismatch"][:5]:
+        lines.append("  where the model and the flight disagree (worst window per channel):")
+        worst: dict[str, dict] = {}
+        for m in res["mismatch"]:
+            if m["channel"] not in worst or m["severity"] > worst[m["channel"]]["severity"]:
+                worst[m["channel"]] = m
+        for m in sorted(worst.values(), key=lambda m: -m["severity"])[:6]:
             lines.append(f"    {m['channel']:<9} {m['t_start']:7.1f}-{m['t_end']:7.1f} s  {m['regime']:<28} "
                          f"severity {m['severity']:.1f}x noise")
     lines.append("  candidates (ranked by held-out improvement):")

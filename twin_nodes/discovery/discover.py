@@ -251,7 +251,7 @@ def regimes(data: EquationData) -> np.ndarray:
 
 
 def locate(data: EquationData, R: np.ndarray, raw: np.ndarray, names: list[str], window_s: float = 2.0,
-           factor: float = 3.0, max_items: int = 40) -> list[dict]:
+           factor: float = 3.0, per_channel: int = 8) -> list[dict]:
     """Time windows, channels and regimes where the residual exceeds its noise floor."""
     n_rot = len(names) - 2
     coll = R[:, :n_rot].mean(1)
@@ -289,12 +289,13 @@ def locate(data: EquationData, R: np.ndarray, raw: np.ndarray, names: list[str],
                 merged[-1][4] = max(merged[-1][4], f[4])
             else:
                 merged.append(list(f))
-        for f in merged:
+        merged.sort(key=lambda f: -f[3])
+        for f in merged[:per_channel]:  # per channel, so a loud channel cannot hide the others
             out.append({"channel": ch, "t_start": round(float(f[0]), 2), "t_end": round(float(f[1]), 2),
                         "regime": f[2], "severity": round(float(f[3]), 2),
                         "rms_fraction_of_full_output": round(float(f[4]), 4)})
     out.sort(key=lambda d: -d["severity"])
-    return out[:max_items]
+    return out
 
 
 def _evidence(f: Fit, names: list[str], before_ch: np.ndarray) -> str:
