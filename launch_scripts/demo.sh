@@ -9,11 +9,9 @@ PARAMS=${2:-params/px4_sih_quadx.yaml}
 OUT=${3:-out/demo}
 BIN=${BIN:-.venv/bin}
 mkdir -p "$OUT"
-if "$BIN/rotortwin" compare --help >/dev/null 2>&1; then
-  echo "== twin vs flight through the node graph (replay -> twin -> metrics -> recorder)"
-  "$BIN/rotortwin" compare "$FLIGHT" --params "$PARAMS" --mode closed \
-      --json "$OUT/compare.json" --mcap "$OUT/graph.mcap" --report "$OUT/compare_report"
-fi
+echo "== twin vs flight through the node graph (replay -> twin -> metrics -> recorder)"
+"$BIN/rotortwin" compare "$FLIGHT" --params "$PARAMS" --mode closed \
+    --json "$OUT/compare.json" --mcap "$OUT/graph" --report "$OUT/compare_report"
 echo "== missing-physics discovery"
 "$BIN/rotortwin" discover "$FLIGHT" --params "$PARAMS" --json "$OUT/discover.json" \
     --report "$OUT/discover_report" --out-params "$OUT/refitted_params.yaml"
