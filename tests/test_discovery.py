@@ -1,16 +1,16 @@
 """Missing-physics discovery: blind on our own concealed-effect flights, silent on PX4 SIH."""
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import missing_shared
 
 from twin_nodes.discovery.discover import _block_test, discover
-from twin_nodes.discovery.prove import Hidden, run_one, suite, write_flight
+from twin_nodes.discovery.prove import Hidden, run_one, suite
 from twin_nodes.errors import TwinError
 from twin_nodes.params import shipped
 from twin_nodes.ulog_io import read_ulog
@@ -22,9 +22,7 @@ SIH_LOGS = sorted((SHARED / "flightlogs" / "sitl").glob("px4sih_*.ulg"))
 
 def _need_shared():
     if not SIH_LOGS:
-        if os.environ.get("CI") == "true":
-            pytest.fail("../shared/flightlogs/sitl is missing in CI")
-        pytest.skip("../shared not present")
+        missing_shared("flightlogs/sitl/px4sih_*.ulg")
 
 
 @pytest.mark.parametrize("name", ["px4sih_default_triangle.ulg", "px4sih_default_grid.ulg"])

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import missing_shared
 
 rclpy = pytest.importorskip("rclpy")
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
@@ -71,9 +72,7 @@ def _stream(seconds: float):
 @pytest.fixture()
 def graph(tmp_path):
     if not LOG.exists():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{LOG} missing in CI")
-        pytest.skip("../shared not present")
+        missing_shared(LOG.name)
     domain = random.randint(1, 200)
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

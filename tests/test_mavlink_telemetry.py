@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import os
 import socket
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import missing_shared
 from pymavlink.dialects.v20 import common as mavlink2
 
 from twin_nodes import frames
@@ -187,9 +187,7 @@ def _free_udp_port() -> int:
 @pytest.fixture(scope="module")
 def replay():
     if not LOG.exists():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{LOG} missing (CI=true: shared flight logs are required)")
-        pytest.skip(f"{LOG} not available")
+        missing_shared(LOG.name)
     from pyulog import ULog
 
     ulog = ULog(str(LOG), ["vehicle_local_position", "vehicle_attitude", "vehicle_angular_velocity",

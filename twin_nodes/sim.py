@@ -4,9 +4,8 @@
   advanced by wall-clock-free steps (used by the ROS model node and the PX4 bridge).
 - :func:`fly_closed_loop` — the PX4-like controller flies a setpoint history
   (the paper's method: compare the twin's throttle/motors with the real ones).
-- :func:`predict_open_loop` — the real motor commands drive the model, re-synced
-  to the real state every ``horizon_s`` (the second reference's method); all
-  windows run as one batch.
+- open loop with re-sync (the second reference's method) lives in
+  :class:`twin_nodes.twin.TwinRunner`, the one engine the node and offline runs share.
 
 World ENU, body FLU throughout; times in seconds.
 """
@@ -19,10 +18,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from twin_nodes.control import INFO_SIZE, SP_SIZE, Controller
+from twin_nodes.control import Controller
 from twin_nodes.params import VehicleParams
-from twin_nodes.physics.core import NX_BODY
-from twin_nodes.physics.effects import Effect, default_ext, effective_params
+from twin_nodes.physics.effects import Effect, effective_params
 from twin_nodes.physics.model import Multirotor
 
 
@@ -159,51 +157,3 @@ def fly_closed_loop(plant: VehicleParams, t_sp: np.ndarray, SP: np.ndarray, *,
         x = model.step(x, u_applied, dt, ext[k], nsub)
     return FlightRecord(t=t, x=X, u=U, throttle=THR, sp=sp_t, specific_force=SF, ext=ext, x_est=XE,
                         info={"rate_hz": rate, "model_terms": model.term_names})
-
-
-@dataclass
-class OpenLoopPrediction:
-    t: np.ndarray           # (T,) times of the real samples used
-    x_pred: np.ndarray      # (T, nx) predicted state (re-synced at each window start)
-    window: np.ndarray      # (T,) index of the window each sample belongs to
-    age_s: np.ndarray       # (T,) time since the last re-sync
-
-
-def predict_open_loop(model: Multirotor, t: np.ndarray, X_real: np.ndarray, U: np.ndarray,
-                      horizon_s: float, ext: np.ndarray | None = None) -> OpenLoopPrediction:
-    """Drive ``model`` with the real commands U (T, N) on the grid ``t``, re-syncing to
-    X_real (T, 13 or nx) every ``horizon_s``.  All windows are simulated as one batch.
-
-    The rotor states at a re-sync are the steady-state response to the previous command
-    (rotor speed is rarely logged).  The grid must be uniform.
-    """
-    t = np.asarray(t, float)
-    dt = float(np.median(np.diff(t)))
-    per = max(int(round(horizon_s / dt)), 1)
-    n_t = len(t)
-    starts = np.arange(0, n_t - 1, per)
-    n_w = len(starts)
-    nsub = max(int(round(dt / model.params.dt_s)), 1)
-    h = dt / nsub
-    r = model.params.rotors
-    X = np.zeros((n_w, model.nx))
-    X[:, :13] = X_real[starts, :13]
-    prev = np.clip(starts - 1, 0, None)
-    X[:, NX_BODY:] = r.reference_from_command(U[prev])
-    ext_all = np.tile(default_ext(), (n_t, 1)) if ext is None else np.asarray(ext, float)
-    x_pred = np.empty((n_t, model.nx))
-    window = np.repeat(np.arange(n_w), per)[:n_t]
-    age = (np.arange(n_t) - starts[window]) * dt
-    delay_steps = int(round(model.command_delay_s / dt))
-    PB = np.tile(model.P, (n_w, 1))
-    EB = tuple(np.tile(e, (n_w, 1)) for e in model.E)
-    for j in range(per):
-        idx = starts + j
-        valid = idx < n_t
-        x_pred[idx[valid]] = X[valid]
-        ui = np.clip(idx - delay_steps, 0, n_t - 1)
-        ui = np.where(valid, ui, n_t - 1)
-        Uj = np.ascontiguousarray(U[ui])
-        Ej = np.ascontiguousarray(ext_all[np.where(valid, idx, n_t - 1)])
-        model._mod.step_batch(PB, *EB, X, Uj, Ej, h, nsub)
-    return OpenLoopPrediction(t=t, x_pred=x_pred, window=window, age_s=age)

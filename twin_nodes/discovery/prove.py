@@ -23,7 +23,7 @@ import numpy as np
 
 from twin_nodes import frames
 from twin_nodes.control import setpoint
-from twin_nodes.params import VehicleParams, shipped
+from twin_nodes.params import VehicleParams, load_params, shipped
 from twin_nodes.physics.effects import make_effect
 from twin_nodes.sim import fly_closed_loop
 
@@ -346,12 +346,17 @@ def _param_error(hidden: Hidden, found: dict) -> float | None:
     return max(errs) if errs else 0.0
 
 
+def _vehicle(name_or_path: str) -> VehicleParams:
+    """A params YAML path, or the stem of a shipped one (``px4_sih_quadx``)."""
+    return load_params(name_or_path) if os.path.exists(name_or_path) else shipped(name_or_path)
+
+
 def run_one(args) -> dict:
     vp_name, hidden, seed, out_dir = args
     from twin_nodes.discovery.discover import discover
     from twin_nodes.ulog_io import read_ulog
 
-    vp = shipped(vp_name) if not os.path.exists(vp_name) else __import__("twin_nodes.params", fromlist=["x"]).load_params(vp_name)
+    vp = _vehicle(vp_name)
     tag = f"{vp.name}_{hidden.label}_{seed}"
     path = Path(out_dir) / f"{tag}.ulg"
     facts = write_flight(path, vp, hidden, seed)
@@ -378,7 +383,7 @@ def run_suite(out_dir: str | Path, vehicle: str = "px4_sih_quadx", size: str = "
               progress: bool = True) -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    vp = shipped(vehicle) if not os.path.exists(vehicle) else __import__("twin_nodes.params", fromlist=["x"]).load_params(vehicle)
+    vp = _vehicle(vehicle)
     jobs = [(vehicle, h, seed, str(out)) for h, seed in suite(vp, size)]
     rows = []
     if workers > 1:

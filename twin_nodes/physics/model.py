@@ -392,10 +392,14 @@ class Multirotor:
         return self._mod.specific_force(self.P, *self.E, np.asarray(x, np.float64), self._u(u), self._ext(ext))
 
     def rotor_speeds(self, x: np.ndarray) -> np.ndarray:
+        """Rotor speeds [rad/s] from the rotor states in ``x``."""
         omega, _ = self._rotor(x)
         return omega
 
     def rotor_thrusts(self, x: np.ndarray) -> np.ndarray:
+        """Per-rotor thrust [N] from the rotor states, *before* rotor-hook effects
+        (``motor_efficiency``, ``ground_effect``); :meth:`wrench_terms` gives the force the
+        dynamics actually use."""
         _, thrust = self._rotor(x)
         return thrust
 
