@@ -18,7 +18,7 @@ import random
 import statistics
 
 from twin_nodes.mavlink.simlink import ScriptedPX4, SimLinkServer
-from twin_nodes.params import load_params, shipped
+from twin_nodes.vehicle.params import load_params, shipped
 
 REAL_TIME_STEPS_PER_S = 250.0
 

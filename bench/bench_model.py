@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from twin_nodes.params import VehicleParams, shipped
+from twin_nodes.vehicle.params import VehicleParams, shipped
 from twin_nodes.physics.model import Multirotor, MultirotorBatch
 
 DT = 0.001
@@ -58,8 +58,8 @@ def rotorpy_params(vp: VehicleParams) -> dict:
 
 def command_sequence(vp: VehicleParams, seconds: float) -> tuple[np.ndarray, np.ndarray]:
     """Initial state and 1 kHz commands (T, 4): our controller flying jumps with yaw flips."""
-    from twin_nodes.control import setpoint
-    from twin_nodes.sim import fly_closed_loop
+    from twin_nodes.twin.control import setpoint
+    from twin_nodes.twin.sim import fly_closed_loop
 
     t_sp = np.arange(0.0, seconds, 2.0)
     targets = [(0, 0, 50, 0.0), (6, -4, 54, 3.0), (-3, 5, 47, -3.0), (4, 4, 52, 1.0), (0, 0, 50, -2.0)]

@@ -4,8 +4,8 @@
 
 Without ``--flight`` it simulates a flight of at least ``--minutes`` (the PX4 SIH
 quadrotor, params/px4_sih_quadx.yaml, flying the prove-suite mission over and over
-with :func:`twin_nodes.sim.fly_closed_loop`) and writes it as a PX4-like ULog with
-:mod:`twin_nodes.ulog_write` (cached under ``out/bench/``).  Then it runs the same
+with :func:`twin_nodes.twin.sim.fly_closed_loop`) and writes it as a PX4-like ULog with
+:mod:`twin_nodes.logs.ulog_write` (cached under ``out/bench/``).  Then it runs the same
 graph ``rotortwin compare --mcap`` runs (private ROS_DOMAIN_ID, localhost discovery)
 and reports:
 
@@ -40,9 +40,9 @@ sys.path.insert(0, str(REPO))
 def make_long_flight(path: Path, minutes: float, seed: int = 3) -> dict:
     """Fly the SIH quad through repeated missions for >= ``minutes`` and write a ULog."""
     from twin_nodes.discovery.prove import EstimateNoise, mission_setpoints, record_to_topics
-    from twin_nodes.params import shipped
-    from twin_nodes.sim import fly_closed_loop
-    from twin_nodes.ulog_write import write_px4_ulog
+    from twin_nodes.vehicle.params import shipped
+    from twin_nodes.twin.sim import fly_closed_loop
+    from twin_nodes.logs.ulog_write import write_px4_ulog
 
     vp = shipped("px4_sih_quadx")
     rng = np.random.default_rng(seed)
@@ -81,9 +81,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--strict", action="store_true", help="exit 1 below 20x real time or on any dropped message")
     args = ap.parse_args(argv)
 
-    from twin_nodes.cli.graph import run_graph
-    from twin_nodes.params import params_dir
-    from twin_nodes.recording import topic_counts
+    from twin_nodes.graph import run_graph
+    from twin_nodes.vehicle.params import params_dir
+    from twin_nodes.logs.recording import topic_counts
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -28,10 +28,10 @@ RATE="${4:-0}"
 [ -f "$FLIGHT" ] || { echo "replay_compare.sh: $FLIGHT: not found" >&2; exit 2; }
 
 cd "$REPO"
-PARAMS="$("$PY" -c 'import sys; from twin_nodes.cli.graph import default_params_for as d; print(d(sys.argv[1], sys.argv[2] or None))' "$FLIGHT" "$PARAMS")" \
+PARAMS="$("$PY" -c 'import sys; from twin_nodes.graph import default_params_for as d; print(d(sys.argv[1], sys.argv[2] or None))' "$FLIGHT" "$PARAMS")" \
     || exit 2
 PARAMS="$(realpath "$PARAMS")"
-NMOT="$("$PY" -c 'import sys; from twin_nodes.params import load_params; print(load_params(sys.argv[1]).rotors.count)' "$PARAMS")"
+NMOT="$("$PY" -c 'import sys; from twin_nodes.vehicle.params import load_params; print(load_params(sys.argv[1]).rotors.count)' "$PARAMS")"
 
 mkdir -p "$RUN_DIR"
 rm -rf "$RUN_DIR/bag" "$RUN_DIR/final_metrics.json" "$RUN_DIR/aligned.npz" "$RUN_DIR/replay_stats.json"
@@ -66,6 +66,6 @@ if [ ! -f "$RUN_DIR/final_metrics.json" ]; then
     tail -n 5 "$RUN_DIR"/*.log >&2
     exit 1
 fi
-"$PY" -c 'import json, sys; from twin_nodes.metrics import table2; print(table2(json.load(open(sys.argv[1]))))' \
+"$PY" -c 'import json, sys; from twin_nodes.twin.metrics import table2; print(table2(json.load(open(sys.argv[1]))))' \
     "$RUN_DIR/final_metrics.json"
 echo "bag: $RUN_DIR/bag   metrics: $RUN_DIR/final_metrics.json   logs: $RUN_DIR/*.log"

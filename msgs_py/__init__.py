@@ -1,7 +1,9 @@
 """Message mappings of the rotortwin ROS graph (standard ROS 2 types only).
 
 - :mod:`msgs_py.topics`: every topic, its type and field layout, metric topic names.
-- :mod:`msgs_py.streams`: which flight-log series become which ``/real`` topic on replay.
+
+Which flight-log series become which ``/real`` topic on replay is decided where flight logs
+are read (:mod:`twin_nodes.logs.streams`); this package imports nothing from ``twin_nodes``.
 """
 
 from msgs_py.topics import TOPICS, TopicSpec, metric_topic, msg_class  # noqa: F401

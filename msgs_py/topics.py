@@ -60,7 +60,7 @@ class TopicSpec:
     latched: bool = False  # transient-local durability (late joiners get the last message)
 
 
-#: 11-entry setpoint vector (twin_nodes.control.SP_SIZE), ENU, NaN = not controlled
+#: 11-entry setpoint vector (twin_nodes.twin.control.SP_SIZE), ENU, NaN = not controlled
 SETPOINT_LABELS = ("pos_x_m", "pos_y_m", "pos_z_m", "vel_x_m_s", "vel_y_m_s", "vel_z_m_s",
                    "acc_x_m_s2", "acc_y_m_s2", "acc_z_m_s2", "yaw_rad", "yawspeed_rad_s")
 #: /real/status entries
@@ -115,7 +115,7 @@ _T = [
               "one DiagnosticStatus per channel (name 'twin_error/<channel>'), values = the four statistics "
               "over the rolling window, keys like 'rmse_m'"),
     TopicSpec("/twin_error/final_json", "std_msgs/msg/String", False, "metrics node",
-              "whole-flight metrics as JSON (twin_nodes.metrics.flight_metrics keys), once at the end", True),
+              "whole-flight metrics as JSON (twin_nodes.twin.metrics.flight_metrics keys), once at the end", True),
     TopicSpec("/twin_error/final_table", "std_msgs/msg/String", False, "metrics node",
               "whole-flight metrics in the Table-2 layout (plain text), once at the end", True),
 ]

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from conftest import shared_log, ulog_params, need_log
 
-from twin_nodes.compare import align, compare_log, mask_from_intervals
-from twin_nodes.metrics import error_stats, flight_metrics
-from twin_nodes.params import shipped
-from twin_nodes.twin import TwinRun
-from twin_nodes.ulog_io import FlightLog, Series, read_ulog
+from twin_nodes.twin.compare import align, compare_log, mask_from_intervals
+from twin_nodes.twin.metrics import error_stats, flight_metrics
+from twin_nodes.vehicle.params import shipped
+from twin_nodes.twin.runner import TwinRun
+from twin_nodes.logs.ulog_io import FlightLog, Series, read_ulog
 
 
 def _series(t, v, interp="linear"):

@@ -1,15 +1,16 @@
-"""The PX4-like cascade (twin_nodes.control) flying the physics model through sim.fly_closed_loop."""
+"""The PX4-like cascade (twin_nodes.twin.control) flying the physics model through sim.fly_closed_loop."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from twin_nodes.control import Controller, ControllerGains, allocation_matrix, setpoint
-from twin_nodes.frames import euler_from_quat, wrap_pi
-from twin_nodes.params import shipped
+from twin_nodes.twin.control import Controller, ControllerGains, setpoint
+from twin_nodes.vehicle.geometry import allocation_matrix
+from twin_nodes.base.frames import euler_from_quat, wrap_pi
+from twin_nodes.vehicle.params import shipped
 from twin_nodes.physics.model import Multirotor
-from twin_nodes.sim import fly_closed_loop
+from twin_nodes.twin.sim import fly_closed_loop
 
 VEHICLES = ["buho_negro", "px4_sih_quadx"]
 
@@ -103,9 +104,9 @@ def test_controller_at_the_setpoint_commands_hover(name):
 def test_auto_gains_keep_fast_vehicles_at_defaults_and_slow_motors_stable():
     """Default gains scale with the motor lag: exact defaults for fast motors, a stable
     cascade for the 3DR Quad-C's 0.15 s motors (which the fast defaults drive unstable)."""
-    from twin_nodes.control import ControllerGains, setpoint
-    from twin_nodes.params import shipped
-    from twin_nodes.sim import fly_closed_loop
+    from twin_nodes.twin.control import ControllerGains, setpoint
+    from twin_nodes.vehicle.params import shipped
+    from twin_nodes.twin.sim import fly_closed_loop
 
     assert ControllerGains.from_params(shipped("px4_sih_quadx")) == ControllerGains()
     assert ControllerGains.from_params(shipped("buho_negro")) == ControllerGains()

@@ -10,8 +10,8 @@ import pytest
 pytest.importorskip("nav_msgs.msg", reason="ROS 2 message packages (pip install -e '.[ros]')")
 
 from msgs_py.topics import SETPOINT_LABELS, STATUS_LABELS, TOPICS, metric_topic, msg_class  # noqa: E402
-from twin_nodes import conversions as cv  # noqa: E402
-from twin_nodes.frames import quat_from_euler, quat_rotate  # noqa: E402
+from twin_nodes.logs import conversions as cv  # noqa: E402
+from twin_nodes.base.frames import quat_from_euler, quat_rotate  # noqa: E402
 
 
 def _serial_roundtrip(m):

@@ -1,4 +1,4 @@
-"""The parameter pipeline (twin_nodes.derive) and the Gazebo/PX4 export (twin_nodes.export_px4).
+"""The parameter pipeline (twin_nodes.vehicle.derive) and the Gazebo/PX4 export (twin_nodes.vehicle.export_px4).
 
 Known answers are the Búho Negro paper's numbers (shared/reference/buho-negro-paper.md)
 and small hand-computed cases.
@@ -15,16 +15,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from twin_nodes import derive as dv
-from twin_nodes.errors import ParamsError
-from twin_nodes.export_px4 import (
+from twin_nodes.vehicle import derive as dv
+from twin_nodes.base.errors import ParamsError
+from twin_nodes.vehicle.export_px4 import (
     px4_airframe_params,
     px4_airframe_script,
     qgc_params_table,
     rotor_positions_frd_m,
     sdf_motor_plugins,
 )
-from twin_nodes.params import from_ros_dict, shipped
+from twin_nodes.vehicle.params import from_ros_dict, shipped
 
 G = 9.80665
 

@@ -11,9 +11,9 @@ from conftest import missing_shared
 
 from twin_nodes.discovery.discover import _block_test, discover
 from twin_nodes.discovery.prove import Hidden, run_one, suite
-from twin_nodes.errors import TwinError
-from twin_nodes.params import shipped
-from twin_nodes.ulog_io import read_ulog
+from twin_nodes.base.errors import TwinError
+from twin_nodes.vehicle.params import shipped
+from twin_nodes.logs.ulog_io import read_ulog
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
@@ -117,6 +117,6 @@ def test_discover_cli_end_to_end_on_shipped_bag(tmp_path):
     assert top["heldout_after"] < 0.5 * top["heldout_before"]
     assert {m["channel"] for m in res["mismatch"]} & {"motor3", "throttle"}
     assert (tmp_path / "rep" / "index.html").exists() and (tmp_path / "refit.yaml").exists()
-    from twin_nodes.params import load_params
+    from twin_nodes.vehicle.params import load_params
     refit = load_params(tmp_path / "refit.yaml")
     assert "motor_efficiency" in dict(refit.effects)

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import yaml
 
-from twin_nodes.frames import quat_from_euler, quat_to_rotmat
-from twin_nodes.params import dump_params, load_params, shipped
+from twin_nodes.base.frames import quat_from_euler, quat_to_rotmat
+from twin_nodes.vehicle.params import dump_params, load_params, shipped
 from twin_nodes.physics.effects import EFFECTS
 from twin_nodes.physics.model import Multirotor, MultirotorBatch
-from twin_nodes.sim import Simulator, fly_closed_loop
+from twin_nodes.twin.sim import Simulator, fly_closed_loop
 
 G = 9.80665
 NAN4 = np.full(4, np.nan)
@@ -149,6 +149,14 @@ def test_ground_effect_multiplier(buho, z, gain):
     x = m.initial_state(position_enu=(0.0, 0.0, z), rotor_state=omega)
     f = m.wrench_terms(x)["rotors"][0][0]
     assert f[2] == pytest.approx(gain * 4 * buho.rotors.kt_n_s2_rad2 * 250.0**2, rel=1e-12)
+
+
+def test_rotor_tilt_yaw_moment_is_lever_times_total_thrust(buho):
+    lever = 0.012
+    m = Multirotor(buho.with_effect("rotor_tilt", lever_m=lever))
+    x = m.initial_state(position_enu=(0, 0, 5), rotor_state="hover")
+    tz = float(np.sum(m.rotor_thrusts(x)))
+    np.testing.assert_allclose(m.wrench_terms(x)["rotor_tilt"][1][0], [0.0, 0.0, lever * tz], rtol=1e-12)
 
 
 def test_com_offset_moment_equals_rotor_geometry_about_the_shifted_com(buho):
@@ -337,6 +345,7 @@ ACTIVE = {
     "thrust_coefficient": {"kt_scale": 0.92},
     "yaw_moment": {"km": 0.03},
     "com_offset": {"dx": 0.01, "dy": -0.01},
+    "rotor_tilt": {"lever_m": 0.01},
     "wind": {"vx": 3.0, "vy": -2.0, "gust_std": 0.5},
     "ground_effect": {"coefficient": 0.3, "height_scale": 0.5},
     "inertia": {"ixx": 0.22, "iyy": 0.2, "izz": 0.36},
@@ -354,6 +363,7 @@ NEUTRAL = {
     "thrust_coefficient": {"kt_scale": 1.0},
     "yaw_moment": {"km": 0.0238},
     "com_offset": {"dx": 0.0, "dy": 0.0},
+    "rotor_tilt": {"lever_m": 0.0},
     "wind": {"vx": 0.0, "vy": 0.0, "gust_std": 0.0},
     "ground_effect": {"coefficient": 0.0, "height_scale": 0.5},
     "inertia": {"ixx": 0.179, "iyy": 0.180, "izz": 0.303},

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from twin_nodes import frames as F
+from twin_nodes.base import frames as F
 
 DEG = np.pi / 180
 

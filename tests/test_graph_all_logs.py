@@ -11,12 +11,12 @@ from conftest import need_log, ulog_params
 
 pytest.importorskip("rclpy", reason="ROS 2 wheels (pip install -e '.[ros]')")
 
-from msgs_py.streams import replay_streams  # noqa: E402
-from twin_nodes.cli.graph import _load_aligned, run_graph  # noqa: E402
-from twin_nodes.params import params_dir  # noqa: E402
-from twin_nodes.recording import topic_counts  # noqa: E402
-from twin_nodes.report import write_report  # noqa: E402
-from twin_nodes.ulog_io import read_ulog  # noqa: E402
+from twin_nodes.logs.streams import replay_streams  # noqa: E402
+from twin_nodes.graph import load_aligned as _load_aligned, run_graph  # noqa: E402
+from twin_nodes.vehicle.params import params_dir  # noqa: E402
+from twin_nodes.logs.recording import topic_counts  # noqa: E402
+from twin_nodes.twin.report import write_report  # noqa: E402
+from twin_nodes.logs.ulog_io import read_ulog  # noqa: E402
 
 pytestmark = [pytest.mark.slow, pytest.mark.ros]
 

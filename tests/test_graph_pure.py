@@ -1,5 +1,5 @@
 """The graph's pure parts: replay streams vs the ULog, timelines, reorder buffer, params choice,
-topic-data metrics equal to the offline compare."""
+topic-data metrics equal to the offline compare, node parameters that stay strings."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from conftest import need_log, shared_log, ulog_params
 
-from msgs_py.streams import HEADERLESS, event_order, replay_streams
-from twin_nodes.compare import compare_log, metrics_from_streams
-from twin_nodes.errors import TwinError
+from twin_nodes.logs.streams import HEADERLESS, event_order, replay_streams
+from twin_nodes.twin.compare import compare_log, metrics_from_streams
+from twin_nodes.base.errors import TwinError
 from twin_nodes.nodes.common import ReorderBuffer, Timeline
-from twin_nodes.params import params_dir, shipped
-from twin_nodes.ulog_io import list_topics, read_ulog
+from twin_nodes.vehicle.params import params_dir, shipped
+from twin_nodes.logs.ulog_io import list_topics, read_ulog
 
 SOURCE = {"/real/odom": ["vehicle_local_position"], "/real/imu": ["sensor_combined"],
           "/real/battery": ["battery_status"], "/real/setpoint": ["trajectory_setpoint"],
@@ -43,7 +43,7 @@ def test_replay_streams_match_ulog_counts(log_path):
 
 
 def test_event_order_is_stable_for_ties():
-    from msgs_py.streams import Stream
+    from twin_nodes.logs.streams import Stream
 
     a = Stream("/a", np.array([0.0, 1.0]))
     b = Stream("/b", np.array([0.0, 0.5, 1.0]))
@@ -83,12 +83,15 @@ def test_reorder_buffer_releases_in_time_order_after_lag():
 
 
 def test_default_params_from_sys_autostart():
-    from twin_nodes.cli.graph import default_params_for
+    from twin_nodes.graph import default_params_for
 
     p = default_params_for(shared_log("sitl", "px4sih_default_triangle.ulg"))
     assert p == params_dir() / "px4_sih_quadx.yaml"
-    with pytest.raises(TwinError, match="SYS_AUTOSTART 4014 has no shipped params file.*--params"):
-        default_params_for(shared_log("real", "real_s500_rcac_mission1.ulg"))
+    # no shipped file for SYS_AUTOSTART 4014: the nominal built from the log itself (issue 10)
+    nominal = default_params_for(shared_log("real", "real_s500_rcac_mission1.ulg"))
+    assert nominal.is_file() and nominal.parent != params_dir() and nominal.suffix == ".yaml"
+    with pytest.raises(TwinError, match="params YAML"):
+        default_params_for(shared_log("real", "real_s500_rcac_mission1.ulg"), str(params_dir() / "missing.yaml"))
     explicit = params_dir() / "quad_c_3dr.yaml"
     assert default_params_for(shared_log("real", "real_s500_rcac_mission1.ulg"), str(explicit)) == explicit
 
@@ -113,7 +116,7 @@ def test_metrics_from_topic_data_equal_offline_compare():
 
 
 def test_monitor_table_format():
-    from twin_nodes.cli.graph import format_monitor
+    from twin_nodes.graph.live import format_monitor
 
     vals = {"/twin_error/xy/rmse_m": 0.5, "/twin_error/throttle/p75": 0.012, "/twin_error/motor2/max": 0.1,
             "/twin_error/motor10/max": 0.2}
@@ -123,3 +126,13 @@ def test_monitor_table_format():
     assert lines[3].startswith("xy [m]") and "0.500" in lines[3]
     assert any(line.startswith("throttle [%]") and "1.200" in line for line in lines)
     assert [ln.split()[0] for ln in lines[3:]] == ["xy", "throttle", "motor2", "motor10"]
+
+
+def test_node_command_keeps_string_parameters_strings():
+    """A flight file named `12345` or `true` reaches the node as a string (ROS parses -p values as YAML)."""
+    from twin_nodes.graph import node_command
+
+    cmd = node_command("replay", {"ulog": "12345", "rate": 0.0, "wait_for": ["twin", "it's"], "progress": True})
+    assert "ulog:='12345'" in cmd and "rate:=0.0" in cmd and "progress:=true" in cmd
+    assert "wait_for:=['twin','it''s']" in cmd
+    assert "ulog:='true'" in node_command("replay", {"ulog": "true"})

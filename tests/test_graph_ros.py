@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -19,12 +18,12 @@ from conftest import shared_log
 
 pytest.importorskip("rclpy", reason="ROS 2 wheels (pip install -e '.[ros]')")
 
-from msgs_py.streams import replay_streams  # noqa: E402
-from twin_nodes.cli.graph import node_command, regress_bag, ros_env, run_graph  # noqa: E402
-from twin_nodes.compare import compare_log  # noqa: E402
-from twin_nodes.params import load_params, params_dir  # noqa: E402
-from twin_nodes.recording import recover, topic_counts  # noqa: E402
-from twin_nodes.ulog_io import read_ulog  # noqa: E402
+from twin_nodes.logs.streams import replay_streams  # noqa: E402
+from twin_nodes.graph import node_command, regress_bag, ros_env, run_graph  # noqa: E402
+from twin_nodes.twin.compare import compare_log  # noqa: E402
+from twin_nodes.vehicle.params import load_params, params_dir  # noqa: E402
+from twin_nodes.logs.recording import recover, topic_counts  # noqa: E402
+from twin_nodes.logs.ulog_io import read_ulog  # noqa: E402
 
 pytestmark = pytest.mark.ros
 REPO = Path(__file__).resolve().parents[1]
@@ -37,7 +36,10 @@ CASES = [("sitl", "px4sih_default_triangle.ulg", "px4_sih_quadx", 0.0),
 def test_graph_end_to_end(tmp_path, sub, name, params, rate):
     log_path = shared_log(sub, name)
     pfile = params_dir() / f"{params}.yaml"
-    domain = random.randint(1, 200)
+    from twin_nodes.graph.domains import lease_domain
+
+    with lease_domain() as lease:  # a free domain (released: run_graph leases it itself)
+        domain = lease.domain_id
     env = ros_env(domain)
     # a live viewer on the same private domain while the graph runs
     mon = subprocess.Popen([sys.executable, "-m", "twin_nodes", "monitor", "--once", "--duration", "60"],
@@ -86,11 +88,11 @@ def test_graph_end_to_end(tmp_path, sub, name, params, rate):
         assert m["throttle_rmse"] < 0.03
 
 
-def test_regress_detects_a_changed_result(tmp_path):
-    """A recording whose stored numbers no longer match its topics is a regression (exit 1)."""
+def test_regress_self_check_detects_a_changed_result(tmp_path):
+    """A recording whose stored numbers no longer match its topics fails `regress --self-check` (exit 1)."""
     import shutil
 
-    from twin_nodes.recording import McapRecorder, read_bag
+    from twin_nodes.logs.recording import McapRecorder, read_bag
 
     log_path = shared_log("real", "real_cubeorange_takeoff_land.ulg")
     run_graph(log_path, params_dir() / "quad_c_3dr.yaml", run_dir=tmp_path / "run", bag=str(tmp_path / "bag"),
@@ -109,8 +111,8 @@ def test_regress_detects_a_changed_result(tmp_path):
                 if topic == "/twin_error/final_json":
                     msg = {"data": json.dumps(stored)}
                 rec.write(topic, msg, t)
-    r = subprocess.run([sys.executable, "-m", "twin_nodes", "regress", str(out)], capture_output=True, text=True,
-                       timeout=120)
+    r = subprocess.run([sys.executable, "-m", "twin_nodes", "regress", "--self-check", str(out)],
+                       capture_output=True, text=True, timeout=120)
     assert r.returncode == 1, r.stderr
     assert "REGRESSION" in r.stderr and "throttle_rmse" in r.stderr
     shutil.rmtree(out)

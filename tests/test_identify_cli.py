@@ -15,14 +15,14 @@ from conftest import shared_log
 
 from twin_nodes.cli import main
 from twin_nodes.identify.step_response import simulate_lag
-from twin_nodes.params import from_ros_dict, params_dir, shipped
+from twin_nodes.vehicle.params import from_ros_dict, params_dir, shipped
 
 SIH = str(params_dir() / "px4_sih_quadx.yaml")
 
 
 def merged_ok(doc: dict) -> object:
     """The ros__parameters block merged into the SIH params passes the schema."""
-    from twin_nodes.cli.identify import merge_into_params
+    from twin_nodes.identify.results import merge_into_params
     block = doc["/**"]["ros__parameters"]
     return from_ros_dict(merge_into_params(shipped("px4_sih_quadx").to_ros_dict(), block))
 

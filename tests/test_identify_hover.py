@@ -7,7 +7,7 @@ import pytest
 
 from twin_nodes.identify.hover import (detect_hover_segments, kt_from_hover, kt_per_segment,
                                        params_from_hover_command, rpm_to_rad_s, summarize_hover)
-from twin_nodes.params import shipped
+from twin_nodes.vehicle.params import shipped
 
 
 def test_kt_from_hover_reference_numbers():

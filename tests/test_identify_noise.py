@@ -7,7 +7,7 @@ import pytest
 
 from twin_nodes.identify.noise import (BIAS_INSTABILITY_FACTOR, allan_deviation, analyse_allan, imu_noise,
                                        sensors_block, stationary_runs)
-from twin_nodes.params import from_ros_dict, shipped
+from twin_nodes.vehicle.params import from_ros_dict, shipped
 
 FS = 100.0
 SIGMA_G = np.array([0.01, 0.02, 0.005])   # rad/s white noise per axis

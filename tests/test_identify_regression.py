@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from twin_nodes import frames
+from twin_nodes.base import frames
 from twin_nodes.identify.regression import (RotorGeometry, fit_linear, rotational_regression,
                                             rotor_states_from_commands, structural_identifiability,
                                             thrust_regressor, translational_regression, world_to_body)
 from twin_nodes.identify.step_response import discretize_zoh
-from twin_nodes.params import from_ros_dict
+from twin_nodes.vehicle.params import from_ros_dict
 
 ARM = 0.25 / math.sqrt(2.0)
 VEHICLE = {

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from twin_nodes.errors import LogError
+from twin_nodes.base.errors import LogError
 from twin_nodes.identify.step_response import (c2d_scipy, discretize_zoh, fit_step_response, read_step_csv,
                                                simulate_lag)
 

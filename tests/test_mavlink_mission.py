@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from twin_nodes.errors import ParamsError, TwinError
+from twin_nodes.base.errors import ParamsError, TwinError
 from twin_nodes.mavlink.mission import (
     load_plan,
     normalise_mavsdk_url,
@@ -109,11 +109,22 @@ def test_mavsdk_url_spellings():
 
 
 class FakeAutopilot:
-    """PX4-like enough for MAVSDK's mission upload: heartbeat + HOME_POSITION at 10 Hz, the
-    MISSION_COUNT / MISSION_REQUEST_INT / MISSION_ITEM_INT / MISSION_ACK exchange, and
-    COMMAND_ACK ACCEPTED for every command (recording arming)."""
+    """PX4-like enough for MAVSDK's mission upload: heartbeat + HOME_POSITION + MISSION_CURRENT at
+    10 Hz, the MISSION_COUNT / MISSION_REQUEST_INT / MISSION_ITEM_INT / MISSION_ACK exchange,
+    MISSION_SET_CURRENT, and COMMAND_ACK ACCEPTED for every command (recording arming).
 
-    def __init__(self, gcs_port: int, home=(HOME[0], HOME[1], 489.4)):
+    ``dataman`` models PX4's persistent mission storage (pass the same dict to a new instance to
+    "reboot"): the mission items and the **current index**, which PX4 keeps across reboots and
+    keeps when an identical mission is uploaded again.  Starting the mission (DO_SET_MODE
+    AUTO.MISSION) records the index it starts from in ``starts``; ``fly_to_end()`` is the vehicle
+    flying it (the current index goes past the last item), after which a start with the index left
+    there "finishes at once", as PX4 does."""
+
+    def __init__(self, gcs_port: int, home=(HOME[0], HOME[1], 489.4), dataman: dict | None = None):
+        self.dataman = dataman if dataman is not None else {}
+        self.dataman.setdefault("items", [])
+        self.dataman.setdefault("current", 0)
+        self.starts: list[int] = []
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
         self.sock.settimeout(0.02)
@@ -155,6 +166,7 @@ class FakeAutopilot:
                 self.mav.send(self.mav.home_position_encode(int(self.home[0] * 1e7), int(self.home[1] * 1e7),
                                                             int(self.home[2] * 1000), 0, 0, 0, [1, 0, 0, 0],
                                                             0, 0, 0))
+                self.mav.send(self.mav.mission_current_encode(self.dataman["current"]))
             try:
                 data, _ = self.sock.recvfrom(65536)
             except (socket.timeout, OSError):
@@ -173,13 +185,37 @@ class FakeAutopilot:
             if msg.seq + 1 < self.count:
                 self.mav.send(self.mav.mission_request_int_encode(*src, msg.seq + 1, msg.mission_type))
             else:
+                new = [_item_key(self.items[k]) for k in sorted(self.items)]
+                if new != self.dataman["items"]:  # PX4 keeps the current index for an identical mission
+                    self.dataman["current"] = 0
+                self.dataman["items"] = new
                 self.mav.send(self.mav.mission_ack_encode(*src, mavlink2.MAV_MISSION_ACCEPTED, msg.mission_type))
                 self.acked.set()
+        elif t == "MISSION_SET_CURRENT":
+            if msg.seq < len(self.dataman["items"]):
+                self.dataman["current"] = msg.seq
+            self.mav.send(self.mav.mission_current_encode(self.dataman["current"]))
         elif t in ("COMMAND_LONG", "COMMAND_INT"):
             self.commands.append((msg.command, msg.param1))
             if msg.command == mavlink2.MAV_CMD_COMPONENT_ARM_DISARM:
                 self.armed = msg.param1 == 1
+            if msg.command == mavlink2.MAV_CMD_DO_SET_MODE and int(msg.param2) == 4 and int(msg.param3) == 4:
+                self.starts.append(self.dataman["current"])  # AUTO.MISSION from the stored index
             self.mav.send(self.mav.command_ack_encode(msg.command, mavlink2.MAV_RESULT_ACCEPTED, 0, 0, *src))
+
+    def fly_to_end(self):
+        """The vehicle flew the mission: the current index is past the last item (PX4 keeps it)."""
+        self.dataman["current"] = len(self.dataman["items"])
+
+    @property
+    def finished_at_once(self) -> bool:
+        """The last start began past the last item: PX4 reports the mission finished immediately."""
+        return bool(self.starts) and self.starts[-1] >= len(self.dataman["items"])
+
+
+def _item_key(it):
+    # repr: NaN parameters (yaw left to PX4) compare equal
+    return repr((it.seq, it.frame, it.command, it.param1, it.param2, it.param3, it.param4, it.x, it.y, it.z))
 
 
 @pytest.fixture()
@@ -229,6 +265,55 @@ def test_start_arms_and_starts(fake_ap):
     assert mavlink2.MAV_CMD_DO_SET_MODE in cmds                         # MAVSDK: mission mode = start
 
 
+def _free_udp_port() -> int:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def _fly_twice(dataman: dict) -> list[FakeAutopilot]:
+    """Upload + start the triangle, fly it, reboot the autopilot (same dataman), upload + start again."""
+    plan = load_plan(REPO / "missions" / "triangle.plan.yaml")
+    aps = []
+    for _ in range(2):
+        port = _free_udp_port()
+        ap = FakeAutopilot(port, dataman=dataman).start()
+        try:
+            url = f"udpin://127.0.0.1:{port}"
+            out = upload_plan(plan, url, connect_timeout_s=5.0, home_timeout_s=5.0)
+            start_mission(url, connect_timeout_s=5.0)
+            deadline = time.monotonic() + 3.0
+            while not ap.starts and time.monotonic() < deadline:
+                time.sleep(0.02)
+            ap.fly_to_end()
+            ap.upload_summary = out
+        finally:
+            ap.close()
+        aps.append(ap)
+    return aps
+
+
+def test_identical_mission_flown_twice_restarts_from_item_0():
+    """Issue 14.1: PX4 keeps the current index across a reboot and an identical upload; the upload
+    sets it back to 0 so the second flight flies the whole mission again."""
+    first, second = _fly_twice({})
+    assert first.starts == [0] and second.starts == [0]
+    assert not second.finished_at_once
+    assert second.upload_summary["current_item"] == 0 and second.upload_summary["current_item_confirmed"]
+
+
+def test_fake_autopilot_reproduces_the_finished_at_once_bug(monkeypatch):
+    """Without set_current_mission_item(0) the second identical mission starts past its end."""
+    from mavsdk.plugins.mission import Mission, MissionResult
+
+    monkeypatch.setattr(Mission, "set_current_mission_item", lambda self, index: MissionResult.SUCCESS)
+    first, second = _fly_twice({})
+    assert first.starts == [0]
+    assert second.finished_at_once and second.starts[-1] == len(second.dataman["items"])
+
+
 def test_no_autopilot_is_a_one_line_error():
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     s.bind(("127.0.0.1", 0))
@@ -236,3 +321,20 @@ def test_no_autopilot_is_a_one_line_error():
     s.close()
     with pytest.raises(TwinError, match=r"udpin://127\.0\.0\.1:\d+: no autopilot heartbeat within 0\.5 s"):
         start_mission(f"udpin://127.0.0.1:{port}", connect_timeout_s=0.5)
+
+
+def test_wait_flight_done_returns_after_arm_and_disarm(fake_ap):
+    from twin_nodes.mavlink.mission import wait_flight_done
+
+    ap, url = fake_ap
+
+    def fly():
+        time.sleep(1.0)
+        ap.armed = True
+        time.sleep(1.5)
+        ap.armed = False
+    threading.Thread(target=fly, daemon=True).start()
+    out = wait_flight_done(url, connect_timeout_s=5.0, arm_timeout_s=10.0, timeout_s=10.0)
+    assert 1.0 < out["flight_s"] < 5.0
+    with pytest.raises(TwinError, match="did not arm within 0.5 s"):
+        wait_flight_done(url, connect_timeout_s=5.0, arm_timeout_s=0.5)

@@ -24,7 +24,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from msgs_py.topics import TOPICS, msg_class  # noqa: E402
-from twin_nodes import conversions as cv  # noqa: E402
+from twin_nodes.logs import conversions as cv  # noqa: E402
 from twin_nodes.mavlink.simlink import ScriptedPX4  # noqa: E402
 
 pytestmark = pytest.mark.ros

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from twin_nodes.errors import ParamsError
+from twin_nodes.base.errors import ParamsError
 from twin_nodes.mavlink.sensors import SensorConfig, isa_pressure_pa
 from twin_nodes.mavlink.simlink import (
     FIELDS_ACCEL,
@@ -23,7 +23,7 @@ from twin_nodes.mavlink.simlink import (
     SimLinkServer,
     motor_commands_from_controls,
 )
-from twin_nodes.params import shipped
+from twin_nodes.vehicle.params import shipped
 
 STEP_US = 4000
 G = 9.80665
@@ -237,3 +237,94 @@ def test_step_must_be_a_multiple_of_dt():
     vp = shipped("px4_sih_quadx")
     with pytest.raises(ParamsError, match=r"simulation\.dt_s: the link step 0\.0045 s must be a whole multiple"):
         SimLinkServer(vp, port=0, step_s=0.0045)
+
+
+# ----------------------------------------------------------------------------- one client, loopback
+
+
+def test_listens_on_loopback_unless_told_otherwise():
+    from twin_nodes.cli import build_parser
+
+    srv = SimLinkServer(shipped("px4_sih_quadx"), port=0, speed_factor=0)
+    try:
+        srv.bind()
+        assert srv._lsock.getsockname()[0] == "127.0.0.1"
+    finally:
+        srv.close()
+    assert build_parser().parse_args(["bridge", "sim"]).host == "127.0.0.1"
+    assert build_parser().parse_args(["bridge", "sim", "--host", "0.0.0.0"]).host == "0.0.0.0"
+
+
+def test_bad_port_is_a_one_line_error():
+    import socket
+
+    from twin_nodes.base.errors import TwinError
+
+    with pytest.raises(TwinError, match="port: expected a TCP port 0..65535"):
+        SimLinkServer(shipped("px4_sih_quadx"), port=70000)
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen(1)
+    try:
+        srv = SimLinkServer(shipped("px4_sih_quadx"), port=taken.getsockname()[1], speed_factor=0)
+        with pytest.raises(TwinError, match="cannot listen: Address already in use"):
+            srv.bind()
+    finally:
+        taken.close()
+
+
+def test_second_client_is_refused_while_one_is_flying():
+    """Whoever connects while PX4 flies is turned away; the flight goes on undisturbed."""
+    import socket
+    import threading
+    import time
+
+    srv = SimLinkServer(shipped("px4_sih_quadx"), port=0, speed_factor=1.0)
+    srv.start_thread()
+    result = {}
+    p1 = ScriptedPX4(srv.port, command=lambda t: ([0.5] * 4, True))
+
+    def fly():
+        result["stats"] = p1.run(3.0)
+
+    th = threading.Thread(target=fly)
+    th.start()
+    try:
+        time.sleep(1.0)
+        intruder = socket.create_connection(("127.0.0.1", srv.port), timeout=5.0)
+        intruder.settimeout(5.0)
+        try:
+            assert intruder.recv(4096) == b""  # closed at once, nothing sent to it
+        finally:
+            intruder.close()
+        th.join(30)
+        assert not th.is_alive()
+    finally:
+        p1.close()
+        srv.close()
+    st, p = srv.stats, result["stats"]
+    assert st.refused == 1 and st.connections == 1
+    assert p.sensors_rx == st.sensors_tx >= 700 and p.bad_rx == 0  # 3 s at 250 Hz, one client throughout
+    assert st.controls_rx == p.controls_tx
+
+
+def test_a_silent_client_is_replaced():
+    """A client that has sent nothing for takeover_after_s is taken for dead (a PX4 restarted before
+    its old socket was seen closed): the next one flies."""
+    import socket
+    import time
+
+    srv = SimLinkServer(shipped("px4_sih_quadx"), port=0, speed_factor=0, takeover_after_s=0.5)
+    srv.start_thread()
+    try:
+        stale = socket.create_connection(("127.0.0.1", srv.port), timeout=5.0)
+        time.sleep(1.0)
+        t_stale = srv.stats.time_usec * 1e-6  # it freewheeled while the stale client sat there
+        p2 = ScriptedPX4(srv.port, command=lambda t: ([0.6] * 4, True))
+        s2 = p2.run(t_stale + 1.5)
+        p2.close()
+        stale.close()
+    finally:
+        srv.close()
+    assert srv.stats.refused == 0 and srv.stats.connections == 2
+    assert s2.controls_tx >= 300 and srv.sim.state[2] > 0.0  # the new client flies it

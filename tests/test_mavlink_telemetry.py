@@ -11,7 +11,7 @@ import pytest
 from conftest import missing_shared
 from pymavlink.dialects.v20 import common as mavlink2
 
-from twin_nodes import frames
+from twin_nodes.base import frames
 from twin_nodes.mavlink.telemetry import (
     TelemetryAggregator,
     TelemetryClient,
@@ -326,8 +326,8 @@ def test_replay_motors_battery_status(replay):
 
 
 def test_replay_matches_ulog_replay_series(replay):
-    """The telemetry topics carry the same numbers the ULog replay (twin_nodes.ulog_io) publishes."""
-    from twin_nodes import ulog_io
+    """The telemetry topics carry the same numbers the ULog replay (twin_nodes.logs.ulog_io) publishes."""
+    from twin_nodes.logs import ulog_io
 
     log = ulog_io.read_ulog(LOG)
     pos = log.get("position_enu")

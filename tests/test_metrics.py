@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from twin_nodes.metrics import (Aligned, RollingStats, compare_metrics, error_stats, flight_metrics,
+from twin_nodes.twin.metrics import (Aligned, RollingStats, compare_metrics, error_stats, flight_metrics,
                                 percentile_sorted, table2, to_jsonable)
 
 

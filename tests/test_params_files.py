@@ -6,6 +6,7 @@ derive``), every other ``params/*.yaml`` is a vehicle params file.
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -16,9 +17,9 @@ import pytest
 import yaml
 
 from twin_nodes.cli import main
-from twin_nodes.derive import RPM_TO_RAD_S, derive_file
-from twin_nodes.errors import ParamsError
-from twin_nodes.params import VehicleParams, load_params
+from twin_nodes.vehicle.derive import RPM_TO_RAD_S, derive_file
+from twin_nodes.base.errors import ParamsError
+from twin_nodes.vehicle.params import VehicleParams, load_params
 
 PARAMS = Path(__file__).resolve().parent.parent / "params"
 SPECS = sorted(PARAMS.glob("derive_*.yaml"))
@@ -142,13 +143,50 @@ def _mutate_unknown(d):
     _params(d)["vehicle"]["masss_kg"] = 5.0
 
 
+def _set(section, key, value):
+    def mutate(d):
+        _params(d)[section][key] = value
+    return mutate
+
+
+def _set_effect(name, **values):
+    def mutate(d):
+        eff = _params(d)["effects"]
+        eff["enabled"] = [name]
+        eff[name] = values
+    return mutate
+
+
 BAD = [
     ("missing key", _mutate_missing, "rotors.kt_n_s2_rad2", "missing"),
-    ("negative mass", _mutate_negative_mass, "vehicle.mass_kg", "expected > 0"),
+    ("negative mass", _mutate_negative_mass, "vehicle.mass_kg", "expected 0.001..10000 kg, got -5.86"),
     ("inertia not positive definite", _mutate_inertia, "vehicle.ixx_kg_m2", "inertia tensor must be positive definite"),
     ("omega_min >= omega_cmd_max", _mutate_omega, "rotors.omega_min_rad_s",
      "expected omega_min_rad_s < omega_cmd_max_rad_s"),
     ("unknown key", _mutate_unknown, "vehicle.masss_kg", "unknown key"),
+    # issue 12: values that passed validation and then overflowed or hung the simulator
+    ("thrust 1e308", _set("rotors", "kt_n_s2_rad2", 1e308), "rotors.kt_n_s2_rad2",
+     "expected a thrust at full command kt*omega_cmd_max^2 <= 1e+06 N per rotor, got inf N"),
+    ("inertia 1e308", _set("vehicle", "ixx_kg_m2", 1e308), "vehicle.ixx_kg_m2",
+     "inertia tensor must be positive definite"),
+    ("inertia too large for mass and size", _set("vehicle", "izz_kg_m2", 100.0), "vehicle.izz_kg_m2",
+     "expected 5.86e-06..13.2 kg m^2 (radius of gyration 0.001..1.5 m for 5.86 kg and rotors up to 0.5 m out), "
+     "got 100"),
+    ("position 1e308", _set("rotors", "x_flu_m", [1e308, -0.35, 0.35, -0.35]), "rotors.x_flu_m",
+     "expected rotor positions within 100 m of the centre of mass, got one at inf m"),
+    ("mass 1e-300", _set("vehicle", "mass_kg", 1e-300), "vehicle.mass_kg", "expected 0.001..10000 kg, got 1e-300"),
+    ("dt 1e-12", lambda d: _params(d).update(simulation={"dt_s": 1e-12}), "simulation.dt_s",
+     "expected 1e-05..0.1 s, got 1e-12"),
+    ("tau inf", _set("rotors", "tau_up_s", float("inf")), "rotors.tau_up_s", "expected a finite number, got inf"),
+    ("huge integer", _set("vehicle", "mass_kg", 10**400), "vehicle.mass_kg", "expected a finite number, got 1000"),
+    ("NaN in controller", lambda d: _params(d).update(controller={"rate_hz": float("nan")}),
+     "controller.rate_hz", "expected a finite number, got nan"),
+    ("effect motor outside the rotors", _set_effect("motor_efficiency", motor=9, efficiency=0.8),
+     "effects.motor_efficiency.motor", "expected an integer motor index 1..4 (this vehicle has 4 rotors), got 9"),
+    ("effect parameter NaN", _set_effect("motor_efficiency", motor=2, efficiency=float("nan")),
+     "effects.motor_efficiency.efficiency", "expected a finite number, got nan"),
+    ("effect parameter out of range", _set_effect("actuator_delay", delay=1e9),
+     "effects.actuator_delay.delay", "expected a finite number in 0..2 [s], got 1e+09"),
 ]
 
 
@@ -161,6 +199,38 @@ def test_bad_params_file(tmp_path, what, mutate, key, expected):
         load_params(path)
     assert "\n" not in str(info.value)
     assert info.value.key == key
+
+
+@pytest.mark.parametrize("what", ["directory", "not UTF-8", "path through a file", "fifo", "too large"])
+def test_unreadable_params_path_is_one_line(tmp_path, what):
+    """A params path that is a directory, not UTF-8 or unreadable: one ParamsError, no traceback
+    (issue 12; the old loader raised IsADirectoryError / UnicodeDecodeError / NotADirectoryError)."""
+    path = tmp_path / "p.yaml"
+    expected = {"directory": "<file>: expected a params YAML file, got a directory",
+                "not UTF-8": "<file>: expected UTF-8 text, got byte 0xff at offset 31",
+                "path through a file": "<file>: expected a readable params YAML file (Not a directory)",
+                "fifo": "<file>: expected a params YAML file, got not a regular file",
+                "too large": "<file>: expected a params YAML file of at most 1000000 bytes, got 1000001"}[what]
+    if what == "directory":
+        path.mkdir()
+    elif what == "not UTF-8":
+        path.write_bytes(b"/**:\n  ros__parameters:\n    v: \xff\xfe\n")
+    elif what == "path through a file":
+        (tmp_path / "file").write_text("x")
+        path = tmp_path / "file" / "p.yaml"
+    elif what == "fifo":
+        os.mkfifo(path)  # opening it would block forever
+    else:
+        path.write_bytes(b"#" * 1_000_001)
+    with pytest.raises(ParamsError) as info:
+        load_params(path)
+    assert str(info.value) == f"{path}: {expected}"
+
+
+def test_yaml_nested_too_deep_is_one_line(tmp_path):
+    path = _write(tmp_path, "[" * 20000 + "]" * 20000, "deep.yaml")
+    with pytest.raises(ParamsError, match=re.escape(f"{path}: ")):
+        load_params(path)
 
 
 def test_not_yaml(tmp_path):

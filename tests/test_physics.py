@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from twin_nodes.frames import quat_from_euler, quat_to_rotmat
-from twin_nodes.params import shipped
+from twin_nodes.base.frames import quat_from_euler, quat_to_rotmat
+from twin_nodes.vehicle.params import shipped
 from twin_nodes.physics.model import Multirotor, MultirotorBatch
 
 G = 9.80665

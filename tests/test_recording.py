@@ -15,8 +15,8 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 
-from twin_nodes.errors import LogError
-from twin_nodes.recording import McapRecorder, read_bag, recover, topic_counts
+from twin_nodes.base.errors import LogError
+from twin_nodes.logs.recording import McapRecorder, read_bag, recover, topic_counts
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -181,7 +181,7 @@ def test_recover_truncated_copy(tmp_path, chunked_bag, fraction):
     crashed = tmp_path / "crashed"
     crashed.mkdir()
     (crashed / "crashed.mcap").write_bytes(data[:cut])  # no metadata.yaml, no summary
-    with pytest.raises(LogError, match=r"crashed: metadata\.yaml: .*run twin_nodes\.recording\.recover"):
+    with pytest.raises(LogError, match=r"crashed: metadata\.yaml: .*run .rotortwin record recover BAG."):
         read_bag(crashed)
 
     report = recover(crashed)
@@ -212,7 +212,7 @@ def test_killed_recorder_is_recoverable(tmp_path):
     script = textwrap.dedent(f"""
         import sys, time
         sys.path.insert(0, {str(REPO)!r})
-        from twin_nodes.recording import McapRecorder
+        from twin_nodes.logs.recording import McapRecorder
         rec = McapRecorder(sys.argv[1], chunk_bytes=64 * 1024, chunk_period_s=1e6)
         rec.add_topic("/status", "std_msgs/msg/String")
         for i in range(1500):

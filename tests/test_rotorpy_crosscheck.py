@@ -25,11 +25,11 @@ import pytest
 from rotorpy.vehicles.hummingbird_params import quad_params as hummingbird
 from rotorpy.vehicles.multirotor import Multirotor as RotorPyMultirotor
 
-from twin_nodes.control import setpoint
-from twin_nodes.frames import quat_angle_between
-from twin_nodes.params import RotorParams, VehicleParams, shipped
+from twin_nodes.twin.control import setpoint
+from twin_nodes.base.frames import quat_angle_between
+from twin_nodes.vehicle.params import RotorParams, VehicleParams, shipped
 from twin_nodes.physics.model import Multirotor
-from twin_nodes.sim import fly_closed_loop
+from twin_nodes.twin.sim import fly_closed_loop
 
 DT = 0.004
 T_END = 10.0

@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 from conftest import need_log, shared_log, ulog_params
 
-from twin_nodes import frames as F
-from twin_nodes import time_sync as TS
-from twin_nodes import ulog_io as U
-from twin_nodes.errors import LogError
-from twin_nodes.ulog_io import read_ulog
-from twin_nodes.ulog_write import write_px4_ulog
+from twin_nodes.base import frames as F
+from twin_nodes.logs import time_sync as TS
+from twin_nodes.logs import ulog_io as U
+from twin_nodes.base.errors import LogError
+from twin_nodes.logs.ulog_io import read_ulog
+from twin_nodes.logs.ulog_write import write_px4_ulog
 
 ALL_LOGS = ulog_params("real") + ulog_params("sitl")
 AM = "actuator_motors.control[0..3]"
@@ -125,8 +125,8 @@ def test_pwm_motor_channels_from_output_functions():
     """flugdrohne: PWM_AUX_FUNC5..8 = 101,102,104,103 -> ao[1] ch 4,5,7,6; the PWM route
     agrees with actuator_motors (median 0.0005)."""
     path = shared_log("real", "real_quadx_v6c_climb35m.ulg")
-    ulog, _ = U._open_ulog(path, list(U.TOPICS))
-    topics, _ = U._load_topics(ulog)
+    ulog, _, _ = U._open_ulog(path, list(U.TOPICS))
+    topics, _, _ = U._load_topics(ulog)
     warnings: list[str] = []
     s = U._motors_from_pwm(topics, U._ulog_params(ulog), 4, warnings)
     assert s is not None and warnings == []
@@ -382,3 +382,163 @@ def test_pwm_route_with_functions_and_thrust_model(tmp_path):
     assert "THR_MDL_FAC 0.3 undone" in m.source
     assert np.isnan(m.values[:5]).all() and np.isnan(m.values[45:]).all()
     np.testing.assert_allclose(m.values[5:45], np.repeat(u[5:45, None], 4, axis=1), atol=2e-6)
+
+
+# --------------------------------------------------------------------------- damaged time (issue 12)
+# Logs from the project's own writer, byte-edited in file order (tests/ulog_cases.py).
+
+import signal  # noqa: E402
+
+import ulog_cases as UC  # noqa: E402
+
+DAMAGE_MARKERS = ("time jump", "go backwards", "before the log start", "truncated", "pause", "gap(s)")
+
+
+@pytest.fixture()
+def small(tmp_path) -> tuple[bytes, U.FlightLog]:
+    p = UC.small_flight(tmp_path / "good.ulg")
+    fl = read_ulog(p)
+    assert not any(m in w for w in fl.warnings for m in DAMAGE_MARKERS), fl.warnings
+    return p.read_bytes(), fl
+
+
+def _write(tmp_path: Path, data: bytes, name: str = "bad.ulg") -> Path:
+    p = tmp_path / name
+    p.write_bytes(data)
+    return p
+
+
+@pytest.mark.parametrize("gap_us", [3600 * 10**6, 2**40, 2**62], ids=["1h", "2^40us", "2^62us"])
+def test_time_jump_keeps_the_longest_part(tmp_path, small, gap_us):
+    """A clock jump (seen after GPS time jumps) cuts the log; the longer part is kept and its
+    times re-based, so grids follow the flight's 20 s, not the gap (the old loader spanned
+    the gap: `compare --offline` asked for 24 GB)."""
+    data, good = small
+    for frac, after in ((0.3, True), (0.7, False)):
+        fl = read_ulog(_write(tmp_path, UC.with_gap(data, gap_us, frac)))
+        jumps = [w for w in fl.warnings if w.startswith("log: time jump of ")]
+        assert len(jumps) == 1, fl.warnings
+        assert float(jumps[0].split()[4]) == pytest.approx(gap_us * 1e-6, rel=1e-5, abs=0.05)
+        assert sum(w.startswith("log: kept the longest consistent part") for w in fl.warnings) == 1
+        assert 12.0 < fl.duration_s < 15.0, fl.duration_s
+        pos, ref = fl.require("position_enu"), good.require("position_enu")
+        assert np.all(np.diff(pos.t_s) > 0) and pos.t_s[0] < 0.05
+        if after:  # the last 70 %, re-based to the first sample of any topic after the jump
+            np.testing.assert_array_equal(pos.values, ref.values[-len(pos):])
+            assert fl.start_us == UC.T0_US + gap_us + int(round((ref.t_s[-len(pos)] - pos.t_s[0]) * 1e6))
+        else:
+            np.testing.assert_array_equal(pos.values, ref.values[:len(pos)])
+            assert fl.start_us == UC.T0_US
+        assert fl.require("armed").values[:, 0].max() == 1.0  # the state at the cut is carried over
+        t, _ = fl.resample(["position_enu", "attitude_q", "motors"], 250.0)
+        assert t.size <= 250 * 15
+
+
+def test_backwards_time_keeps_samples_in_order(tmp_path, small):
+    """A clock step back: the longest run in time order is kept, the rest dropped with one
+    warning per topic (the old loader sorted them into each other, silently)."""
+    data, good = small
+    fl = read_ulog(_write(tmp_path, UC.with_backwards(data, 5_000_000)))
+    back = [w for w in fl.warnings if "timestamps go backwards" in w]
+    assert any(w.startswith("vehicle_local_position[0]: timestamps go backwards 1 time(s)") for w in back)
+    assert all("dropped" in w for w in back)
+    pos, ref = fl.require("position_enu"), good.require("position_enu")
+    assert np.all(np.diff(pos.t_s) > 0) and 600 <= len(pos) < len(ref)
+    # every kept sample is an original sample, in file order (east = 0.02 sin(t) is unique)
+    rows = [int(np.flatnonzero(np.all(ref.values == v, axis=1))[0]) for v in pos.values]
+    assert np.all(np.diff(rows) > 0)
+    # one splice where the clock stepped back, not samples of two seconds mixed (the old sort: 250 jumps)
+    assert np.count_nonzero(np.abs(np.diff(pos.values[:, 1])) > 0.002) <= 1
+
+
+def test_backwards_before_the_log_start_is_reported(tmp_path, small):
+    data, _ = small
+    fl = read_ulog(_write(tmp_path, UC.with_backwards(data, 30_000_000)))
+    pre = [w for w in fl.warnings if "stamped before the log start" in w]
+    assert any(w.startswith("vehicle_local_position[0]: dropped 500 sample(s)") for w in pre), fl.warnings
+    assert fl.duration_s < 10.0
+
+
+def test_truncated_log_is_named_truncated(tmp_path, small):
+    data, good = small
+    fl = read_ulog(_write(tmp_path, UC.truncated(data, 0.7)))
+    assert fl.warnings[0].startswith("file truncated: the record at byte "), fl.warnings
+    assert 10.0 < fl.duration_s < good.duration_s
+    at = [r for r in UC.records(data) if r[1] == "D"][300][0]
+    fl = read_ulog(_write(tmp_path, data[: at + 2]))  # cut inside a record header
+    assert fl.warnings[0].startswith(f"file truncated: the record at byte {at} of {at + 2} is cut short")
+    fl = read_ulog(_write(tmp_path, data[:at]))  # cut between records: indistinguishable from a whole log
+    assert not any("truncated" in w for w in fl.warnings)
+
+
+def test_corrupt_format_definitions_are_refused_fast(tmp_path, small):
+    """A format nesting a 65535-array in a 65535-array made pyulog expand 4e9 fields (hang)."""
+    data, _ = small
+    recs = list(UC.records(data))
+    f_off = next(r[0] for r in recs if r[1] == "F")
+    a_off = next(r[0] for r in recs if r[1] == "A")
+
+    def rec(t, payload):
+        return struct.pack("<HB", len(payload), ord(t)) + payload
+
+    bomb = rec("F", b"bomb_a:uint64_t timestamp;bomb_b[65535] x;") + rec("F", b"bomb_b:float[65535] y;")
+    sub = rec("A", struct.pack("<BH", 0, 999) + b"bomb_a")
+    p = _write(tmp_path, data[:f_off] + bomb + data[f_off:a_off] + sub + data[a_off:])
+
+    def alarm(*_):
+        raise TimeoutError("read_ulog took more than 10 s")
+
+    old = signal.signal(signal.SIGALRM, alarm)
+    signal.alarm(10)
+    try:
+        with pytest.raises(LogError, match=r"bad\.ulg: definitions: expected ULog message formats of at most "
+                                           r"65535 bytes: format 'bomb_a' expands"):
+            read_ulog(p)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def test_pauses_and_topic_gaps_are_reported(tmp_path, small):
+    data, _ = small
+    fl = read_ulog(_write(tmp_path, UC.with_gap(data, 10_000_000)))  # 10 s: a pause, not a jump
+    assert any(w.startswith("log: 1 pause(s) longer than 2 s") for w in fl.warnings), fl.warnings
+    assert not any("time jump" in w for w in fl.warnings) and 29.0 < fl.duration_s < 31.0
+    topics = UC.small_topics()
+    lp = topics["vehicle_local_position"]
+    s = (lp["timestamp"] - UC.T0_US) * 1e-6
+    keep = (s < 5.0) | (s > 12.0)
+    topics["vehicle_local_position"] = {k: v[keep] for k, v in lp.items()}
+    p = write_px4_ulog(tmp_path / "hole.ulg", topics, {"CA_ROTOR_COUNT": 4}, {}, start_us=UC.T0_US)
+    fl = read_ulog(p)
+    assert any(w.startswith("vehicle_local_position[0]: 1 gap(s) longer than 5 s without samples, "
+                            "longest 7.04 s at t = 4.980 s") for w in fl.warnings), fl.warnings
+
+
+def test_a_gap_sized_grid_is_refused_with_the_file_named():
+    """The shared guard: no uniform grid of more than MAX_GRID_POINTS samples, whoever asks."""
+    with pytest.raises(LogError, match=r"^f\.ulg: time grid: expected at most 10000000 samples "
+                                       r"\(11\.1 h at 250 Hz\), the data spans 0\.\.1\.09951e\+06 s"):
+        TS.common_grid(0.0, 2.0**40 * 1e-6, 250.0, source="f.ulg")
+    assert TS.check_grid(0.0, 10.0, 250.0) == 2501
+    log = U.FlightLog(path="g.ulg", start_us=0, duration_s=2.0**40 * 1e-6, params={}, info={}, warnings=[],
+                      n_motors=4, series={"position_enu": U.Series(np.array([0.0, 2.0**40 * 1e-6]),
+                                                                   np.zeros((2, 3)), "m", "ENU", "test")})
+    with pytest.raises(LogError, match=r"^g\.ulg: time grid: "):
+        log.resample(["position_enu"], 250.0)
+
+
+@pytest.mark.parametrize("log", ALL_LOGS)
+def test_shared_logs_have_no_time_damage(log):
+    """Guard: the repairs never fire on real flights (their warnings are unchanged)."""
+    fl = read_ulog(need_log(log))
+    assert not [w for w in fl.warnings if any(m in w for m in DAMAGE_MARKERS)]
+
+
+def test_data_warnings_are_the_damage_reports(tmp_path, small):
+    data, good = small
+    assert good.data_warnings() == []
+    fl = read_ulog(_write(tmp_path, UC.truncated(UC.with_gap(data, 2**40), 0.9)))
+    dw = fl.data_warnings()
+    assert dw[0].startswith("file truncated") and any(w.startswith("log: time jump") for w in dw)
+    assert all(w in fl.warnings for w in dw) and not any(w.startswith("no ") for w in dw)

@@ -10,11 +10,11 @@ import pytest
 from conftest import shared_log
 from pyulog import ULog
 
-from twin_nodes import frames as F
-from twin_nodes import ulog_write as W
-from twin_nodes.errors import LogError
-from twin_nodes.ulog_io import read_ulog
-from twin_nodes.ulog_write import write_px4_ulog
+from twin_nodes.base import frames as F
+from twin_nodes.logs import ulog_write as W
+from twin_nodes.base.errors import LogError
+from twin_nodes.logs.ulog_io import read_ulog
+from twin_nodes.logs.ulog_write import write_px4_ulog
 
 T0_US = 2_000_000  # PX4 hrt time of the first sample
 

@@ -13,7 +13,7 @@ import pkgutil
 import sys
 
 from twin_nodes import __version__
-from twin_nodes.errors import TwinError
+from twin_nodes.base.errors import TwinError
 
 
 def build_parser() -> argparse.ArgumentParser:

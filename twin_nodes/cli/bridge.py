@@ -2,14 +2,17 @@
 
 ::
 
-    rotortwin bridge sim [--params P.yaml] [--port 4560] [--host 0.0.0.0] [--step-ms 4]
+    rotortwin bridge sim [--params P.yaml] [--port 4560] [--host 127.0.0.1] [--step-ms 4]
                          [--speed-factor 1] [--publish-every N] [--duration S] [--no-ros]
     rotortwin bridge telemetry --url URL [--pwm-min 1000] [--pwm-max 2000] [--motors 4]
                                [--motor-channels 4,5,6,7] [--stale-after 3] [--no-request-streams]
                                [--duration S] [--no-ros]
 
 ``sim`` is the simulator PX4 SITL's ``simulator_mavlink`` connects to (TCP
-server, lockstep HIL; see docs/px4_sitl.md).  ``telemetry`` reads a vehicle's
+server, lockstep HIL; see docs/px4_sitl.md).  It listens on loopback unless
+``--host`` says otherwise (``--host 0.0.0.0`` for PX4 in another container or on
+another machine: the link has no authentication), and one client flies at a time
+(a second connection is refused while the first is active).  ``telemetry`` reads a vehicle's
 MAVLink stream (``udpin:0.0.0.0:14550``, ``udpout:HOST:PORT``, ``tcp:HOST:PORT``,
 ``/dev/ttyACM0`` or ``serial:/dev/ttyUSB0:57600``).
 
@@ -27,7 +30,7 @@ import os
 import sys
 import time
 
-from twin_nodes.mavlink.simlink import DEFAULT_PORT, DEFAULT_STEP_S
+from twin_nodes.mavlink.simlink import DEFAULT_HOST, DEFAULT_PORT, DEFAULT_STEP_S
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -38,8 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     s = sub.add_parser("sim", help="be PX4 SITL's lockstep simulator (TCP server on 4560 + instance)")
     s.add_argument("--params", help="vehicle params YAML (default: shipped px4_sih_quadx)")
-    s.add_argument("--port", type=int, default=DEFAULT_PORT, help="TCP port (default 4560)")
-    s.add_argument("--host", default="0.0.0.0", help="listen address (default 0.0.0.0)")
+    s.add_argument("--port", type=int, default=DEFAULT_PORT, help="TCP port 0..65535 (default 4560; 0 = any free)")
+    s.add_argument("--host", default=DEFAULT_HOST,
+                   help="listen address (default 127.0.0.1, loopback only; 0.0.0.0 = every interface)")
     s.add_argument("--step-ms", type=float, default=DEFAULT_STEP_S * 1e3,
                    help="lockstep step in ms (default 4, what PX4 assumes)")
     s.add_argument("--speed-factor", type=float,
@@ -90,6 +94,10 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose or args.no_ros else logging.WARNING,
                         format="%(asctime)s %(name)s: %(message)s")
     step_s = args.step_ms * 1e-3
+    from twin_nodes.base.errors import TwinError
+
+    if not 0 <= args.port <= 65535:
+        raise TwinError(f"bridge sim: --port: expected a TCP port 0..65535, got {args.port}")
     if not args.no_ros and _ros_available():
         if args.duration is not None:
             print("rotortwin bridge sim: --duration applies to --no-ros only", file=sys.stderr)
@@ -99,7 +107,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
             params["params_file"] = args.params
         return _run_node("sim", params, args)
     from twin_nodes.mavlink.simlink import SimLinkServer
-    from twin_nodes.params import load_params, shipped
+    from twin_nodes.vehicle.params import load_params, shipped
 
     vp = load_params(args.params) if args.params else shipped("px4_sih_quadx")
     max_steps = int(round(args.duration / step_s)) if args.duration else None
@@ -130,7 +138,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 def _cmd_telemetry(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose or args.no_ros else logging.WARNING,
                         format="%(asctime)s %(name)s: %(message)s")
-    from twin_nodes.errors import TwinError
+    from twin_nodes.base.errors import TwinError
     from twin_nodes.mavlink.telemetry import TelemetryClient, TelemetryConfig
 
     chans = tuple(int(c) for c in args.motor_channels.split(",")) if args.motor_channels.strip() else None

@@ -5,13 +5,14 @@
     rotortwin mission check PLAN.yaml [--home LAT,LON]
     rotortwin mission upload PLAN.yaml [--url udpin://0.0.0.0:14540] [--timeout 10]
     rotortwin mission start [--url udpin://0.0.0.0:14540] [--no-arm]
+    rotortwin mission wait [--url udpin://0.0.0.0:14540] [--timeout 900]
 
 Plans (format in twin_nodes/mavlink/mission.py; examples in missions/) hold
 waypoints ``[north_m, east_m, alt_m]`` relative to home.  ``upload`` reads the
 vehicle's home over the link (or uses the plan's ``home``, refusing one more
 than 1 km from the vehicle's), uploads the items and the RTL-after flag.
 ``start`` arms (unless ``--no-arm``) and starts the mission; PX4 takes off by
-itself.  ``--url`` takes MAVSDK URLs; the 1.x spelling ``udp://:14540`` is
+itself.  ``wait`` returns once the vehicle has armed and disarmed again (landed after RTL).  ``--url`` takes MAVSDK URLs; the 1.x spelling ``udp://:14540`` is
 accepted.
 """
 
@@ -19,13 +20,14 @@ from __future__ import annotations
 
 import argparse
 
-from twin_nodes.errors import TwinError
+from twin_nodes.base.errors import TwinError
 from twin_nodes.mavlink.mission import (
     DEFAULT_URL,
     load_plan,
     plan_to_mission_items,
     start_mission,
     upload_plan,
+    wait_flight_done,
 )
 from twin_nodes.mavlink.sensors import SIH_ORIGIN_LAT_DEG, SIH_ORIGIN_LON_DEG
 
@@ -53,6 +55,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     s.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the autopilot")
     s.set_defaults(func=_cmd_start)
 
+    w = sub.add_parser("wait", help="wait until the vehicle has armed and disarmed again (mission flown)")
+    w.add_argument("--url", default=DEFAULT_URL, help=f"MAVSDK connection URL (default {DEFAULT_URL})")
+    w.add_argument("--arm-timeout", type=float, default=60.0, help="seconds to wait for arming (default 60)")
+    w.add_argument("--timeout", type=float, default=900.0, help="seconds to wait for disarming (default 900)")
+    w.set_defaults(func=_cmd_wait)
+
 
 def _cmd_check(args: argparse.Namespace) -> int:
     plan = load_plan(args.plan)
@@ -78,11 +86,18 @@ def _cmd_upload(args: argparse.Namespace) -> int:
     plan = load_plan(args.plan)
     out = upload_plan(plan, args.url, connect_timeout_s=args.timeout, home_timeout_s=args.timeout)
     print(f"uploaded '{out['name']}': {out['items']} items to {out['url']}, home {out['home'][0]:.7f}, "
-          f"{out['home'][1]:.7f}, RTL after: {'yes' if out['rtl_after'] else 'no'}")
+          f"{out['home'][1]:.7f}, RTL after: {'yes' if out['rtl_after'] else 'no'}, current item 0 "
+          f"({'confirmed' if out['current_item_confirmed'] else 'not confirmed'} by the vehicle)")
     return 0
 
 
 def _cmd_start(args: argparse.Namespace) -> int:
     out = start_mission(args.url, arm=not args.no_arm, connect_timeout_s=args.timeout)
     print(f"mission started on {out['url']}{' (armed)' if out['armed'] else ''}")
+    return 0
+
+
+def _cmd_wait(args: argparse.Namespace) -> int:
+    out = wait_flight_done(args.url, arm_timeout_s=args.arm_timeout, timeout_s=args.timeout)
+    print(f"flight done on {out['url']}: armed for {out['flight_s']:.0f} s")
     return 0

@@ -5,12 +5,16 @@
     rotortwin params derive SPEC.yaml [--out P.yaml] [--sdf OUT.sdf] [--px4 OUT.params] [--airframe OUT]
     rotortwin params check P.yaml
     rotortwin params export P.yaml [--sdf OUT.sdf] [--px4 OUT.params] [--airframe OUT]
+    rotortwin params from-ulog FLIGHT.ulg --out P.yaml [--mass-kg M] [--arm-m L] [--name N]
 
-``derive`` runs the Búho Negro pipeline (:mod:`twin_nodes.derive`) on a
+``derive`` runs the Búho Negro pipeline (:mod:`twin_nodes.vehicle.derive`) on a
 derivation spec and prints each derived quantity with its formula; ``--out``
 writes the params file (with the table as its comment header).  ``--sdf``
 writes the Gazebo motor plugin blocks, ``--px4`` a QGroundControl ``.params``
-table and ``--airframe`` ``param set-default`` lines (:mod:`twin_nodes.export_px4`).
+table and ``--airframe`` ``param set-default`` lines (:mod:`twin_nodes.vehicle.export_px4`).
+``from-ulog`` builds the nominal twin of the vehicle that flew a PX4 log from the log's
+parameters and identification on the flight (:mod:`twin_nodes.identify.nominal`); the
+file's header lists every value's source.
 
 Every output is prepared and every output path checked before anything is
 written, so a bad input leaves no file behind and overwrites nothing.
@@ -22,10 +26,10 @@ import argparse
 import os
 from pathlib import Path
 
-from twin_nodes.derive import derivation_header, derive, load_spec
-from twin_nodes.errors import ParamsError
-from twin_nodes.export_px4 import px4_airframe_script, qgc_params_table, sdf_motor_plugins
-from twin_nodes.params import VehicleParams, load_params, write_params
+from twin_nodes.vehicle.derive import derivation_header, derive, load_spec
+from twin_nodes.base.errors import ParamsError
+from twin_nodes.vehicle.export_px4 import px4_airframe_script, qgc_params_table, sdf_motor_plugins
+from twin_nodes.vehicle.params import VehicleParams, load_params, write_params
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -48,6 +52,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("params", help="params YAML")
     _export_args(e)
     e.set_defaults(func=_cmd_export)
+
+    f = sub.add_parser("from-ulog", help="build the params of the vehicle that flew a PX4 log, from the log itself")
+    f.add_argument("ulog", help="PX4 flight log (.ulg)")
+    f.add_argument("--out", required=True, help="write the params YAML here")
+    f.add_argument("--mass-kg", type=float, help="take-off mass [kg] (else the airframe's typical mass, stated)")
+    f.add_argument("--arm-m", type=float, help="centre-to-rotor distance [m] for logs whose layout is normalised")
+    f.add_argument("--name", help="vehicle name in the file")
+    f.set_defaults(func=_cmd_from_ulog)
 
 
 def _export_args(p: argparse.ArgumentParser) -> None:
@@ -85,10 +97,12 @@ def _exports(vp: VehicleParams, args: argparse.Namespace) -> list[tuple[str, str
     return out
 
 
-def _check_targets(paths: list[str]) -> None:
-    """Fail before writing anything if any output cannot be written."""
-    seen: set[str] = set()
+def _check_targets(paths: list[str], inputs: list[str] = ()) -> None:
+    """Fail before writing anything if any output cannot be written or would replace an input."""
+    seen: set[str] = {os.path.realpath(i) for i in inputs}
     for path in paths:
+        if os.path.realpath(path) in {os.path.realpath(i) for i in inputs}:
+            raise ParamsError(path, "<output>", "is also an input; choose another output path")
         real = os.path.realpath(path)
         if real in seen:
             raise ParamsError(path, "<output>", "the same output file is named twice")
@@ -118,7 +132,7 @@ def _cmd_derive(args: argparse.Namespace) -> int:
     d = derive(spec, args.spec)
     exports = _exports(d.params, args)
     targets = ([args.out] if args.out else []) + [p for p, _ in exports]
-    _check_targets(targets)
+    _check_targets(targets, [args.spec])
     print(d.table())
     print()
     print(_summary(d.params))
@@ -147,8 +161,32 @@ def _cmd_export(args: argparse.Namespace) -> int:
     exports = _exports(vp, args)
     if not exports:
         raise ParamsError(args.params, "<arguments>", "nothing to export: give --sdf, --px4 and/or --airframe")
-    _check_targets([p for p, _ in exports])
+    _check_targets([p for p, _ in exports], [args.params])
     for path, text in exports:
         _write_text(path, text)
         print(f"wrote {path}")
+    return 0
+
+
+def _positive(value: float | None, option: str) -> None:
+    if value is not None and not (value > 0 and value < 1e4):
+        raise ParamsError(option, "<value>", f"expected a positive finite number, got {value}")
+
+
+def _cmd_from_ulog(args: argparse.Namespace) -> int:
+    from twin_nodes.identify.nominal import nominal_from_log
+    from twin_nodes.logs.ulog_io import read_ulog
+
+    _positive(args.mass_kg, "--mass-kg")
+    _positive(args.arm_m, "--arm-m")
+    _check_targets([args.out], [args.ulog])
+    nom = nominal_from_log(read_ulog(args.ulog), mass_kg=args.mass_kg, arm_m=args.arm_m, name=args.name)
+    print(nom.header())
+    print()
+    print(_summary(nom.params))
+    try:
+        write_params(nom.params, args.out, nom.header())
+    except OSError as exc:
+        raise ParamsError(args.out, "<output>", f"cannot write ({exc.strerror or exc})") from None
+    print(f"wrote {args.out}")
     return 0

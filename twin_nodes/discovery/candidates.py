@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from twin_nodes.params import VehicleParams
+from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.effects import EFFECTS, effective_params
 
 
@@ -37,6 +37,9 @@ class Candidate:
     fixed: dict                    # effect parameters that are not fitted (e.g. motor index)
     floor: Callable[[np.ndarray], bool]            # theta -> True if the change is resolvable
     label: str = ""
+    #: theta -> why the value is unphysical (None when it is physical): the search range may be
+    #: wider than physics allows, so a fit that lands outside physics is reported, never accepted
+    unphysical: Callable[[np.ndarray], str | None] = lambda theta: None
 
     def params_dict(self, theta: np.ndarray) -> dict[str, float]:
         out = {k: float(v) for k, v in self.fixed.items()}
@@ -65,7 +68,7 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
     existing = {name for name, _ in vp.effects}
     out: list[Candidate] = []
 
-    def add(name, pnames, x0, lo, hi, floor, fixed=None, label=""):
+    def add(name, pnames, x0, lo, hi, floor, fixed=None, label="", unphysical=None):
         if name in existing:
             return  # already modelled: refitting it is the user's nominal, not missing physics
         fixed = dict(fixed or {})
@@ -76,7 +79,8 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
             return vp.with_effect(name, **params)
 
         out.append(Candidate(name, tuple(pnames), np.asarray(x0, float), np.asarray(lo, float),
-                             np.asarray(hi, float), build, fixed, floor, label or name))
+                             np.asarray(hi, float), build, fixed, floor, label or name,
+                             unphysical or (lambda theta: None)))
 
     m0 = nominal.mass_kg
     lift_kg = n * r.thrust_at_full_command_n / nominal.gravity_m_s2  # the rotors must still lift it
@@ -85,7 +89,9 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
         lambda th: abs(th[0] - 1) > 0.03)
     for i in range(n):
         add("motor_efficiency", ["efficiency"], [1.0], [0.3], [1.5], lambda th: abs(th[0] - 1) > 0.03,
-            fixed={"motor": float(i + 1)}, label=f"motor_efficiency(motor {i + 1})")
+            fixed={"motor": float(i + 1)}, label=f"motor_efficiency(motor {i + 1})",
+            unphysical=lambda th: (f"efficiency {th[0]:.3g} > 1: a motor cannot beat the nominal thrust curve "
+                                   "(the nominal thrust is off, not the motor)") if th[0] > 1.03 else None)
     tu, td = r.tau_up_s, r.tau_down_s
     add("motor_time_constant", ["tau_up", "tau_down"], [tu, td], [0.002, 0.002], [max(5 * tu, 0.3), max(5 * td, 0.3)],
         lambda th: max(abs(th[0] - tu), abs(th[1] - td)) > dt_log)

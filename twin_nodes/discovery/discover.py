@@ -1,46 +1,93 @@
-"""Missing-physics discovery: locate the mismatch, name the physics left out, refit, show it on held-out data.
+"""Missing-physics discovery: locate the mismatch, name the physics left out, grade it, refit, show it on held-out data.
 
-Method (all on equation-error residuals, :mod:`twin_nodes.discovery.residuals`):
+Two residuals judge the candidates:
 
-1. **Locate.**  Split the residual into collective (throttle), differential per
-   motor and horizontal-force channels; flag 2-s windows whose low-passed RMS is
-   more than 3x the channel's own noise floor (estimated from its high-frequency
-   content), label each by flight regime, merge neighbours.
-2. **Name.**  Fit every candidate effect (:mod:`twin_nodes.discovery.candidates`)
-   on the first part of the flight; judge it on the held-out rest.  An effect is
-   accepted only if (a) its fitted size is above the physical resolution floor,
-   (b) it lowers the held-out residual in a block test (t > 3 over >= 4
-   independent blocks, so autocorrelation cannot fake significance), and (c) it
-   explains at least 10 % of the held-out residual RMS.  Greedy forward
-   selection: accept the best, refit the others on top of it.
-3. **Refit** all accepted effects jointly with the nominal parameters they
-   interact with, and report before/after on the held-out part.
+- the **equation error** (:mod:`twin_nodes.discovery.residuals`): measured specific force and
+  angular acceleration minus what the model predicts from the logged motor commands, per motor and
+  horizontal force, low-passed at 2 Hz.  Forces that act at every sample (mass, thrust, drag,
+  wind, ground effect, a weak motor...) show here.
+- the **output error** (:mod:`twin_nodes.discovery.output_error`): the model flown open loop for
+  0.4 s from the logged state at the start of each window, driven by the logged motor commands,
+  compared on body rates and velocity.  What acts through the dynamics (rotor lag, delay, inertia,
+  the reaction torque of a yaw manoeuvre) shows here; the equation error's 2 Hz low-pass hides it.
+
+Method:
+
+1. **Locate** (:mod:`twin_nodes.discovery.locate`): every channel (collective, roll, pitch and yaw
+   moments, each motor, horizontal force): 2-s windows whose equation error is above 3x the
+   channel's noise floor, by flight regime; and per channel its *excitation*, the number of
+   held-out blocks that carry signal and the manoeuvres they come from.
+2. **Name.**  Every candidate effect (:mod:`twin_nodes.discovery.candidates`) is fitted on 65 % of
+   the flight and judged on the rest, both ways round (2-fold cross-validation), on the equation
+   error; the dynamic ones (``OUTPUT_ERROR_EFFECTS``) also on the output error, on the axes the
+   nominal model predicts credibly there.  Accepted (``confirmed``) only if its size is above the
+   physical resolution floor, it is inside the physical range, it lowers the held-out residual in
+   a block test (t, sign or sign-flip test > 3 over independent blocks) and explains >= 10 % of
+   the held-out residual.  Greedy forward selection: accept the best, refit the others on top.
+3. **Grade** (:mod:`twin_nodes.discovery.verdicts`): ``confirmed``, ``likely`` (a large held-out cut
+   and a clear parameter, but too few excited blocks for the test: how many are missing and which
+   manoeuvre supplies them) or ``rejected``.
+4. **Refit** all accepted effects jointly; report before/after on the held-out part.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from scipy.optimize import least_squares
 
 from twin_nodes.discovery.candidates import Candidate, build_candidates
+from twin_nodes.discovery.locate import excitation, locate, regimes  # noqa: F401  (regimes: re-exported)
+from twin_nodes.discovery.output_error import (AXES, HORIZON_S, MIN_AXIS_R2, STRIDE_S, Windows, judge_axes,
+                                               make_windows, output_error)
 from twin_nodes.discovery.residuals import (LOWPASS_HZ, EquationData, channel_names, modes, prepare,
                                             residual_channels)
-from twin_nodes.params import VehicleParams
+from twin_nodes.discovery.verdicts import folds_agree, grade, likely_failures
+from twin_nodes.vehicle.params import VehicleParams
 
 HELDOUT_FRACTION = 0.35
 # Blocks one low-pass period long: the residual's correlation time is set by the common
 # LOWPASS_HZ filter, so blocks of 1/LOWPASS_HZ are close to independent.
 BLOCK_S = 1.0 / LOWPASS_HZ
+# output-error blocks: three windows; neighbouring blocks share at most one window overlap
+OE_BLOCK_S = 3 * STRIDE_S
 T_CRIT = 3.0
 # choosing between candidates that are each already significant is model selection, not
 # detection: the more complex one must beat the simpler one at one-sided 2 sigma
 T_CHOICE = 2.0
 MIN_REL_IMPROVEMENT = 0.10
 MAX_EFFECTS = 3
+#: an accepted-grade candidate with at least this fraction of the winner's cut is reported as an
+#: alternative the flight cannot tell apart (mass/thrust, delay/lag...)
+ALT_FRACTION = 0.8
+#: effects that act through the dynamics: judged on the output error as well
+OUTPUT_ERROR_EFFECTS = ("yaw_moment", "motor_time_constant", "actuator_delay", "inertia")
+#: the output-error axes each parameter needs (AXES order: force_x, force_y, force_z, roll, pitch, yaw)
+_PARAM_AXES = {"ixx": (3,), "iyy": (4,), "izz": (5,), "km": (5,)}
+#: later rounds refit only candidates that explained at least this much in the first round
+PRUNE_GAIN = 0.02
+#: an output-error block is active when the candidate changes it by half the axis' typical error
+OE_MIN_CHANGE = 0.5
+#: fits on the output error use at most this many windows (the judging uses all held-out ones)
+OE_FIT_WINDOWS = 300
+
+
+@dataclass
+class Judge:
+    """One residual with its cross-validation folds and held-out blocks, over its own rows
+    (grid samples for the equation error, windows for the output error)."""
+
+    kind: str                                          # "equation" | "output"
+    residual: Callable[..., np.ndarray]                # (vp, rows=None) -> (rows, channels)
+    folds: list[tuple[np.ndarray, np.ndarray]]         # (fit, test) boolean masks over rows
+    blocks: list[np.ndarray]                           # pooled test blocks of both folds (row indices)
+    held_mask: np.ndarray                              # fold 1's test rows
+    lean: bool = False                                 # fewer evaluations per fit (costly residual)
+    windows: Windows | None = None
 
 
 @dataclass
@@ -61,6 +108,23 @@ class Fit:
     heldout_cut: float = 0.0
     judged: tuple = ("", 0.0, 0.0)
     evidence: str = ""
+    unphysical: str | None = None
+    closed_loop: str | None = None   # why the closed-loop twin rejects it (None: not judged or fine)
+    kind: str = "equation"           # the residual it was fitted and judged on
+    fold_thetas: list = field(default_factory=list)
+    folds_agree: bool = True
+    stats: dict = field(default_factory=dict)
+    verdict: str = "rejected"
+    verdict_note: str = ""
+    excitation: dict = field(default_factory=dict)
+    other: dict | None = None        # the other residual's numbers at this fit
+    base_vp: VehicleParams | None = None   # the vehicle it was fitted on top of
+    alternatives: list = field(default_factory=list)   # other effects that pass as well (near-equal cut)
+
+    @property
+    def mode_cut(self) -> float:
+        _, b, a = self.judged
+        return 1.0 - a / b if b > 0 else 0.0
 
 
 def _scales(c: Candidate) -> np.ndarray:
@@ -70,34 +134,47 @@ def _scales(c: Candidate) -> np.ndarray:
     return np.maximum(s, 1e-9)
 
 
-def _blocks(t: np.ndarray, mask: np.ndarray, block_s: float) -> list[np.ndarray]:
+def _blocks(t: np.ndarray, mask: np.ndarray, block_s: float, min_rows: int | None = None) -> list[np.ndarray]:
     idx = np.flatnonzero(mask)
     if idx.size == 0:
         return []
     edges = np.arange(t[idx[0]], t[idx[-1]] + block_s, block_s)
     which = np.digitize(t[idx], edges)
-    return [idx[which == k] for k in np.unique(which) if (which == k).sum() >= 0.5 * block_s / (t[1] - t[0])]
+    if min_rows is None:
+        min_rows = 0.5 * block_s / (t[1] - t[0])
+    return [idx[which == k] for k in np.unique(which) if (which == k).sum() >= min_rows]
 
 
-def _block_test(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray]) -> tuple[float, int]:
-    """t statistic of the per-block drop in mean squared residual, over the blocks where the
-    candidate changes the prediction at all (>= 25 % of its 90th-percentile block change, so
-    one violent manoeuvre cannot silence the rest).
+def _block_stats(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_change: float = 0.0) -> dict:
+    """Per-block drop in mean squared residual over the blocks where the candidate changes the
+    prediction at all (>= 25 % of its 90th-percentile block change, so one violent manoeuvre
+    cannot silence the rest), and the three tests on it.
 
     Effects that act only in some regimes (drag in forward flight, ground effect near the
     ground) leave the other blocks unchanged; counting those would only add variance.  The
     blocks are chosen from the change itself, not from whether it helped, so this does not
-    favour the candidate."""
+    favour the candidate.  ``min_change``: a block must also change by at least this much (the
+    output error is in units of its typical error, so half of that separates a manoeuvre the
+    candidate acts in from noise when under a tenth of the blocks carry it)."""
     delta = np.array([np.sqrt(np.mean((R1[b] - R0[b]) ** 2)) for b in blocks])
     if delta.size == 0 or delta.max() <= 0:
-        return 0.0, 0
+        return {"t": 0.0, "n": 0, "mean": 0.0, "sd": 0.0, "n_pos": 0}
     ref = np.percentile(delta, 90)
-    active = [b for b, dl in zip(blocks, delta) if dl >= 0.25 * ref]
+    active = [b for b, dl in zip(blocks, delta) if dl >= max(0.25 * ref, min_change)]
     d = np.array([np.mean(R0[b] ** 2) - np.mean(R1[b] ** 2) for b in active])
+    st = {"n": int(d.size), "mean": float(d.mean()) if d.size else 0.0,
+          "sd": float(d.std(ddof=1)) if d.size > 1 else 0.0, "n_pos": int(np.sum(d > 0))}
     if d.size < 4:
-        return 0.0, int(d.size)
-    sd = d.std(ddof=1)
+        st["t"] = 0.0
+        return st
+    from scipy.stats import binom, norm
+    from scipy.stats import t as student_t
+    sd = st["sd"]
     t = (math.inf if d.mean() > 0 else 0.0) if sd == 0 else float(d.mean() / (sd / math.sqrt(d.size)))
+    if math.isfinite(t):
+        # Student's t with n - 1 degrees of freedom, as the equivalent normal quantile (with 4
+        # blocks t = 3 is only p = 0.03)
+        t = float(norm.isf(min(max(float(student_t.sf(t, d.size - 1)), 1e-300), 1.0 - 1e-15)))
     # Sign test on the same blocks: the t test loses power when the gains are heavy-tailed
     # (a few manoeuvres carry an inertia or yaw-moment effect).  Under "no effect" a held-out
     # block improves with probability <= 1/2; the binomial tail is mapped to the equivalent
@@ -107,26 +184,40 @@ def _block_test(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray]) -> tup
     # size.  20000 fixed-seed flips resolve p down to 5e-5.  The largest of the three
     # statistics is used; at the one-sided 3 sigma level the union's false-alarm rate stays
     # under 0.5 %.
-    from scipy.stats import binom, norm
     k = int(np.sum(d > 0))
     p = float(binom.sf(k - 1, d.size, 0.5))
     z = float(norm.isf(max(p, 1e-300)))
     flips = np.random.default_rng(12345).choice((-1.0, 1.0), size=(20000, d.size))
     p_flip = (1.0 + np.sum(flips @ np.abs(d) >= d.sum())) / (1.0 + flips.shape[0])
     zw = float(norm.isf(p_flip))
-    return max(t, z, zw), int(d.size)
+    st["t"] = max(t, z, zw)
+    return st
 
 
-def fit_candidate(c: Candidate, data: EquationData, nominal: VehicleParams, fit_mask: np.ndarray,
+def _block_test(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_change: float = 0.0
+                ) -> tuple[float, int]:
+    """(statistic, active blocks) of :func:`_block_stats`: t, sign and sign-flip tests, the largest."""
+    st = _block_stats(R0, R1, blocks, min_change)
+    return st["t"], st["n"]
+
+
+def fit_candidate(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, fit_mask: np.ndarray,
                   max_nfev: int = 60) -> tuple[np.ndarray, VehicleParams, float]:
-    """Least-squares fit of one candidate's parameters on the fit samples."""
+    """Least-squares fit of one candidate's parameters on the fit rows of a residual
+    (an :class:`EquationData` means the equation error, as before residuals were pluggable)."""
+    judge = data if isinstance(data, Judge) else _equation_judge(data, nominal, [], [], fit_mask)
     s = _scales(c)
     lo, hi = c.lower / s, c.upper / s
+    rows = fit_mask
+    if judge.lean and fit_mask.sum() > OE_FIT_WINDOWS:
+        # every k-th fit window: the fit has a few parameters, hundreds of windows pin them
+        idx = np.flatnonzero(fit_mask)
+        rows = np.zeros_like(fit_mask)
+        rows[idx[np.linspace(0, idx.size - 1, OE_FIT_WINDOWS).round().astype(int)]] = True
 
     def resid(z):
         theta = np.clip(z * s, c.lower, c.upper)
-        R = residual_channels(data, c.build(theta), nominal)
-        return R[fit_mask].ravel()
+        return judge.residual(c.build(theta), rows).ravel()
 
     z0 = np.clip(c.x0 / s, lo, hi)
     if len(z0) == 1:
@@ -135,21 +226,25 @@ def fit_candidate(c: Candidate, data: EquationData, nominal: VehicleParams, fit_
 
         def cost1(z):
             return float(np.sum(resid(np.array([z])) ** 2))
-        grid = np.linspace(lo[0], hi[0], 25)
+        grid = np.linspace(lo[0], hi[0], 9 if judge.lean else 25)
         costs = [cost1(z) for z in grid]
         k = int(np.argmin(costs))
         a, b = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
-        sol = minimize_scalar(cost1, bounds=(a, b), method="bounded", options={"xatol": 1e-4 * (hi[0] - lo[0])})
+        opts = {"xatol": 1e-4 * (hi[0] - lo[0])}
+        if judge.lean:
+            opts["maxiter"] = 14
+        sol = minimize_scalar(cost1, bounds=(a, b), method="bounded", options=opts)
         z = sol.x if sol.fun <= costs[k] else grid[k]
         theta = np.clip(np.array([z]) * s, c.lower, c.upper)
         return theta, c.build(theta), min(float(sol.fun), costs[k])
     best_z, best_cost = z0, float(np.sum(resid(z0) ** 2))
     # Starting points: parameters whose nominal value is zero (drag, offsets, delays) span
     # orders of magnitude, so scan them jointly on a log grid of their range; the others
-    # +-20 % around the nominal.  Least squares then starts from the best, inside the bounds.
+    # +-20 % around the nominal (the output error: jointly x0.7 and x1.6, fewer evaluations).
     starts = []
     zero = c.x0 == 0
-    for frac in (0.002, 0.006, 0.02, 0.06, 0.2):
+    fracs = (0.02, 0.2) if judge.lean else (0.002, 0.006, 0.02, 0.06, 0.2)
+    for frac in fracs:
         z = z0.copy()
         z[zero] = lo[zero] + frac * (hi[zero] - lo[zero])
         if np.any(zero):
@@ -158,169 +253,252 @@ def fit_candidate(c: Candidate, data: EquationData, nominal: VehicleParams, fit_
                 z2 = z0.copy()
                 z2[zero] = hi[zero] - frac * (hi[zero] - lo[zero])
                 starts.append(z2)
-    for j in np.flatnonzero(~zero):
-        for f in (0.8, 1.2):
+    if judge.lean:
+        for f in (0.7, 1.6):
             z = z0.copy()
-            z[j] = z0[j] * f
+            z[~zero] = z0[~zero] * f
             starts.append(z)
+    else:
+        for j in np.flatnonzero(~zero):
+            for f in (0.8, 1.2):
+                z = z0.copy()
+                z[j] = z0[j] * f
+                starts.append(z)
     for z in starts:
         z = np.clip(z, lo, hi)
         cost = float(np.sum(resid(z) ** 2))
         if cost < best_cost:
             best_z, best_cost = z, cost
-    sol = least_squares(resid, best_z, bounds=(lo, hi), x_scale=1.0, diff_step=1e-2, max_nfev=max_nfev,
-                        method="trf")
+    sol = least_squares(resid, best_z, bounds=(lo, hi), x_scale=1.0, diff_step=2e-2 if judge.lean else 1e-2,
+                        max_nfev=12 if judge.lean else max_nfev, method="trf")
     theta = np.clip(sol.x * s, c.lower, c.upper)
     return theta, c.build(theta), float(2 * sol.cost)
 
 
-def assess(c: Candidate, data: EquationData, nominal: VehicleParams, R0: np.ndarray,
-           folds: list[tuple[np.ndarray, np.ndarray]], blocks: list[np.ndarray], held_mask: np.ndarray) -> Fit:
+def _mode_rms(R: np.ndarray, nominal: VehicleParams) -> tuple[np.ndarray, list[str]]:
+    m, names = modes(R, nominal)
+    return np.sqrt(np.mean(m ** 2, axis=0)), names
+
+
+def assess(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, R0: np.ndarray,
+           folds: list[tuple[np.ndarray, np.ndarray]] | None = None, blocks: list[np.ndarray] | None = None,
+           held_mask: np.ndarray | None = None) -> Fit:
     """Fit ``c`` on each fold's fit part and judge it on that fold's unseen part (2-fold CV).
 
     The block test pools the test blocks of both folds, each predicted by the fit that did
     not see it.  The reported parameters and held-out numbers are fold 1's (fit on the
     first part of the flight, judged on the last)."""
+    judge = data if isinstance(data, Judge) else _equation_judge(data, nominal, folds, blocks, held_mask)
     Rcv = np.zeros_like(R0)
     first = None
-    for fit_mask, test_mask in folds:
-        theta, vp_c, cost = fit_candidate(c, data, nominal, fit_mask)
-        R1 = residual_channels(data, vp_c, nominal)
+    thetas = []
+    for fit_mask, test_mask in judge.folds:
+        theta, vp_c, cost = fit_candidate(c, judge, nominal, fit_mask)
+        thetas.append(theta)
+        if judge.lean:
+            R1 = np.zeros_like(R0)
+            R1[test_mask] = judge.residual(vp_c, test_mask)
+        else:
+            R1 = judge.residual(vp_c)
         Rcv[test_mask] = R1[test_mask]
         if first is None:
             first = (theta, vp_c, cost, R1)
     theta, vp_c, cost, R1 = first
+    held_mask = judge.held_mask
     test_all = np.zeros(len(R0), bool)
-    for _, test_mask in folds:
+    for _, test_mask in judge.folds:
         test_all |= test_mask
     h0 = np.sqrt(np.mean(R0[test_all] ** 2))
     hcv = np.sqrt(np.mean(Rcv[test_all] ** 2))
-    t_stat, nb = _block_test(R0, Rcv, blocks)
+    stats = _block_stats(R0, Rcv, judge.blocks, OE_MIN_CHANGE if judge.lean else 0.0)
     rel = 1.0 - hcv / h0 if h0 > 0 else 0.0
     # an estimate pinned to the edge of the physical range is not an identification
     span = c.upper - c.lower
     at_bound = bool(np.any((np.abs(theta - c.upper) < 0.01 * span) |
                            ((np.abs(theta - c.lower) < 0.01 * span) & (np.abs(c.x0 - c.lower) > 0.01 * span))))
     fit = Fit(c, theta, vp_c, cost, float(np.sqrt(np.mean(R1[held_mask] ** 2))),
-              np.sqrt(np.mean(R1[held_mask] ** 2, axis=0)), t_stat, nb, float(rel), bool(c.floor(theta)))
+              np.sqrt(np.mean(R1[held_mask] ** 2, axis=0)), stats["t"], stats["n"], float(rel),
+              bool(c.floor(theta)))
+    fit.kind = judge.kind
+    fit.stats = stats
+    fit.fold_thetas = thetas
+    fit.folds_agree = folds_agree(c, thetas, _scales(c)) and all(bool(c.floor(t)) for t in thetas)
     fit.at_bound = at_bound
+    fit.unphysical = c.unphysical(theta)
     fit.R = Rcv
     h0_held = np.sqrt(np.mean(R0[held_mask] ** 2))
     fit.heldout_cut = float(1.0 - fit.heldout_rms / h0_held) if h0_held > 0 else 0.0
-    # the physical mode (throttle, roll, pitch, yaw, force_x, force_y) where the effect acts
-    m0, mnames = modes(R0[held_mask], nominal)
-    m1, _ = modes(R1[held_mask], nominal)
-    r0 = np.sqrt(np.mean(m0 ** 2, axis=0))
-    r1 = np.sqrt(np.mean(m1 ** 2, axis=0))
+    # the physical mode (throttle, roll, pitch, yaw, force_x, force_y) where the effect acts; on
+    # the output error over both folds' test parts (its few dynamic manoeuvres may all fall in one)
+    if judge.lean:
+        r0, mnames = _mode_rms(R0[test_all], nominal)
+        r1, _ = _mode_rms(Rcv[test_all], nominal)
+    else:
+        r0, mnames = _mode_rms(R0[held_mask], nominal)
+        r1, _ = _mode_rms(R1[held_mask], nominal)
     k = int(np.argmax(r0 ** 2 - r1 ** 2))
     fit.judged = (mnames[k], float(r0[k]), float(r1[k]))
     return fit
 
 
-def _parsimonious(winner: Fit, accepted: list[Fit], blocks: list[np.ndarray]) -> Fit:
-    """Prefer a simpler accepted candidate unless the winner beats it on held-out blocks."""
+def _parsimonious(winner: Fit, accepted: list[Fit], blocks: dict[str, list[np.ndarray]] | list[np.ndarray]) -> Fit:
+    """Prefer a simpler accepted candidate (judged on the same residual) unless the winner beats
+    it on held-out blocks."""
     best = winner
     for f in sorted(accepted, key=lambda f: len(f.candidate.param_names)):
-        if f is best or len(f.candidate.param_names) >= len(best.candidate.param_names):
+        if f is best or len(f.candidate.param_names) >= len(best.candidate.param_names) or f.kind != best.kind:
             continue
-        t, _ = _block_test(f.R, best.R, blocks)
+        bl = blocks[f.kind] if isinstance(blocks, dict) else blocks
+        t, _ = _block_test(f.R, best.R, bl, OE_MIN_CHANGE if f.kind == "output" else 0.0)
         if t <= T_CHOICE:
             best = f
     return best
 
 
-def regimes(data: EquationData) -> np.ndarray:
-    """Flight regime label per sample."""
-    v = data.v
-    hs = np.hypot(v[:, 0], v[:, 1])
-    yaw_rate = np.abs(data.w[:, 2])
-    lab = np.full(data.n, "hover", dtype=object)
-    lab[hs > 2.0] = "forward 2-5 m/s"
-    lab[hs > 5.0] = "forward >5 m/s"
-    lab[v[:, 2] > 0.5] = "climb"
-    lab[v[:, 2] < -0.5] = "descent"
-    lab[yaw_rate > 0.5] = "yaw turn"
-    lab[data.height < 1.5] = "near ground"
-    batt = data.battery_v
-    if np.isfinite(batt).mean() > 0.8:
-        lo, hi = np.nanmin(batt), np.nanmax(batt)
-        if hi - lo > 0.02 * hi:
-            low = batt < lo + 0.3 * (hi - lo)
-            lab[low] = np.array([f"{x}, battery low" for x in lab[low]], dtype=object)
-    return lab
+def _equation_judge(data: EquationData, nominal: VehicleParams, folds, blocks, held_mask) -> Judge:
+    def residual(vp, rows=None):
+        R = residual_channels(data, vp, nominal)
+        return R if rows is None else R[rows]
+    return Judge("equation", residual, list(folds or []), list(blocks or []),
+                 held_mask if held_mask is not None else np.zeros(data.n, bool))
 
 
-def locate(data: EquationData, R: np.ndarray, raw: np.ndarray, names: list[str], window_s: float = 2.0,
-           factor: float = 3.0, per_channel: int = 8) -> list[dict]:
-    """Time windows, channels and regimes where the residual exceeds its noise floor."""
-    n_rot = len(names) - 2
-    coll = R[:, :n_rot].mean(1)
-    coll_raw = raw[:, :n_rot].mean(1)
-    chans = {"throttle": (coll, coll_raw)}
-    for i in range(n_rot):
-        chans[names[i]] = (R[:, i] - coll, raw[:, i] - coll_raw)
-    chans["force_x"] = (R[:, n_rot], raw[:, n_rot])
-    chans["force_y"] = (R[:, n_rot + 1], raw[:, n_rot + 1])
-    fs = 1.0 / data.dt
-    lab = regimes(data)
-    per = max(int(round(window_s * fs)), 2)
-    out = []
-    for ch, (lp, rw) in chans.items():
-        hf = np.diff(rw[data.valid])
-        sigma_raw = 1.4826 * np.median(np.abs(hf - np.median(hf))) / math.sqrt(2) if hf.size else 0.0
-        floor = sigma_raw * math.sqrt(2 * LOWPASS_HZ / fs)
-        floor = max(floor, 1e-4)
-        flagged = []
-        for k0 in range(0, data.n - per + 1, per):
-            sl = slice(k0, k0 + per)
-            ok = data.valid[sl]
-            if ok.sum() < per // 2:
-                continue
-            rms = float(np.sqrt(np.mean(lp[sl][ok] ** 2)))
-            if rms > factor * floor:
-                vals, counts = np.unique(lab[sl][ok], return_counts=True)
-                flagged.append([data.t[k0], data.t[min(k0 + per, data.n - 1)], str(vals[np.argmax(counts)]),
-                                rms / floor, rms])
-        merged: list[list] = []
-        for f in flagged:
-            if merged and abs(f[0] - merged[-1][1]) < 1e-6 and f[2] == merged[-1][2]:
-                merged[-1][1] = f[1]
-                merged[-1][3] = max(merged[-1][3], f[3])
-                merged[-1][4] = max(merged[-1][4], f[4])
-            else:
-                merged.append(list(f))
-        merged.sort(key=lambda f: -f[3])
-        for f in merged[:per_channel]:  # per channel, so a loud channel cannot hide the others
-            out.append({"channel": ch, "t_start": round(float(f[0]), 2), "t_end": round(float(f[1]), 2),
-                        "regime": f[2], "severity": round(float(f[3]), 2),
-                        "rms_fraction_of_full_output": round(float(f[4]), 4)})
-    out.sort(key=lambda d: -d["severity"])
+def _output_judge(data: EquationData, nominal: VehicleParams, t_split: float, t_split2: float) -> Judge | None:
+    """The output-error judge: windows, their folds (a window belongs to a part when all of it
+    does) and blocks; None when no axis is predicted credibly or there are too few windows."""
+    win = make_windows(data)
+    if win.n < 20:
+        return None
+    judge_axes(data, win, nominal)
+    if not win.usable.any():
+        return None
+    fit1 = win.t_end < t_split
+    test1 = win.t >= t_split
+    fit2 = win.t >= t_split2
+    test2 = win.t_end < t_split2
+
+    def residual(vp, rows=None):
+        if rows is None:
+            return output_error(data, win, vp, nominal)
+        rows_idx = np.flatnonzero(rows) if rows.dtype == bool else rows
+        return output_error(data, win, vp, nominal, rows=rows_idx)
+    blocks = _blocks(win.t, test1, OE_BLOCK_S, min_rows=2) + _blocks(win.t, test2, OE_BLOCK_S, min_rows=2)
+    return Judge("output", residual, [(fit1, test1), (fit2, test2)], blocks, test1, lean=True, windows=win)
+
+
+def _restrict_to_axes(c: Candidate, usable: np.ndarray) -> Candidate | None:
+    """The candidate with only the parameters the usable output-error axes can see (the others
+    fixed at nominal); None when it sees nothing."""
+    keep = [i for i, p in enumerate(c.param_names) if any(usable[a] for a in _PARAM_AXES.get(p, range(6)))]
+    if not keep:
+        return None
+    if len(keep) == len(c.param_names):
+        return c
+    drop = [i for i in range(len(c.param_names)) if i not in keep]
+    fixed = dict(c.fixed)
+    fixed.update({c.param_names[i]: float(c.x0[i]) for i in drop})
+
+    def full(theta_k):
+        th = c.x0.copy()
+        th[keep] = theta_k
+        return th
+    return Candidate(c.name, tuple(c.param_names[i] for i in keep), c.x0[keep], c.lower[keep], c.upper[keep],
+                     lambda th: c.build(full(th)), fixed, lambda th: c.floor(full(th)), c.label,
+                     lambda th: c.unphysical(full(th)))
+
+
+def _side(judge: Judge, vp_c: VehicleParams, R0: np.ndarray, nominal: VehicleParams, rows=None) -> dict:
+    """The other residual's held-out numbers (fold 1) at a fit: the mode it moves most."""
+    rows = judge.held_mask if rows is None else rows
+    R1 = judge.residual(vp_c, rows)
+    r0, names = _mode_rms(R0[rows], nominal)
+    r1, _ = _mode_rms(R1, nominal)
+    k = int(np.argmax(r0 ** 2 - r1 ** 2))
+    tot0 = float(np.sqrt(np.mean(R0[rows] ** 2)))
+    tot1 = float(np.sqrt(np.mean(R1 ** 2)))
+    return {"residual": judge.kind, "heldout_channel": names[k], "heldout_before": round(float(r0[k]), 5),
+            "heldout_after": round(float(r1[k]), 5),
+            "heldout_improvement": round(1.0 - float(r1[k]) / float(r0[k]), 4) if r0[k] > 0 else 0.0,
+            "heldout_all_channels_improvement": round(1.0 - tot1 / tot0, 4) if tot0 > 0 else 0.0}
+
+
+def _scatter(R_rows: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    out = np.zeros((rows.size, R_rows.shape[1]))
+    out[rows] = R_rows
     return out
 
 
+def _summary(f: Fit) -> dict:
+    jname, jb, ja = f.judged
+    return {"residual": f.kind, "heldout_channel": jname, "heldout_before": round(jb, 5),
+            "heldout_after": round(ja, 5), "heldout_improvement": round(1.0 - ja / jb, 4) if jb > 0 else 0.0,
+            "heldout_all_channels_improvement": round(float(f.heldout_cut), 4),
+            "cv_improvement": round(float(f.rel_improvement), 4),
+            "heldout_t_stat": round(float(f.t_stat), 2) if math.isfinite(f.t_stat) else None,
+            "active_blocks": int(f.n_blocks),
+            "params": f.candidate.params_dict(f.theta),
+            "fold_params": [f.candidate.params_dict(t) for t in f.fold_thetas]}
+
+
+def _pick(fits: list[Fit]) -> Fit:
+    """One fit per candidate: accepted first, then one that is ``likely`` on its residual, then the
+    larger cross-validated cut."""
+    return max(fits, key=lambda f: (f.accepted, not likely_failures(f, T_CRIT, MIN_REL_IMPROVEMENT),
+                                    f.rel_improvement))
+
+
 def _evidence(f: Fit, names: list[str], before_ch: np.ndarray) -> str:
-    drop = before_ch - f.heldout_channels
-    ch = names[int(np.argmax(drop))]
     pretty = ", ".join(f"{k}={v:.4g}" for k, v in f.candidate.params_dict(f.theta).items())
-    verdict = "accepted" if f.accepted else "rejected"
+    if f.kind == "equation":
+        drop = before_ch - f.heldout_channels
+        ch = names[int(np.argmax(drop))]
+    else:
+        ch = f"{f.judged[0]} (output error)"
     why = []
     if not f.above_floor:
         why.append("fitted size below the physical resolution floor")
     if f.at_bound:
         why.append("estimate pinned to the edge of the physical range")
+    if f.unphysical:
+        why.append(f"unphysical: {f.unphysical}")
+    if f.closed_loop:
+        why.append(f.closed_loop)
     if f.t_stat <= T_CRIT:
         why.append(f"not significant on held-out blocks (t={f.t_stat:.1f})")
     if f.rel_improvement < MIN_REL_IMPROVEMENT:
         why.append(f"explains only {100 * f.rel_improvement:.0f} % of the held-out residual")
     reason = "; ".join(why) if why else f"t={f.t_stat:.1f} over {f.n_blocks} held-out blocks"
+    verdict = f.verdict if f.verdict else ("accepted" if f.accepted else "rejected")
+    if verdict == "confirmed":
+        verdict = "accepted, confirmed"
+    note = f"; {f.verdict_note}" if f.verdict in ("likely",) or (f.verdict == "rejected" and
+                                                                  f.verdict_note.startswith("explained")) else ""
+    alt = ""
+    if f.alternatives:
+        alt = " Not told apart from: " + ", ".join(
+            f"{a['name']} ({', '.join(f'{k}={v:.4g}' for k, v in a['params'].items())}, {100 * a['cv_improvement']:.0f} %)"
+            for a in f.alternatives) + "."
     return (f"{f.candidate.label} ({pretty}) cuts the held-out residual by {100 * f.rel_improvement:.0f} %, "
-            f"mostly in {ch}: {verdict} ({reason}).")
+            f"mostly in {ch}: {verdict} ({reason}{note}).{alt}")
 
 
-def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTION, max_effects: int = MAX_EFFECTS,
-             progress: bool = False, closed_loop_metrics: bool = True) -> dict:
-    """Run discovery on a FlightLog with nominal params ``vp``; returns the JSON-ready result."""
-    t_start = time.time()
+@dataclass
+class Setup:
+    """What discovery needs about one flight: data, splits, both judges, excitation."""
+
+    data: EquationData
+    names: list[str]
+    fit_mask: np.ndarray
+    held_mask: np.ndarray
+    t_split: float
+    t_end: float
+    eq: Judge
+    oe: Judge | None
+    excitation: dict
+
+
+def prepare_flight(log, vp: VehicleParams, heldout_fraction: float = HELDOUT_FRACTION, output_error: bool = True) -> Setup:
+    """Prepare a flight: equation-error data, the 2-fold splits, both judges, per-channel excitation."""
     data = prepare(log, vp)
     names = channel_names(vp.rotors.count)
     valid_t = data.t[data.valid]
@@ -331,16 +509,34 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     t_split2 = valid_t[0] + heldout_fraction * (valid_t[-1] - valid_t[0])
     held2 = data.valid & (data.t < t_split2)
     folds = [(fit_mask, held_mask), (data.valid & (data.t >= t_split2), held2)]
-    blocks = _blocks(data.t, held_mask, BLOCK_S) + _blocks(data.t, held2, BLOCK_S)
+    held_blocks = _blocks(data.t, held_mask, BLOCK_S) + _blocks(data.t, held2, BLOCK_S)
+    eq = _equation_judge(data, vp, folds, held_blocks, held_mask)
+    oe = _output_judge(data, vp, t_split, t_split2) if output_error else None
+    ex = excitation(data, vp, names, _blocks(data.t, data.valid, BLOCK_S), held_blocks)
+    return Setup(data, names, fit_mask, held_mask, float(t_split), float(valid_t[-1]), eq, oe, ex)
+
+
+def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTION, max_effects: int = MAX_EFFECTS,
+             progress: bool = False, closed_loop_metrics: bool = True, output_error: bool = True) -> dict:
+    """Run discovery on a FlightLog with nominal params ``vp``; returns the JSON-ready result."""
+    t_start = time.time()
+    S = prepare_flight(log, vp, heldout_fraction, output_error)
+    data, names, fit_mask, held_mask, t_split = S.data, S.names, S.fit_mask, S.held_mask, S.t_split
+    eq, oe = S.eq, S.oe
+    blocks = {"equation": eq.blocks, "output": oe.blocks if oe else []}
 
     current = vp
     R_base = residual_channels(data, vp, vp)
     raw_base = residual_channels(data, vp, vp, lowpass_hz=None)
     base_held = np.sqrt(np.mean(R_base[held_mask] ** 2, axis=0))
-    mismatch = locate(data, R_base, raw_base, names)
+    mismatch = locate(data, R_base, raw_base, names, vp)
+    oe_base = oe.residual(vp) if oe else None
 
     accepted: list[Fit] = []
-    ranked: list[Fit] = []
+    last: dict[str, Fit] = {}        # the latest assessment of each candidate (label)
+    first_rank: list[str] = []
+    oe_gain: dict[str, float] = {}   # round-1 output-error gain, to skip hopeless refits later
+    r1_gain: dict[str, float] = {}   # round-1 best gain per candidate
     rounds = 0
     pbar = None
     if progress:
@@ -348,17 +544,43 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         pbar = tqdm(desc="discover", unit="fit", mininterval=0.5, leave=False)
     while rounds < max_effects:
         rounds += 1
-        R0 = residual_channels(data, current, vp)
-        cands = build_candidates(current, data)
-        fits = []
+        R0 = eq.residual(current)
+        R0_oe = oe.residual(current) if oe else None
+        done = {f.candidate.label for f in accepted}
+        # after the first round, a candidate that explained nothing then (< 2 % cross-validated, on
+        # either residual) is not refitted: adding an effect does not make it explain the rest
+        cands = [c for c in build_candidates(current, data) if c.label not in done
+                 and (rounds == 1 or r1_gain.get(c.label, 1.0) >= PRUNE_GAIN)]
+        per_label: dict[str, list[Fit]] = {}
         for c in cands:
-            fits.append(assess(c, data, vp, R0, folds, blocks, held_mask))
+            fe = assess(c, eq, vp, R0)
+            fe.base_vp = current
+            per_label.setdefault(c.label, []).append(fe)
             if pbar is not None:
                 pbar.update(1)
-        # one motor_efficiency entry: the best motor
-        best_me = None
-        kept = []
+            if oe is not None and c.name in OUTPUT_ERROR_EFFECTS and (rounds == 1 or oe_gain.get(c.label, 0) > 0.02):
+                co = _restrict_to_axes(c, oe.windows.usable)
+                if co is not None:
+                    fo = assess(co, oe, vp, R0_oe)
+                    fo.base_vp = current
+                    per_label[c.label].append(fo)
+                    if rounds == 1:
+                        oe_gain[c.label] = fo.rel_improvement
+                    if pbar is not None:
+                        pbar.update(1)
+        fits = [f for fl in per_label.values() for f in fl]
         for f in fits:
+            f.accepted = (f.above_floor and not f.at_bound and f.unphysical is None and f.t_stat > T_CRIT
+                          and f.rel_improvement >= MIN_REL_IMPROVEMENT)
+        # one entry per candidate, and one motor_efficiency entry: the best motor
+        kept = []
+        best_me = None
+        for lab, fl in per_label.items():
+            f = _pick(fl)
+            f.other = None
+            for g in fl:
+                if g is not f:
+                    f.other = _summary(g)
             if f.candidate.name == "motor_efficiency":
                 if best_me is None or f.heldout_rms < best_me.heldout_rms:
                     best_me = f
@@ -367,26 +589,25 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         if best_me is not None:
             kept.append(best_me)
         kept.sort(key=lambda f: -f.rel_improvement)
+        if rounds == 1:
+            first_rank = [f.candidate.label for f in kept]
+            r1_gain = {lab: max(f.rel_improvement for f in fl) for lab, fl in per_label.items()}
         for f in kept:
-            f.accepted = (f.above_floor and not f.at_bound and f.t_stat > T_CRIT
-                          and f.rel_improvement >= MIN_REL_IMPROVEMENT)
+            if f.candidate.label not in done:
+                last[f.candidate.label] = f
         winner = next((f for f in kept if f.accepted), None)
         if winner is not None:
             winner = _parsimonious(winner, [f for f in kept if f.accepted], blocks)
-        if rounds == 1:
-            ranked = kept
-        if winner is None:
-            for f in kept:
-                f.accepted = False
-            break
+            # what the flight cannot tell apart from the winner: also passing, nearly as large a cut
+            winner.alternatives = [
+                {"name": f.candidate.name, "params": f.candidate.params_dict(f.theta), "residual": f.kind,
+                 "cv_improvement": round(float(f.rel_improvement), 4)}
+                for f in kept if f.accepted and f is not winner and f.rel_improvement >= ALT_FRACTION * winner.rel_improvement]
         for f in kept:
             f.accepted = f is winner
+        if winner is None:
+            break
         accepted.append(winner)
-        if rounds > 1:
-            # keep the list of round 1 as the ranking, adding later winners
-            ranked = [r for r in ranked if r.candidate.label != winner.candidate.label] + [winner]
-        else:
-            ranked = kept
         current = winner.vp
     if pbar is not None:
         pbar.close()
@@ -394,37 +615,44 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     # joint refit of all accepted effects (they may interact)
     if len(accepted) > 1:
         current = _joint_refit(accepted, data, vp, fit_mask)
+    closed = None
+    if closed_loop_metrics and accepted:
+        # an effect must also make the closed-loop twin better on the held-out part, never worse
+        accepted, current, closed = _closed_loop_guard(accepted, log, vp, data, fit_mask, t_split, S.t_end)
     R_after = residual_channels(data, current, vp)
     after_held = np.sqrt(np.mean(R_after[held_mask] ** 2, axis=0))
 
-    effects_out = []
-    seen = set()
-    for f in sorted(ranked, key=lambda f: (not f.accepted, -f.rel_improvement)):
-        if f.candidate.label in seen:
-            continue
-        seen.add(f.candidate.label)
+    # grades: confirmed (accepted and kept), likely, rejected (with why)
+    acc_labels = [f.candidate.label for f in accepted]
+    side_base: dict[int, np.ndarray] = {}
+    for f in last.values():
+        if f in accepted:
+            f.accepted = True
+        elif f.accepted:
+            f.accepted = False
+        expl = None
+        if (not f.accepted and f.t_stat > T_CRIT and f.rel_improvement >= MIN_REL_IMPROVEMENT and acc_labels
+                and f.above_floor and not f.at_bound and f.unphysical is None and f.closed_loop is None):
+            expl = ", ".join(acc_labels)
+        grade(f, T_CRIT, MIN_REL_IMPROVEMENT, S.excitation, expl)
+        if f.other is None:
+            # the other residual's view of this fit, for the report
+            judge = oe if f.kind == "equation" else eq
+            if judge is not None:
+                b = f.base_vp or vp
+                if id(b) not in side_base:
+                    side_base[id(b)] = (judge.residual(b) if judge is eq else
+                                        _scatter(judge.residual(b, judge.held_mask), judge.held_mask))
+                f.other = _side(judge, f.vp, side_base[id(b)], vp)
         f.evidence = _evidence(f, names, base_held)
-        jname, jb, ja = f.judged
-        effects_out.append({
-            "name": f.candidate.name,
-            "accepted": bool(f.accepted),
-            "params": f.candidate.params_dict(f.theta),
-            "evidence": f.evidence,
-            "heldout_channel": jname,
-            "heldout_before": round(jb, 5),
-            "heldout_after": round(ja, 5),
-            "heldout_units": f"RMS equation error in the {jname} mode on the held-out part, fraction of full "
-                             "motor output",
-            "heldout_improvement": round(1.0 - ja / jb, 4) if jb > 0 else 0.0,
-            "heldout_all_channels_before": round(float(np.sqrt(np.mean(base_held ** 2))), 5),
-            "heldout_all_channels_after": round(float(f.heldout_rms), 5),
-            "heldout_all_channels_improvement": round(float(f.heldout_cut), 4),
-            "heldout_channels_before": {k: round(float(v), 5) for k, v in zip(names, base_held)},
-            "heldout_channels_after": {k: round(float(v), 5) for k, v in zip(names, f.heldout_channels)},
-            "heldout_t_stat": round(float(f.t_stat), 2) if math.isfinite(f.t_stat) else None,
-            "cv_improvement": round(float(f.rel_improvement), 4),
-            "above_resolution_floor": bool(f.above_floor),
-        })
+    order = {"confirmed": 0, "likely": 1, "rejected": 2}
+    rank = {lab: i for i, lab in enumerate(first_rank)}
+    ranked = sorted(last.values(), key=lambda f: (order[f.verdict],
+                                                  acc_labels.index(f.candidate.label) if f.accepted else 0,
+                                                  -f.rel_improvement if f.verdict != "rejected"
+                                                  else rank.get(f.candidate.label, 99)))
+    effects_out = [_effect_json(f, names, base_held) for f in ranked]
+    likely = [f.candidate.name for f in ranked if f.verdict == "likely"]
     result = {
         "log": str(log.path),
         "params": vp.source,
@@ -432,38 +660,103 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
             "residual": "equation error (measured specific force and angular acceleration vs the model fed the "
                         "logged motor commands), per motor and horizontal force, low-passed "
                         f"{LOWPASS_HZ} Hz, in fraction of full motor output",
-            "fit_interval_s": [round(float(valid_t[0]), 2), round(float(t_split), 2)],
-            "heldout_interval_s": [round(float(t_split), 2), round(float(valid_t[-1]), 2)],
+            "output_error": (f"the model flown open loop for {HORIZON_S} s from the logged state (windows every "
+                             f"{STRIDE_S} s), driven by the logged motor commands; per window the mean "
+                             "acceleration error of body rates and velocity over the horizon as force/moment, "
+                             "same channels and units; axes where the nominal prediction's r^2 < "
+                             f"{MIN_AXIS_R2} are left out"),
+            "fit_interval_s": [round(float(data.t[data.valid][0]), 2), round(float(t_split), 2)],
+            "heldout_interval_s": [round(float(t_split), 2), round(S.t_end, 2)],
             "acceptance": f"above the physical resolution floor and inside the physical range; 2-fold "
                           f"cross-validated: held-out block test (t or sign test) > {T_CRIT} over up to "
-                          f"{len(blocks)} blocks of {BLOCK_S} s, held-out RMS cut >= "
-                          f"{int(100 * MIN_REL_IMPROVEMENT)} %",
+                          f"{len(eq.blocks)} blocks of {BLOCK_S} s (output error: {len(blocks['output'])} "
+                          f"blocks of {OE_BLOCK_S:.1f} s), held-out RMS cut >= {int(100 * MIN_REL_IMPROVEMENT)} %",
+            "likely": "not significant yet, but held-out cut >= 30 % in its channel, parameter well away from "
+                      "nominal and physical, both folds agree, most active blocks improved",
         },
         "baseline": {"equation_error_heldout": {k: round(float(v), 5) for k, v in zip(names, base_held)}},
         "mismatch": mismatch,
+        "excitation": S.excitation,
         "effects": effects_out,
         "accepted": [f.candidate.name for f in accepted],
+        "likely": likely,
         "after": {"equation_error_heldout": {k: round(float(v), 5) for k, v in zip(names, after_held)}},
         "refit_params": current.to_ros_dict() if accepted else None,
     }
+    if oe is not None:
+        r0, mn = _mode_rms(oe_base[oe.held_mask], vp)
+        result["baseline"]["output_error_heldout"] = {k: round(float(v), 5) for k, v in zip(mn, r0)}
+        result["output_error_axes"] = {**oe.windows.describe(), "horizon_s": HORIZON_S}
+        if accepted:
+            r1, _ = _mode_rms(oe.residual(current, oe.held_mask), vp)
+            result["after"]["output_error_heldout"] = {k: round(float(v), 5) for k, v in zip(mn, r1)}
+    else:
+        result["output_error_axes"] = None
     if closed_loop_metrics:
-        _closed_loop(result, log, vp, current, t_split, float(valid_t[-1]))
+        _closed_loop(result, log, vp, current, t_split, S.t_end, closed)
     result["elapsed_s"] = round(time.time() - t_start, 1)
     result["_series"] = {"t": data.t, "valid": data.valid, "held": held_mask, "R_before": R_base,
                          "R_after": R_after, "names": names}
     return result
 
 
+def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:
+    jname, jb, ja = f.judged
+    out = {
+        "name": f.candidate.name,
+        "accepted": bool(f.accepted),
+        "verdict": f.verdict,
+        "verdict_note": f.verdict_note,
+        "params": f.candidate.params_dict(f.theta),
+        "evidence": f.evidence,
+        "residual": f.kind,
+        "heldout_channel": jname,
+        "heldout_before": round(jb, 5),
+        "heldout_after": round(ja, 5),
+        "heldout_units": (f"RMS {'equation' if f.kind == 'equation' else 'output'} error in the {jname} mode on "
+                          "the held-out part, fraction of full motor output"),
+        "heldout_improvement": round(1.0 - ja / jb, 4) if jb > 0 else 0.0,
+        "heldout_t_stat": round(float(f.t_stat), 2) if math.isfinite(f.t_stat) else None,
+        "cv_improvement": round(float(f.rel_improvement), 4),
+        "above_resolution_floor": bool(f.above_floor),
+        "excitation": f.excitation,
+        "residuals": {f.kind: _summary(f)},
+        "alternatives": f.alternatives,
+    }
+    if f.other is not None:
+        out["residuals"][f.other["residual"]] = f.other
+    if f.kind == "equation":
+        out.update({
+            "heldout_all_channels_before": round(float(np.sqrt(np.mean(base_held ** 2))), 5),
+            "heldout_all_channels_after": round(float(f.heldout_rms), 5),
+            "heldout_all_channels_improvement": round(float(f.heldout_cut), 4),
+            "heldout_channels_before": {k: round(float(v), 5) for k, v in zip(names, base_held)},
+            "heldout_channels_after": {k: round(float(v), 5) for k, v in zip(names, f.heldout_channels)},
+        })
+    else:
+        out["heldout_all_channels_improvement"] = round(float(f.heldout_cut), 4)
+    return out
+
+
 def _joint_refit(accepted: list[Fit], data, nominal, fit_mask) -> VehicleParams:
-    cands = [f.candidate for f in accepted]
+    """Refit the equation-error effects among ``accepted`` jointly (they may interact); effects
+    found on the output error keep their values (the equation error cannot see them well)."""
+    base = nominal
+    for f in accepted:
+        if f.kind != "equation":
+            base = base.with_effect(f.candidate.name, **f.candidate.params_dict(f.theta))
+    eq_fits = [f for f in accepted if f.kind == "equation"]
+    if not eq_fits:
+        return base
+    cands = [f.candidate for f in eq_fits]
     sizes = [len(c.x0) for c in cands]
-    x0 = np.concatenate([f.theta for f in accepted])
+    x0 = np.concatenate([f.theta for f in eq_fits])
     lo = np.concatenate([c.lower for c in cands])
     hi = np.concatenate([c.upper for c in cands])
     s = np.maximum(np.abs(x0), 1e-6)
 
     def build(theta):
-        vpj = nominal
+        vpj = base
         k = 0
         for c, n in zip(cands, sizes):
             params = dict(c.fixed)
@@ -478,26 +771,54 @@ def _joint_refit(accepted: list[Fit], data, nominal, fit_mask) -> VehicleParams:
     sol = least_squares(resid, x0 / s, bounds=(lo / s, hi / s), diff_step=1e-3, max_nfev=80)
     theta = np.clip(sol.x * s, lo, hi)
     k = 0
-    for f, n in zip(accepted, sizes):
+    for f, n in zip(eq_fits, sizes):
         f.theta = theta[k:k + n]
         k += n
     return build(theta)
 
 
-def _closed_loop(result: dict, log, before: VehicleParams, after: VehicleParams, t0: float, t1: float) -> None:
-    """Closed-loop twin metrics (Table 2 + throttle + motors) on the held-out part, before and after.
+def _closed_loop_metrics(log, vp: VehicleParams, t0: float, t1: float) -> dict:
+    """Closed-loop twin metrics (Table 2 + throttle + motors) on [t0, t1].
 
-    The twin flies the whole flight (so it reaches the held-out part in a realistic state);
-    only the held-out window is scored."""
-    from twin_nodes.compare import align
-    from twin_nodes.metrics import flight_metrics
-    from twin_nodes.twin import run_twin_on_log
+    The twin flies the whole flight (so it reaches the window in a realistic state);
+    only the window is scored."""
+    from twin_nodes.twin.compare import align
+    from twin_nodes.twin.metrics import flight_metrics
+    from twin_nodes.twin.runner import run_twin_on_log
 
-    out = {}
+    m = flight_metrics(align(run_twin_on_log(log, vp, mode="closed"), log, t0=t0, t1=t1))
+    m["interval_s"] = [round(t0, 2), round(t1, 2)]
+    return m
+
+
+def _closed_loop_guard(accepted: list[Fit], log, nominal: VehicleParams, data, fit_mask, t0: float, t1: float
+                       ) -> tuple[list[Fit], VehicleParams, dict]:
+    """Add the accepted effects one at a time (in acceptance order); drop each one that makes the
+    closed-loop twin's held-out throttle RMSE worse.  Returns the kept effects, their (re)fitted
+    vehicle and the metrics cache ``{"before": ..., "after": ...}``."""
+    before = _closed_loop_metrics(log, nominal, t0, t1)
+    best = before["throttle_rmse"]
+    kept: list[Fit] = []
+    current = nominal
+    for f in accepted:
+        trial = kept + [f]
+        vp_t = _joint_refit(trial, data, nominal, fit_mask) if len(trial) > 1 else f.vp
+        m = _closed_loop_metrics(log, vp_t, t0, t1)
+        if m["throttle_rmse"] <= best:
+            kept, current, best, after = trial, vp_t, m["throttle_rmse"], m
+        else:
+            f.accepted = False
+            f.closed_loop = (f"makes the closed-loop twin worse on the held-out part (throttle RMSE "
+                             f"{best:.4f} -> {m['throttle_rmse']:.4f})")
+    return kept, current, {"before": before, "after": after if kept else before}
+
+
+def _closed_loop(result: dict, log, before: VehicleParams, after: VehicleParams, t0: float, t1: float,
+                 cached: dict | None = None) -> None:
+    """Closed-loop twin metrics on the held-out part, before and after (reusing the guard's runs)."""
+    out = dict(cached or {})
     for key, p in (("before", before), ("after", after)):
-        run = run_twin_on_log(log, p, mode="closed")
-        m = flight_metrics(align(run, log, t0=t0, t1=t1))
-        m["interval_s"] = [round(t0, 2), round(t1, 2)]
-        out[key] = m
+        if key not in out:
+            out[key] = _closed_loop_metrics(log, p, t0, t1)
     result["baseline"]["closed_loop_heldout"] = out["before"]
     result["after"]["closed_loop_heldout"] = out["after"]

@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
-from twin_nodes.control import allocation_matrix
-from twin_nodes.errors import LogError
-from twin_nodes.params import VehicleParams
+from twin_nodes.vehicle.geometry import allocation_matrix
+from twin_nodes.base.errors import LogError
+from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.model import Multirotor
 
@@ -147,6 +147,10 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     weight = vp.mass_kg * vp.gravity_m_s2
     contact = (height < 0.5) & (np.linalg.norm(data.v, axis=1) < 0.3) & (thrust < 0.7 * weight)
     contact |= height < 0.05
+    # sitting on the ground whatever the height estimate says (after touchdown PX4's EKF height can
+    # read 1 m for seconds): far too little thrust to fly, yet the accelerometer reads a supported
+    # vehicle, not a falling one
+    contact |= (thrust < 0.6 * weight) & (vp.mass_kg * data.f[:, 2] - thrust > 0.3 * weight)
     # pad contact by 0.5 s either side (touchdown transients)
     pad = int(round(0.5 * rate_hz))
     contact = np.convolve(contact.astype(float), np.ones(2 * pad + 1), mode="same") > 0

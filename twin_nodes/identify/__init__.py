@@ -1,13 +1,19 @@
-"""Identification of a multirotor's parameters from data (reference 2, "Quad-C model verification").
+"""Identification of a multirotor's parameters from data: the fits, their flight-log adapters, results and figures.
 
-Pure numpy/scipy functions on arrays; the ``rotortwin identify`` subcommands
-(:mod:`twin_nodes.cli.identify`) adapt flight logs to them.
+May import: base, physics, vehicle, logs.
+
+Reference 2, "Quad-C model verification".  Pure numpy/scipy functions on arrays;
+:mod:`.from_log` adapts flight logs to them, one function per ``rotortwin identify``
+method (:mod:`twin_nodes.cli.identify` only parses arguments and writes the output).
 
 - :mod:`.step_response` motor ``K/(tau s + 1)`` (+ delay, up/down) fit and its ZOH difference equation
 - :mod:`.hover` steady-hover segments, hover throttle, ``kt = m g / (N omega^2)``
 - :mod:`.delay` command -> response delay by cross-correlation, sub-sample, with a bootstrap interval
 - :mod:`.regression` equation-error least squares with SVD / structural identifiability
 - :mod:`.noise` IMU bias, white noise, Allan deviation and the params ``sensors`` block
+- :mod:`.from_log` the above on a :class:`~twin_nodes.logs.ulog_io.FlightLog` (airborne masks, heights
+  above take-off, angular acceleration, rotor geometry, delay pairs)
+- :mod:`.results` one result type per method: parameter-file block, report, console summary, figure
 - :mod:`.plots` figures (Agg canvas)
 """
 

@@ -22,6 +22,8 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.ndimage import uniform_filter1d
 
+from twin_nodes.logs import time_sync
+
 
 @dataclass(frozen=True)
 class DelayEstimate:
@@ -141,6 +143,8 @@ def estimate_delay(t_cmd: np.ndarray, cmd: np.ndarray, t_resp: np.ndarray, resp:
     resp = np.asarray(resp, dtype=float).ravel()
     if t_cmd.shape != cmd.shape or t_resp.shape != resp.shape:
         raise ValueError("times and values must have the same length")
+    if t_cmd.size < 2 or t_resp.size < 2:
+        raise ValueError(f"expected at least 2 command and 2 response samples, got {t_cmd.size} and {t_resp.size}")
     if mode not in ("level", "diff"):
         raise ValueError(f"mode must be 'level' or 'diff', got {mode!r}")
     if min_delay_s is None:
@@ -155,6 +159,7 @@ def estimate_delay(t_cmd: np.ndarray, cmd: np.ndarray, t_resp: np.ndarray, resp:
     if not t1 - t0 > 4.0 * (max_delay_s - min(min_delay_s, 0.0)):
         raise ValueError(f"overlap of command and response ({max(t1 - t0, 0):.3g} s) is too short for "
                          f"a lag window of {min_delay_s:g}..{max_delay_s:g} s")
+    time_sync.check_grid(t0, t1, rate_hz, label or "estimate_delay")  # a time gap never sizes the grid
     grid = np.arange(t0, t1, 1.0 / rate_hz)
     x = resample_uniform(t_cmd, cmd, grid)
     y = resample_uniform(t_resp, resp, grid)

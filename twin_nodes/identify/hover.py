@@ -212,7 +212,7 @@ def kt_from_hover(mass_kg: float, omega_rad_s: float | np.ndarray, n_rotors: int
         if n_rotors is None or n_rotors < 1:
             raise ValueError("a single hover speed needs n_rotors >= 1")
         # The common-speed form is the parameter pipeline's (one home for the formula).
-        from twin_nodes.derive import kt_from_hover as _kt_common
+        from twin_nodes.vehicle.derive import kt_from_hover as _kt_common
         return float(_kt_common(mass_kg, float(w[0]), n_rotors, gravity_m_s2))
     denom = float(np.sum(w ** 2))
     if not denom > 0:
@@ -237,7 +237,7 @@ def kt_per_segment(segments: list[HoverSegment], mass_kg: float,
 def params_from_hover_command(params: object, u_hover: float) -> dict[str, float]:
     """Rotor parameters that make ``params`` hover at per-motor command ``u_hover``.
 
-    ``params`` is a :class:`twin_nodes.params.VehicleParams`.  For the
+    ``params`` is a :class:`twin_nodes.vehicle.params.VehicleParams`.  For the
     ``thrust_factor`` model this is ``thrust_max_n = m g / (N rel(u))`` with
     ``rel(u) = f u^2 + (1 - f) u``; for ``omega_squared`` it is
     ``kt = m g / (N omega_ref(u)^2)`` through the file's command map.

@@ -34,7 +34,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 from scipy import signal
 
-from twin_nodes import frames
+from twin_nodes.base import frames
 from twin_nodes.identify.step_response import _lag_exact
 
 # --------------------------------------------------------------------------- generic least squares

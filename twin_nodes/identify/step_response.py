@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,7 +42,7 @@ import numpy as np
 from numba import njit
 from scipy import optimize, signal
 
-from twin_nodes.errors import LogError
+from twin_nodes.base.errors import LogError
 
 CSV_COLUMNS = ("time_s", "command", "rpm")
 RPM_TO_RAD_S = 2.0 * math.pi / 60.0
@@ -54,19 +55,28 @@ def read_step_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     """Read ``time_s, command, rpm`` columns from a CSV file.
 
     Returns ``(t_s, command, rpm)``, each shape (n,).  Raises
-    :class:`~twin_nodes.errors.LogError` (``file: column ...: expected ...``) on a
+    :class:`~twin_nodes.base.errors.LogError` (``file: column ...: expected ...``) on a
     missing file or column, a non-numeric or non-finite cell, non-increasing time
     or fewer than 10 rows.
     """
     path = str(path)
     try:
+        if not os.path.isfile(path) and os.path.exists(path):
+            raise LogError(path, "<file>", "expected a CSV file, got a directory or special file")
+        if os.path.getsize(path) > 100_000_000:
+            raise LogError(path, "<file>", f"expected a CSV file of at most 100 MB, got {os.path.getsize(path)} bytes")
         fh = open(path, "r", encoding="utf-8", newline="")
     except FileNotFoundError:
         raise LogError(path, "<file>", "file not found") from None
     except OSError as exc:
         raise LogError(path, "<file>", f"cannot be opened ({exc.strerror})") from None
-    with fh:
-        rows = [r for r in csv.reader(fh) if r and not r[0].lstrip().startswith("#")]
+    try:
+        with fh:
+            rows = [r for r in csv.reader(fh) if r and not r[0].lstrip().startswith("#")]
+    except UnicodeDecodeError as exc:
+        raise LogError(path, "<file>", f"expected UTF-8 CSV text, got byte 0x{exc.object[exc.start]:02x}") from None
+    except csv.Error as exc:
+        raise LogError(path, "<file>", f"expected CSV text ({' '.join(str(exc).split())[:120]})") from None
     if not rows:
         raise LogError(path, "<header>", f"empty file; expected a header row with columns {', '.join(CSV_COLUMNS)}")
     header = [h.strip().lower() for h in rows[0]]

@@ -1,4 +1,6 @@
-"""PX4 over MAVLink: the lockstep simulator link, live telemetry and missions.
+"""PX4 over MAVLink: the lockstep simulator link, sensor models, live telemetry and missions.
+
+May import: base, vehicle, twin.
 
 - :mod:`twin_nodes.mavlink.sensors` — IMU / magnetometer / barometer / GPS models
   (true value + bias + white noise per axis) and the geodesy they need.

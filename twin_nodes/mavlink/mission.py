@@ -25,7 +25,7 @@ at upload; with it, the upload refuses a plan whose home is more than
 ``max_home_offset_m`` (1 km) from the vehicle's, so a plan written for the SIH
 origin is never flown somewhere else by accident.
 
-Bad files raise :class:`~twin_nodes.errors.ParamsError` with a one-line
+Bad files raise :class:`~twin_nodes.base.errors.ParamsError` with a one-line
 ``<file>: <field>: <what was expected>`` message.
 """
 
@@ -37,14 +37,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-import yaml
 
-from twin_nodes.errors import ParamsError, TwinError
+from twin_nodes.base.errors import ParamsError, TwinError
 from twin_nodes.mavlink.sensors import project_latlon_to_ne, reproject_ne_to_latlon
 
 __all__ = [
     "Waypoint", "MissionPlanFile", "load_plan", "plan_from_mapping", "plan_to_mission_items",
-    "normalise_mavsdk_url", "upload_plan", "start_mission", "DEFAULT_URL",
+    "normalise_mavsdk_url", "upload_plan", "start_mission", "wait_flight_done", "DEFAULT_URL",
 ]
 
 DEFAULT_URL = "udpin://0.0.0.0:14540"  # PX4 SITL sends to offboard APIs on UDP 14540
@@ -178,16 +177,10 @@ def plan_from_mapping(doc: Any, path: str = "<memory>") -> MissionPlanFile:
 
 def load_plan(path: str | Path) -> MissionPlanFile:
     """Read and validate a plan file."""
+    from twin_nodes.vehicle.params import read_yaml_file  # regular UTF-8 file, size-limited, one-line errors
+
     p = str(path)
-    try:
-        with open(p, "r", encoding="utf-8") as fh:
-            doc = yaml.safe_load(fh)
-    except FileNotFoundError:
-        raise ParamsError(p, "<file>", "file not found") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}" if mark is not None else "<yaml>"
-        raise ParamsError(p, where, f"not valid YAML ({getattr(exc, 'problem', exc)})") from None
+    doc = read_yaml_file(p, "mission plan YAML file")
     return plan_from_mapping(doc, p)
 
 
@@ -265,9 +258,27 @@ def _vehicle_home(system: Any, timeout_s: float) -> tuple[float, float] | None:
         time.sleep(0.2)
 
 
+def _wait_current_item(mission: Any, index: int, timeout_s: float) -> bool:
+    """True once the vehicle reports ``index`` as its current mission item (MISSION_CURRENT)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            if int(mission.mission_progress().current) == index:
+                return True
+        except Exception:  # no progress known yet
+            pass
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+
+
 def upload_plan(plan: MissionPlanFile, url: str = DEFAULT_URL, *, connect_timeout_s: float = 10.0,
-                home_timeout_s: float = 10.0, max_home_offset_m: float = 1000.0) -> dict[str, Any]:
-    """Connect, resolve home, upload the plan and the RTL-after flag; returns a summary."""
+                home_timeout_s: float = 10.0, max_home_offset_m: float = 1000.0,
+                current_timeout_s: float = 2.0) -> dict[str, Any]:
+    """Connect, resolve home, upload the plan and the RTL-after flag and set the current item to 0
+    (so the mission starts from its beginning even if an identical one was flown before); returns
+    a summary (``current_item_confirmed``: the vehicle reported item 0 as current within
+    ``current_timeout_s``)."""
     from mavsdk.plugins.mission import Mission, MissionError, MissionPlan
 
     link = _Link(url, connect_timeout_s)
@@ -291,10 +302,17 @@ def upload_plan(plan: MissionPlanFile, url: str = DEFAULT_URL, *, connect_timeou
         try:
             mission.set_return_to_launch_after_mission(plan.rtl_after)
             mission.upload_mission(MissionPlan(items))
+            # PX4 keeps the mission's current index in dataman (across reboots) and keeps it for an
+            # identical upload: a mission flown to its end would "finish" at once when started
+            # again.  Restart it from item 0 -- in this MAVSDK instance, which knows the uploaded
+            # items (a fresh instance, e.g. in start_mission, answers ERROR).
+            mission.set_current_mission_item(0)
         except MissionError as exc:
             raise TwinError(f"{link.url}: mission upload failed: {exc}") from None
+        confirmed = _wait_current_item(mission, 0, current_timeout_s)
         return {"url": link.url, "name": plan.name, "items": len(items), "home": home,
-                "rtl_after": plan.rtl_after, "length_m": plan.length_m()}
+                "rtl_after": plan.rtl_after, "length_m": plan.length_m(), "current_item": 0,
+                "current_item_confirmed": confirmed}
     finally:
         link.close()
 
@@ -316,5 +334,30 @@ def start_mission(url: str = DEFAULT_URL, *, arm: bool = True, connect_timeout_s
         except MissionError as exc:
             raise TwinError(f"{link.url}: mission start failed: {exc}") from None
         return {"url": link.url, "armed": arm}
+    finally:
+        link.close()
+
+
+def wait_flight_done(url: str = DEFAULT_URL, *, connect_timeout_s: float = 10.0, arm_timeout_s: float = 60.0,
+                     timeout_s: float = 900.0) -> dict[str, Any]:
+    """Connect, wait until the vehicle is armed (``arm_timeout_s``), then until it is disarmed again
+    (``timeout_s``): a mission with RTL flown and landed (PX4 disarms after landing).  Returns the
+    flight time; TwinError if either does not happen in time."""
+    from mavsdk.plugins.telemetry import Telemetry
+
+    link = _Link(url, connect_timeout_s)
+    try:
+        tel = Telemetry(link.system)
+        t0 = time.monotonic()
+        while not tel.armed():
+            if time.monotonic() - t0 > arm_timeout_s:
+                raise TwinError(f"{link.url}: the vehicle did not arm within {arm_timeout_s:g} s")
+            time.sleep(0.2)
+        t_armed = time.monotonic()
+        while tel.armed():
+            if time.monotonic() - t_armed > timeout_s:
+                raise TwinError(f"{link.url}: still armed after {timeout_s:g} s")
+            time.sleep(0.5)
+        return {"url": link.url, "flight_s": time.monotonic() - t_armed}
     finally:
         link.close()

@@ -3,11 +3,17 @@
 Every sensor reads the twin's **true** state and adds, per axis, a constant bias
 and zero-mean white Gaussian noise — the model of the Quad-C verification
 reference (``/work/shared/reference/quad-c-model-verification.md``: "true value +
-bias + zero-mean white Gaussian noise, per axis").  Noise comes from a
-``np.random.Generator`` seeded from the config, so a run is reproducible.
+bias + zero-mean white Gaussian noise, per axis") — except the GPS position, whose
+error is correlated in time as a real receiver's is: a first-order Gauss-Markov
+process (σ ``gps_noise_m``, correlation time ``gps_correlation_time_s``) plus a small
+white noise (``gps_white_noise_m``).  White GPS noise of 0.5 m at 10 Hz trips PX4's
+pre-flight drift check (EKF2: the position's finite-difference rate, low-passed with a
+10 s time constant, must stay below ``EKF2_REQ_HDRIFT`` 0.1 m/s), which real PX4 SITL
+reported 8-25 times a flight (issue 14).  Noise comes from a ``np.random.Generator``
+seeded from the config, so a run is reproducible.
 
 Output frames are PX4's: body **FRD** for accel/gyro/mag, **NED** for GPS
-velocity; the twin's ENU/FLU state is converted with :mod:`twin_nodes.frames`
+velocity; the twin's ENU/FLU state is converted with :mod:`twin_nodes.base.frames`
 only.
 
 The ``sensors:`` block of a vehicle parameter file (all keys optional)::
@@ -19,7 +25,9 @@ The ``sensors:`` block of a vehicle parameter file (all keys optional)::
       accel_bias_m_s2:   [0.04, -0.03, 0.05]        # constant bias, FRD axes
       mag_noise_gauss:   0.002                      # σ per axis
       baro_noise_hpa:    0.012                      # σ of abs_pressure
-      gps_noise_m:       0.5                        # σ per axis (N, E, D) of the position
+      gps_noise_m:       0.5                        # σ per axis (N, E, D) of the correlated position error
+      gps_correlation_time_s: 90.0                  # its correlation time (0 = white noise, the old model)
+      gps_white_noise_m: 0.03                       # σ per axis of the white noise on top
       gps_vel_noise_m_s: 0.05                       # σ per axis of the NED velocity
       gps_rate_hz:  10.0
       mag_rate_hz:  100.0
@@ -36,8 +44,11 @@ Defaults (an MPU-6000 / HMC5883L / MS5611 / u-blox class vehicle):
 - accel σ = 400 µg/√Hz × √(125 Hz) = 0.044 m/s² (MPU-6000 density over the
   Nyquist band of the 250 Hz link); bias ≈ 3–5 mg, a post-calibration residual.
 - mag σ 2 mG (HMC5883L resolution); baro σ 0.012 hPa ≈ 10 cm (MS5611
-  resolution); GPS σ 0.5 m and 0.05 m/s (u-blox M8 class short-term noise; the
-  2.5 m CEP of the reference's LEA-6 is absolute accuracy, not sample noise).
+  resolution); GPS position error σ 0.5 m per axis, correlated over 90 s (a u-blox
+  M8 at rest wanders by decimetres over tens of seconds; its 2.5 m CEP is absolute
+  accuracy), plus 3 cm white noise, and velocity σ 0.05 m/s white.  With these the
+  10 s low-passed position rate at rest stays below 0.075 m/s (20 seeds × 600 s
+  simulated; PX4's limit 0.1 m/s) while white 0.5 m noise exceeds it.
 
 A noise σ of 0 is allowed, but PX4 flags a sensor whose value never changes as
 stale (a noiseless baro on a vehicle at rest blocks arming), so keep the baro
@@ -57,8 +68,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from twin_nodes import frames
-from twin_nodes.errors import ParamsError
+from twin_nodes.base import frames
+from twin_nodes.base.errors import ParamsError
 
 __all__ = [
     "SIH_ORIGIN_LAT_DEG", "SIH_ORIGIN_LON_DEG", "SIH_ORIGIN_ALT_M",
@@ -99,6 +110,8 @@ class SensorConfig:
     mag_noise_gauss: float = 0.002
     baro_noise_hpa: float = 0.012
     gps_noise_m: float = 0.5
+    gps_correlation_time_s: float = 90.0
+    gps_white_noise_m: float = 0.03
     gps_vel_noise_m_s: float = 0.05
     gps_rate_hz: float = 10.0
     mag_rate_hz: float = 100.0
@@ -141,6 +154,8 @@ class SensorConfig:
                 v = float(value)
                 if name.endswith("_rate_hz") and not v > 0:
                     raise ParamsError(path, key, f"expected > 0, got {v:g}")
+                if name == "gps_correlation_time_s" and v < 0:
+                    raise ParamsError(path, key, f"expected a time >= 0 (0 = white noise), got {v:g}")
                 if ("noise" in name) and v < 0:
                     raise ParamsError(path, key, f"expected noise σ >= 0, got {v:g}")
                 if name == "home_lat_deg" and not -90.0 < v < 90.0:
@@ -152,7 +167,7 @@ class SensorConfig:
 
     @classmethod
     def from_params(cls, vp: Any) -> "SensorConfig":
-        """From a :class:`~twin_nodes.params.VehicleParams` (its ``sensors`` block)."""
+        """From a :class:`~twin_nodes.vehicle.params.VehicleParams` (its ``sensors`` block)."""
         return cls.from_mapping(getattr(vp, "sensors", None), getattr(vp, "source", "<memory>"))
 
 
@@ -262,6 +277,7 @@ class SensorModel:
         self._acc_bias = np.array(c.accel_bias_m_s2, dtype=float)
         self._acc_sigma = np.array(c.accel_noise_m_s2, dtype=float)
         self._mag_enu = frames.ned_to_enu(mag_field_ned_gauss())
+        self._gps_err_ned: np.ndarray | None = None  # the correlated GPS position error [m]
 
     def _noise(self, sigma: np.ndarray | float, n: int = 3) -> np.ndarray:
         return self.rng.standard_normal(n) * sigma
@@ -290,14 +306,34 @@ class SensorModel:
         p_pa = float(isa_pressure_pa(alt)) + 100.0 * float(self._noise(self.config.baro_noise_hpa, 1)[0])
         return p_pa / 100.0, float(isa_altitude_m(p_pa)), float(isa_temperature_c(alt))
 
-    def gps(self, position_enu_m: np.ndarray, velocity_enu_m_s: np.ndarray) -> GpsFix:
-        """A GPS fix from the true ENU position/velocity about home."""
+    def gps_position_error_ned(self, dt_s: float | None = None) -> np.ndarray:
+        """The next GPS position error [m, NED]: Gauss-Markov (σ ``gps_noise_m``, correlation time
+        ``gps_correlation_time_s``, stationary from the first sample) + white ``gps_white_noise_m``.
+
+        ``dt_s``: time since the previous fix (default ``1 / gps_rate_hz``); a correlation time of
+        0 gives white noise of σ ``gps_noise_m`` (the model before issue 14)."""
         c = self.config
-        p_ned = frames.enu_to_ned(np.asarray(position_enu_m, dtype=float)) + self._noise(c.gps_noise_m)
+        dt = 1.0 / c.gps_rate_hz if dt_s is None else max(float(dt_s), 0.0)
+        if c.gps_correlation_time_s <= 0.0:
+            err = self._noise(c.gps_noise_m)
+        elif self._gps_err_ned is None:
+            err = self._noise(c.gps_noise_m)  # stationary start
+        else:
+            a = float(np.exp(-dt / c.gps_correlation_time_s))
+            err = a * self._gps_err_ned + self._noise(c.gps_noise_m * np.sqrt(max(1.0 - a * a, 0.0)))
+        self._gps_err_ned = err
+        return err + self._noise(c.gps_white_noise_m)
+
+    def gps(self, position_enu_m: np.ndarray, velocity_enu_m_s: np.ndarray, dt_s: float | None = None) -> GpsFix:
+        """A GPS fix from the true ENU position/velocity about home (``dt_s``: time since the last
+        fix, default ``1 / gps_rate_hz``; the link calls this once per GPS period)."""
+        c = self.config
+        p_ned = frames.enu_to_ned(np.asarray(position_enu_m, dtype=float)) + self.gps_position_error_ned(dt_s)
         v_ned = frames.enu_to_ned(np.asarray(velocity_enu_m_s, dtype=float)) + self._noise(c.gps_vel_noise_m_s)
         lat, lon = reproject_ne_to_latlon(p_ned[0], p_ned[1], c.home_lat_deg, c.home_lon_deg)
+        sigma = float(np.hypot(c.gps_noise_m, c.gps_white_noise_m))
         return GpsFix(lat_deg=float(lat), lon_deg=float(lon), alt_m=c.home_alt_m - float(p_ned[2]),
                       vel_ned_m_s=v_ned,
                       # PX4 takes eph/epv as accuracies [m] (×100 on the wire); floor at 0.1 m
-                      eph_m=max(float(np.sqrt(2.0) * c.gps_noise_m), 0.1),
-                      epv_m=max(float(c.gps_noise_m), 0.1))
+                      eph_m=max(float(np.sqrt(2.0) * sigma), 0.1),
+                      epv_m=max(sigma, 0.1))

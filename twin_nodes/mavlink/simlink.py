@@ -34,12 +34,18 @@ that falls behind is not made to catch up in a burst.
 Commands: non-reversible motor outputs are 0..1 (PX4 ``PWMSim``); disarmed
 (``mode`` without SAFETY_ARMED) means stopped = NaN, the project's convention.
 A client that disconnects sends the link back to waiting; the next client
-starts freewheeling again (the twin's state is kept, as in Gazebo).  A new
-client replaces a connected one (a restarted PX4 may connect before the old
-socket is seen dead).
+starts freewheeling again (the twin's state is kept, as in Gazebo).  One client
+flies at a time: a second connection is refused (closed at once, counted in
+``LinkStats.refused``) while the current client has sent anything in the last
+``takeover_after_s`` (5 s); a client silent for longer is taken to be dead (a
+restarted PX4 may connect before the old socket is seen dead) and replaced.
+
+The server listens on the loopback interface (``127.0.0.1``) unless ``host`` says
+otherwise (``0.0.0.0`` for PX4 in another container or machine): the link has no
+authentication, and whoever connects flies the twin.
 
 Frames: the twin is ENU/FLU; everything on the wire is NED/FRD, converted by
-:mod:`twin_nodes.frames` only.
+:mod:`twin_nodes.base.frames` only.
 """
 
 from __future__ import annotations
@@ -56,21 +62,22 @@ from typing import Callable
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
-from twin_nodes import frames
-from twin_nodes.errors import ParamsError
+from twin_nodes.base import frames
+from twin_nodes.base.errors import ParamsError, TwinError
 from twin_nodes.mavlink.sensors import SensorConfig, SensorModel, reproject_ne_to_latlon
-from twin_nodes.params import VehicleParams
-from twin_nodes.sim import Simulator
+from twin_nodes.vehicle.params import VehicleParams
+from twin_nodes.twin.sim import Simulator
 
 __all__ = [
     "SimLinkServer", "StepInfo", "LinkStats", "motor_commands_from_controls",
     "FIELDS_ACCEL", "FIELDS_GYRO", "FIELDS_MAG", "FIELDS_BARO", "SAFETY_ARMED", "LOCKSTEP_FLAG",
-    "DEFAULT_PORT", "DEFAULT_STEP_S", "ScriptedPX4", "PeerStats",
+    "DEFAULT_PORT", "DEFAULT_HOST", "DEFAULT_STEP_S", "ScriptedPX4", "PeerStats",
 ]
 
 log = logging.getLogger("rotortwin.simlink")
 
 DEFAULT_PORT = 4560
+DEFAULT_HOST = "127.0.0.1"  # loopback unless told otherwise: the link has no authentication
 DEFAULT_STEP_S = 0.004  # PX4/Gazebo lockstep assume 4 ms (250 Hz)
 
 # HIL_SENSOR.fields_updated bits, as PX4 SimulatorMavlink masks them
@@ -170,6 +177,7 @@ class LinkStats:
     freewheel_steps: int = 0
     lockstep_steps: int = 0
     lockstep_timeouts: int = 0
+    refused: int = 0  # connections refused while another client was flying
     time_usec: int = 0
 
     @property
@@ -209,7 +217,7 @@ class _Schedule:
 
 
 class SimLinkServer:
-    """Lockstep MAVLink simulator server around a :class:`~twin_nodes.sim.Simulator`.
+    """Lockstep MAVLink simulator server around a :class:`~twin_nodes.twin.sim.Simulator`.
 
     >>> srv = SimLinkServer(shipped('px4_sih_quadx'), port=4560, step_s=0.004, on_step=print)
     >>> srv.serve_forever()          # or srv.start_thread(); ...; srv.close()
@@ -221,12 +229,14 @@ class SimLinkServer:
     """
 
     def __init__(self, vp: VehicleParams, port: int = DEFAULT_PORT, step_s: float = DEFAULT_STEP_S,
-                 on_step: Callable[[StepInfo], None] | None = None, *, host: str = "0.0.0.0",
+                 on_step: Callable[[StepInfo], None] | None = None, *, host: str = DEFAULT_HOST,
                  sensors: SensorConfig | None = None, lockstep_timeout_s: float = 1.0,
                  freewheel: bool = True, max_steps: int | None = None, speed_factor: float = 1.0,
-                 rng: np.random.Generator | None = None):
+                 rng: np.random.Generator | None = None, takeover_after_s: float = 5.0):
         if not step_s > 0:
             raise ParamsError(vp.source, "step_s", f"expected a link step > 0 s, got {step_s!r}")
+        if isinstance(port, bool) or not isinstance(port, (int, np.integer)) or not 0 <= int(port) <= 65535:
+            raise TwinError(f"port: expected a TCP port 0..65535 (0 = any free one), got {port!r}")
         ratio = step_s / vp.dt_s
         if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
             raise ParamsError(vp.source, "simulation.dt_s",
@@ -238,6 +248,7 @@ class SimLinkServer:
         self.step_us = int(round(step_s * 1e6))
         self.on_step = on_step
         self.lockstep_timeout_s = float(lockstep_timeout_s)
+        self.takeover_after_s = float(takeover_after_s)
         self.freewheel = bool(freewheel)
         self.max_steps = max_steps
         self.speed_factor = float(speed_factor)
@@ -271,6 +282,7 @@ class SimLinkServer:
         self._armed = False
         self._step_count = 0
         self._last_tx_wall = 0.0
+        self._last_rx_wall = 0.0
         self._next_wall = 0.0
         self._last_mag = np.zeros(3)
         self._last_baro = (0.0, 0.0, 0.0)
@@ -281,8 +293,13 @@ class SimLinkServer:
         if self._lsock is None:
             s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            s.bind((self.host, self.port))
-            s.listen(1)
+            try:
+                s.bind((self.host, self.port))
+                s.listen(1)
+            except (OSError, OverflowError) as exc:
+                s.close()
+                why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+                raise TwinError(f"TCP {self.host}:{self.port}: cannot listen: {why}") from None
             self.port = s.getsockname()[1]
             self._lsock = s
             log.info("simulator link listening on TCP %s:%d (step %.1f ms)", self.host, self.port,
@@ -401,8 +418,18 @@ class SimLinkServer:
             conn, addr = self._lsock.accept()
         except OSError:
             return
-        if self._conn is not None:
-            log.warning("a new client connected (%s:%d): replacing the current one", *addr)
+        if self._conn is not None and not self._peer_closed():
+            if time.monotonic() - self._last_rx_wall < self.takeover_after_s:
+                # one client flies the twin at a time: whoever else connects is turned away
+                self.stats.refused += 1
+                log.warning("refused a second client (%s:%d) while one is flying", *addr[:2])
+                try:
+                    conn.close()
+                except OSError:
+                    pass
+                return
+            log.warning("a new client connected (%s:%d); the current one was silent for %.0f s: replacing it",
+                        addr[0], addr[1], time.monotonic() - self._last_rx_wall)
             self._disconnect()
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._conn = conn
@@ -415,8 +442,23 @@ class SimLinkServer:
         self._state_sched = _Schedule(0)
         self._next_wall = time.monotonic()
         self._last_tx_wall = time.monotonic()
+        self._last_rx_wall = time.monotonic()
         self.stats.connections += 1
         log.info("PX4 connected from %s:%d: freewheeling until the first HIL_ACTUATOR_CONTROLS", *addr)
+
+    def _peer_closed(self) -> bool:
+        """Take in what the current client has sent; True once it turns out to have closed the
+        connection (a PX4 that quits and restarts reconnects at once)."""
+        while self._conn is not None:
+            try:
+                ready, _, _ = select.select([self._conn], [], [], 0)
+            except (OSError, ValueError):
+                self._disconnect()
+                break
+            if not ready:
+                return False
+            self._read()
+        return True
 
     def _disconnect(self) -> None:
         if self._conn is not None:
@@ -449,6 +491,7 @@ class SimLinkServer:
         if not data:
             self._disconnect()
             return
+        self._last_rx_wall = time.monotonic()
         for msg in self._rx.parse_buffer(data) or ():
             self._handle(msg)
             if self._conn is None:

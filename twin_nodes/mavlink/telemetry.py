@@ -42,7 +42,7 @@ import numpy as np
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from twin_nodes import frames
+from twin_nodes.base import frames
 
 __all__ = [
     "TelemetryConfig", "TelemetryState", "TelemetryAggregator", "TelemetryClient", "Battery",

@@ -22,90 +22,20 @@ The graph protocol (see :mod:`msgs_py.topics` for the topics):
 
 from __future__ import annotations
 
-import bisect
-import heapq
-import itertools
 import json
-import math
 import os
 import signal
 import sys
 import time
-from typing import Any, Callable, Iterable
+from typing import Any, Callable
 
 import numpy as np
 
 from msgs_py.topics import ACK_READY, DEPTH
+from twin_nodes.nodes.engine import NS, ReorderBuffer, Timeline  # noqa: F401  (re-exported)
 
 __all__ = ["Timeline", "ReorderBuffer", "reliable_qos", "make_executor", "run_node", "GraphNode",
            "NS", "declare"]
-
-NS = 1_000_000_000
-
-
-class Timeline:
-    """Times of the messages of header-less topics (from the replay's ``/replay/timeline``).
-
-    ``take(topic)`` returns the time [ns] of the next message of that topic, or None
-    when the topic has no timeline (live data: the caller uses its clock)."""
-
-    def __init__(self) -> None:
-        self._t: dict[str, np.ndarray] = {}
-        self._i: dict[str, int] = {}
-
-    def set(self, topic: str, t_ns: Iterable[int]) -> None:
-        self._t[topic] = np.asarray(list(t_ns) if not isinstance(t_ns, np.ndarray) else t_ns, dtype=np.int64)
-        self._i.setdefault(topic, 0)
-
-    def has(self, topic: str) -> bool:
-        return topic in self._t
-
-    def take(self, topic: str) -> int | None:
-        t = self._t.get(topic)
-        if t is None:
-            return None
-        i = self._i[topic]
-        self._i[topic] = i + 1
-        if i >= len(t):
-            raise IndexError(f"{topic}: message {i + 1} beyond the {len(t)} announced by /replay/timeline")
-        return int(t[i])
-
-
-class ReorderBuffer:
-    """Releases ``(t, item)`` in time order once the watermark has passed ``t + lag``.
-
-    Inputs may arrive out of order by up to ``lag_ns``; equal times keep arrival order."""
-
-    def __init__(self, lag_ns: int):
-        self.lag_ns = int(lag_ns)
-        self._heap: list[tuple[int, int, Any]] = []
-        self._seq = itertools.count()
-        self.watermark = -(2 ** 62)
-        self.released_until = -(2 ** 62)
-        self.late = 0  # items that arrived after their time had been released (processed late)
-
-    def __len__(self) -> int:
-        return len(self._heap)
-
-    def push(self, t_ns: int, item: Any) -> None:
-        if t_ns < self.released_until:
-            self.late += 1
-        heapq.heappush(self._heap, (int(t_ns), next(self._seq), item))
-
-    def advance(self, watermark_ns: int) -> None:
-        self.watermark = max(self.watermark, int(watermark_ns))
-
-    def pop_ready(self, flush: bool = False) -> list[tuple[int, Any]]:
-        lim = 2 ** 62 if flush else self.watermark - self.lag_ns
-        out = []
-        h = self._heap
-        while h and h[0][0] <= lim:
-            t, _, item = heapq.heappop(h)
-            out.append((t, item))
-        if out:
-            self.released_until = max(self.released_until, out[-1][0])
-        return out
-
 
 # ============================================================================ rclpy parts
 
@@ -181,13 +111,16 @@ def _run_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGHUP, on_signal)
+    parent = _parent_pid()
+    last_parent_check = [time.monotonic()]
     node = None
     code = 0
     try:
         try:
             node = factory()
         except Exception as exc:  # a clear one-line error, not a traceback
-            from twin_nodes.errors import TwinError
+            from twin_nodes.base.errors import TwinError
             if isinstance(exc, (TwinError, ValueError, FileNotFoundError)):
                 print(f"rotortwin node: error: {exc}", file=sys.stderr, flush=True)
                 return 2
@@ -198,6 +131,12 @@ def _run_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
 
         def tick() -> None:
             # the node's periodic work; also how a signal or `finished` ends the spin
+            if parent and time.monotonic() - last_parent_check[0] > 0.5:
+                last_parent_check[0] = time.monotonic()
+                if os.getppid() != parent and not stop["sig"]:
+                    # the process that started the graph died (kill -9): stop like on SIGTERM
+                    node.get_logger().warning(f"parent process {parent} is gone: stopping")
+                    stop["sig"] = signal.SIGTERM
             if stop["sig"] or node.finished or not rclpy.ok():
                 if not done.done():
                     done.set_result(True)
@@ -229,6 +168,15 @@ def _run_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
         except Exception:
             pass
     return code
+
+
+def _parent_pid() -> int:
+    """``$ROTORTWIN_PARENT_PID``: the orchestrator that started this node (0 = no watchdog).
+    The node stops once its parent process is no longer that one."""
+    try:
+        return max(int(os.environ.get("ROTORTWIN_PARENT_PID", "0") or 0), 0)
+    except ValueError:
+        return 0
 
 
 def _node_base() -> type:
@@ -289,11 +237,11 @@ class GraphNode(_node_base()):  # type: ignore[misc]
 
     def _ready_tick(self) -> None:
         if self.clock_ns is None and self.plan_received() and self.is_ready():
-            from twin_nodes.conversions import ack_msg
+            from twin_nodes.logs.conversions import ack_msg
             self._ack_pub.publish(ack_msg(self.get_name(), ACK_READY))
 
     def _on_clock(self, msg: Any) -> None:
-        from twin_nodes.conversions import ack_msg, clock_ns
+        from twin_nodes.logs.conversions import ack_msg, clock_ns
 
         t = clock_ns(msg)
         self.clock_ns = t if self.clock_ns is None else max(self.clock_ns, t)
@@ -305,7 +253,7 @@ class GraphNode(_node_base()):  # type: ignore[misc]
 
     def ack_now(self) -> None:
         """Acknowledge the latest clock immediately (used at the end of the replay)."""
-        from twin_nodes.conversions import ack_msg
+        from twin_nodes.logs.conversions import ack_msg
 
         if self.clock_ns is not None:
             self._ack_pub.publish(ack_msg(self.get_name(), str(self.clock_ns)))

@@ -3,7 +3,7 @@
     python -m twin_nodes.nodes.metrics_node --ros-args -p window_s:=5.0 -p json_out:=final.json \
         -p use_sim_time:=true
 
-Rolling window (``window_s`` of log time, incremental :class:`twin_nodes.metrics.RollingStats`):
+Rolling window (``window_s`` of log time, incremental :class:`twin_nodes.twin.metrics.RollingStats`):
 one ``std_msgs/Float64`` per channel and statistic, ``/twin_error/<channel>/<stat>``
 (channels ``xy``, ``z`` [m, suffix ``_m``], ``throttle``, ``motor1..N``
 [fraction]; stats ``rmse``, ``p75``, ``median``, ``max``), plus the same numbers in
@@ -13,7 +13,7 @@ time, counted only while airborne (``/real/status``: not landed; else armed).
 
 End of flight (replay done, all announced inputs and ``/twin/done`` received):
 the whole-flight metrics computed exactly like ``rotortwin compare``'s offline
-path (:func:`twin_nodes.compare.metrics_from_streams`) are published latched on
+path (:func:`twin_nodes.twin.compare.metrics_from_streams`) are published latched on
 ``/twin_error/final_json`` (JSON) and ``/twin_error/final_table`` (Table-2 text)
 and written to ``json_out`` (and the aligned series to ``aligned_out`` .npz)
 when those parameters are set.
@@ -21,56 +21,21 @@ when those parameters are set.
 
 from __future__ import annotations
 
-import bisect
 import json
-import math
 import sys
 import time
 from typing import Any
 
 import numpy as np
 
-from msgs_py.topics import METRIC_STATS, TOPICS, metric_channels, metric_topic, msg_class
-from twin_nodes import conversions as cv
-from twin_nodes.metrics import RollingStats, table2, to_jsonable
+from msgs_py.topics import METRIC_STATS, TOPICS, metric_topic, msg_class
+from twin_nodes.logs import conversions as cv
 from twin_nodes.nodes.common import NS, GraphNode, declare, reliable_qos, run_node
+from twin_nodes.nodes.engine import MetricsEngine
+from twin_nodes.twin.metrics import table2, to_jsonable
 
 REAL_INPUTS = ("/real/odom", "/real/throttle", "/real/motors", "/real/status")
 TWIN_INPUTS = ("/twin/odom", "/twin/throttle", "/twin/motors")
-
-
-class _Track:
-    """A growing real signal: times [ns] and values, linear interpolation by bisect."""
-
-    def __init__(self) -> None:
-        self.t: list[int] = []
-        self.v: list[Any] = []
-
-    def add(self, t: int, v: Any) -> None:
-        if self.t and t <= self.t[-1]:
-            if t == self.t[-1]:
-                self.v[-1] = v
-            return  # out of order: the replay keeps per-topic order, so this is a duplicate time
-        self.t.append(t)
-        self.v.append(v)
-
-    @property
-    def last(self) -> int:
-        return self.t[-1] if self.t else -(2 ** 62)
-
-    def at(self, t: int) -> Any:
-        i = bisect.bisect_right(self.t, t)
-        if i == 0:
-            return None
-        if i == len(self.t):
-            return self.v[-1] if self.t[-1] == t else None
-        t0, t1 = self.t[i - 1], self.t[i]
-        w = (t - t0) / (t1 - t0)
-        return self.v[i - 1] + (self.v[i] - self.v[i - 1]) * w
-
-    def hold(self, t: int) -> Any:
-        i = bisect.bisect_right(self.t, t)
-        return self.v[i - 1] if i else None
 
 
 class MetricsNode(GraphNode):
@@ -85,8 +50,10 @@ class MetricsNode(GraphNode):
         self.json_out = declare(self, "json_out", "", "write the whole-flight metrics here (JSON)")
         self.aligned_out = declare(self, "aligned_out", "", "write the aligned series here (.npz) for reports")
         self.twin_timeout_s = float(declare(self, "twin_timeout_s", 20.0, "wait this long for /twin/done"))
-        self.channels = metric_channels(self.n_motors)
-        self.rolling = {ch: RollingStats(self.window_s) for ch in self.channels}
+        self.engine = MetricsEngine(self.n_motors, self.window_s, self.pub_period_ns, self.airborne_only)
+        self.channels = self.engine.channels
+        self.real = self.engine.real
+        self.twin = self.engine.twin
         q = reliable_qos()
         latched = reliable_qos(depth=1, latched=True)
         f64 = msg_class("std_msgs/msg/Float64")
@@ -99,12 +66,8 @@ class MetricsNode(GraphNode):
         self.final_table_pub = self.create_publisher(msg_class("std_msgs/msg/String"), "/twin_error/final_table",
                                                      latched)
         self.inputs = REAL_INPUTS
-        self.real = {k: _Track() for k in ("p", "throttle", "motors", "status")}
         self.twin_q: dict[str, list] = {t: [] for t in TWIN_INPUTS}
-        self.twin: list[tuple[int, np.ndarray, float, np.ndarray]] = []
-        self.k_eval = 0
         self.twin_done: int | None = None
-        self.next_pub_ns: int | None = None
         self.final: dict[str, Any] | None = None
         self.t_replay_done: float | None = None
         for topic in REAL_INPUTS + TWIN_INPUTS:
@@ -124,14 +87,7 @@ class MetricsNode(GraphNode):
         def cb(msg: Any) -> None:
             self.count(topic)
             t = cv.stamp_to_ns(msg.header.stamp) if stamped else self.stamp_of(topic)
-            if topic == "/real/odom":
-                self.real["p"].add(t, cv.odom_arrays(msg)[1])
-            elif topic == "/real/throttle":
-                self.real["throttle"].add(t, cv.float_value(msg))
-            elif topic == "/real/motors":
-                self.real["motors"].add(t, cv.motors_array(msg))
-            elif topic == "/real/status":
-                self.real["status"].add(t, cv.status_array(msg))
+            self.engine.add_real(topic, t, msg)
         return cb
 
     def _on_twin_done(self, msg: Any) -> None:
@@ -142,7 +98,7 @@ class MetricsNode(GraphNode):
         n = min(len(qo), len(qt), len(qm))
         for i in range(n):
             t_ns, p, *_ = cv.odom_arrays(qo[i])
-            self.twin.append((t_ns, p, cv.float_value(qt[i]), cv.motors_array(qm[i])))
+            self.engine.add_twin(t_ns, p, cv.float_value(qt[i]), cv.motors_array(qm[i]))
         if n:
             del qo[:n], qt[:n], qm[:n]
 
@@ -154,48 +110,12 @@ class MetricsNode(GraphNode):
         return subs_ok and pubs_ok
 
     # ------------------------------------------------------------------ rolling metrics
-    def _airborne(self, t: int) -> bool:
-        st = self.real["status"].hold(t)
-        if st is None:
-            return not self.airborne_only
-        armed, _, landed = st
-        if math.isfinite(landed):
-            return landed < 0.5
-        if math.isfinite(armed):
-            return armed > 0.5
-        return True
-
     def _evaluate(self, final: bool = False) -> None:
-        real_until = min(self.real["p"].last, self.real["throttle"].last if self.real["throttle"].t else 2 ** 62,
-                         self.real["motors"].last if self.real["motors"].t else 2 ** 62)
-        while self.k_eval < len(self.twin):
-            t, p, thr, mot = self.twin[self.k_eval]
-            if t > real_until and not final:
-                break
-            self.k_eval += 1
-            ok = (not self.airborne_only) or self._airborne(t)
-            rp = self.real["p"].at(t)
-            errs = {ch: math.nan for ch in self.channels}
-            if ok and rp is not None:
-                errs["xy"] = float(math.hypot(p[0] - rp[0], p[1] - rp[1]))
-                errs["z"] = float(p[2] - rp[2])
-                rt = self.real["throttle"].at(t)
-                if rt is not None:
-                    errs["throttle"] = float(thr - rt)
-                rm = self.real["motors"].at(t)
-                if rm is not None:
-                    for i in range(min(self.n_motors, len(rm), len(mot))):
-                        errs[f"motor{i + 1}"] = float(mot[i] - rm[i])
-            ts = t / NS
-            for ch, e in errs.items():
-                self.rolling[ch].add(ts, e)
-            if self.next_pub_ns is None or t >= self.next_pub_ns:
-                self.next_pub_ns = t + self.pub_period_ns
-                self._publish_rolling(t)
+        for t, stats in self.engine.evaluate(final):
+            self._publish_rolling(t, stats)
 
-    def _publish_rolling(self, t: int) -> None:
+    def _publish_rolling(self, t: int, stats: dict[str, dict[str, float]]) -> None:
         f64 = msg_class("std_msgs/msg/Float64")
-        stats = {ch: r.stats() for ch, r in self.rolling.items()}
         for (ch, st), pub in self.metric_pubs.items():
             pub.publish(f64(data=float(stats[ch][st])))
         self.diag_pub.publish(cv.diagnostics_msg(t, stats))
@@ -226,31 +146,11 @@ class MetricsNode(GraphNode):
             self._finalise()
 
     def _finalise(self) -> None:
-        from twin_nodes.compare import metrics_from_streams
-
         start = int(self.plan.get("start_ns", 0)) if self.plan else 0
-
-        def arr(track: _Track, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-            t = (np.asarray(track.t, dtype=np.int64) - start) / NS
-            v = np.asarray(track.v, float)
-            return t, (v if k is None else v.reshape(len(t), k))
-
-        real = {}
-        if self.real["p"].t:
-            real["position_enu"] = arr(self.real["p"], 3)
-        if self.real["throttle"].t:
-            real["throttle"] = arr(self.real["throttle"])
-        if self.real["motors"].t:
-            real["motors"] = arr(self.real["motors"], self.n_motors)
-        if self.real["status"].t:
-            real["status"] = arr(self.real["status"], 3)
         tw = self.twin
-        twin = {"t": (np.array([s[0] for s in tw], dtype=np.int64) - start) / NS,
-                "p": np.array([s[1] for s in tw]).reshape(-1, 3), "throttle": np.array([s[2] for s in tw]),
-                "motors": np.array([s[3] for s in tw]).reshape(-1, self.n_motors)}
         try:
-            res = metrics_from_streams(real, twin, self.mode, self.n_motors, self.rate_hz, self.airborne_only,
-                                       source=str(self.plan.get("ulog", "topics")) if self.plan else "topics")
+            res = self.engine.totals(start, self.mode, self.rate_hz,
+                                     source=str(self.plan.get("ulog", "topics")) if self.plan else "topics")
         except Exception as exc:  # report, don't hang the graph
             self.get_logger().error(f"whole-flight metrics failed: {exc}")
             self.final = {"error": str(exc)}

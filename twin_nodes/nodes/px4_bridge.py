@@ -11,7 +11,7 @@ exchanges with PX4 in the layouts of :mod:`msgs_py.topics`, with simulated time:
   in FLU with the true orientation and the noise variances.
 
 Parameters: ``params_file`` (default: shipped ``px4_sih_quadx``), ``port`` (4560), ``host``
-("0.0.0.0"), ``step_s`` (0.004), ``speed_factor`` (multiples of real time; default
+("127.0.0.1": loopback; "0.0.0.0" for PX4 on another machine or container), ``step_s`` (0.004), ``speed_factor`` (multiples of real time; default
 ``$PX4_SIM_SPEED_FACTOR`` or 1; <= 0 unpaced), ``publish_every`` (1), ``lockstep_timeout_s`` (1.0).
 
 ``python -m twin_nodes.nodes.px4_bridge telemetry --ros-args -p url:=udpin:0.0.0.0:14550`` —
@@ -39,8 +39,8 @@ from typing import Any
 import numpy as np
 
 from msgs_py.topics import TOPICS, msg_class
-from twin_nodes import conversions as cv
-from twin_nodes.mavlink.simlink import DEFAULT_PORT, DEFAULT_STEP_S, SimLinkServer, StepInfo
+from twin_nodes.logs import conversions as cv
+from twin_nodes.mavlink.simlink import DEFAULT_HOST, DEFAULT_PORT, DEFAULT_STEP_S, SimLinkServer, StepInfo
 from twin_nodes.mavlink.telemetry import TelemetryClient, TelemetryConfig, TelemetryState
 from twin_nodes.nodes.common import GraphNode, declare, reliable_qos, run_node
 
@@ -55,11 +55,11 @@ class SimBridgeNode(GraphNode):
 
     def __init__(self) -> None:
         super().__init__("px4_sim_bridge", consumer=False)
-        from twin_nodes.params import load_params, shipped
+        from twin_nodes.vehicle.params import load_params, shipped
 
         params_file = declare(self, "params_file", "", "vehicle params YAML (default: shipped px4_sih_quadx)")
         port = int(declare(self, "port", DEFAULT_PORT, "TCP port PX4 connects to (4560 + instance)"))
-        host = declare(self, "host", "0.0.0.0", "listen address")
+        host = declare(self, "host", DEFAULT_HOST, "listen address (default loopback; 0.0.0.0 = every interface)")
         step_s = float(declare(self, "step_s", DEFAULT_STEP_S, "lockstep step [s]"))
         speed = float(declare(self, "speed_factor", float(os.environ.get("PX4_SIM_SPEED_FACTOR", 1.0)),
                               "pace in multiples of real time (<= 0: as fast as PX4 answers)"))

@@ -6,17 +6,29 @@ Discovers topics continuously (``get_topic_names_and_types``) and subscribes to
 each with serialized (``raw=True``) messages, matching the publishers' QoS
 (reliable or best effort; transient-local when a publisher is latched, so
 ``/replay/plan``, ``/replay/done`` and ``/twin_error/final_json`` are kept).
-The CDR bytes go to the bag unchanged through :class:`twin_nodes.recording.McapRecorder`
+The CDR bytes go to the bag unchanged through :class:`twin_nodes.logs.recording.McapRecorder`
 (``rosbags`` writer: ``metadata.yaml`` + ``<out>/<out>.mcap``).
 
-Message time in the bag: header-less replayed ``/real`` topics get their exact log
-time from ``/replay/timeline``; everything else the (sim) time at which it was
-received.  ``exclude`` (regex) skips topics, default ``/rosout`` and
+Message time in the bag (every message at its own time, never wall-clock time on a replay):
+
+- messages with a header (and ``/clock``): their own stamp;
+- header-less replayed ``/real`` topics: their exact log time from ``/replay/timeline``;
+- ``/twin/motors``, ``/twin/throttle``: the stamp of the ``/twin/odom`` message with the
+  same index; each ``/twin_error/<channel>/<stat>``: that of the ``/twin_error/diagnostics``
+  array published with it;
+- the rest (``/replay/*``, ``/twin/done``, ``/twin_error/final_*``): the latest ``/clock``,
+  before the first ``/clock`` the replay's first message time (``t0_ns`` of its plan).
+
+Messages are held for ``reorder_lag_s`` (2 s) of message time and written in time order,
+so the MCAP chunks do not overlap in time (the twin's outputs come up to a second behind
+the replay).  ``exclude`` (regex) skips topics, default ``/rosout`` and
 ``/parameter_events``.
 
-Stopping: SIGINT/SIGTERM drain what is queued and finalise the bag; after a
-``kill -9`` the chunks already written survive and ``rotortwin record recover
-<out>`` rebuilds a valid bag (:func:`twin_nodes.recording.recover`).
+Stopping: SIGINT/SIGTERM (and the death of the process that started it, see
+:mod:`twin_nodes.nodes.common`) drain what is queued and finalise the bag; after a
+``kill -9`` the chunks already written survive (the messages held for ordering and the
+open chunk are lost) and ``rotortwin record recover
+<out>`` rebuilds a valid bag (:func:`twin_nodes.logs.recording.recover`).
 """
 
 from __future__ import annotations
@@ -24,11 +36,17 @@ from __future__ import annotations
 import re
 import sys
 import time
+from collections import deque
 from typing import Any
 
 from msgs_py.topics import DEPTH, msg_class
-from twin_nodes.nodes.common import GraphNode, declare, run_node
-from twin_nodes.recording import McapRecorder
+from twin_nodes.logs.recording import McapRecorder, cdr_header_stamp
+from twin_nodes.nodes.common import NS, GraphNode, ReorderBuffer, declare, run_node
+
+
+#: header-less topics published one-to-one with a stamped one: message k takes the stamp of message k there
+INDEX_STAMPS = {"/twin/motors": "/twin/odom", "/twin/throttle": "/twin/odom"}
+_METRIC = re.compile(r"^/twin_error/(?!diagnostics$|final_)[^/]+/[^/]+$")
 
 
 class RecorderNode(GraphNode):
@@ -39,13 +57,23 @@ class RecorderNode(GraphNode):
                                           "regex of topics not to record"))
         fsync = bool(declare(self, "fsync", False, "fsync every chunk (power-loss safety)"))
         chunk_s = float(declare(self, "chunk_period_s", 1.0, "close an MCAP chunk every ... s of message time"))
+        lag_s = float(declare(self, "reorder_lag_s", 2.0, "write messages in time order, holding them this "
+                                                          "long [s of message time]"))
         if not out:
             raise ValueError("parameter 'out': expected a bag directory to create")
         self.bag = McapRecorder(out, chunk_period_s=chunk_s, fsync_chunks=fsync)
         self.subs: dict[str, Any] = {}
+        self.kind: dict[str, str] = {}
         self.skipped: set[str] = set()
         self.n = 0
         self.last_msg_wall = time.monotonic()
+        self.t_start_wall = time.monotonic()
+        self.buf = ReorderBuffer(int(lag_s * NS))
+        self.pending: dict[str, deque] = {}
+        self.index_stamps: dict[str, list[int]] = {src: [] for src in set(INDEX_STAMPS.values())}
+        self.index_stamps["/twin_error/diagnostics"] = []
+        self.index_next: dict[str, int] = {}
+        self.max_t = -(2 ** 62)
         self._discover()
         self.wall_timer(0.2, self._discover)
         self.get_logger().info(f"recording to {self.bag.path}")
@@ -76,28 +104,86 @@ class RecorderNode(GraphNode):
                 self.get_logger().warning(f"{topic} ({types[0]}): not recorded: {exc}")
                 self.skipped.add(topic)
                 continue
+            self.kind[topic] = _stamp_kind(topic, cls)
+            self.pending[topic] = deque()
+            self.index_next[topic] = 0
             self.subs[topic] = self.create_subscription(cls, topic, self._make_cb(topic), qos, raw=True)
 
+    # ------------------------------------------------------------------ message times
     def _make_cb(self, topic: str):
         def cb(data: bytes) -> None:
-            t = self.timeline.take(topic) if self.timeline.has(topic) else None
-            if t is None:
-                if self.clock_ns is not None:
-                    t = self.clock_ns
-                elif self.plan is not None:
-                    t = int(self.plan.get("t0_ns", 0))
-                else:
-                    t = int(time.time() * 1e9)
-            self.bag.write_raw(topic, data, t)
-            self.n += 1
             self.last_msg_wall = time.monotonic()
+            if self.kind[topic] == "header":
+                t = cdr_header_stamp(data)
+                if topic in self.index_stamps:
+                    self.index_stamps[topic].append(t)
+                self._push(topic, t, data)
+                return
+            if self.kind[topic] == "plain" and self.timeline.has(topic) and not self.pending[topic]:
+                # a replayed header-less topic: its exact time from /replay/timeline
+                self._push(topic, self.timeline.take(topic), data)
+                return
+            self.pending[topic].append(data)
+            self._resolve(topic)
         return cb
 
+    def _time_of(self, topic: str, final: bool = False) -> int | None:
+        """The time of the next pending message of a header-less topic, or None (not yet known)."""
+        kind = self.kind[topic]
+        if kind.startswith("index:") and (self.plan is not None or final):
+            stamps = self.index_stamps[kind[6:]]
+            i = self.index_next[topic]
+            if i < len(stamps):
+                self.index_next[topic] = i + 1
+                return stamps[i]
+            if not final:
+                return None
+        if self.clock_ns is not None:
+            return self.clock_ns
+        if self.plan is not None:
+            return int(self.plan.get("t0_ns", self.plan.get("start_ns", 0)))
+        if topic.startswith("/replay/") and not final:
+            return None  # a replay's topics: wait for its plan, never wall-clock time
+        if final or time.monotonic() - self.t_start_wall > 2.0:
+            # live data without /clock or replay: the node's clock
+            return int(self.get_clock().now().nanoseconds) if self.max_t < 0 else self.max_t
+        return None
+
+    def _resolve(self, topic: str, final: bool = False) -> None:
+        q = self.pending[topic]
+        while q:
+            t = self._time_of(topic, final)
+            if t is None:
+                return
+            self._push(topic, t, q.popleft())
+
+    def _push(self, topic: str, t: int, data: bytes) -> None:
+        t = max(int(t), 0)
+        self.max_t = max(self.max_t, t)
+        self.buf.push(t, (topic, data))
+
+    def _write_ready(self, flush: bool = False) -> None:
+        self.buf.advance(self.clock_ns if self.clock_ns is not None else self.max_t)
+        for t, (topic, data) in self.buf.pop_ready(flush=flush):
+            self.bag.write_raw(topic, data, t)
+            self.n += 1
+
+    def step(self) -> None:
+        for topic, q in self.pending.items():
+            if q:
+                self._resolve(topic)
+        self._write_ready()
+
+    # ------------------------------------------------------------------ life cycle
     def is_ready(self) -> bool:
-        names = {t for t, _ in self.get_topic_names_and_types() if not self.exclude.search(t)}
-        if any(t not in self.subs and t not in self.skipped for t in names):
-            return False
-        if "/real/odom" not in self.subs and "/replay/plan" in self.subs:
+        # every topic that has a publisher is subscribed (a topic with subscribers only, e.g. a
+        # log without motors, never gets one: it does not hold the replay up) ...
+        for t, _ in self.get_topic_names_and_types():
+            if t not in self.subs and t not in self.skipped and not self.exclude.search(t) and \
+                    self.get_publishers_info_by_topic(t):
+                return False
+        # ... including everything the replay's plan announces
+        if self.plan is not None and any(t not in self.subs for t in self.plan.get("counts", {})):
             return False
         for t, s in self.subs.items():
             if s.get_publisher_count() < len(self.get_publishers_info_by_topic(t)):
@@ -105,14 +191,35 @@ class RecorderNode(GraphNode):
         return True
 
     def close(self, interrupted: bool = False) -> None:
-        # drain what is already queued, then finalise the bag
+        # drain what is already queued, then write everything in time order and finalise the bag
         ex = self.executor_ref
         t_end = time.monotonic() + 3.0
         while ex is not None and time.monotonic() < t_end and time.monotonic() - self.last_msg_wall < 0.3:
             ex.spin_once(timeout_sec=0.05)
+        for topic in self.pending:
+            self._resolve(topic, final=True)
+        self._write_ready(flush=True)
         self.bag.close()
         self.get_logger().info(f"{self.bag.path}: {self.n} messages on {len(self.subs)} topics")
         print(f"recorded {self.n} messages on {len(self.subs)} topics to {self.bag.path}", flush=True)
+
+
+def _stamp_kind(topic: str, cls: Any) -> str:
+    """How a topic's messages are timed in the bag: ``header`` (the message's own stamp: a
+    ``std_msgs/Header`` or ``builtin_interfaces/Time`` first field, e.g. ``/clock``),
+    ``index:<topic>`` (the stamp of the message with the same index there) or ``plain``
+    (the replay timeline, else the latest ``/clock``)."""
+    try:
+        first = next(iter(cls.get_fields_and_field_types().values()), "")
+    except Exception:
+        first = ""
+    if first in ("std_msgs/Header", "builtin_interfaces/Time"):
+        return "header"
+    if topic in INDEX_STAMPS:
+        return "index:" + INDEX_STAMPS[topic]
+    if _METRIC.match(topic):
+        return "index:/twin_error/diagnostics"  # published one each right before the diagnostics array
+    return "plain"
 
 
 def main(args: list[str] | None = None) -> int:

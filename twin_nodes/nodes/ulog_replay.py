@@ -3,7 +3,9 @@
     python -m twin_nodes.nodes.ulog_replay --ros-args -p ulog:=FLIGHT.ulg -p rate:=20.0 \
         -p "wait_for:=['twin','metrics','recorder']"
 
-Parameters: ``ulog`` (path), ``rate`` (1 = real time, 20 = 20x, 0 = as fast as the
+Parameters: ``ulog`` (path of a ``.ulg``; or of a recorded bag directory / ``.mcap``, whose
+``/real`` messages are republished byte for byte at their recorded times: how
+``rotortwin regress`` replays a baseline), ``rate`` (1 = real time, 20 = 20x, 0 = as fast as the
 ``wait_for`` consumers keep up), ``wait_for`` (node names that must acknowledge;
 see :mod:`twin_nodes.nodes.common`), ``window_s`` (how far ahead of the slowest
 consumer the replay may run, log time), ``clock_period_s`` (``/clock`` spacing),
@@ -11,9 +13,13 @@ consumer the replay may run, log time), ``clock_period_s`` (``/clock`` spacing),
 ``progress`` (print ``PROGRESS <t> <T>`` lines for the CLI's progress bar).
 
 Topics and layouts: :mod:`msgs_py.topics`; which log series feed which topic:
-:mod:`msgs_py.streams`.  ``/clock`` is the log time: PX4 hrt µs × 1000
+:mod:`twin_nodes.logs.streams`.  ``/clock`` is the log time: PX4 hrt µs × 1000
 (``start_ns`` in ``/replay/plan`` is the log start).  A topic the log cannot fill
 is skipped with a warning; an unreadable file is a one-line error and exit 2.
+
+A stretch with no message longer than ``window_s`` (a logger dropout) does not stall
+the flow control: the replay moves ``/clock`` on to the edge of the window, the
+consumers acknowledge it, and the window moves across the gap.
 """
 
 from __future__ import annotations
@@ -21,13 +27,14 @@ from __future__ import annotations
 import json
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from msgs_py.streams import HEADERLESS, event_order, replay_streams
+from twin_nodes.logs.streams import HEADERLESS, Stream, event_order, replay_streams
 from msgs_py.topics import ACK_READY, TOPICS, msg_class
-from twin_nodes import conversions as cv
+from twin_nodes.logs import conversions as cv
 from twin_nodes.nodes.common import NS, GraphNode, declare, reliable_qos, run_node
 
 
@@ -50,7 +57,7 @@ def _builders() -> dict[str, Any]:
 class UlogReplay(GraphNode):
     def __init__(self) -> None:
         super().__init__("ulog_replay", consumer=False)
-        from twin_nodes.ulog_io import read_ulog
+        from twin_nodes.logs.ulog_io import read_ulog
 
         path = declare(self, "ulog", "", "PX4 ULog file to replay")
         self.rate = float(declare(self, "rate", 1.0, "replay speed: 1 real time, 20 = 20x, 0 = as fast as "
@@ -64,23 +71,30 @@ class UlogReplay(GraphNode):
         self.start_timeout_s = float(declare(self, "start_timeout_s", 60.0, "give up waiting for consumers"))
         self.end_timeout_s = float(declare(self, "end_timeout_s", 120.0, "give up waiting for final acks"))
         if not path:
-            raise ValueError("parameter 'ulog': expected the path of a .ulg file")
+            raise ValueError("parameter 'ulog': expected the path of a .ulg file (or a recorded bag)")
         if self.rate < 0:
             raise ValueError(f"parameter 'rate': expected >= 0, got {self.rate}")
-        log = read_ulog(path)
         self.log_path = path
-        streams, warns = replay_streams(log)
+        self.build = _builders()
+        if _is_bag(path):
+            streams, warns, self.start_ns, extra = _bag_streams(path)
+            self.build = {s.topic: (lambda s, i, t: s.data["raw"][i]) for s in streams}
+            n_motors, autostart = extra["n_motors"], extra["sys_autostart"]
+        else:
+            log = read_ulog(path)
+            streams, warns = replay_streams(log)
+            self.start_ns = int(log.start_us) * 1000
+            n_motors, autostart = int(log.n_motors), log.params.get("SYS_AUTOSTART")
+            extra = {"ulog": str(path)}
         for w in warns:
             self.get_logger().warning(w)
         if not streams:
             raise ValueError(f"{path}: nothing to replay")
         self.streams = streams
-        self.start_ns = int(log.start_us) * 1000
         self.ev_t, self.ev_s, self.ev_r = event_order(streams)
         self.ev_ns = self.start_ns + np.round(self.ev_t * NS).astype(np.int64)
         self.n_ev = len(self.ev_t)
         self.k = 0
-        self.build = _builders()
         q = reliable_qos()
         latched = reliable_qos(depth=50, latched=True)
         self.pubs = [self.create_publisher(msg_class(TOPICS[s.topic].type), s.topic, q) for s in streams]
@@ -94,13 +108,13 @@ class UlogReplay(GraphNode):
         self.counts = {s.topic: 0 for s in streams}
         self.counts["/clock"] = 0
         headerless = [s for s in streams if s.topic in HEADERLESS]
-        self.plan = {"ulog": str(path), "start_ns": self.start_ns,
+        self.plan = {**extra, "start_ns": self.start_ns,
                      "t0_ns": int(self.ev_ns[0]) if self.n_ev else self.start_ns,
                      "t1_ns": int(self.ev_ns[-1]) if self.n_ev else self.start_ns,
                      "counts": {s.topic: len(s) for s in streams},
                      "sources": {s.topic: s.source for s in streams},
-                     "headerless": [s.topic for s in headerless], "n_motors": int(log.n_motors),
-                     "sys_autostart": log.params.get("SYS_AUTOSTART"), "warnings": warns}
+                     "headerless": [s.topic for s in headerless], "n_motors": int(n_motors),
+                     "sys_autostart": autostart, "warnings": warns}
         plan_pub.publish(cv.string_msg(json.dumps(self.plan)))
         for s in headerless:
             m = msg_class("std_msgs/msg/Float64MultiArray")()
@@ -176,6 +190,11 @@ class UlogReplay(GraphNode):
         while self.k < self.n_ev:
             t = int(ev_ns[self.k])
             if t > limit:
+                # the next message is beyond the window (a logger dropout longer than window_s):
+                # move the clock on to the window's edge so that the consumers acknowledge it
+                # and the window moves; nothing is published early
+                if limit - self.last_clock >= self.clock_period_ns:
+                    self._pub_clock(limit)
                 break
             if self.rate > 0:
                 due = self.wall0 + (ev_t[self.k] - ev_t[0]) / self.rate
@@ -222,6 +241,57 @@ class UlogReplay(GraphNode):
     def close(self, interrupted: bool = False) -> None:
         if interrupted and self.state not in ("lingering",):
             self.exit_code = 130
+
+
+def _is_bag(path: str) -> bool:
+    p = Path(path)
+    return p.is_dir() or p.suffix == ".mcap"
+
+
+def _bag_streams(path: str) -> tuple[list[Stream], list[str], int, dict[str, Any]]:
+    """The ``/real`` topics of a recording as streams of their recorded CDR bytes (republished
+    unchanged): time = header stamp for stamped topics, the recorded (timeline) time for the
+    others; the topic order and ``start_ns`` of the recording's own ``/replay/plan``."""
+    from twin_nodes.logs.recording import cdr_header_stamp, read_bag_raw
+
+    bag = read_bag_raw(path, lambda t: t.startswith("/real/") or t == "/replay/plan")
+    plan = json.loads(cv_string(bag["/replay/plan"])) if len(bag.get("/replay/plan") or []) else {}
+    order = [t for t in plan.get("counts", {}) if t in bag] + sorted(t for t in bag if t.startswith("/real/")
+                                                                     and t not in plan.get("counts", {}))
+    warns: list[str] = []
+    times: dict[str, np.ndarray] = {}
+    for topic in order:
+        bt = bag[topic]
+        if topic not in TOPICS:
+            warns.append(f"{topic}: not a topic of the replay, not published")
+            continue
+        if TOPICS[topic].stamped:
+            t = np.array([cdr_header_stamp(r) for r in bt.raw], dtype=np.int64)
+        else:
+            t = np.asarray(bt.log_ns, dtype=np.int64)
+        times[topic] = t
+        want = plan.get("counts", {}).get(topic)
+        if want is not None and int(want) != len(bt):
+            warns.append(f"{topic}: the recording holds {len(bt)} of the {want} messages its replay announced")
+    if not times:
+        raise ValueError(f"{path}: /real: expected a recording of a replay or a live vehicle (no /real topic)")
+    start = int(plan.get("start_ns", min(int(t.min()) for t in times.values() if t.size)))
+    streams = []
+    for topic, t in times.items():
+        k = np.argsort(t, kind="stable")  # per-topic time order (older bags logged some at the latest /clock)
+        raw = bag[topic].raw
+        streams.append(Stream(topic, (t[k] - start) / NS, {"raw": [raw[i] for i in k]}, f"{path}:{topic}"))
+    n_motors = plan.get("n_motors")
+    if n_motors is None:
+        n_motors = len(bag["/real/motors"].decode()[0].data) if len(bag.get("/real/motors") or []) else 4
+    extra = {"ulog": plan.get("ulog", ""), "bag": str(path), "n_motors": int(n_motors),
+             "sys_autostart": plan.get("sys_autostart")}
+    return streams, warns, start, extra
+
+
+def cv_string(bt: Any) -> str:
+    """The text of the last message of a recorded ``std_msgs/String`` topic."""
+    return str(bt.decode()[-1].data)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -1,7 +1,9 @@
-"""Physics: rigid body + rotors (``core``), plug-in effects (``effects``), the model (``model``).
+"""The physics core: rigid body and rotors, the plug-in effect catalogue and kernels, the RK4 model.
+
+May import: base (vehicle only for type hints).
 
 World frame ENU, body frame FLU (ROS REP-103); PX4 data is converted by
-:mod:`twin_nodes.frames` before it reaches here.
+:mod:`twin_nodes.base.frames` before it reaches here.
 """
 
 from twin_nodes.physics.core import NX_BODY, POS, QUAT, RATES, ROTORS, VEL  # noqa: F401

@@ -16,10 +16,14 @@ kernels need no Python objects.  Effects are composed around these kernels by
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numba import njit
 
-from twin_nodes.params import VehicleParams
+if TYPE_CHECKING:  # pragma: no cover - physics reads a VehicleParams but never imports vehicle/
+    from twin_nodes.vehicle.params import VehicleParams
+
 
 NX_BODY = 13
 POS, VEL, QUAT, RATES = slice(0, 3), slice(3, 6), slice(6, 10), slice(10, 13)

@@ -25,13 +25,16 @@ Arguments: ``p`` the effect's parameter vector (order of ``param_names``);
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, ClassVar
+import math
+from typing import TYPE_CHECKING, Any, ClassVar, Mapping
 
 import numpy as np
 from numba import njit
 
-if TYPE_CHECKING:  # pragma: no cover
-    from twin_nodes.params import VehicleParams
+from twin_nodes.base.errors import ParamsError
+
+if TYPE_CHECKING:  # pragma: no cover - the catalogue is read by vehicle/params, never the reverse
+    from twin_nodes.vehicle.params import VehicleParams
 
 EXT_SIZE = 4
 EXT_VOLTAGE, EXT_WIND = 0, 1
@@ -45,12 +48,18 @@ def default_ext() -> np.ndarray:
 
 
 class Effect:
-    """Base class; subclasses set the class attributes and the hooks they use."""
+    """Base class; subclasses set the class attributes and the hooks they use.
+
+    ``ranges`` gives each parameter's physical range ``(lo, hi)``, inclusive, in
+    the parameter's ``units``; every parameter must be a finite number inside it
+    (:meth:`check_params`, applied on construction, by ``VehicleParams.with_effect``
+    and when a params file is loaded, where the rotor count is known too)."""
 
     name: ClassVar[str] = ""
     param_names: ClassVar[tuple[str, ...]] = ()
     defaults: ClassVar[dict[str, float]] = {}
     units: ClassVar[dict[str, str]] = {}
+    ranges: ClassVar[dict[str, tuple[float, float]]] = {}
     description: ClassVar[str] = ""
     command_kernel: ClassVar[Any] = None
     rotor_kernel: ClassVar[Any] = None
@@ -64,12 +73,37 @@ class Effect:
         values = {}
         for k in self.param_names:
             if k in params:
-                values[k] = float(params[k])
+                values[k] = params[k]
             elif k in self.defaults:
-                values[k] = float(self.defaults[k])
+                values[k] = self.defaults[k]
             else:
                 raise ValueError(f"effect {self.name}: parameter {k!r} is required")
-        self.params = values
+        bad = self.check_params(values)
+        if bad is not None:
+            raise ParamsError(f"effect {self.name}", *bad)
+        self.params = {k: float(v) for k, v in values.items()}
+
+    @classmethod
+    def check_params(cls, params: Mapping[str, Any], n_rotors: int | None = None) -> tuple[str, str] | None:
+        """``(parameter, what was expected)`` for the first parameter in ``params`` that is
+        not a finite number in its physical range (see ``ranges``), else None.
+        ``n_rotors`` (when known) bounds rotor indices."""
+        for k in cls.param_names:
+            if k not in params:
+                continue
+            v = params[k]
+            lo, hi = cls.ranges.get(k, (-math.inf, math.inf))
+            unit = cls.units.get(k, "")
+            want = f"a finite number in {lo:g}..{hi:g}" + (f" [{unit}]" if unit else "")
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+                return k, f"expected {want}, got {v!r}"
+            try:
+                f = float(v)
+            except OverflowError:
+                return k, f"expected {want}, got an integer of {len(str(v))} digits"
+            if not (math.isfinite(f) and lo <= f <= hi):
+                return k, f"expected {want}, got {f:g}"
+        return None
 
     def vector(self) -> np.ndarray:
         """Parameters as the float64 vector the kernels read (``param_names`` order)."""
@@ -157,6 +191,16 @@ def _k_com_offset(p, x, R, ext, omega, T, Fb, Mb, Fw):
 
 
 @njit(cache=True)
+def _k_rotor_tilt(p, x, R, ext, omega, T, Fb, Mb, Fw):
+    # Rotor axes tilted tangentially by delta (twisted arms, mounts): each thrust has an
+    # in-plane component T sin(delta) at lever l, all in one sense: Mz = (l sin(delta)) sum T.
+    tz = 0.0
+    for i in range(T.shape[0]):
+        tz += T[i]
+    Mb[2] += p[0] * tz
+
+
+@njit(cache=True)
 def _k_battery_sag(p, ext, sref):
     v = ext[0]
     if v == v and v > 0.0 and p[0] > 0.0:  # v == v: not NaN
@@ -191,6 +235,7 @@ class LinearDrag(Effect):
     param_names = ("k_n_s_m",)
     defaults = {"k_n_s_m": 0.0}
     units = {"k_n_s_m": "N/(m/s)"}
+    ranges = {"k_n_s_m": (0.0, 1e4)}
     description = "isotropic drag linear in air-relative velocity, world frame (PX4 SIH_KDV)"
     wrench_kernel = staticmethod(_k_linear_drag)
 
@@ -200,6 +245,7 @@ class AngularDamping(Effect):
     param_names = ("k_nm_s_rad",)
     defaults = {"k_nm_s_rad": 0.0}
     units = {"k_nm_s_rad": "N m/(rad/s)"}
+    ranges = {"k_nm_s_rad": (0.0, 1e4)}
     description = "moment opposing body rates (PX4 SIH_KDW)"
     wrench_kernel = staticmethod(_k_angular_damping)
 
@@ -209,6 +255,7 @@ class RotorDrag(Effect):
     param_names = ("k_d",)
     defaults = {"k_d": 0.0}
     units = {"k_d": "N/((rad/s)(m/s))"}
+    ranges = {"k_d": (0.0, 1e4)}
     description = "in-plane rotor H-force drag, proportional to summed rotor speed x in-plane airspeed"
     wrench_kernel = staticmethod(_k_rotor_drag)
 
@@ -218,6 +265,7 @@ class BodyDrag(Effect):
     param_names = ("c_dx", "c_dy", "c_dz")
     defaults = {"c_dx": 0.0, "c_dy": 0.0, "c_dz": 0.0}
     units = {"c_dx": "N/(m/s)^2", "c_dy": "N/(m/s)^2", "c_dz": "N/(m/s)^2"}
+    ranges = {"c_dx": (0.0, 1e7), "c_dy": (0.0, 1e7), "c_dz": (0.0, 1e7)}
     description = "parasitic drag quadratic in air-relative velocity per body axis"
     wrench_kernel = staticmethod(_k_body_drag)
 
@@ -227,6 +275,7 @@ class BatterySag(Effect):
     param_names = ("v_ref", "exponent")
     defaults = {"v_ref": 12.6, "exponent": 1.0}
     units = {"v_ref": "V", "exponent": "-"}
+    ranges = {"v_ref": (0.1, 1000.0), "exponent": (-10.0, 10.0)}
     description = "rotor speed reached at a given command scales with (V/v_ref)^exponent"
     command_kernel = staticmethod(_k_battery_sag)
 
@@ -236,8 +285,20 @@ class MotorEfficiency(Effect):
     param_names = ("motor", "efficiency")
     defaults = {"motor": 1.0, "efficiency": 1.0}
     units = {"motor": "1-based PX4 index", "efficiency": "thrust ratio"}
+    ranges = {"motor": (1.0, 32.0), "efficiency": (0.0, 2.0)}
     description = "one motor gives a fraction of the thrust (and torque) it should"
     rotor_kernel = staticmethod(_k_motor_efficiency)
+
+    @classmethod
+    def check_params(cls, params, n_rotors=None):
+        bad = super().check_params({k: v for k, v in params.items() if k == "motor"}, n_rotors)
+        if bad is None and "motor" in params:
+            m = float(params["motor"])
+            top = int(n_rotors) if n_rotors is not None else int(cls.ranges["motor"][1])
+            if m != int(m) or not 1 <= m <= top:
+                what = f"this vehicle has {n_rotors} rotors" if n_rotors is not None else "1-based PX4 index"
+                return "motor", f"expected an integer motor index 1..{top} ({what}), got {m:g}"
+        return bad or super().check_params(params, n_rotors)
 
 
 class GroundEffect(Effect):
@@ -245,6 +306,7 @@ class GroundEffect(Effect):
     param_names = ("coefficient", "height_scale")
     defaults = {"coefficient": 0.0, "height_scale": 0.5}
     units = {"coefficient": "-", "height_scale": "m"}
+    ranges = {"coefficient": (0.0, 10.0), "height_scale": (1e-3, 100.0)}
     description = "thrust multiplied by 1 + coefficient*exp(-height/height_scale) near the ground"
     rotor_kernel = staticmethod(_k_ground_effect)
 
@@ -254,8 +316,20 @@ class ComOffset(Effect):
     param_names = ("dx", "dy")
     defaults = {"dx": 0.0, "dy": 0.0}
     units = {"dx": "m (body forward)", "dy": "m (body left)"}
+    ranges = {"dx": (-100.0, 100.0), "dy": (-100.0, 100.0)}
     description = "centre of mass displaced from the geometric centre the rotors are placed about"
     wrench_kernel = staticmethod(_k_com_offset)
+
+
+class RotorTilt(Effect):
+    name = "rotor_tilt"
+    param_names = ("lever_m",)
+    defaults = {"lever_m": 0.0}
+    units = {"lever_m": "m (l sin(delta): yaw moment per newton of total thrust, + = CCW seen from above)"}
+    ranges = {"lever_m": (-1.0, 1.0)}
+    description = ("rotor axes tilted tangentially (twisted arms or mounts): a yaw moment proportional to "
+                   "the total thrust, which the yaw controller trims out with a static motor differential")
+    wrench_kernel = staticmethod(_k_rotor_tilt)
 
 
 class Wind(Effect):
@@ -263,6 +337,7 @@ class Wind(Effect):
     param_names = ("vx", "vy", "gust_std")
     defaults = {"vx": 0.0, "vy": 0.0, "gust_std": 0.0}
     units = {"vx": "m/s (ENU east)", "vy": "m/s (ENU north)", "gust_std": "m/s"}
+    ranges = {"vx": (-100.0, 100.0), "vy": (-100.0, 100.0), "gust_std": (0.0, 50.0)}
     description = "steady wind plus first-order (2 s) gusts; acts through the model's drag terms"
     gust_time_constant_s: ClassVar[float] = 2.0
 
@@ -290,6 +365,7 @@ class ActuatorDelay(Effect):
     param_names = ("delay",)
     defaults = {"delay": 0.0}
     units = {"delay": "s"}
+    ranges = {"delay": (0.0, 2.0)}
     description = "pure delay between motor command and rotor response"
 
     def command_delay_s(self) -> float:
@@ -300,6 +376,7 @@ class MotorTimeConstant(Effect):
     name = "motor_time_constant"
     param_names = ("tau_up", "tau_down")
     units = {"tau_up": "s", "tau_down": "s"}
+    ranges = {"tau_up": (0.0, 10.0), "tau_down": (0.0, 10.0)}
     description = "rotor lag time constants differ from the model"
 
     def apply_to_params(self, vp):
@@ -310,6 +387,7 @@ class Mass(Effect):
     name = "mass"
     param_names = ("mass",)
     units = {"mass": "kg"}
+    ranges = {"mass": (1e-3, 1e4)}
     description = "vehicle heavier or lighter than modelled (payload)"
 
     def apply_to_params(self, vp):
@@ -321,6 +399,7 @@ class ThrustCoefficient(Effect):
     param_names = ("kt_scale",)
     defaults = {"kt_scale": 1.0}
     units = {"kt_scale": "ratio"}
+    ranges = {"kt_scale": (0.01, 100.0)}
     description = "every rotor gives more/less thrust per command than modelled"
 
     def apply_to_params(self, vp):
@@ -334,6 +413,7 @@ class YawMoment(Effect):
     name = "yaw_moment"
     param_names = ("km",)
     units = {"km": "m"}
+    ranges = {"km": (0.0, 1.0)}
     description = "rotor reaction-torque constant differs (Q = km T)"
 
     def apply_to_params(self, vp):
@@ -344,6 +424,7 @@ class Inertia(Effect):
     name = "inertia"
     param_names = ("ixx", "iyy", "izz")
     units = {"ixx": "kg m^2", "iyy": "kg m^2", "izz": "kg m^2"}
+    ranges = {"ixx": (1e-9, 1e6), "iyy": (1e-9, 1e6), "izz": (1e-9, 1e6)}
     description = "principal moments of inertia differ"
 
     def apply_to_params(self, vp):
@@ -356,7 +437,7 @@ EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (LinearDrag, AngularDamping, RotorDrag, BodyDrag, BatterySag, MotorEfficiency,
                 MotorTimeConstant, ActuatorDelay, Mass, ThrustCoefficient, YawMoment, ComOffset,
-                Wind, GroundEffect, Inertia)
+                RotorTilt, Wind, GroundEffect, Inertia)
 }
 
 
@@ -386,3 +467,25 @@ def replace_params(eff: Effect, **changes: float) -> Effect:
 
 __all__ = ["Effect", "EFFECTS", "EXT_SIZE", "default_ext", "make_effect", "effects_from_params",
            "effective_params", "replace_params"]
+
+
+def parse_effect(spec: str) -> tuple[str, dict[str, float]]:
+    """``'name:k=v,k=v'`` -> ``(name, {k: v})`` checked against :data:`EFFECTS`; ``''`` or ``'none'`` ->
+    ``('none', {})``.  Raises TwinError (worded for an ``--effect`` option) on a bad spec."""
+    from twin_nodes.base.errors import TwinError
+
+    if spec in ("", "none"):
+        return "none", {}
+    name, _, rest = spec.partition(":")
+    if name not in EFFECTS:
+        raise TwinError(f"--effect: {name!r}: expected one of {', '.join(sorted(EFFECTS))}")
+    params: dict[str, float] = {}
+    for item in filter(None, rest.split(",")):
+        k, eq, v = item.partition("=")
+        if not eq or k not in EFFECTS[name].param_names:
+            raise TwinError(f"--effect: {item!r}: expected k=v with k in {list(EFFECTS[name].param_names)}")
+        try:
+            params[k] = float(v)
+        except ValueError:
+            raise TwinError(f"--effect: {k}: expected a number, got {v!r}") from None
+    return name, params

@@ -1,0 +1,87 @@
+"""Fleet throughput: flights per minute through ``rotortwin fleet discover`` with 1 and 2 workers.
+
+::
+
+    .venv/bin/python bench/bench_fleet.py FLIGHTS_DIR [--no-closed-loop]   # real discovery on those flights
+    .venv/bin/python bench/bench_fleet.py --synthetic [--n 8] [--task-s 3]  # a CPU-bound stand-in task
+
+Each run writes a fresh catalog (nothing skipped) on an embedded LocalCluster (one-thread worker
+processes); the time includes starting the cluster.  Prints flights/min per worker count and the
+2-worker / 1-worker scaling ratio.  ``--synthetic`` measures the runner's own overhead and scaling
+with a task that burns ``--task-s`` seconds of CPU and writes a catalog row, no discovery.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def burn_task(path, catalog, mode, params, params_map, closed_loop_metrics):
+    """CPU-bound stand-in for discovery: numpy work for the seconds in the file, then a row."""
+    import numpy as np
+
+    from twin_nodes.fleet import catalog as cat
+
+    secs = float(json.loads(Path(path).read_text())["task_s"])
+    t0 = time.process_time()
+    a = np.random.default_rng(0).standard_normal((200, 200))
+    while time.process_time() - t0 < secs:
+        a = np.tanh(a @ a.T / 200.0)
+    row = {**cat.file_key(path), "status": "ok", "error": "", "vehicle_id": "bench",
+           "flight_time_utc": "", "effects_json": "[]"}
+    cat.write_row(catalog, row)
+    return {"path": row["path"], "status": "ok", "error": ""}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("flights", nargs="?", help="folder of .ulg flights (real discovery)")
+    ap.add_argument("--synthetic", action="store_true")
+    ap.add_argument("--n", type=int, default=8, help="synthetic flights")
+    ap.add_argument("--task-s", type=float, default=3.0, help="synthetic CPU seconds per flight")
+    ap.add_argument("--params", default=str(Path(__file__).resolve().parents[1] / "params/px4_sih_quadx.yaml"))
+    ap.add_argument("--no-closed-loop", action="store_true")
+    ap.add_argument("--workers", default="1,2")
+    a = ap.parse_args()
+
+    from twin_nodes.fleet.run import find_flights, run_fleet
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench_fleet_"))
+    kw = {}
+    if a.synthetic:
+        import cloudpickle
+        cloudpickle.register_pickle_by_value(sys.modules[__name__])
+        flights = []
+        for k in range(a.n):
+            f = tmp / f"s{k:03d}.ulg"
+            f.write_text(json.dumps({"task_s": a.task_s}))
+            flights.append(f)
+        kw["task"] = burn_task
+    elif a.flights:
+        flights = find_flights([a.flights])
+        kw.update(params=a.params, closed_loop_metrics=not a.no_closed_loop)
+    else:
+        ap.error("give FLIGHTS_DIR or --synthetic")
+    rate = {}
+    for w in [int(x) for x in a.workers.split(",")]:
+        t0 = time.perf_counter()
+        res = run_fleet(flights, tmp / f"cat_w{w}", workers=w, progress=False, **kw)
+        dt = time.perf_counter() - t0
+        ok = sum(d["status"] == "ok" for d in res["done"])
+        rate[w] = len(flights) / dt * 60
+        print(f"workers={w}: {len(flights)} flights ({ok} ok) in {dt:.1f} s -> {rate[w]:.2f} flights/min",
+              flush=True)
+    if 1 in rate and 2 in rate:
+        print(f"scaling 2 workers / 1 worker: {rate[2] / rate[1]:.2f}x")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,316 @@
+"""Bad input never costs data: one bad-input corpus against every command that reads a file.
+
+Every command of ``rotortwin --help`` that reads a file is run (in-process, through
+``twin_nodes.cli.main``) on each corpus file in each of its file arguments.  Unusable
+input must give exit code 2, exactly one stderr line ``rotortwin: error: <file>: ...``
+naming the file, no traceback, no new file in the output folder (the working
+directory) and no change next to the input.  Damaged but readable flight logs
+(truncated, a 2**40 / 2**62 µs clock jump, time going backwards) are cut and reported
+by the loader (see ``tests/test_ulog_io.py``), so on those a command may also succeed
+(exit 0); either way it runs under a memory limit (address space + 3 GiB) and a time
+limit, which the old loader broke (``compare --offline`` on a 2**40 µs gap asked for
+24 GB).
+
+The ROS graph commands (``compare`` without ``--offline``, ``replay``, ``twin``,
+``metrics``, ``record`` without ``recover``, ``monitor``, ``topics``) start rclpy
+processes and are not run here; ``regress`` and ``record recover`` read a bag without
+ROS and are.
+
+``ROTORTWIN_RELIABILITY_DOC=docs/reliability.md pytest tests/test_bad_input.py -m ""``
+rewrites ``docs/reliability.md`` from the run (every row is a real result).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import resource
+import shutil
+import signal
+import struct
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import ulog_cases as C
+from twin_nodes.cli import main
+from twin_nodes.logs.ulog_io import read_ulog
+
+ROOT = Path(__file__).resolve().parents[1]
+PARAMS = str(ROOT / "params" / "px4_sih_quadx.yaml")
+TIME_LIMIT_S = 240
+MEMORY_HEADROOM = 3 << 30
+
+# --------------------------------------------------------------------------- the corpus
+
+
+def _format_bomb(good: bytes) -> bytes:
+    """A log whose definitions nest a 65535-array in a 65535-array (pyulog expands it field by field)."""
+    recs = list(C.records(good))
+    f_off = next(r[0] for r in recs if r[1] == "F")
+    a_off = next(r[0] for r in recs if r[1] == "A")
+
+    def rec(t: str, payload: bytes) -> bytes:
+        return struct.pack("<HB", len(payload), ord(t)) + payload
+
+    bomb = rec("F", b"bomb_a:uint64_t timestamp;bomb_b[65535] x;") + rec("F", b"bomb_b:float[65535] y;")
+    sub = rec("A", struct.pack("<BH", 0, 999) + b"bomb_a")
+    return good[:f_off] + bomb + good[f_off:a_off] + sub + good[a_off:]
+
+
+#: case -> (file name, how it is made); "recoverable" ULogs may load with warnings
+UNUSABLE = {
+    "directory": "a_directory",
+    "empty file": "empty.ulg",
+    "random bytes": "random_bytes.bin",
+    "random bytes (.csv)": "random_bytes.csv",
+    "not UTF-8": "not_utf8.yaml",
+    "unreadable (path through a file)": "random_bytes.bin/child",
+    "YAML that is a list": "a_list.yaml",
+    "1e308 values": "huge_values.yaml",
+    "file named true": "true",
+    "file named 12345": "12345",
+    "ULog with corrupt definitions": "format_bomb.ulg",
+}
+RECOVERABLE = {
+    "truncated ULog": "truncated.ulg",
+    "ULog with a 2^40 us gap": "gap_2e40.ulg",
+    "ULog with a 2^62 us gap": "gap_2e62.ulg",
+    "ULog with backwards time": "backwards.ulg",
+}
+CASES = {**UNUSABLE, **RECOVERABLE}
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("corpus")
+    good = C.small_flight(d / "good.ulg").read_bytes()
+    (d / "a_directory").mkdir()
+    (d / "empty.ulg").write_bytes(b"")
+    rnd = np.random.default_rng(0).bytes(4096)
+    (d / "random_bytes.bin").write_bytes(rnd)
+    (d / "random_bytes.csv").write_bytes(rnd)
+    (d / "not_utf8.yaml").write_bytes(b"/**:\n  ros__parameters:\n    vehicle: {name: \xff\xfe\xfa}\n")
+    (d / "a_list.yaml").write_text("- 1\n- 2\n")
+    (d / "huge_values.yaml").write_text(Path(PARAMS).read_text().replace("thrust_max_n: 5.0", "thrust_max_n: 1.0e+308"))
+    (d / "true").write_text("true\n")
+    (d / "12345").write_text("12345\n")
+    (d / "format_bomb.ulg").write_bytes(_format_bomb(good))
+    (d / "truncated.ulg").write_bytes(C.truncated(good))
+    (d / "gap_2e40.ulg").write_bytes(C.with_gap(good, 2**40))
+    (d / "gap_2e62.ulg").write_bytes(C.with_gap(good, 2**62))
+    (d / "backwards.ulg").write_bytes(C.with_backwards(good, 5_000_000))
+    return d
+
+
+# --------------------------------------------------------------------------- the commands
+
+#: command -> (argv with {F} = the corpus file and {O} = the output folder, what {F} is)
+COMMANDS = {
+    "params check": (["params", "check", "{F}"], "params"),
+    "params export": (["params", "export", "{F}", "--px4", "{O}/x.params"], "params"),
+    "params derive": (["params", "derive", "{F}", "--out", "{O}/p.yaml"], "spec"),
+    "params from-ulog": (["params", "from-ulog", "{F}", "--out", "{O}/p.yaml"], "ulog"),
+    "simulate --params": (["simulate", "--params", "{F}", "--out", "{O}/s.ulg"], "params"),
+    "discover FLIGHT": (["discover", "{F}", "--params", PARAMS, "--json", "{O}/r.json", "--no-closed-loop"], "ulog"),
+    "discover --params": (["discover", "{G}", "--params", "{F}", "--json", "{O}/r.json", "--no-closed-loop"],
+                          "params"),
+    "prove --vehicle": (["prove", "--vehicle", "{F}", "--out", "{O}/prove", "--size", "ci", "--workers", "1"],
+                        "params"),
+    "identify motor": (["identify", "motor", "{F}", "--out", "{O}/m.yaml"], "ulog"),
+    "identify hover": (["identify", "hover", "{F}", "--out", "{O}/h.yaml"], "ulog"),
+    "identify delay": (["identify", "delay", "{F}", "--out", "{O}/d.yaml"], "ulog"),
+    "identify regress": (["identify", "regress", "{F}", "--out", "{O}/r.yaml"], "ulog"),
+    "identify noise": (["identify", "noise", "{F}", "--out", "{O}/n.yaml"], "ulog"),
+    "identify hover --params": (["identify", "hover", "{G}", "--params", "{F}", "--out", "{O}/h.yaml"], "params"),
+    "compare --offline FLIGHT": (["compare", "--offline", "{F}", "--params", PARAMS, "--json", "{O}/m.json",
+                                  "--quiet"], "ulog"),
+    "compare --offline --params": (["compare", "--offline", "{G}", "--params", "{F}", "--json", "{O}/m.json",
+                                    "--quiet"], "params"),
+    "mission check": (["mission", "check", "{F}"], "plan"),
+    "regress BAG": (["regress", "{F}"], "bag"),
+    "record recover BAG": (["record", "recover", "{F}", "--out", "{O}/rec"], "bag"),
+    "bridge sim --params": (["bridge", "sim", "--params", "{F}", "--no-ros", "--duration", "0.1", "--host",
+                             "127.0.0.1", "--port", "45999"], "params"),
+}
+#: commands that run a whole analysis on a readable damaged log (about a minute each): slow
+SLOW_ON_RECOVERABLE = {"discover FLIGHT"}
+#: known failures owned elsewhere (reported, not hidden: the table shows them)
+KNOWN = {"prove --vehicle": "discovery.prove.run_suite creates --out before it loads the vehicle"}
+
+RESULTS: list[dict] = []
+
+
+class _Timeout(Exception):
+    pass
+
+
+def _on_alarm(signum, frame):
+    raise _Timeout(f"no result within {TIME_LIMIT_S} s")
+
+
+def _vm_bytes() -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmSize:"):
+            return int(line.split()[1]) * 1024
+    return 0
+
+
+def run_cli(argv: list[str]) -> tuple[object, str, str]:
+    """``rotortwin argv`` in-process under a memory and time limit: (exit code or the exception
+    that escaped ``main``, stdout, stderr)."""
+    out, err = io.StringIO(), io.StringIO()
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    old = signal.signal(signal.SIGALRM, _on_alarm)
+    signal.alarm(TIME_LIMIT_S)
+    try:
+        resource.setrlimit(resource.RLIMIT_AS, (_vm_bytes() + MEMORY_HEADROOM, hard))
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            rc: object = main(argv)
+    except SystemExit as exc:
+        rc = exc.code
+    except BaseException as exc:  # noqa: BLE001 - a traceback is the failure being tested for
+        rc = exc
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+    return rc, out.getvalue(), err.getvalue()
+
+
+def _tree(d: Path) -> set[str]:
+    return {str(p.relative_to(d)) for p in d.rglob("*")}
+
+
+def _params():
+    out = []
+    for cmd, (_, slot) in COMMANDS.items():
+        for case in CASES:
+            recoverable = case in RECOVERABLE and slot == "ulog"
+            marks = []
+            if recoverable and cmd in SLOW_ON_RECOVERABLE:
+                marks.append(pytest.mark.slow)
+            if cmd in KNOWN:
+                marks.append(pytest.mark.xfail(reason=KNOWN[cmd], strict=False))
+            out.append(pytest.param(cmd, case, marks=marks, id=f"{cmd}|{case}"))
+    return out
+
+
+@pytest.mark.parametrize("cmd,case", _params())
+def test_bad_input(corpus, tmp_path, monkeypatch, cmd, case):
+    argv_t, slot = COMMANDS[cmd]
+    f = str(corpus / CASES[case])
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    monkeypatch.chdir(out_dir)
+    argv = [a.replace("{F}", f).replace("{O}", str(out_dir)).replace("{G}", str(corpus / "good.ulg"))
+            for a in argv_t]
+    before = _tree(corpus)
+    t0 = time.perf_counter()
+    rc, stdout, stderr = run_cli(argv)
+    dt = time.perf_counter() - t0
+    left = sorted(_tree(out_dir))
+    lines = stderr.strip().splitlines()
+    recoverable = case in RECOVERABLE and slot == "ulog"
+    shown = lines[-1] if rc != 0 and lines else (stdout.strip().splitlines() or [""])[-1]
+    RESULTS.append({"command": cmd, "case": case, "file": CASES[case], "rc": rc, "seconds": dt,
+                    "message": shown.replace(f"{out_dir}/", "OUT/"), "left": left, "recoverable": recoverable})
+    assert not isinstance(rc, BaseException), f"{type(rc).__name__}: {rc}"
+    assert "Traceback" not in stderr, stderr[-2000:]
+    assert _tree(corpus) == before, "files changed next to the input"
+    if recoverable and rc == 0:
+        return  # loaded with warnings (see test_ulog_io): a result is allowed
+    assert rc == 2, (rc, stderr[-2000:])
+    assert len(lines) == 1 and lines[0].startswith(f"rotortwin: error: {f}: "), stderr
+    assert left == [], left
+
+
+def test_valid_files_named_true_and_12345_are_files(tmp_path, monkeypatch):
+    """A file named ``true`` or ``12345`` is a path, never a YAML scalar (issue 12)."""
+    monkeypatch.chdir(tmp_path)
+    shutil.copy(PARAMS, tmp_path / "12345")
+    rc, out, err = run_cli(["params", "check", "12345"])
+    assert rc == 0 and "px4_sih_quadx" in out, err
+    C.small_flight(tmp_path / "true")
+    assert read_ulog("true").require("position_enu").values.shape[0] == 1000
+
+
+def test_simulate_effect_out_of_range_is_one_line(tmp_path, monkeypatch):
+    """``simulate --effect motor_efficiency:motor=9,efficiency=nan`` on a quad (issue 12): refused
+    before anything flies, nothing written."""
+    monkeypatch.chdir(tmp_path)
+    for spec, key in (("motor_efficiency:motor=9,efficiency=nan", "effects.motor_efficiency.motor"),
+                      ("motor_efficiency:motor=3,efficiency=nan", "effects.motor_efficiency.efficiency"),
+                      ("actuator_delay:delay=1e9", "effects.actuator_delay.delay")):
+        rc, _, err = run_cli(["simulate", "--params", PARAMS, "--effect", spec, "--out", "s.ulg"])
+        lines = err.strip().splitlines()
+        assert rc == 2 and len(lines) == 1, err
+        assert lines[0].startswith(f"rotortwin: error: {PARAMS}: {key}: expected "), lines[0]
+        assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- docs/reliability.md
+
+
+def _cell(text: str, n: int = 150) -> str:
+    text = " ".join(str(text).split()).replace("|", "\\|")
+    return text if len(text) <= n else text[: n - 1] + "…"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _write_doc(corpus):
+    yield
+    target = os.environ.get("ROTORTWIN_RELIABILITY_DOC")
+    if not target or not RESULTS:
+        return
+    by_cmd: dict[str, list[dict]] = {}
+    for r in RESULTS:
+        by_cmd.setdefault(r["command"], []).append(r)
+    lines = [
+        "# Reliability: the bad-input corpus per command",
+        "",
+        "Generated by `ROTORTWIN_RELIABILITY_DOC=docs/reliability.md .venv/bin/python -m pytest "
+        "tests/test_bad_input.py -m \"\" -p no:cacheprovider` (every row is that run's real result; "
+        "paths shortened to the corpus file name; OUT is the run's output folder and working directory).",
+        "",
+        "The promise: unusable input gives exit code 2, one stderr line `rotortwin: error: <file>: <field>: "
+        "<expected>`, no traceback, and no file written.  Damaged but readable ULogs (truncated, a clock jump, "
+        "time going backwards) are repaired by the loader, which keeps the longest consistent part and says "
+        "so in `FlightLog.warnings` (table at the end); a command may then finish (exit 0) on what is left.  "
+        "Every run is limited to the process's address space + 3 GiB and "
+        f"{TIME_LIMIT_S} s.",
+        "",
+        "Corpus: " + "; ".join(f"**{k}** (`{v}`)" for k, v in CASES.items()) + ".  The ULogs are a 20 s "
+        "flight written by `twin_nodes.logs.ulog_write` and byte-edited (`tests/ulog_cases.py`).",
+        "",
+    ]
+    for cmd, rows in by_cmd.items():
+        argv = " ".join(COMMANDS[cmd][0]).replace(PARAMS, "params/px4_sih_quadx.yaml")
+        argv = argv.replace("{F}", "FILE").replace("{O}", "OUT").replace("{G}", "good.ulg")
+        lines += [f"## `rotortwin {argv}`", ""]
+        if cmd in KNOWN:
+            lines += [f"Known failure, owned elsewhere: {KNOWN[cmd]}.", ""]
+        lines += ["| case | exit | message (the stderr line; last stdout line when it succeeded) | files left in OUT |",
+                  "|---|---|---|---|"]
+        for r in rows:
+            rc = r["rc"] if not isinstance(r["rc"], BaseException) else f"{type(r['rc']).__name__}"
+            msg = r["message"]
+            for p in (f"{corpus}/", f"{ROOT}/"):
+                msg = msg.replace(p, "")
+            left = ", ".join(r["left"]) if r["left"] else "none"
+            lines.append(f"| {r['case']} | {rc} | {_cell(msg)} | {_cell(left, 60)} |")
+        lines.append("")
+    lines += ["## What the ULog loader reports for the damaged logs", "",
+              "`read_ulog(path).data_warnings()` (the data-loss lines of `FlightLog.warnings`) on the corpus "
+              "logs that load, and what is left:", "",
+              "| case | kept | warning |", "|---|---|---|"]
+    for case, name in RECOVERABLE.items():
+        log = read_ulog(corpus / name)
+        kept = f"{len(log.require('position_enu'))} position samples, {log.duration_s:.2f} s"
+        for w in log.data_warnings():
+            lines.append(f"| {case} | {kept} | {_cell(w, 400)} |")
+    lines.append("")
+    Path(target).write_text("\n".join(lines), encoding="utf-8")

@@ -1,0 +1,289 @@
+"""Graded verdicts, both residuals, excitation, confirmation plans and the confirmation round trip.
+
+PX4 SIH flights (real PX4 firmware, ../shared/flightlogs/sitl_effects, truth in truth.json):
+no `likely`/`confirmed` finding on the no-effect flights; e03 (SIH_Q_MAX x1.4) and e04 (SIH_T_TAU
+0.05 -> 0.09 s) found with their parameter near the truth; e05 (SIH_IXX/IYY x1.3) is not found:
+on 50 Hz motor logs the roll/pitch output error is attenuated by the aliased commands (the nominal
+model explains <= 60 % of the roll/pitch rate changes), so those axes are left out (documented in
+docs/discovery.md) -- the test says so rather than hiding it.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import missing_shared
+
+from twin_nodes.discovery.discover import Fit, discover
+from twin_nodes.discovery.plans import manoeuvre, plan_for, plan_yaml, write_plans
+from twin_nodes.discovery.verdicts import grade
+from twin_nodes.logs.ulog_io import read_ulog
+from twin_nodes.mavlink.mission import load_plan
+from twin_nodes.vehicle.params import shipped
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "flightlogs"
+EFFECTS = SHARED / "sitl_effects"
+FINDINGS = ("likely", "confirmed")
+
+
+def _sih(name: str):
+    p = EFFECTS / name / "flight.ulg" if name.startswith("e") else SHARED / "sitl" / name
+    if not p.exists():
+        missing_shared(str(p.relative_to(SHARED.parent)))
+    return read_ulog(p)
+
+
+@pytest.fixture(scope="module")
+def sih_results():
+    cache: dict[str, dict] = {}
+
+    def get(name):
+        if name not in cache:
+            cache[name] = discover(_sih(name), shipped("px4_sih_quadx"), closed_loop_metrics=False)
+        return cache[name]
+    return get
+
+
+def _findings(res):
+    return [e for e in res["effects"] if e["verdict"] in FINDINGS]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["e07", "e08", "px4sih_default_triangle.ulg", "px4sih_default_grid.ulg"])
+def test_no_finding_on_px4_sih_no_effect_flights(sih_results, name):
+    res = sih_results(name)
+    assert _findings(res) == [], [(e["name"], e["verdict"], e["verdict_note"]) for e in _findings(res)]
+    assert res["likely"] == [] and res["accepted"] == []
+    # both residuals are reported for every candidate that the output error judges
+    km = next(e for e in res["effects"] if e["name"] == "yaw_moment")
+    assert set(km["residuals"]) == {"equation", "output"}
+    assert res["output_error_axes"]["axes"]["yaw"]["used"]
+
+
+@pytest.mark.slow
+def test_e03_yaw_moment_found_with_km_near_truth(sih_results):
+    truth = json.loads((EFFECTS / "e03" / "truth.json").read_text())["effects"][0]["params"]["km"]
+    res = sih_results("e03")
+    top = _findings(res)[0]
+    assert top["name"] == "yaw_moment" and top["verdict"] in FINDINGS, top
+    assert top["params"]["km"] == pytest.approx(truth, rel=0.10)
+    assert top["residual"] == "output" and top["heldout_channel"] == "yaw"
+    assert top["excitation"]["channel"] == "yaw"
+    assert "yaw turn" in res["excitation"]["yaw"]["manoeuvres"]
+    # the located mismatches now include the yaw channel
+    assert any(m["channel"] == "yaw" for m in res["mismatch"])
+
+
+@pytest.mark.slow
+def test_e04_motor_lag_found_as_the_equivalent_extra_lag(sih_results):
+    """SIH_T_TAU 0.05 -> 0.09 s.  On the 50 Hz log an extra first-order lag and a pure delay of the
+    same size fit the output error equally (costs within 1 %); discovery names one and lists the
+    other as an alternative.  Scored as the lag it adds: tau - tau_nominal or the delay."""
+    res = sih_results("e04")
+    top = _findings(res)[0]
+    assert top["name"] in ("motor_time_constant", "actuator_delay"), top
+    extra = (top["params"]["delay"] if top["name"] == "actuator_delay"
+             else 0.5 * (top["params"]["tau_up"] + top["params"]["tau_down"]) - 0.05)
+    assert extra == pytest.approx(0.09 - 0.05, rel=0.15)
+    assert top["residual"] == "output"
+
+
+@pytest.mark.slow
+def test_e05_roll_pitch_inertia_is_not_claimed(sih_results):
+    """What the 50 Hz PX4 log cannot show is not claimed: the roll/pitch axes are left out of the
+    output error (attenuated by command aliasing), and nothing is found."""
+    res = sih_results("e05")
+    axes = res["output_error_axes"]["axes"]
+    assert not axes["roll"]["used"] and axes["roll"]["r2"] < 0.8
+    assert _findings(res) == []
+
+
+# ----------------------------------------------------------------------------- grading (unit)
+
+
+class _Cand:
+    name = "yaw_moment"
+    param_names = ("km",)
+    fixed: dict = {}
+    label = "yaw_moment"
+    x0 = np.array([0.02])
+    lower = np.array([0.004])
+    upper = np.array([0.1])
+
+    def floor(self, th):
+        return abs(th[0] - 0.02) / 0.02 > 0.03
+
+    def params_dict(self, th):
+        return {"km": float(th[0])}
+
+
+def _fit(theta, cut, t, n, pos, folds=None, accepted=False):
+    c = _Cand()
+    f = Fit(c, np.array([theta]), None, 0.0, 0.0, np.zeros(6), t, n, cut, bool(c.floor(np.array([theta]))))
+    f.judged = ("yaw", 1.0, 1.0 - cut)
+    f.kind = "output"
+    f.stats = {"n": n, "n_pos": pos, "mean": 0.1, "sd": 0.1, "t": t}
+    f.fold_thetas = [np.array([x]) for x in (folds or [theta, theta])]
+    f.folds_agree = True
+    f.accepted = accepted
+    return f
+
+
+def test_grade_likely_only_when_all_but_significance_holds():
+    ex = {"yaw": {"blocks_heldout": 3, "blocks_heldout_total": 80, "manoeuvres": {"yaw turn": 3}}}
+    f = _fit(0.028, 0.7, 2.0, 5, 5)
+    grade(f, 3.0, 0.1, ex)
+    assert f.verdict == "likely"
+    assert f.excitation["blocks_missing"] >= 1 and "yaw_sweeps" in f.excitation["plans"]
+    assert "yaw sweeps" in f.verdict_note
+    # fewer than 4 active blocks (no test possible): likely only when every one improves
+    f = _fit(0.028, 0.7, 0.0, 3, 3)
+    grade(f, 3.0, 0.1, ex)
+    assert f.verdict == "likely"
+    f = _fit(0.028, 0.7, 0.0, 3, 2)
+    grade(f, 3.0, 0.1, ex)
+    assert f.verdict == "rejected"
+    # small cut, or a parameter next to nominal, or significant-but-not-accepted: never likely
+    for f in (_fit(0.028, 0.2, 2.0, 5, 5), _fit(0.0205, 0.7, 2.0, 5, 5), _fit(0.028, 0.7, 3.5, 12, 12)):
+        grade(f, 3.0, 0.1, ex)
+        assert f.verdict == "rejected", f.verdict_note
+    f = _fit(0.028, 0.7, 6.0, 20, 20, accepted=True)
+    grade(f, 3.0, 0.1, ex)
+    assert f.verdict == "confirmed"
+
+
+# ----------------------------------------------------------------------------- plans
+
+
+def _likely_effect(name="yaw_moment", plans=("yaw_sweeps",), missing=6):
+    return {"name": name, "verdict": "likely", "params": {"km": 0.028}, "verdict_note": "needs yaw blocks",
+            "excitation": {"channel": "yaw", "plans": list(plans), "blocks_missing": missing}}
+
+
+@pytest.mark.parametrize("kind", ["yaw_sweeps", "rate_doublets", "vertical_steps", "low_hover", "fast_legs"])
+def test_every_manoeuvre_is_a_valid_plan(tmp_path, kind):
+    e = _likely_effect(plans=(kind,))
+    p = tmp_path / f"{kind}.plan.yaml"
+    p.write_text(plan_yaml(plan_for(e, "x.ulg")))
+    plan = load_plan(p)
+    assert len(plan.waypoints) >= 5 and plan.rtl_after
+    alts = [w.alt_m for w in plan.waypoints]
+    if kind == "vertical_steps":
+        assert max(alts) - min(alts) >= 9.0
+    if kind == "low_hover":
+        assert min(alts) <= 1.0
+
+
+def test_yaw_sweeps_turn_at_every_stop():
+    wps = manoeuvre("yaw_sweeps", 12)
+    headings = []
+    for a, b in zip(wps[:-1], wps[1:]):
+        headings.append(np.degrees(np.arctan2(b["east_m"] - a["east_m"], b["north_m"] - a["north_m"])))
+    turns = np.abs((np.diff(headings) + 180) % 360 - 180)
+    assert np.sum(turns >= 80) >= 10
+    assert all(not w["fly_through"] for w in wps)
+
+
+def test_write_plans_one_file_per_likely_effect_and_mission_check_accepts_it(tmp_path):
+    res = {"log": "f.ulg", "effects": [_likely_effect(), {"name": "mass", "verdict": "rejected", "params": {}},
+                                       _likely_effect("inertia", ("rate_doublets", "yaw_sweeps"))]}
+    paths = write_plans(res, tmp_path / "plans", "f.ulg")
+    assert [p.name for p in paths] == ["confirm_yaw_moment.plan.yaml", "confirm_inertia.plan.yaml"]
+    for p in paths:
+        r = subprocess.run([sys.executable, "-m", "twin_nodes", "mission", "check", str(p)], capture_output=True,
+                           text=True)
+        assert r.returncode == 0, r.stderr
+        assert "waypoints" in r.stdout and "RTL after: yes" in r.stdout
+
+
+def test_plan_setpoints_follow_the_plan():
+    from twin_nodes.discovery.plan_flight import plan_setpoints
+
+    wps = [(5.0, 0.0, 10.0, 2.0, False), (9.0, 0.0, 10.0, 2.0, False), (5.0, 0.0, 12.0, 2.0, False)]
+    t, SP, armed = plan_setpoints(wps, rtl_after=True)
+    ok = np.isfinite(SP[:, 0])
+    # ENU: north is +y; the vehicle reaches (north 9, alt 10) and (north 5, alt 12)
+    assert np.min(np.hypot(SP[ok, 1] - 9.0, SP[ok, 2] - 10.0)) < 0.05
+    assert np.min(np.hypot(SP[ok, 1] - 5.0, SP[ok, 2] - 12.0)) < 0.05
+    # yaw follows the path: north (pi/2) on the way out, south (-pi/2) on the way back
+    yaw = SP[ok, 9]
+    assert np.any(np.abs(yaw - np.pi / 2) < 0.01) and np.any(np.abs(np.abs(yaw) - np.pi / 2) < 0.01)
+    assert armed(np.array([0.0]))[0] == False and armed(np.array([10.0]))[0] == True  # noqa: E712
+    assert SP[-1, 2] < 0.0  # landed (the setpoint goes below ground, as PX4's land does)
+
+
+# ----------------------------------------------------------------------------- round trip
+
+
+HIDDEN_RT = "yaw_moment:km=0.026"
+# a hop with two small heading changes (20 deg early, 70 deg mid-flight) and no return: the yaw
+# moment is seen in the middle (both folds fit it) but the held-out parts hold too few yaw blocks
+HOP_PLAN = """mission:
+  name: hop
+  speed_m_s: 3.0
+  acceptance_radius_m: 2.0
+  fly_through: false
+  rtl_after: false
+  waypoints:
+    - [2.2, 6.0, 10.0]
+    - [2.2, 6.0, 16.0]
+    - [2.2, 6.0, 10.0]
+    - [8.2, 6.0, 10.0]
+    - [8.2, 6.0, 16.0]
+    - [8.2, 6.0, 4.0]
+"""
+
+
+def _cli(*args):
+    r = subprocess.run([sys.executable, "-m", "twin_nodes", *args], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return r.stdout
+
+
+@pytest.mark.slow
+def test_confirmation_round_trip_on_our_simulator(tmp_path):
+    """A short hop with a hidden effect: the effect comes out `likely` (too few excited blocks); the
+    generated confirmation plan, flown with the same hidden effect, confirms it."""
+    vp_file = str(ROOT / "params" / "px4_sih_quadx.yaml")
+    hop = tmp_path / "hop.plan.yaml"
+    hop.write_text(HOP_PLAN)
+    first = tmp_path / "hop.ulg"
+    _cli("simulate", "--params", vp_file, "--plan", str(hop), "--effect", HIDDEN_RT, "--seed", "5", "--out", str(first))
+    plans = tmp_path / "plans"
+    _cli("discover", str(first), "--params", vp_file, "--no-closed-loop", "--json", str(tmp_path / "d1.json"),
+         "--plan-dir", str(plans))
+    d1 = json.loads((tmp_path / "d1.json").read_text())
+    name = HIDDEN_RT.split(":")[0]
+    eff = next(e for e in d1["effects"] if e["name"] == name)
+    assert eff["verdict"] == "likely", eff["evidence"]
+    assert d1["likely"][0] == name and not d1["accepted"]
+    plan = plans / f"confirm_{name}.plan.yaml"
+    assert plan.exists()
+    _cli("mission", "check", str(plan))
+    followup = tmp_path / "followup.ulg"
+    _cli("simulate", "--params", vp_file, "--plan", str(plan), "--effect", HIDDEN_RT, "--seed", "6", "--out",
+         str(followup))
+    _cli("discover", str(first), "--params", vp_file, "--no-closed-loop", "--confirm", str(followup), "--json",
+         str(tmp_path / "d2.json"))
+    d2 = json.loads((tmp_path / "d2.json").read_text())
+    row = next(r for r in d2["confirmation"]["effects"] if r["name"] == name)
+    assert row["verdict"] == "confirmed", row["note"]
+    assert next(e for e in d2["effects"] if e["name"] == name)["verdict"] == "confirmed"
+    true = dict(kv.split("=") for kv in HIDDEN_RT.split(":")[1].split(","))
+    for k, v in true.items():
+        assert row["refit_on_followup"]["params"][k] == pytest.approx(float(v), rel=0.10)
+        assert eff["params"][k] == pytest.approx(float(v), rel=0.10)
+    # the same plan flown by a vehicle without the effect: the likely effect is dropped
+    clean = tmp_path / "followup_clean.ulg"
+    _cli("simulate", "--params", vp_file, "--plan", str(plan), "--seed", "6", "--out", str(clean))
+    _cli("discover", str(first), "--params", vp_file, "--no-closed-loop", "--confirm", str(clean), "--json",
+         str(tmp_path / "d3.json"))
+    d3 = json.loads((tmp_path / "d3.json").read_text())
+    row = next(r for r in d3["confirmation"]["effects"] if r["name"] == name)
+    assert row["verdict"] == "rejected" and row["note"].startswith("dropped"), row

@@ -1,0 +1,329 @@
+"""The generated stepper (twin_nodes.physics.model + stepper.py): cache safety and bit-identity.
+
+* a cache file whose bytes differ from the generated source is never run (it is rewritten);
+* a cache folder that is a link, another user's, or writable by others is never used;
+* numba's on-disk cache of a generated module is reused by the next process;
+* with several effects, the outputs equal numbers recorded from the previous generator (the
+  193-line source emitter, before the stepper.py template) on the same inputs -- hard-coded
+  below, compared at 1e-12 relative (they were bit-identical when recorded).
+"""
+
+from __future__ import annotations
+
+import inspect
+import os
+import stat
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from twin_nodes.base import io
+from twin_nodes.physics import model, stepper
+from twin_nodes.physics.effects import EFFECTS
+from twin_nodes.physics.model import Multirotor, MultirotorBatch
+from twin_nodes.vehicle.params import shipped
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def private_cache(tmp_path, monkeypatch):
+    """A fresh $ROTORTWIN_CACHE; the model's module/folder memos are restored afterwards."""
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("ROTORTWIN_CACHE", str(cache))
+    monkeypatch.setattr(io, "_CACHE_DIRS", {})
+    monkeypatch.setattr(model, "_MODULES", {})
+    return cache
+
+
+# ----------------------------------------------------------------------------- generator
+
+
+def test_template_is_the_no_effect_stepper():
+    assert model._generate_source(()) == inspect.getsource(stepper)
+
+
+def test_generated_hooks_slice_the_packed_vector():
+    vp = shipped("buho_negro").with_effect("battery_sag").with_effect("linear_drag", k_n_s_m=0.1)
+    m = Multirotor(vp)
+    src = model._generate_source([type(e) for e in m.kernel_effects])
+    assert "_k_battery_sag(E[0:2], ext, sref)" in src
+    assert "_k_linear_drag(E[2:3], x, R, ext, omega, T, Fb, Mb, Fw)" in src
+    assert "N_TERMS = 2\nCOMMAND_HOOKS, ROTOR_HOOKS, WRENCH_HOOKS = True, False, True\n" in src
+    assert "E = effect_params(P)" in src
+    assert m.E == () and list(m.P[-3:]) == [12.6, 1.0, 0.1]
+    assert len(m.P) == len(Multirotor(shipped("buho_negro")).P) + 3
+
+
+# ----------------------------------------------------------------------------- cache file
+
+
+def test_tampered_cache_file_is_not_run(private_cache, tmp_path, monkeypatch):
+    vp = shipped("buho_negro").with_effect("linear_drag", k_n_s_m=0.3)
+    src = model._generate_source([EFFECTS["linear_drag"]])
+    name = model._module_name(src)
+    marker = tmp_path / "tampered-code-ran"
+    private_cache.mkdir(mode=0o700)
+    tampered = (f"open({str(marker)!r}, 'w').close()\n"
+                + src.replace("x[i] += dt / 6.0 *", "x[i] += dt / 3.0 *"))
+    assert tampered != src
+    (private_cache / f"{name}.py").write_text(tampered)
+    monkeypatch.delitem(sys.modules, name, raising=False)
+
+    m = Multirotor(vp)
+    x0 = m.initial_state(position_enu=(0.0, 0.0, 10.0), velocity_enu=(1.0, 0.0, 0.0), rotor_state="hover")
+    x1 = m.step(x0, np.full(4, 0.6), 0.004, n_substeps=5)
+
+    assert not marker.exists()
+    assert (private_cache / f"{name}.py").read_bytes() == src.encode()
+    assert m._mod.__file__ == str(private_cache / f"{name}.py")
+    # same numbers as the module of the same name from the normal cache
+    monkeypatch.setattr(model, "_MODULES", {})
+    monkeypatch.delitem(sys.modules, name)
+    monkeypatch.delenv("ROTORTWIN_CACHE")
+    ref = Multirotor(vp)
+    assert ref._mod is not m._mod
+    np.testing.assert_array_equal(x1, ref.step(x0, np.full(4, 0.6), 0.004, n_substeps=5))
+
+
+def test_correct_cache_file_is_kept(private_cache, monkeypatch):
+    """Rewriting an unchanged file would change its time stamp and void numba's cache."""
+    name = "rotortwin_gen_test_keep"
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    mod = model._import_source(name, "X = 1\n")
+    path = Path(mod.__file__)
+    assert path.parent == private_cache and path.read_text() == "X = 1\n" and mod.X == 1
+    before = path.stat().st_mtime_ns
+    os.utime(path, ns=(before - 10**9, before - 10**9))
+    before = path.stat().st_mtime_ns
+    assert model._import_source(name, "X = 1\n").X == 1
+    assert path.stat().st_mtime_ns == before
+    assert model._import_source(name, "X = 2\n").X == 2 and path.read_text() == "X = 2\n"
+    assert [p.name for p in private_cache.iterdir()] == [path.name]  # no temporary left behind
+
+
+def test_numba_cache_of_generated_module_is_reused_across_processes(tmp_path):
+    code = ("import numpy as np\n"
+            "from twin_nodes.vehicle.params import shipped\n"
+            "from twin_nodes.physics.model import Multirotor\n"
+            "m = Multirotor(shipped('buho_negro').with_effect('angular_damping', k_nm_s_rad=0.01))\n"
+            "x = m.step(m.initial_state(position_enu=(0, 0, 5), rotor_state='hover'), np.full(4, 0.5))\n"
+            "print(sum(m._mod.step_n.stats.cache_hits.values()), repr(float(x[2])))\n")
+    env = dict(os.environ, ROTORTWIN_CACHE=str(tmp_path / "cache"))
+    runs = [subprocess.run([sys.executable, "-c", code], env=env, cwd=REPO, capture_output=True, text=True,
+                           check=True).stdout.split() for _ in range(2)]
+    assert runs[0][0] == "0" and int(runs[1][0]) >= 1
+    assert runs[0][1] == runs[1][1]
+
+
+# ----------------------------------------------------------------------------- cache folder
+
+
+def _make(path: Path, how: str) -> None:
+    if how == "link":
+        target = path.with_name("elsewhere")
+        target.mkdir(mode=0o700)
+        path.symlink_to(target)
+        return
+    path.mkdir()
+    if how == "other_user":
+        os.chown(path, 4242, 4242)
+        path.chmod(0o700)
+    else:
+        path.chmod({"mode_777": 0o777, "mode_770": 0o770, "mode_703": 0o703}[how])
+
+
+@pytest.mark.parametrize("how", ["mode_777", "mode_770", "mode_703", "link", "other_user"])
+def test_unsafe_fallback_cache_dir_is_not_used(how, tmp_path, monkeypatch):
+    if how == "other_user" and os.getuid() != 0:
+        pytest.skip("making a folder of another user needs root")
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    monkeypatch.setenv("ROTORTWIN_CACHE", str(blocker / "cache"))  # cannot be made, even by root
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setattr(io, "_CACHE_DIRS", {})
+    unsafe = tmp_path / f"rotortwin-cache-{os.getuid()}"
+    _make(unsafe, how)
+
+    with pytest.warns(UserWarning) as warned:
+        got = io.cache_dir()
+    messages = " | ".join(str(w.message) for w in warned)
+    assert f"not using cache folder {unsafe}" in messages and "no private cache folder" in messages
+    assert got != unsafe and got.parent == tmp_path and got.name.startswith("rotortwin-cache-")
+    st = got.lstat()
+    assert stat.S_ISDIR(st.st_mode) and st.st_uid == os.getuid() and stat.S_IMODE(st.st_mode) == 0o700
+    assert io.cache_dir() == got  # one folder per process, not one per module
+
+    name = "rotortwin_gen_test_unsafe"
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    assert Path(model._import_source(name, "X = 1\n").__file__).parent == got
+    assert not (unsafe / f"{name}.py").exists()
+
+
+def test_unsafe_primary_cache_dir_is_not_used(tmp_path, monkeypatch):
+    primary = tmp_path / "shared"
+    primary.mkdir()
+    primary.chmod(0o777)
+    monkeypatch.setenv("ROTORTWIN_CACHE", str(primary))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setattr(io, "_CACHE_DIRS", {})
+    with pytest.warns(UserWarning, match="not using cache folder"):
+        got = io.cache_dir()
+    assert got == tmp_path / f"rotortwin-cache-{os.getuid()}"
+    assert stat.S_IMODE(got.lstat().st_mode) == 0o700
+
+
+def test_private_fallback_is_made_0700_and_used(tmp_path, monkeypatch):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    monkeypatch.setenv("ROTORTWIN_CACHE", str(blocker / "cache"))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setattr(io, "_CACHE_DIRS", {})
+    got = io.cache_dir()
+    assert got == tmp_path / f"rotortwin-cache-{os.getuid()}"
+    assert stat.S_IMODE(got.lstat().st_mode) == 0o700
+
+
+# ----------------------------------------------------------------------------- bit-identity
+
+DT, NSUB, NT = 0.002, 2, 600
+V_REF = {"buho_negro": 16.8, "px4_sih_quadx": 12.6}
+
+
+def effect_vehicle(name: str):
+    """Eight kernel effects (a command, two rotor and five wrench hooks) + wind, in this order."""
+    return (shipped(name)
+            .with_effect("battery_sag", v_ref=V_REF[name], exponent=0.8)
+            .with_effect("motor_efficiency", motor=3, efficiency=0.85)
+            .with_effect("ground_effect", coefficient=0.3, height_scale=0.4)
+            .with_effect("linear_drag", k_n_s_m=0.25)
+            .with_effect("angular_damping", k_nm_s_rad=0.002)
+            .with_effect("rotor_drag", k_d=1e-4)
+            .with_effect("body_drag", c_dx=0.02, c_dy=0.03, c_dz=0.05)
+            .with_effect("com_offset", dx=0.01, dy=-0.015)
+            .with_effect("wind", vx=2.0, vy=-1.0, gust_std=0.0))
+
+
+def scenario(m: Multirotor, name: str):
+    """Take-off from the ground (ground effect, contact) with wobbling commands, sagging battery,
+    varying wind; motor 2 stops for the last 60 commands."""
+    t = np.arange(NT) * DT * NSUB
+    ph = np.arange(m.n_rotors)
+    U = m.params.hover_command * (1.15 + 0.08 * np.sin(2 * np.pi * (0.7 + 0.3 * ph)[None, :] * t[:, None]
+                                                       + ph[None, :]))
+    U[NT - 60:, 1] = np.nan
+    EXT = np.empty((NT, 4))
+    EXT[:, 0] = V_REF[name] * (1.02 - 0.06 * t / t[-1])
+    EXT[:, 1] = 2.0 + 0.5 * np.sin(1.3 * t)
+    EXT[:, 2] = -1.0 + 0.3 * np.cos(0.9 * t)
+    EXT[:, 3] = 0.1 * np.sin(2.1 * t)
+    x0 = m.initial_state(position_enu=(0.0, 0.0, 0.0), yaw_enu_rad=0.4, rotor_state="hover")
+    return x0, U, EXT
+
+
+REFERENCE = {
+    'buho_negro': {
+        'x_200': [1.7019663237280585, 0.09866570052778807, 0.1710768098554123, 5.322127923397304,
+                  1.1535234583454832, -3.5915889026715813, 0.055403980936353854, -0.16587929853688618,
+                  0.9649804361334442, 0.19551781272565075, -0.39501377926811176, 6.260040298334513,
+                  -0.21862799028434501, 263.6872452557281, 261.8232231682815, 276.9115574079908,
+                  255.5484357368696],
+        'x_end': [2.2193520451578945, 0.7838472971577533, 0.35073900984099443, 3.90646179471741,
+                  2.4458767799547436, -2.9347481302923084, 0.2259240344705344, -0.6024404521852408,
+                  0.7245201528961769, 0.2471727741210587, -8.84785051560334, -0.7879109465408405,
+                  0.11311378278829293, 248.4486495484292, 0.05118223699489293, 264.4836678095317,
+                  268.8821658286821],
+        'sf_200': [0.1852956463546489, 0.04085968418609991, 12.849108070500773],
+        'sf_0': [0.10154335933346138, -0.09485009906015217, 12.270570812499999],
+        'terms_300': {
+            'rotors': ([0.0, 0.0, 75.57978886669629],
+                       [-0.860370667711968, 3.010096201614446, -0.056144592725054177]),
+            'linear_drag': ([-0.1657134828679776, 0.382550553338212, -0.9100670351207163],
+                            [0.0, 0.0, 0.0]),
+            'angular_damping': ([0.0, 0.0, 0.0],
+                                [-0.002853001727109809, -0.012875466553525079, 0.0001455315497058273]),
+            'rotor_drag': ([-0.07005084018820751, 0.16171277805533268, 0.0],
+                           [0.0, 0.0, 0.0]),
+            'body_drag': ([-0.008787506689355361, 0.07024556441249864, -0.6625776067307289],
+                          [0.0, 0.0, 0.0]),
+            'com_offset': ([0.0, 0.0, 0.0],
+                           [1.1336968330004442, 0.755797888666963, 0.0]),
+        },
+        's_end': [248.98484414278175, 0.09063306803912212, 265.6864555886635, 269.10639065903047],
+        's_100': [280.4985531740025, 267.4463666751548, 257.4502645146123, 272.86354337278567],
+    },
+    'px4_sih_quadx': {
+        'x_200': [1.7696611402778262, -0.3089766627156472, 0.00013332684224689356, 0.01158557946708093,
+                  -0.0037722322456375636, 0.03330238131762922, 0.20353500589005344, -7.28462860312205e-05,
+                  0.00011774817556938576, 0.9790676596671558, 0.0504699960532443, 0.04777505713309402,
+                  -0.0015880498644265477, 0.5586709614098523, 0.5441132120960052, 0.5994283119664627,
+                  0.5327118199586987],
+        'x_end': [1.938951689098991, -0.985801612936248, 0.2695030502116489, 1.0898846377338933,
+                  -4.797557782761061, -2.5604326245543967, 0.37045136905203685, 0.6347671135116667,
+                  0.6436488804888554, -0.21343058219707364, -2.5097273887433227, 1.855943103163766,
+                  0.08766171804665984, 0.5171140116941596, 0.004816288103870187, 0.571357434473801,
+                  0.5801960608485514],
+        'sf_200': [-1.51438419709657, -0.1433301668959755, 13.958126804955832],
+        'sf_0': [0.8812679635824794, -0.8154296362993051, 12.2705708125],
+        'terms_300': {
+            'rotors': ([0.0, 0.0, 12.407992215618766],
+                       [-0.08412995903944065, 0.246357310609427, -0.007951704004597757]),
+            'linear_drag': ([-0.36914147759359633, -0.10064398165998822, -0.7686418039598903],
+                            [0.0, 0.0, 0.0]),
+            'angular_damping': ([0.0, 0.0, 0.0],
+                                [-0.004700983077465204, -0.00950428366881908, 0.00021281617354339767]),
+            'rotor_drag': ([-0.44146878624385955, -0.12036354385269175, 0.0],
+                           [0.0, 0.0, 0.0]),
+            'body_drag': ([-0.04360493775359475, -0.004862021301300502, -0.4726481782357716],
+                          [0.0, 0.0, 0.0]),
+            'com_offset': ([0.0, 0.0, 0.0],
+                           [0.18611988323428147, 0.12407992215618766, 0.0]),
+        },
+        's_end': [0.5189705153170556, 0.006632643367024727, 0.574554806998115, 0.579611351683347],
+        's_100': [0.6074229209748659, 0.5697014057927912, 0.5323007290403052, 0.5735178153911091],
+    },
+}
+
+
+def close(actual, expected):
+    np.testing.assert_allclose(actual, expected, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("name", sorted(REFERENCE))
+def test_several_effects_match_the_previous_generator(name):
+    ref = REFERENCE[name]
+    m = Multirotor(effect_vehicle(name))
+    assert m.term_names == ["rotors", "linear_drag", "angular_damping", "rotor_drag", "body_drag", "com_offset"]
+    x0, U, EXT = scenario(m, name)
+    X = m.simulate(x0, U, DT, EXT, NSUB)
+    close(X[200], ref["x_200"])
+    close(X[-1], ref["x_end"])
+    close(m.specific_force_flu(X[200], U[200], EXT[200]), ref["sf_200"])
+    close(m.specific_force_flu(X[0], U[0] * 0.5, EXT[0]), ref["sf_0"])
+    terms = m.wrench_terms(X[1:], EXT)
+    assert list(terms) == list(ref["terms_300"])
+    for term, (F, M) in ref["terms_300"].items():
+        close(terms[term][0][299], F)
+        close(terms[term][1][299], M)
+    # the call twin_nodes/discovery/residuals.py makes
+    S = m._mod.rotor_states(m.P, *m.E, U, EXT, DT * NSUB, 3, np.zeros(m.n_rotors))
+    close(S[100], ref["s_100"])
+    close(S[-1], ref["s_end"])
+
+
+def test_step_and_batch_equal_simulate():
+    models = [Multirotor(effect_vehicle(n)) for n in ("buho_negro", "px4_sih_quadx")]
+    runs = [scenario(m, n) for m, n in zip(models, ("buho_negro", "px4_sih_quadx"))]
+    sims = [m.simulate(x0, U[:80], DT, EXT[:80], NSUB) for m, (x0, U, EXT) in zip(models, runs)]
+    batch = MultirotorBatch(models)
+    X = np.stack([x0 for x0, _, _ in runs])
+    x = runs[0][0]
+    for k in range(80):
+        x = models[0].step(x, runs[0][1][k], DT, runs[0][2][k], NSUB)
+        X = batch.step(X, np.stack([U[k] for _, U, _ in runs]), DT, np.stack([E[k] for _, _, E in runs]), NSUB)
+    np.testing.assert_array_equal(x, sims[0][-1])
+    np.testing.assert_array_equal(X, np.stack([s[-1] for s in sims]))

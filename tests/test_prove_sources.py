@@ -1,0 +1,232 @@
+"""The prove suite on physics we did not write: PX4 SIH flights (real firmware) and RotorPy flights.
+
+- px4sih: the truth of every ../shared SIH flight maps onto our effect vocabulary as the manifest says, and the
+  no-effect flights are scored with zero findings (runs, never skips, under CI=true: conftest.missing_shared).
+- rotorpy: the nominal params file is RotorPy's Crazyflie; a RotorPy no-effect flight, logged as a PX4 ULog,
+  has a small equation-error residual with that nominal (and a large one with a wrong nominal); a RotorPy
+  flight with 20 % more mass is found as mass/thrust within 10 % (slow).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from conftest import missing_shared, shared_log
+
+from twin_nodes.discovery import prove, prove_sih
+from twin_nodes.discovery.prove import DragContext, Hidden, Truth, compare, findings, score, score_flight
+from twin_nodes.vehicle.params import load_params, shipped
+
+ROOT = Path(__file__).resolve().parents[1]
+EFFECT_IDS = [f"e0{i}" for i in range(1, 9)]
+
+
+# ---------------------------------------------------------------- scoring rules (no data needed)
+
+
+def _res(*effects):
+    return {"effects": [dict(e) for e in effects], "elapsed_s": 1.0}
+
+
+def test_findings_use_verdicts_confirmed_before_likely_and_fall_back_to_accepted():
+    res = _res({"name": "inertia", "verdict": "likely", "params": {}},
+               {"name": "mass", "verdict": "confirmed", "params": {}},
+               {"name": "wind", "verdict": "rejected", "accepted": True, "params": {}})
+    assert [e["name"] for e in findings(res)] == ["mass", "inertia"]
+    old = _res({"name": "mass", "accepted": True, "params": {}}, {"name": "wind", "accepted": False, "params": {}})
+    assert [e["name"] for e in findings(old)] == ["mass"]
+
+
+def test_mass_and_thrust_coefficient_are_one_class_compared_as_thrust_per_mass():
+    vp = shipped("px4_sih_quadx")
+    t = Truth(Hidden("mass", {"mass": 1.2}))
+    err, text = compare(t, "thrust_coefficient", {"kt_scale": 1 / 1.2 * 1.05}, vp)
+    assert err == pytest.approx(0.05, abs=1e-9) and "mass" in text
+    err, _ = compare(Truth(Hidden("thrust_coefficient", {"kt_scale": 0.9})), "mass", {"mass": 1 / 0.9}, vp)
+    assert err == pytest.approx(0.0, abs=1e-12)
+    assert compare(t, "yaw_moment", {"km": 0.03}, vp)[0] == math.inf
+
+
+def test_drag_laws_are_one_class_compared_by_the_work_they_do_on_the_flight():
+    vp = shipped("px4_sih_quadx")  # nominal linear_drag 1.0
+    rng = np.random.default_rng(0)
+    v = rng.normal(0, 3, (500, 3))
+    drag = DragContext(v, np.full(500, 2800.0))
+    truth = Truth(Hidden("linear_drag", {"k_n_s_m": 1.8}))
+    # a rotor drag that does exactly the missing 0.8 N/(m/s) of work
+    vv = np.sum(v ** 2)
+    k_d = 0.8 * vv / (2800.0 * np.sum(v[:, :2] ** 2))
+    err, text = compare(truth, "rotor_drag", {"k_d": k_d}, vp, drag)
+    assert err == pytest.approx(0.0, abs=1e-9) and "k_eq" in text
+    err, _ = compare(truth, "body_drag", {"c_dx": 0.0, "c_dy": 0.0, "c_dz": 0.0}, vp, drag)
+    assert err == pytest.approx(0.8 / 1.8, rel=1e-9)  # nothing found beyond the nominal 1.0
+
+
+def test_score_rules_no_effect_and_effect_rows():
+    vp = shipped("px4_sih_quadx")
+    none_row = score_flight("n", Truth(Hidden("none", {})), _res({"name": "mass", "verdict": "likely",
+                                                                    "params": {"mass": 1.1}}), vp)
+    assert not none_row["passed"] and none_row["n_findings"] == 1
+    ok = score_flight("m", Truth(Hidden("mass", {"mass": 1.2})), _res(
+        {"name": "mass", "verdict": "confirmed", "params": {"mass": 1.15}, "heldout_improvement": 0.8,
+         "heldout_before": 0.1, "heldout_after": 0.02}), vp)
+    assert ok["passed"] and ok["param_error"] == pytest.approx(0.05 / 1.2)
+    low_cut = score_flight("m", Truth(Hidden("mass", {"mass": 1.2})), _res(
+        {"name": "mass", "verdict": "confirmed", "params": {"mass": 1.2}, "heldout_improvement": 0.3,
+         "heldout_before": 0.1, "heldout_after": 0.07}), vp)
+    assert not low_cut["passed"]
+    s = score([none_row, ok, low_cut], "x")
+    assert (s["n_right_top"], s["false_accepts_on_no_effect"], s["n_passed"]) == (2, 1, 1)
+    table = prove.format_table(s)
+    assert "mass (confirmed)" in table and table.splitlines()[-1].startswith("x: right effect on top 2/2")
+
+
+# ---------------------------------------------------------------- px4sih
+
+
+def _sih_flights() -> dict:
+    fl = {f["flight"]: f for f in prove_sih.flights()}
+    for name in EFFECT_IDS:
+        if name not in fl:
+            shared_log("sitl_effects", f"{name}/flight.ulg")  # skips, or fails under CI=true
+    return fl
+
+
+def test_px4sih_truth_maps_onto_our_vocabulary_as_the_manifest_says():
+    fl = _sih_flights()
+    vp = load_params(prove_sih.NOMINAL)
+    manifest = yaml.safe_load((ROOT / "missions" / "sih_effects" / "manifest.yaml").read_text())
+    expected = {"e01": ("mass", {"mass": 1.2}), "e02": ("thrust_coefficient", {"kt_scale": 0.9}),
+                "e03": ("yaw_moment", {"km": 0.028}),
+                "e04": ("motor_time_constant", {"tau_up": 0.09, "tau_down": 0.09}),
+                "e05": ("inertia", {"ixx": 0.0325, "iyy": 0.0325, "izz": 0.030}),
+                "e06": ("linear_drag", {"k_n_s_m": 1.8}), "e07": ("none", {}), "e08": ("none", {})}
+    for name, (eff, params) in expected.items():
+        f = fl[name]
+        tj = f["truth_json"]
+        t = prove_sih.map_truth(tj, vp)
+        assert t.hidden.name == eff, name
+        assert t.hidden.params == pytest.approx(params, rel=1e-6), name
+        # the same numbers truth.json states in its own effect names
+        own = tj["effects"][0]
+        for k, v in own["params"].items():
+            if k in t.hidden.params:
+                assert t.hidden.params[k] == pytest.approx(v, rel=1e-6), (name, k)
+        if own["name"] == "body_drag":  # SIH_KDV: truth.json's linear body drag is our linear_drag
+            assert own["params"]["c_dx"] == pytest.approx(t.hidden.params["k_n_s_m"])
+        # the manifest describes the same flight
+        m = manifest["flights"][name]
+        assert m["mission"] == tj["mission"]
+        assert {k: list(map(float, v)) for k, v in m["sih"].items()} == \
+               {k: list(map(float, v)) for k, v in tj["sih_changes"].items()}
+        mt = m["truth"]
+        assert (mt == "none") if eff == "none" else (mt == {eff: pytest.approx(params, rel=1e-6)})
+    assert {"px4sih_default_triangle", "px4sih_default_grid"} <= set(fl)
+    assert manifest["px4"]["commit"] == "02e73e3b6f4826a376d0805ee12e30b7538ada99"
+
+
+@pytest.mark.parametrize("name", ["e07", "e08"])
+def test_px4sih_no_effect_flight_scores_zero_findings(name, tmp_path):
+    """Real PX4 firmware, nominal SIH vehicle, missions M3/M4: no confirmed or likely finding."""
+    fl = _sih_flights()
+    row = prove_sih.run_one((fl[name], str(tmp_path)))
+    assert row["true_effect"] == "none"
+    assert row["n_findings"] == 0 and row["passed"], row["findings"]
+    res = json.loads((tmp_path / f"{name}.json").read_text())
+    assert res["effects"], "discover wrote its candidates"
+
+
+def test_px4sih_without_shared_folder_is_a_one_line_error(tmp_path):
+    from twin_nodes.base.errors import TwinError
+
+    with pytest.raises(TwinError, match="px4sih"):
+        prove_sih.run_suite(tmp_path / "o", shared=tmp_path / "nothing", progress=False)
+
+
+# ---------------------------------------------------------------- rotorpy
+
+from twin_nodes.discovery import prove_rotorpy as prp  # noqa: E402  (imports rotorpy lazily)
+
+
+@pytest.fixture(autouse=True)
+def _rotorpy_installed(request):
+    if request.node.name.startswith("test_rotorpy"):
+        pytest.importorskip("rotorpy")  # a dev dependency (pyproject [dev])
+
+
+def test_rotorpy_nominal_params_file_is_rotorpys_crazyflie():
+    qp = prp.rotorpy_params("crazyflie")
+    vp = prp.nominal_params(qp)
+    shipped_vp = load_params(ROOT / "params" / "rotorpy_crazyflie.yaml")
+    assert shipped_vp.to_ros_dict() == vp.to_ros_dict()
+    assert vp.rotors.kt_n_s2_rad2 == qp["k_eta"] and vp.rotors.km_m == pytest.approx(qp["k_m"] / qp["k_eta"])
+    assert vp.hover_omega_rad_s == pytest.approx(np.sqrt(qp["mass"] * 9.81 / (4 * qp["k_eta"])))
+    # yaw moment per rotor: RotorPy +dir*k_m*w^2 about body +z; ours -direction*km*T
+    from twin_nodes.vehicle.geometry import allocation_matrix
+    A = np.linalg.pinv(allocation_matrix(vp))  # rows: thrust, Mx, My, Mz per unit rotor thrust
+    assert np.allclose(A[3], qp["rotor_directions"] * qp["k_m"] / qp["k_eta"])
+    pos = np.array(list(qp["rotor_pos"].values()))
+    assert np.allclose(A[1], pos[:, 1]) and np.allclose(A[2], -pos[:, 0])
+
+
+@pytest.fixture(scope="module")
+def rp_none(tmp_path_factory):
+    """A short RotorPy no-effect flight (mission RP0), written as a PX4 ULog."""
+    d = tmp_path_factory.mktemp("rp")
+    case = prp.Case((), None, "RP0", 5, "crazyflie", "none")
+    rec, vp = prp.fly(case)
+    path = d / "rp0.ulg"
+    prp.write_record(path, rec, vp, case.seed)
+    return path, rec, vp
+
+
+def test_rotorpy_flight_converts_to_a_ulog_in_our_frames(rp_none):
+    from twin_nodes.base import frames
+    from twin_nodes.logs.ulog_io import read_ulog
+
+    path, rec, vp = rp_none
+    log = read_ulog(path)
+    t0 = 0.0  # the log's time axis starts at its first sample, the flight's t = 0
+    att = log.require("attitude_q")
+    k = np.searchsorted(rec.t, att.t_s - t0).clip(0, len(rec.t) - 1)
+    ang = frames.quat_angle_between(att.values, rec.x[k, 6:10])
+    assert np.percentile(ang, 95) < 0.02  # estimator-grade noise only, no frame error
+    vel = log.require("velocity_enu")
+    k = np.searchsorted(rec.t, vel.t_s - t0).clip(0, len(rec.t) - 1)
+    assert np.sqrt(np.mean((vel.values - rec.x[k, 3:6]) ** 2)) < 0.1
+    assert np.ptp(rec.x[:, 0]) > 3.0 and rec.x[:, 2].max() > 2.0  # it flew the mission
+
+
+def test_rotorpy_no_effect_flight_has_a_small_equation_error_with_the_nominal(rp_none):
+    from twin_nodes.discovery.residuals import modes, prepare, residual_channels
+    from twin_nodes.logs.ulog_io import read_ulog
+
+    path, _, vp = rp_none
+    data = prepare(read_ulog(path), vp)
+    R = residual_channels(data, vp, vp)[data.valid]
+    M, names = modes(R, vp)
+    rms = dict(zip(names, np.sqrt(np.mean(M ** 2, axis=0))))
+    # fraction of full motor output; our own generator's no-effect flights sit at about 0.005
+    assert rms["throttle"] < 0.004, rms
+    assert max(rms["roll"], rms["pitch"], rms["yaw"]) < 0.002, rms
+    assert max(rms["force_x"], rms["force_y"]) < 0.003, rms
+    # and the same check is sensitive: a nominal 20 % too light leaves a large throttle residual
+    wrong = vp.replace(mass_kg=vp.mass_kg / 1.2)
+    Rw = residual_channels(data, wrong, wrong)[data.valid]
+    Mw, _ = modes(Rw, wrong)
+    assert np.sqrt(np.mean(Mw[:, 0] ** 2)) > 10 * rms["throttle"]
+
+
+@pytest.mark.slow
+def test_rotorpy_mass_plus_20_percent_is_found_as_mass_or_thrust_within_10_percent(tmp_path):
+    case = next(c for c in prp.suite("full") if c.label == "mass")
+    row = prp.run_one((case, str(tmp_path), str(tmp_path / "cache")))
+    assert row["top_finding"] in ("mass", "thrust_coefficient"), row["findings"]
+    assert row["top_verdict"] in ("confirmed", "likely")
+    assert row["param_error"] is not None and row["param_error"] <= 0.10, row["param_text"]
+    assert row["heldout_improvement"] >= 0.5, row

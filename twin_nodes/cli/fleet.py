@@ -1,0 +1,106 @@
+"""``rotortwin fleet``: discovery over a fleet's flights on Dask, the flight catalog, the fleet report.
+
+::
+
+    rotortwin fleet discover|compare LOGS_OR_DIRS... --catalog DIR [--scheduler ADDRESS]
+                   [--params P.yaml | --params-map MAP.yaml] [--workers N] [--no-closed-loop]
+    rotortwin fleet query CATALOG "SELECT ... FROM flights ..."
+    rotortwin fleet report CATALOG --out DIR
+    rotortwin fleet simulate OUT_DIR [--vehicles 5] [--flights 10] [--workers N]
+
+``discover``/``compare`` run one Dask task per flight (an embedded LocalCluster of N one-thread
+worker processes, or the scheduler at ADDRESS); flights already in the catalog with the same
+size and mtime are skipped; a failed flight is a catalog row with its one-line error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("fleet", help="fleet scale: discovery on Dask, flight catalog, trends report",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="fleet_command", metavar="FLEET_COMMAND")
+    for mode in ("discover", "compare"):
+        q = sub.add_parser(mode, help=f"{mode} every flight into the catalog (one Dask task each)")
+        q.add_argument("flights", nargs="+", help="PX4 ULogs or folders of them (searched recursively)")
+        q.add_argument("--catalog", required=True, help="catalog folder (one Parquet file per flight)")
+        q.add_argument("--scheduler", help="a running Dask scheduler (tcp://host:8786); default: embedded cluster")
+        g = q.add_mutually_exclusive_group()
+        g.add_argument("--params", help="one params YAML for every flight")
+        g.add_argument("--params-map", help="YAML: vehicle id -> params file (others: built from the log)")
+        q.add_argument("--workers", type=int, default=2, help="embedded cluster worker processes (default 2)")
+        q.add_argument("--no-closed-loop", action="store_true",
+                       help="discover: skip the closed-loop Table-2 metrics (faster)")
+        q.set_defaults(func=_cmd_run, mode=mode)
+    q = sub.add_parser("query", help="SQL on the catalog with DuckDB (the table is `flights`)")
+    q.add_argument("catalog")
+    q.add_argument("sql")
+    q.set_defaults(func=_cmd_query)
+    q = sub.add_parser("report", help="per-vehicle trends, alarms, HTML with plots")
+    q.add_argument("catalog")
+    q.add_argument("--out", required=True, help="report folder (index.html, report.json, PNGs)")
+    q.set_defaults(func=_cmd_report)
+    q = sub.add_parser("simulate", help="write the simulated demo fleet (degrading motor, payload days, healthy)")
+    q.add_argument("out")
+    q.add_argument("--params", default="params/px4_sih_quadx.yaml")
+    q.add_argument("--vehicles", type=int, default=5)
+    q.add_argument("--flights", type=int, default=10, help="flights per vehicle")
+    q.add_argument("--workers", type=int, default=2)
+    q.set_defaults(func=_cmd_simulate)
+    p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from twin_nodes.fleet.run import find_flights, load_params_map, run_fleet
+
+    flights = find_flights(args.flights)
+    pmap = load_params_map(args.params_map)
+    res = run_fleet(flights, args.catalog, mode=args.mode, scheduler=args.scheduler, workers=args.workers,
+                    params=args.params, params_map=pmap, closed_loop_metrics=not args.no_closed_loop)
+    failed = [d for d in res["done"] if d["status"] != "ok"]
+    for d in failed:
+        print(f"rotortwin: {d['error']}", file=sys.stderr)
+    for d in res["lost"]:
+        print(f"rotortwin: {d['path']}: not finished ({d['error']}); rerun to complete the catalog", file=sys.stderr)
+    print(f"fleet {args.mode}: {len(flights)} flights: {len(res['done']) - len(failed)} done, {len(failed)} failed, "
+          f"{len(res['lost'])} not finished, {res['skipped']} already in {args.catalog}")
+    return 1 if failed or res["lost"] else 0
+
+
+def _cmd_query(args: argparse.Namespace) -> int:
+    from twin_nodes.fleet.catalog import query
+
+    cols, rows = query(args.catalog, args.sql)
+    print("\t".join(cols))
+    for r in rows:
+        print("\t".join("" if v is None else str(v) for v in r))
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from twin_nodes.fleet.report import write_report
+
+    s = write_report(args.catalog, args.out)
+    print(f"{s['flights']} flights, {len(s['vehicles'])} vehicles, {len(s['failed'])} failed")
+    for a in s["alarms"]:
+        print(f"ALARM {a['vehicle_id']} [{a['kind']}] {a['message']}")
+    if not s["alarms"]:
+        print("no alarms")
+    print(f"report: {args.out}/index.html")
+    return 0
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from twin_nodes.fleet.simfleet import plan, write_fleet
+    from twin_nodes.vehicle.params import load_params
+
+    fl = plan(args.vehicles, args.flights, nominal_mass_kg=load_params(args.params).mass_kg)
+    paths = write_fleet(args.out, fl, args.params, workers=args.workers)
+    for f in fl:
+        if f.effect != "none":
+            print(f"{f.name}: {f.effect} {dict(f.params)}")
+    print(f"wrote {len(paths)} flights to {args.out}")
+    return 0

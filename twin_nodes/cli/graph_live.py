@@ -1,0 +1,68 @@
+"""``rotortwin monitor`` and ``rotortwin topics``: live views of a running graph (see :mod:`twin_nodes.graph.live`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from twin_nodes.graph.live import MonitorState, echo_topic, format_monitor, topic_types, watch_metrics
+
+
+def _cmd_monitor(args: argparse.Namespace) -> int:
+    def draw(state: MonitorState) -> None:
+        text = format_monitor(state.values, state.t_s) if state.values else "waiting for /twin_error/... topics"
+        if sys.stdout.isatty():
+            sys.stdout.write("\x1b[H\x1b[2J" + text + "\n")
+        else:
+            sys.stdout.write(text + "\n\n")
+        sys.stdout.flush()
+
+    state = watch_metrics(once=args.once, duration=args.duration, domain_id=args.domain_id, on_draw=draw)
+    values = state.values
+    if args.once:
+        print(format_monitor(values, state.t_s) if values else "no /twin_error topics seen")
+    if state.final:
+        print(state.final)
+    return 0 if (values or not args.once) else 1
+
+
+def _cmd_topics(args: argparse.Namespace) -> int:
+    from msgs_py.topics import TOPICS
+
+    if args.topics_command in (None, "list"):
+        found = topic_types(args.wait, args.domain_id)
+        if not found:
+            for spec in TOPICS.values():
+                print(f"{spec.name:<28} {spec.type:<38} (documented; not seen on the network)")
+            return 0
+        for t in sorted(found):
+            note = TOPICS[t].content[:60] if t in TOPICS else ""
+            print(f"{t:<34} {', '.join(found[t]):<38} {note}")
+        return 0
+    topic = args.topic
+
+    def show(n: int, m: Any) -> None:
+        print(f"--- {topic} #{n}\n{m}", flush=True)
+
+    n = echo_topic(topic, show, wait=args.wait, count=args.count, duration=args.duration, domain_id=args.domain_id)
+    return 0 if n else 1
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    m = subparsers.add_parser("monitor", help="live /twin_error/... metrics as a terminal table")
+    m.add_argument("--once", action="store_true", help="print one table once the topics are seen, then exit")
+    m.add_argument("--duration", type=float, help="stop after S seconds")
+    m.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph (default: the environment's)")
+    m.set_defaults(func=_cmd_monitor)
+
+    t = subparsers.add_parser("topics", help="list the graph's topics or echo one")
+    t.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph")
+    t.add_argument("--wait", type=float, default=1.5, help="discovery time [s] (default 1.5)")
+    ts = t.add_subparsers(dest="topics_command", metavar="list|echo")
+    ts.add_parser("list", help="topics and types on the network (or the documented ones)")
+    e = ts.add_parser("echo", help="print the messages of one topic")
+    e.add_argument("topic")
+    e.add_argument("--count", type=int, default=0, help="stop after N messages")
+    e.add_argument("--duration", type=float, help="stop after S seconds")
+    t.set_defaults(func=_cmd_topics)

@@ -1,0 +1,75 @@
+"""``rotortwin replay | twin | metrics | record``: one graph node in the foreground, and ``record recover``."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from twin_nodes.base.errors import TwinError
+from twin_nodes.graph import run_node
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    return run_node("replay", {"ulog": args.flight, "rate": float(args.rate), "use_sim_time": False,
+                             **({"wait_for": args.wait_for} if args.wait_for else {})}, args.ros_args)
+
+
+def _cmd_twin(args: argparse.Namespace) -> int:
+    return run_node("twin", {"params_file": args.params, "mode": args.mode, "use_sim_time": not args.wall_time},
+                    args.ros_args)
+
+
+def _cmd_metrics(args: argparse.Namespace) -> int:
+    p: dict[str, Any] = {"window_s": args.window, "use_sim_time": not args.wall_time, "n_motors": args.motors}
+    if args.json:
+        p["json_out"] = args.json
+    return run_node("metrics", p, args.ros_args)
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    if args.out == "recover":
+        if not args.bag:
+            raise TwinError("record recover: expected the bag directory or .mcap to recover")
+        from twin_nodes.logs.recording import recover
+        rep = recover(args.bag, args.recover_out)
+        print(f"recovered {rep.n_messages} messages into {rep.out_dir}"
+              + ("" if rep.complete else f" (the source was cut short: {rep.error or 'no footer'})"))
+        for t, c in sorted(rep.counts.items()):
+            print(f"  {t:<34} {c}")
+        return 0
+    return run_node("recorder", {"out": args.out, "use_sim_time": not args.wall_time}, args.ros_args)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    def ros_extra(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--wall-time", action="store_true", help="use wall time instead of /clock")
+        p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],
+                       help="further ROS arguments, passed after the node's own")
+
+    rp = subparsers.add_parser("replay", help="run the ULog replay node in the foreground")
+    rp.add_argument("flight")
+    rp.add_argument("--rate", type=float, default=1.0, help="1 real time (default), 20 = 20x, 0 = flow-controlled")
+    rp.add_argument("--wait-for", nargs="*", default=[], help="consumer node names to wait for")
+    rp.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[])
+    rp.set_defaults(func=_cmd_replay)
+
+    tw = subparsers.add_parser("twin", help="run the twin node in the foreground")
+    tw.add_argument("--params", required=True, help="vehicle params YAML")
+    tw.add_argument("--mode", choices=("closed", "open"), default="closed")
+    ros_extra(tw)
+    tw.set_defaults(func=_cmd_twin)
+
+    me = subparsers.add_parser("metrics", help="run the metrics node in the foreground")
+    me.add_argument("--window", type=float, default=5.0, help="rolling window [s]")
+    me.add_argument("--motors", type=int, default=4, help="number of motors")
+    me.add_argument("--json", help="write the whole-flight metrics here at the end")
+    ros_extra(me)
+    me.set_defaults(func=_cmd_metrics)
+
+    rc = subparsers.add_parser("record", help="record every graph topic to MCAP, or 'record recover BAG'",
+                               description="rotortwin record OUT_BAG   |   rotortwin record recover BAG [--out DIR]")
+    rc.add_argument("out", help="bag directory to create, or 'recover'")
+    rc.add_argument("bag", nargs="?", help="with 'recover': the cut-short bag directory or .mcap")
+    rc.add_argument("--out", dest="recover_out", help="with 'recover': output directory (default BAG_recovered)")
+    ros_extra(rc)
+    rc.set_defaults(func=_cmd_record)

@@ -1,0 +1,183 @@
+"""Where the model and the flight disagree, and how much each channel was excited.
+
+Channels: ``throttle`` (collective), ``roll``, ``pitch``, ``yaw`` (moment patterns of the
+per-motor residual, :func:`~twin_nodes.discovery.residuals.modes`), ``motor1..N`` (each motor's
+differential from the collective) and ``force_x``/``force_y`` (horizontal force).
+
+*Mismatch* (:func:`locate`): 2-s windows whose low-passed equation-error RMS exceeds 3x the
+channel's own noise floor, labelled by flight regime.
+
+*Excitation* (:func:`excitation`): what the flight gives a channel to be judged on, from the
+commands and the measured motion, not from any residual: per block of the block test, the RMS
+deviation of the channel's commanded signal from its trim (low-passed like the residual) against
+the channel's floor: its noise, or, when larger, its ordinary level (the median block / 1.5).  A
+block is *excited* when it is above ``EXCITED_FACTOR`` x floor (so above twice the median block);
+for each channel the number of excited blocks (all, and on the held-out parts the block test
+uses) and the manoeuvres (regime labels) they come from.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.signal import butter, sosfiltfilt
+
+from twin_nodes.discovery.residuals import LOWPASS_HZ, EquationData, model_rotor_states, modes
+from twin_nodes.physics.model import Multirotor
+from twin_nodes.vehicle.params import VehicleParams
+
+EXCITED_FACTOR = 3.0
+
+#: which manoeuvre supplies each channel (named in verdicts and in the confirmation plans)
+SUPPLY = {
+    "throttle": "vertical steps (climb/descend between two heights, stop at each)",
+    "roll": "roll rate doublets (sideways dashes with hard stops, fly-through zigzag corners)",
+    "pitch": "pitch rate doublets (short forward/back dashes with hard stops)",
+    "yaw": "yaw sweeps (turns in place: short legs in alternating directions)",
+    "force_x": "fast forward legs with accelerations and stops",
+    "force_y": "fast sideways/crossing legs",
+    "motor": "climbs and hover (each motor loaded)",
+}
+
+
+def regimes(data: EquationData) -> np.ndarray:
+    """Flight regime label per sample."""
+    v = data.v
+    hs = np.hypot(v[:, 0], v[:, 1])
+    yaw_rate = np.abs(data.w[:, 2])
+    lab = np.full(data.n, "hover", dtype=object)
+    lab[hs > 2.0] = "forward 2-5 m/s"
+    lab[hs > 5.0] = "forward >5 m/s"
+    lab[v[:, 2] > 0.5] = "climb"
+    lab[v[:, 2] < -0.5] = "descent"
+    lab[yaw_rate > 0.5] = "yaw turn"
+    lab[data.height < 1.5] = "near ground"
+    batt = data.battery_v
+    if np.isfinite(batt).mean() > 0.8:
+        lo, hi = np.nanmin(batt), np.nanmax(batt)
+        if hi - lo > 0.02 * hi:
+            low = batt < lo + 0.3 * (hi - lo)
+            lab[low] = np.array([f"{x}, battery low" for x in lab[low]], dtype=object)
+    return lab
+
+
+def channel_signals(R: np.ndarray, vp: VehicleParams, names: list[str]) -> dict[str, np.ndarray]:
+    """Per-motor/horizontal channels (T, N + 2) -> every located channel (dict of (T,) arrays)."""
+    n_rot = len(names) - 2
+    m, mnames = modes(R, vp)
+    out = {"throttle": R[:, :n_rot].mean(1)}
+    for k in (1, 2, 3):
+        out[mnames[k]] = m[:, k]
+    coll = R[:, :n_rot].mean(1)
+    for i in range(n_rot):
+        out[names[i]] = R[:, i] - coll
+    out["force_x"] = R[:, n_rot]
+    out["force_y"] = R[:, n_rot + 1]
+    return out
+
+
+def _floor(raw: np.ndarray, valid: np.ndarray, fs: float) -> float:
+    """Noise floor of a channel after the LOWPASS_HZ filter, from its sample-to-sample differences."""
+    hf = np.diff(raw[valid])
+    sigma = 1.4826 * np.median(np.abs(hf - np.median(hf))) / math.sqrt(2) if hf.size else 0.0
+    return max(sigma * math.sqrt(2 * LOWPASS_HZ / fs), 1e-4)
+
+
+def locate(data: EquationData, R: np.ndarray, raw: np.ndarray, names: list[str], vp: VehicleParams,
+           window_s: float = 2.0, factor: float = 3.0, per_channel: int = 8) -> list[dict]:
+    """Time windows, channels and regimes where the residual exceeds its noise floor."""
+    lp_ch = channel_signals(R, vp, names)
+    raw_ch = channel_signals(raw, vp, names)
+    fs = 1.0 / data.dt
+    lab = regimes(data)
+    per = max(int(round(window_s * fs)), 2)
+    out = []
+    for ch, lp in lp_ch.items():
+        floor = _floor(raw_ch[ch], data.valid, fs)
+        flagged = []
+        for k0 in range(0, data.n - per + 1, per):
+            sl = slice(k0, k0 + per)
+            ok = data.valid[sl]
+            if ok.sum() < per // 2:
+                continue
+            rms = float(np.sqrt(np.mean(lp[sl][ok] ** 2)))
+            if rms > factor * floor:
+                vals, counts = np.unique(lab[sl][ok], return_counts=True)
+                flagged.append([data.t[k0], data.t[min(k0 + per, data.n - 1)], str(vals[np.argmax(counts)]),
+                                rms / floor, rms])
+        merged: list[list] = []
+        for f in flagged:
+            if merged and abs(f[0] - merged[-1][1]) < 1e-6 and f[2] == merged[-1][2]:
+                merged[-1][1] = f[1]
+                merged[-1][3] = max(merged[-1][3], f[3])
+                merged[-1][4] = max(merged[-1][4], f[4])
+            else:
+                merged.append(list(f))
+        merged.sort(key=lambda f: -f[3])
+        for f in merged[:per_channel]:  # per channel, so a loud channel cannot hide the others
+            out.append({"channel": ch, "t_start": round(float(f[0]), 2), "t_end": round(float(f[1]), 2),
+                        "regime": f[2], "severity": round(float(f[3]), 2),
+                        "rms_fraction_of_full_output": round(float(f[4]), 4)})
+    out.sort(key=lambda d: -d["severity"])
+    return out
+
+
+def command_channels(data: EquationData, vp: VehicleParams, names: list[str]) -> dict[str, np.ndarray]:
+    """What the flight commands in every channel, in fraction of full motor output: the nominal
+    model's rotor thrusts from the logged commands (collective, moment patterns, each motor's
+    differential) and the measured horizontal specific force (times mass, per motor)."""
+    model = Multirotor(vp)
+    S = model_rotor_states(model, data)
+    r = model.params.rotors
+    tmax = vp.rotors.thrust_at_full_command_n
+    T = r.thrust_from_state(np.maximum(S, 0.0)) / tmax
+    horiz = vp.mass_kg * data.f[:, :2] / (r.count * tmax)
+    return channel_signals(np.column_stack([T, horiz]), vp, names)
+
+
+def excitation(data: EquationData, vp: VehicleParams, names: list[str], blocks: list[np.ndarray],
+               held_blocks: list[np.ndarray] | None = None) -> dict[str, dict]:
+    """Per channel: how many blocks carry signal, on the held-out parts and in all, and which
+    manoeuvres those are."""
+    fs = 1.0 / data.dt
+    sos = butter(2, LOWPASS_HZ / (0.5 * fs), output="sos")
+    lab = regimes(data)
+    held_blocks = blocks if held_blocks is None else held_blocks
+    out = {}
+    for ch, sig in command_channels(data, vp, names).items():
+        s = np.where(data.valid, sig, np.nan)
+        trim = float(np.nanmedian(s)) if np.isfinite(s).any() else 0.0
+        fill = np.where(np.isfinite(s), s, trim)
+        lp = sosfiltfilt(sos, fill - trim)
+        # above the channel's noise and above its ordinary level: twice the median block (a flight's
+        # cruise keeps every channel a little busy; a manoeuvre is what stands out of that)
+        rms = np.array([np.sqrt(np.mean(lp[b] ** 2)) for b in blocks]) if blocks else np.zeros(0)
+        typical = float(np.median(rms)) if rms.size else 0.0
+        floor = max(_floor(sig, data.valid, fs), typical / 1.5)
+
+        def excited(bl):
+            return [b for b in bl if np.sqrt(np.mean(lp[b] ** 2)) > EXCITED_FACTOR * floor]
+        ex_all = excited(blocks)
+        ex_held = excited(held_blocks)
+        man: dict[str, int] = {}
+        for b in ex_held:
+            vals, counts = np.unique(lab[b], return_counts=True)
+            key = str(vals[np.argmax(counts)])
+            man[key] = man.get(key, 0) + 1
+        out[ch] = {"blocks_heldout": len(ex_held), "blocks_heldout_total": len(held_blocks),
+                   "blocks_flight": len(ex_all), "blocks_flight_total": len(blocks),
+                   "manoeuvres": dict(sorted(man.items(), key=lambda kv: -kv[1])),
+                   "noise_floor": round(floor, 5)}
+    return out
+
+
+def supply_for(channel: str) -> str:
+    """The manoeuvre that excites a channel."""
+    if channel.startswith("motor"):
+        return SUPPLY["motor"]
+    return SUPPLY.get(channel, SUPPLY["pitch"])
+
+
+__all__ = ["EXCITED_FACTOR", "SUPPLY", "channel_signals", "command_channels", "excitation", "locate", "regimes",
+           "supply_for"]

@@ -1,0 +1,198 @@
+"""Output-error residuals: the model flown open loop over short re-synced horizons.
+
+The equation-error residual (:mod:`twin_nodes.discovery.residuals`) compares forces sample by
+sample and has to be low-passed at 2 Hz to survive the differentiated gyro; whatever acts through
+the dynamics (rotor lag, inertia, reaction torque in a yaw manoeuvre) is mostly filtered away.
+Here the model itself integrates: from the logged state at the start of each window (position,
+velocity, attitude, body rates; rotor state from the model's own command path over the whole
+flight), the model is driven by the logged motor commands for ``HORIZON_S`` and its body rates and
+velocity are compared with the log at every logged sample of the horizon.  All windows are one
+batch (:meth:`MultirotorBatch`-style ``step_batch`` over the windows), so a candidate costs one
+batched integration, not one per window.
+
+Per window the error trajectory ``e(h)`` of each axis is reduced to its least-squares slope over
+the horizon, with an intercept: the intercept absorbs the noise of the logged start state, the
+slope is the mean acceleration error over the window (velocity errors in the start attitude's
+body frame).  Each axis is divided by the nominal model's typical error on it, and the axes are
+laid into the equation error's channels (``motor1..N``, ``force_x``, ``force_y``) so that the same
+mode projection (throttle, roll, pitch, yaw) reads them back.
+
+Judged axes: vertical velocity and the three body rates (horizontal velocity is left to the
+equation error: drag and wind act there, and its open-loop drift would dilute the dynamics).
+Usable axes: on 50 Hz PX4 motor logs the roll and pitch commands are a 50 Hz sample of a 250 Hz
+rate loop; their aliasing acts like input noise, and an open-loop prediction of roll/pitch rates
+from them is attenuated (errors in variables): on the PX4 SIH flights the nominal model explains
+<= 60 % of the roll/pitch rate changes, on our own flights logged at 50 Hz 60 %, at 250 Hz 93 %.
+A fit on such an axis makes the vehicle look sluggish (more inertia, more lag) on *every*
+flight.  So an axis takes part only where the nominal model's prediction correlates with the
+measured change at r^2 >= ``MIN_AXIS_R2`` (gain-free: a true parameter change scales the
+prediction but keeps the correlation); the others are reported and left out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from twin_nodes.base import frames
+from twin_nodes.discovery.residuals import EquationData, exogenous
+from twin_nodes.physics.core import NX_BODY
+from twin_nodes.physics.model import Multirotor
+from twin_nodes.vehicle.params import VehicleParams
+
+HORIZON_S = 0.4
+STRIDE_S = 0.2
+STEP_S = 0.01
+MIN_AXIS_R2 = 0.8
+MIN_HEIGHT_M = 0.3
+AXES = ("force_x", "force_y", "force_z", "roll", "pitch", "yaw")
+#: the axes the output error judges: the dynamics (body rates and vertical velocity); horizontal
+#: velocity is the equation error's (drag, wind), its open-loop drift would only dilute these
+JUDGED = np.array([False, False, True, True, True, True])
+
+
+@dataclass
+class Windows:
+    """The re-synced windows of one flight and which axes are usable."""
+
+    start: np.ndarray          # (K,) grid index of each window's start
+    t: np.ndarray              # (K,) window start time [s]
+    t_end: np.ndarray          # (K,) window end time [s]
+    horizon: int               # samples (data grid) per window
+    usable: np.ndarray = field(default_factory=lambda: np.ones(6, bool))   # per AXES
+    axis_r2: np.ndarray = field(default_factory=lambda: np.ones(6))        # nominal prediction r^2 per axis
+    axis_gain: np.ndarray = field(default_factory=lambda: np.ones(6))      # measured/predicted slope gain
+    scale: np.ndarray = field(default_factory=lambda: np.ones(6))          # nominal error level per axis
+
+    @property
+    def n(self) -> int:
+        return len(self.start)
+
+    def describe(self) -> dict:
+        return {"horizon_s": None, "windows": int(self.n),
+                "axes": {a: {"r2": round(float(r), 3), "gain": round(float(g), 3), "used": bool(u)}
+                         for a, r, g, u, j in zip(AXES, self.axis_r2, self.axis_gain, self.usable, JUDGED) if j}}
+
+
+def make_windows(data: EquationData, horizon_s: float = HORIZON_S, stride_s: float = STRIDE_S) -> Windows:
+    """Windows whose whole horizon is valid and flown (logged height above ``MIN_HEIGHT_M``)."""
+    h = max(int(round(horizon_s / data.dt)), 2)
+    stride = max(int(round(stride_s / data.dt)), 1)
+    ok = data.valid & (data.height > MIN_HEIGHT_M)
+    bad = np.concatenate([[0], np.cumsum(~ok)])
+    k = np.arange(0, data.n - h - 1, stride)
+    keep = k[(bad[k + h + 1] - bad[k]) == 0]
+    return Windows(start=keep, t=data.t[keep], t_end=data.t[keep + h], horizon=h)
+
+
+def simulate_windows(data: EquationData, win: Windows, vp: VehicleParams, step_s: float = STEP_S,
+                     rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Model rates and velocities (H, K, 3) each at the logged samples 1..H of each window."""
+    model = Multirotor(vp)
+    start = win.start if rows is None else win.start[rows]
+    up = data.up
+    dt_f = data.dt / up
+    fs = max(int(round(step_s / dt_f)), 1)
+    per = max(up // fs, 1)
+    dt_c = fs * dt_f
+    ext = exogenous(model, data, len(data.u_fine), up)
+    delay = int(round(model.command_delay_s / dt_f))
+    u = np.ascontiguousarray(data.u_fine)
+    S = model._mod.rotor_states(model.P, *model.E, u, np.ascontiguousarray(ext), dt_f, delay,
+                                np.zeros(model.n_rotors))
+    k = len(start)
+    X = np.zeros((k, model.nx))
+    X[:, 0:3] = data.p[start]
+    X[:, 2] = data.height[start]
+    X[:, 3:6] = data.v[start]
+    X[:, 6:10] = data.q[start]
+    X[:, 10:13] = data.w[start]
+    X[:, NX_BODY:] = S[start * up]
+    X = np.nan_to_num(X)
+    PB = np.ascontiguousarray(np.tile(model.P, (k, 1)))
+    H = win.horizon
+    W = np.empty((H, k, 3))
+    V = np.empty((H, k, 3))
+    base = start * up
+    n_f = len(u)
+    for j in range(H * per):
+        # the command in the middle of the step (commands are linear between logged samples)
+        idx = np.clip(base + j * fs + fs // 2 - delay, 0, n_f - 1)
+        U = np.nan_to_num(u[idx])
+        E = np.ascontiguousarray(ext[np.minimum(base + j * fs, n_f - 1)])
+        model._mod.step_batch(PB, X, np.ascontiguousarray(U), E, dt_c, 1)
+        if (j + 1) % per == 0:
+            W[(j + 1) // per - 1] = X[:, 10:13]
+            V[(j + 1) // per - 1] = X[:, 3:6]
+    return W, V
+
+
+def _slopes(data: EquationData, win: Windows, W: np.ndarray, V: np.ndarray, start: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares slopes over the horizon (with intercept) of measured and predicted changes:
+    acceleration (body, m/s^2) and angular acceleration (rad/s^2), measured and model."""
+    H = win.horizon
+    h = np.arange(1, H + 1)
+    hc = (h - h.mean()) / (np.sum((h - h.mean()) ** 2) * data.dt)
+    idx = start[None, :] + h[:, None]
+    Rt = frames.quat_to_rotmat(data.q[start])
+    # world -> body of the start attitude: v_b = R^T v_w
+    vm = np.einsum("kji,hkj->hki", Rt, data.v[idx])
+    vp_ = np.einsum("kji,hkj->hki", Rt, V)
+    am = np.einsum("h,hkc->kc", hc, vm)
+    ap = np.einsum("h,hkc->kc", hc, vp_)
+    wm = np.einsum("h,hkc->kc", hc, data.w[idx])
+    wp = np.einsum("h,hkc->kc", hc, W)
+    return am, ap, wm, wp
+
+
+def axis_errors(data: EquationData, win: Windows, vp: VehicleParams, rows: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Measured and predicted mean accelerations per window: (K, 6) each, order ``AXES``
+    (linear in body axes [m/s^2], then angular [rad/s^2])."""
+    start = win.start if rows is None else win.start[rows]
+    W, V = simulate_windows(data, win, vp, rows=rows)
+    am, ap, wm, wp = _slopes(data, win, W, V, start)
+    return np.column_stack([am, wm]), np.column_stack([ap, wp])
+
+
+def judge_axes(data: EquationData, win: Windows, nominal: VehicleParams) -> Windows:
+    """Fill ``win.usable``/``axis_r2``/``axis_gain`` from the nominal model's prediction."""
+    meas, pred = axis_errors(data, win, nominal)
+    dm = meas - meas.mean(0)
+    dp = pred - pred.mean(0)
+    cov = np.sum(dm * dp, 0)
+    r2 = cov ** 2 / np.maximum(np.sum(dm ** 2, 0) * np.sum(dp ** 2, 0), 1e-30)
+    gain = cov / np.maximum(np.sum(dp ** 2, 0), 1e-30)
+    win.axis_r2 = r2
+    win.axis_gain = gain
+    err = meas - pred
+    mad = 1.4826 * np.median(np.abs(err - np.median(err, 0)), 0)
+    win.scale = np.maximum(mad, 1e-9)
+    win.usable = (r2 >= MIN_AXIS_R2) & JUDGED
+    return win
+
+
+def output_error(data: EquationData, win: Windows, vp: VehicleParams, nominal: VehicleParams,
+                 rows: np.ndarray | None = None) -> np.ndarray:
+    """Output-error residual (K, N + 2) in the equation error's channels (``motor1..N``,
+    ``force_x``, ``force_y``), built so that :func:`~twin_nodes.discovery.residuals.modes` returns
+    the per-window mean acceleration error of the judged axes (vertical, roll, pitch, yaw), each
+    in units of the nominal model's typical error on that axis (robust sd over the windows): the
+    axes differ in noise by an order of magnitude, and a yaw effect must not drown in the
+    vertical channel's noise.  Unused axes contribute nothing."""
+    meas, pred = axis_errors(data, win, vp, rows)
+    err = (meas - pred) * win.usable[None, :] / win.scale[None, :]
+    r = nominal.rotors
+    n_rot = r.count
+    b = np.vstack([np.ones(n_rot), np.array(r.y_flu_m), -np.array(r.x_flu_m), -np.array(r.direction, float)])
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    # modes() projects per-motor channels with b; pinv(b) puts the axis errors back exactly
+    per_motor = err[:, 2:6] @ np.linalg.pinv(b).T
+    R = np.column_stack([per_motor, np.zeros((len(err), 2))])
+    return np.where(np.isfinite(R), R, 0.0)
+
+
+__all__ = ["AXES", "HORIZON_S", "MIN_AXIS_R2", "Windows", "axis_errors", "judge_axes", "make_windows",
+           "output_error", "simulate_windows"]

@@ -1,0 +1,189 @@
+"""Fly a mission plan's waypoints with our simulator (as ``rotortwin simulate --plan``).
+
+The plan is flown the way PX4 flies a mission: arm, take off to the first item's altitude above
+home, then each waypoint in turn, the heading towards it (``MPC_YAW_MODE 0``: turn first, at
+``YAW_RATE`` rad/s, when the direction changes by more than a few degrees), a trapezoidal speed
+profile along the leg (``ACC`` m/s^2 up to the item's speed; vertical speed limited to
+``MPC_Z_V_AUTO_UP``/``_DN``); a stop item ends at rest with a 0.5 s hold, a fly-through item keeps
+its speed into the next leg.  After the last item: return to launch at ``RTL_ALT`` and land
+(``rtl_after``) or land where it is.  The PX4-like controller flies the setpoints (250 Hz), the
+plant carries the hidden effect, the log is written like :func:`twin_nodes.discovery.prove.write_flight`
+does (same topics, rates and noise).
+
+Waypoints come as ``(north_m, east_m, alt_m, speed_m_s, fly_through)`` tuples (the CLI reads the
+plan file with :func:`twin_nodes.mavlink.mission.load_plan`).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from twin_nodes.base import frames
+from twin_nodes.discovery.prove import EstimateNoise, Hidden, record_to_topics
+from twin_nodes.twin.sim import fly_closed_loop
+from twin_nodes.vehicle.params import VehicleParams
+
+YAW_RATE = 0.8          # rad/s (PX4 MPC_YAWRAUTO_MAX 45 deg/s)
+ACC = 2.5               # m/s^2 horizontal acceleration
+V_UP, V_DN = 3.0, 1.5   # m/s (MPC_Z_V_AUTO_UP / _DN)
+RTL_ALT = 15.0
+HOLD_S = 0.5
+
+
+def plan_setpoints(waypoints: Sequence[tuple], rtl_after: bool = True, rate_hz: float = 250.0):
+    """Setpoint history (ENU) of a plan flown PX4-style: returns t, SP (T, 11), armed(t)."""
+    dt = 1.0 / rate_hz
+    T, P, V, A, Y = [], [], [], [], []
+    pos = np.zeros(3)
+    vel = np.zeros(3)
+    yaw = 0.0
+    tt = 0.0
+    armed_from = 2.0
+
+    def emit(p, v, a, y):
+        nonlocal tt
+        T.append(tt)
+        P.append(np.array(p, float))
+        V.append(np.array(v, float))
+        A.append(np.array(a, float))
+        Y.append(y)
+        tt += dt
+
+    def hold(seconds):
+        for _ in range(int(seconds * rate_hz)):
+            emit(pos, np.zeros(3), np.zeros(3), yaw)
+
+    def turn_to(heading):
+        nonlocal yaw
+        while abs(_wrap(heading - yaw)) > YAW_RATE * dt:
+            yaw = _wrap(yaw + math.copysign(YAW_RATE * dt, _wrap(heading - yaw)))
+            emit(pos, np.zeros(3), np.zeros(3), yaw)
+        yaw = heading
+
+    def vertical(target):
+        nonlocal pos
+        while abs(target - pos[2]) > 0.05:
+            vz = V_UP if target > pos[2] else -V_DN
+            step = vz * dt
+            if abs(step) > abs(target - pos[2]):
+                step = target - pos[2]
+            pos = pos + np.array([0.0, 0.0, step])
+            emit(pos, np.array([0.0, 0.0, vz]), np.zeros(3), yaw)
+        pos = np.array([pos[0], pos[1], target])
+
+    def leg(b, cruise, stop):
+        """Straight line to b; speed along it ramps at ACC, limited so the vertical part stays
+        within the climb/descent limits; ends at rest when ``stop``."""
+        nonlocal pos, vel
+        d = b - pos
+        length = float(np.linalg.norm(d))
+        if length < 1e-6:
+            return
+        u = d / length
+        vmax = cruise
+        if abs(u[2]) > 1e-6:
+            vmax = min(vmax, (V_UP if u[2] > 0 else V_DN) / abs(u[2]))
+        s = 0.0
+        v = min(float(np.dot(vel, u)), vmax) if np.linalg.norm(vel) > 0 else 0.0
+        v = max(v, 0.0)
+        a = pos.copy()
+        while s < length:
+            remaining = length - s
+            if stop and v * v / (2 * ACC) >= remaining:
+                v = max(v - ACC * dt, 0.2)
+                ac = -ACC
+            else:
+                v = min(v + ACC * dt, vmax)
+                ac = ACC if v < vmax else 0.0
+            s = min(s + v * dt, length)
+            emit(a + u * s, u * v, u * ac, yaw)
+        pos = b.copy()
+        vel = np.zeros(3) if stop else u * v
+
+    hold(3.0)
+    wps = [np.array([w[1], w[0], w[2]], float) for w in waypoints]   # ENU: east, north, up
+    # PX4 inserts a take-off to the first item's altitude
+    vertical(wps[0][2])
+    hold(1.0)
+    for i, (b, w) in enumerate(zip(wps, waypoints)):
+        speed, through = float(w[3]), bool(w[4])
+        horiz = b[:2] - pos[:2]
+        if np.hypot(*horiz) > 1.0:
+            heading = math.atan2(horiz[1], horiz[0])
+            if abs(_wrap(heading - yaw)) > math.radians(10) or np.linalg.norm(vel) < 0.1:
+                if np.linalg.norm(vel) > 0.1:      # a fly-through corner with a big turn: PX4 slows down
+                    vel = np.zeros(3)
+                turn_to(heading)
+            else:
+                yaw = heading
+        leg(b, speed, stop=not through or i == len(wps) - 1)
+        if not through:
+            hold(HOLD_S)
+    if rtl_after:
+        vertical(max(RTL_ALT, pos[2]))
+        home = np.array([0.0, 0.0, pos[2]])
+        if np.hypot(*(home[:2] - pos[:2])) > 1.0:
+            turn_to(math.atan2(-pos[1], -pos[0]))
+            leg(home, 5.0, stop=True)
+        hold(1.0)
+    # land: MPC_LAND_SPEED 0.7 m/s, the last 1.5 m at MPC_LAND_CRWL 0.3 m/s
+    while pos[2] > -0.5:
+        vz = -0.7 if pos[2] > 1.5 else -0.3
+        pos = pos + np.array([0.0, 0.0, vz * dt])
+        emit(pos, np.array([0.0, 0.0, vz]), np.zeros(3), yaw)
+    armed_until = tt + 1.5
+    hold(2.0)
+    t = np.array(T)
+    SP = np.full((len(t), 11), np.nan)
+    SP[:, 0:3] = P
+    SP[:, 3:6] = V
+    SP[:, 6:9] = A
+    SP[:, 9] = Y
+    SP[t < armed_from] = np.nan
+    return t, SP, (lambda tq, a0=armed_from, a1=armed_until: (tq >= a0) & (tq < a1))
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def write_plan_flight(path: str | Path, vp: VehicleParams, hidden: Hidden, seed: int,
+                      waypoints: Sequence[tuple], rtl_after: bool = True) -> dict:
+    """Fly the plan with the hidden effect and write the flight as a PX4-like ULog."""
+    from twin_nodes.logs.ulog_write import write_px4_ulog
+
+    rng = np.random.default_rng(seed)
+    t_sp, SP, armed = plan_setpoints(waypoints, rtl_after)
+    plant = vp if hidden.name == "none" else vp.with_effect(hidden.name, **hidden.params)
+    v_full, v_empty = 16.6, 14.6
+    t_end = float(t_sp[-1])
+
+    def battery(t):
+        return v_full - (v_full - v_empty) * np.clip(t / t_end, 0, 1) ** 1.3
+
+    rec = fly_closed_loop(plant, t_sp, SP, controller_params=vp, battery_v=battery,
+                          estimate_noise=EstimateNoise(rng, 1.0 / 250.0), armed=armed, rng=rng)
+    topics = record_to_topics(rec, vp, battery, (t_sp, SP), np.random.default_rng(seed + 7))
+    r = vp.rotors
+    params = {"SYS_AUTOSTART": 0, "CA_ROTOR_COUNT": int(r.count), "MPC_THR_HOVER": float(vp.hover_command),
+              "THR_MDL_FAC": float(r.thr_mdl_fac) if r.thrust_model == "thrust_factor" else 0.0}
+    frd = frames.flu_to_frd(np.column_stack([r.x_flu_m, r.y_flu_m, r.z_flu_m]))
+    for i in range(r.count):
+        params.update({f"CA_ROTOR{i}_PX": float(frd[i, 0]), f"CA_ROTOR{i}_PY": float(frd[i, 1]),
+                       f"CA_ROTOR{i}_PZ": float(frd[i, 2]), f"CA_ROTOR{i}_KM": float(r.direction[i]) * r.km_m})
+    write_px4_ulog(str(path), topics, params, {"sys_name": "rotortwin-sim", "ver_hw": "ROTORTWIN_SIM",
+                                                "sim_vehicle": vp.name})
+    flying = np.isfinite(rec.u).all(1) & (rec.x[:, 2] > 0.5)
+    ok = flying & np.isfinite(rec.sp[:, 0:3]).all(1)
+    xy = np.hypot(*(rec.x[ok, 0:2] - rec.sp[ok, 0:2]).T)
+    z = np.abs(rec.x[ok, 2] - rec.sp[ok, 2])
+    return {"xy_tracking_rmse_m": float(np.sqrt(np.mean(xy ** 2))) if xy.size else float("nan"),
+            "z_tracking_rmse_m": float(np.sqrt(np.mean(z ** 2))) if z.size else float("nan"),
+            "duration_s": float(rec.t[-1])}
+
+
+__all__ = ["plan_setpoints", "write_plan_flight"]

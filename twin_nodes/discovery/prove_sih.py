@@ -1,0 +1,130 @@
+"""``rotortwin prove --source px4sih``: PX4 SIH flights (real PX4 firmware) with one SIH parameter changed.
+
+The flights are not ours and are not in the repository (no licence to redistribute the logs): they live in
+``../shared/flightlogs/sitl_effects/eNN/`` (``flight.ulg`` with every SIH_* parameter scrubbed, the truth in
+``truth.json``), plus the two no-effect baselines ``../shared/flightlogs/sitl/*.ulg``.  How to fly them again
+(PX4 commit, SIH parameter changes, missions, launch commands) is in ``missions/sih_effects/manifest.yaml``.
+
+The truth is mapped from the SIH parameter that changed (``truth.json``'s ``sih_changes``) onto our effect
+vocabulary (:data:`twin_nodes.physics.effects.EFFECTS`) with ``params/px4_sih_quadx.yaml`` as the nominal:
+
+==============  =====================================================================================
+SIH_MASS        ``mass``: mass = SIH_MASS
+SIH_T_MAX       ``thrust_coefficient``: kt_scale = T_MAX / 5.0 (SIH keeps Q_MAX, so km = Q_MAX/T_MAX moves too)
+SIH_Q_MAX       ``yaw_moment``: km = Q_MAX / T_MAX
+SIH_T_TAU       ``motor_time_constant``: tau_up = tau_down = T_TAU
+SIH_IXX/IYY/IZZ ``inertia``: ixx, iyy, izz (an unchanged axis keeps the nominal value and is scored too)
+SIH_KDV         ``linear_drag``: k_n_s_m = KDV (world-frame isotropic drag; truth.json calls it body_drag, linear)
+SIH_KDW         ``angular_damping``: k_nm_s_rad = KDW
+SIH_L_ROLL/PITCH ``inertia`` equivalent: roll (pitch) moment per command scales with L, so ixx_eq = ixx L0/L
+==============  =====================================================================================
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from twin_nodes.base.errors import TwinError
+from twin_nodes.discovery.prove import (DragContext, Hidden, Truth, effect_class, map_jobs, score, score_flight,
+                                        write_result)
+from twin_nodes.vehicle.params import VehicleParams, load_params
+
+REPO = Path(__file__).resolve().parents[2]
+NOMINAL = REPO / "params" / "px4_sih_quadx.yaml"
+MANIFEST = REPO / "missions" / "sih_effects" / "manifest.yaml"
+#: the flights a CI-size run takes: one per class that differs most, plus a no-effect flight
+CI_FLIGHTS = ("e01", "e06", "e07")
+
+
+def shared_dir(given: str | Path | None = None) -> Path:
+    """``../shared`` beside the repository (or ``given``, or ``$ROTORTWIN_SHARED``)."""
+    p = Path(given or os.environ.get("ROTORTWIN_SHARED") or REPO.parent / "shared")
+    return p
+
+
+def map_truth(truth: dict, nominal: VehicleParams) -> Truth:
+    """``truth.json`` of one SIH flight -> the truth in our effect vocabulary."""
+    changes = {k: float(v[1]) for k, v in (truth.get("sih_changes") or {}).items()}
+    text = ", ".join(f"{k} {float(v[0]):g}->{float(v[1]):g}" for k, v in (truth.get("sih_changes") or {}).items())
+    if not changes:
+        return Truth(Hidden("none", {}), "no SIH change")
+    r = nominal.rotors
+    t_max0 = r.thrust_max_n
+    inertia = nominal.inertia
+    names = set(changes)
+    if names == {"SIH_MASS"}:
+        return Truth(Hidden("mass", {"mass": changes["SIH_MASS"]}), text)
+    if names == {"SIH_T_MAX"}:
+        return Truth(Hidden("thrust_coefficient", {"kt_scale": changes["SIH_T_MAX"] / t_max0}), text)
+    if names == {"SIH_Q_MAX"}:
+        return Truth(Hidden("yaw_moment", {"km": changes["SIH_Q_MAX"] / t_max0}), text)
+    if names == {"SIH_T_TAU"}:
+        tau = changes["SIH_T_TAU"]
+        return Truth(Hidden("motor_time_constant", {"tau_up": tau, "tau_down": tau}), text)
+    if names and names <= {"SIH_IXX", "SIH_IYY", "SIH_IZZ"}:
+        return Truth(Hidden("inertia", {"ixx": float(changes.get("SIH_IXX", inertia[0, 0])),
+                                        "iyy": float(changes.get("SIH_IYY", inertia[1, 1])),
+                                        "izz": float(changes.get("SIH_IZZ", inertia[2, 2]))}), text)
+    if names == {"SIH_KDV"}:
+        return Truth(Hidden("linear_drag", {"k_n_s_m": changes["SIH_KDV"]}), text)
+    if names == {"SIH_KDW"}:
+        return Truth(Hidden("angular_damping", {"k_nm_s_rad": changes["SIH_KDW"]}), text)
+    if names and names <= {"SIH_L_ROLL", "SIH_L_PITCH"}:
+        arm = abs(r.y_flu_m[0]), abs(r.x_flu_m[0])
+        return Truth(Hidden("inertia", {"ixx": inertia[0, 0] * arm[0] / changes.get("SIH_L_ROLL", arm[0]),
+                                        "iyy": inertia[1, 1] * arm[1] / changes.get("SIH_L_PITCH", arm[1]),
+                                        "izz": inertia[2, 2]}), text + " (inertia equivalent)")
+    raise TwinError(f"truth.json: sih_changes: expected one SIH parameter group we map, got {sorted(names)}")
+
+
+def flights(shared: str | Path | None = None, size: str = "full") -> list[dict]:
+    """The SIH flights available under ``shared``: ``{"flight", "path", "truth_json", "mission"}``.
+
+    The changed-parameter flights ``sitl_effects/eNN`` and the no-effect baselines ``sitl/*.ulg``; an empty
+    list when the shared folder is absent (PX4 is not available to CI, so nothing is generated here)."""
+    root = shared_dir(shared) / "flightlogs"
+    out = []
+    for d in sorted((root / "sitl_effects").glob("e[0-9][0-9]")):
+        f, tj = d / "flight.ulg", d / "truth.json"
+        if f.is_file() and tj.is_file():
+            truth = json.loads(tj.read_text())
+            out.append({"flight": d.name, "path": str(f), "truth_json": truth, "mission": truth.get("mission", "")})
+    for f in sorted((root / "sitl").glob("px4sih_*.ulg")):
+        mission = {"triangle": "M1", "grid": "M2"}.get(f.stem.rsplit("_", 1)[-1], "")
+        out.append({"flight": f.stem, "path": str(f), "mission": mission,
+                    "truth_json": {"effects": [{"name": "none", "params": {}}], "sih_changes": {}}})
+    if size == "ci":
+        out = [f for f in out if f["flight"] in CI_FLIGHTS]
+    return out
+
+
+def run_one(args) -> dict:
+    """Discover blind on one SIH flight with the nominal SIH params and score it."""
+    flight, out_dir = args
+    from twin_nodes.discovery.discover import discover
+    from twin_nodes.logs.ulog_io import read_ulog
+
+    vp = load_params(NOMINAL)
+    truth = map_truth(flight["truth_json"], vp)
+    log = read_ulog(flight["path"])
+    res = discover(log, vp, closed_loop_metrics=False)
+    res.pop("_series", None)
+    drag = DragContext.from_log(log, vp) if effect_class(truth.hidden.name) == "drag" else None
+    name = f"{flight['flight']} ({flight['mission']})" if flight["mission"] else flight["flight"]
+    write_result(Path(out_dir) / f"{flight['flight']}.json", res)
+    return score_flight(name, truth, res, vp, drag, source="px4sih", log=flight["path"])
+
+
+def run_suite(out_dir: str | Path, size: str = "full", workers: int = 2, shared: str | Path | None = None,
+              progress: bool = True) -> dict:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    fl = flights(shared, size)
+    if not fl:
+        raise TwinError(f"--source px4sih: {shared_dir(shared) / 'flightlogs'}: expected the PX4 SIH flights "
+                        "(sitl_effects/eNN/flight.ulg + truth.json, sitl/px4sih_*.ulg); none found "
+                        f"(how to fly them: {MANIFEST.relative_to(REPO)})")
+    return score(map_jobs(run_one, [(f, str(out)) for f in fl], workers, "prove px4sih", progress),
+                 source="px4sih")

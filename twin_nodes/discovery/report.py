@@ -1,0 +1,180 @@
+"""The discovery result for people: the terminal summary, the HTML/PNG report, JSON conversion.
+
+``summary_text(res)`` and ``write_report(folder, res, series)`` take what
+:func:`twin_nodes.discovery.discover.discover` returns (``series`` is its ``"_series"`` entry);
+``json_default`` makes numpy values JSON-serialisable (``json.dumps(res, default=json_default)``).
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+
+import numpy as np
+
+
+def json_default(o):
+    """``json.dumps`` fallback: numpy scalars and arrays as Python numbers and lists, anything else as str."""
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def summary_text(res: dict) -> str:
+    """The terminal summary: worst mismatch windows, ranked candidates, verdict, closed-loop before/after."""
+    lines = [f"discover: {res['log']}  (nominal {res['params']})",
+             f"  fit on {res['method']['fit_interval_s']} s, judged on held-out {res['method']['heldout_interval_s']} s"]
+    if res["mismatch"]:
+        lines.append("  where the model and the flight disagree (worst window per channel):")
+        worst: dict[str, dict] = {}
+        for m in res["mismatch"]:
+            if m["channel"] not in worst or m["severity"] > worst[m["channel"]]["severity"]:
+                worst[m["channel"]] = m
+        for m in sorted(worst.values(), key=lambda m: -m["severity"])[:6]:
+            lines.append(f"    {m['channel']:<9} {m['t_start']:7.1f}-{m['t_end']:7.1f} s  {m['regime']:<28} "
+                         f"severity {m['severity']:.1f}x noise")
+    ex = res.get("excitation") or {}
+    if ex:
+        lines.append("  excitation (held-out blocks with signal / all; manoeuvres):")
+        for ch in [c for c in ("throttle", "roll", "pitch", "yaw", "force_x", "force_y") if c in ex]:
+            e = ex[ch]
+            man = ", ".join(f"{k} {v}" for k, v in list(e["manoeuvres"].items())[:3]) or "-"
+            lines.append(f"    {ch:<9} {e['blocks_heldout']:3d}/{e['blocks_heldout_total']:<3d} {man}")
+    lines.append("  candidates (verdict; held-out cut in its channel on the residual that judges it; the other "
+                 "residual's cut):")
+    for e in res["effects"][:8]:
+        verdict = e.get("verdict") or ("confirmed" if e["accepted"] else "rejected")
+        pretty = ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items())
+        kind = e.get("residual", "equation")
+        other = [v for k, v in (e.get("residuals") or {}).items() if k != kind]
+        o = (f"  [{'EE' if other[0]['residual'] == 'equation' else 'OE'} {100 * other[0]['heldout_improvement']:.0f} %]"
+             if other else "")
+        lines.append(f"    {verdict.upper():<9} {e['name']:<20} {'OE' if kind == 'output' else 'EE'} "
+                     f"{100 * e['heldout_improvement']:6.1f} % {e.get('heldout_channel', ''):<8}{o}  {pretty}")
+        if verdict == "likely" or (verdict == "rejected" and "confirmation" in e):
+            lines.append(f"              {e.get('verdict_note', '')}")
+    after = res.get("confirmed_on_followup") or []
+    if after:
+        lines.append(f"  confirmed on the follow-up flight: {', '.join(after)}")
+    if res["accepted"]:
+        lines.append(f"  confirmed: {', '.join(res['accepted'])}")
+    elif not after:
+        lines.append("  confirmed: nothing (no candidate explains the held-out residual significantly)")
+    if res.get("likely"):
+        lines.append(f"  likely (fly the confirmation plan, then --confirm): {', '.join(res['likely'])}")
+    conf = res.get("confirmation")
+    if conf and conf.get("effects"):
+        lines.append(f"  follow-up {conf['followup']}:")
+        for r in conf["effects"]:
+            lines.append(f"    {r['verdict'].upper():<9} {r['name']:<20} {r['note']}")
+    cl = res.get("after", {}).get("closed_loop_heldout")
+    cb = res.get("baseline", {}).get("closed_loop_heldout")
+    if isinstance(cl, dict) and isinstance(cb, dict):
+        lines.append("  closed-loop twin on the held-out part (before -> after):")
+        for k in ("xy_rmse_m", "z_rmse_m", "throttle_rmse"):
+            if k in cb and k in cl:
+                lines.append(f"    {k:<14} {cb[k]:.4f} -> {cl[k]:.4f}")
+        if "motor_rmse" in cb and "motor_rmse" in cl:
+            lines.append("    motor_rmse     " + " ".join(f"{a:.3f}->{b:.3f}" for a, b in
+                                                         zip(cb["motor_rmse"], cl["motor_rmse"])))
+    return "\n".join(lines)
+
+
+def write_report(folder, res: dict, series: dict) -> None:
+    """Plots of the residual before/after on the held-out part and the candidate ranking, plus index.html."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    t, valid, held = series["t"], series["valid"], series["held"]
+    Rb, Ra, names = series["R_before"], series["R_after"], series["names"]
+    fig, axes = plt.subplots(len(names), 1, figsize=(10, 1.6 * len(names) + 1), sharex=True)
+    for i, ax in enumerate(np.atleast_1d(axes)):
+        rb = np.where(valid, Rb[:, i], np.nan)
+        ra = np.where(valid, Ra[:, i], np.nan)
+        ax.plot(t, rb, color="tab:red", lw=0.8, label="before")
+        ax.plot(t, ra, color="tab:green", lw=0.8, label="after")
+        ax.axvspan(t[held][0] if held.any() else t[-1], t[-1], color="0.9", zorder=-1)
+        ax.set_ylabel(names[i], fontsize=8)
+        ax.axhline(0, color="k", lw=0.5)
+    np.atleast_1d(axes)[0].legend(loc="upper right", fontsize=8)
+    np.atleast_1d(axes)[0].set_title("equation-error residual (fraction of full motor output); grey = held out")
+    np.atleast_1d(axes)[-1].set_xlabel("time since log start [s]")
+    fig.tight_layout()
+    fig.savefig(out / "residuals.png", dpi=90)
+    plt.close(fig)
+
+    eff = res["effects"]
+    fig, ax = plt.subplots(figsize=(8, 0.35 * len(eff) + 1.2))
+    vals = [100 * e["heldout_improvement"] for e in eff]
+    colors = ["tab:green" if e["accepted"] else ("tab:orange" if e.get("verdict") == "likely" else "0.6")
+              for e in eff]
+    ax.barh([e["name"] for e in eff], vals, color=colors)
+    ax.axvline(10, color="k", lw=0.6, ls="--")
+    ax.invert_yaxis()
+    ax.set_xlabel("held-out residual cut [%] (green = confirmed, orange = likely)")
+    fig.tight_layout()
+    fig.savefig(out / "candidates.png", dpi=90)
+    plt.close(fig)
+
+    def verdict(e):
+        v = e.get("verdict") or ("confirmed" if e["accepted"] else "rejected")
+        return f"<b>{v}</b>" if v != "rejected" else v
+
+    def resid(e):
+        out = []
+        for k, r in (e.get("residuals") or {}).items():
+            out.append(f"{'equation' if k == 'equation' else 'output'}: {100 * r['heldout_improvement']:.0f} % in "
+                       f"{html.escape(str(r['heldout_channel']))}")
+        return "<br>".join(out)
+
+    def excit(e):
+        x = e.get("excitation") or {}
+        if not x:
+            return ""
+        s = (f"{html.escape(str(x.get('channel')))}: {x.get('blocks_heldout', '?')}/{x.get('blocks_heldout_total', '?')}"
+             f" held-out blocks excited")
+        if x.get("blocks_missing"):
+            s += f"; ~{x['blocks_missing']} more needed: {html.escape(x.get('supplied_by', ''))}"
+        return s
+    rows = "".join(
+        f"<tr><td>{verdict(e)}</td><td>{html.escape(e['name'])}</td>"
+        f"<td>{html.escape(', '.join(f'{k}={v:.4g}' for k, v in e['params'].items()))}</td>"
+        f"<td>{e['heldout_before']:.4f}</td><td>{e['heldout_after']:.4f}</td><td>{resid(e)}</td><td>{excit(e)}</td>"
+        f"<td>{html.escape(e['evidence'])} {html.escape(e.get('verdict_note', '') if e.get('verdict') == 'likely' else '')}"
+        f"</td></tr>" for e in eff)
+    ex = res.get("excitation") or {}
+    exrows = "".join(f"<tr><td>{html.escape(ch)}</td><td>{v['blocks_heldout']}/{v['blocks_heldout_total']}</td>"
+                     f"<td>{v['blocks_flight']}/{v['blocks_flight_total']}</td><td>"
+                     f"{html.escape(', '.join(f'{k} {n}' for k, n in v['manoeuvres'].items()))}</td></tr>"
+                     for ch, v in ex.items())
+    mm = "".join(f"<tr><td>{m['channel']}</td><td>{m['t_start']}–{m['t_end']} s</td><td>{html.escape(m['regime'])}"
+                 f"</td><td>{m['severity']}</td></tr>" for m in res["mismatch"][:15])
+    head = (f"Confirmed: <b>{', '.join(res['accepted'])}</b>" if res["accepted"]
+            else "Nothing confirmed: no candidate explains the held-out residual significantly.")
+    if res.get("likely"):
+        head += f" Likely (needs a confirmation flight): <b>{', '.join(res['likely'])}</b>."
+    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>rotortwin discover</title>
+<style>body{{font-family:sans-serif;max-width:1000px;margin:auto}} td,th{{border-bottom:1px solid #ddd;padding:3px 6px;font-size:13px}}</style></head>
+<body><h1>Missing-physics discovery</h1><p>{html.escape(res['log'])} with {html.escape(str(res['params']))}</p>
+<h2>{head}</h2>
+<p>Residual = what the log measured minus what the model predicts from the logged motor commands, per motor and as horizontal force,
+in fraction of full motor output (the <i>equation error</i>); the <i>output error</i> flies the model open loop from the logged state for
+short horizons on the logged commands and compares body rates and vertical velocity, in the same channels and units
+({html.escape(str((res.get('output_error_axes') or {}).get('axes', 'not used')))}). Fit on {res['method']['fit_interval_s']} s, judged on {res['method']['heldout_interval_s']} s.
+{html.escape(res['method']['acceptance'])}.</p>
+<img src="residuals.png" width="100%"><h2>Candidates</h2><img src="candidates.png">
+<table><tr><th>verdict</th><th>effect</th><th>parameters</th><th>held-out before</th><th>after</th><th>both residuals (held-out cut)</th><th>excitation</th><th>evidence</th></tr>{rows}</table>
+<h2>Excitation per channel</h2><p>Blocks (0.5 s) whose commanded signal in the channel is above 3x its noise floor, on the held-out parts and over the flight, and the manoeuvres they come from.</p>
+<table><tr><th>channel</th><th>held-out</th><th>flight</th><th>manoeuvres (held-out)</th></tr>{exrows}</table>
+<h2>Where the mismatch is</h2><table><tr><th>channel</th><th>when</th><th>regime</th><th>severity (x noise)</th></tr>{mm}</table>
+</body></html>"""
+    (out / "index.html").write_text(page)
+
+
+__all__ = ["json_default", "summary_text", "write_report"]

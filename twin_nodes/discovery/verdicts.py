@@ -1,0 +1,145 @@
+"""Graded verdicts: ``confirmed``, ``likely`` or ``rejected``, and what a ``likely`` one still needs.
+
+``confirmed``
+    today's bar (:mod:`twin_nodes.discovery.discover`): above the physical resolution floor, inside
+    the physical range, significant on the held-out blocks of 2-fold cross-validation (t, sign or
+    sign-flip test > 3), >= 10 % of the held-out residual explained, and not worse in the
+    closed-loop twin.
+``likely``
+    everything but the significance: a large held-out cut in the channel the effect acts on
+    (>= ``LIKELY_MIN_CUT``), the parameter well away from its nominal value (half the change still
+    above the resolution floor) and inside the physical range, both folds' fits moving the same
+    way by comparable amounts, most active held-out blocks improved and a positive block
+    statistic (> ``LIKELY_MIN_T``), but too few excited blocks for the 3-sigma test.  The verdict
+    says how many more blocks the test needs at the observed gain and spread, and which manoeuvre
+    supplies them (a confirmation plan, :mod:`twin_nodes.discovery.plans`).
+``rejected``
+    anything else, with the reason.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from twin_nodes.discovery.locate import supply_for
+
+LIKELY_MIN_CUT = 0.30
+LIKELY_MIN_T = 1.5
+LIKELY_MIN_POSITIVE = 0.75
+#: blocks, all improved, that the sign test needs for one-sided 3 sigma (2^-10 < 0.00135)
+SIGN_TEST_BLOCKS = 10
+
+#: effect -> the manoeuvres that excite it (plan kinds of :mod:`twin_nodes.discovery.plans`)
+EFFECT_MANOEUVRES = {
+    "yaw_moment": ("yaw_sweeps",),
+    "inertia": ("rate_doublets", "yaw_sweeps"),
+    "motor_time_constant": ("vertical_steps", "rate_doublets", "yaw_sweeps"),
+    "actuator_delay": ("rate_doublets", "yaw_sweeps"),
+    "mass": ("vertical_steps",),
+    "thrust_coefficient": ("vertical_steps",),
+    "motor_efficiency": ("vertical_steps",),
+    "battery_sag": ("vertical_steps",),
+    "ground_effect": ("low_hover",),
+    "com_offset": ("rate_doublets", "fast_legs"),
+    "rotor_tilt": ("vertical_steps", "yaw_sweeps"),
+    "linear_drag": ("fast_legs",),
+    "body_drag": ("fast_legs",),
+    "rotor_drag": ("fast_legs",),
+    "wind": ("fast_legs",),
+}
+
+
+def far_from_nominal(c, theta: np.ndarray) -> bool:
+    """Half the fitted change is still above the candidate's resolution floor."""
+    return bool(c.floor(c.x0 + 0.5 * (np.asarray(theta) - c.x0)))
+
+
+def folds_agree(c, thetas: list[np.ndarray], scales: np.ndarray) -> bool:
+    """Both folds' fits move the main parameter the same way, by amounts within a factor 2."""
+    if len(thetas) < 2:
+        return True
+    d = [(np.asarray(t) - c.x0) / scales for t in thetas]
+    k = int(np.argmax(np.abs(d[0]) + np.abs(d[1])))
+    a, b = d[0][k], d[1][k]
+    if a * b <= 0:
+        return False
+    return min(abs(a), abs(b)) >= 0.5 * max(abs(a), abs(b))
+
+
+def blocks_needed(stats: dict, t_crit: float) -> int | None:
+    """Blocks the held-out test would need at the observed per-block gain and spread."""
+    n, mean, sd, pos = stats.get("n", 0), stats.get("mean", 0.0), stats.get("sd", 0.0), stats.get("n_pos", 0)
+    if n == 0 or mean <= 0:
+        return None
+    need_t = math.ceil((t_crit * sd / mean) ** 2) if sd > 0 else n
+    if n >= 2 and pos == n:
+        need_t = min(need_t, SIGN_TEST_BLOCKS)
+    return max(int(need_t), 4)
+
+
+def likely_failures(f, t_crit: float, min_rel: float) -> list[str]:
+    """Why fit ``f`` is not ``likely`` (empty: it is)."""
+    c = f.candidate
+    why = []
+    if not f.above_floor or not far_from_nominal(c, f.theta):
+        why.append("parameter not well away from nominal")
+    if f.at_bound:
+        why.append("pinned to the edge of the physical range")
+    if f.unphysical:
+        why.append("unphysical")
+    if f.closed_loop:
+        why.append("worse in the closed loop")
+    if f.mode_cut < LIKELY_MIN_CUT:
+        why.append(f"held-out cut {100 * f.mode_cut:.0f} % < {100 * LIKELY_MIN_CUT:.0f} %")
+    if f.rel_improvement < min_rel:
+        why.append("cross-validated cut too small")
+    if not f.folds_agree:
+        why.append("the two folds disagree")
+    st = f.stats
+    n, pos = st.get("n", 0), st.get("n_pos", 0)
+    # under 4 active blocks the tests are not run: then every active block must improve
+    favour = (n >= 2 and pos == n) if n < 4 else (pos >= LIKELY_MIN_POSITIVE * n and f.t_stat > LIKELY_MIN_T)
+    if not favour:
+        why.append("held-out blocks do not favour it")
+    return why
+
+
+def grade(f, t_crit: float, min_rel: float, excitation: dict | None, explained_by: str | None = None) -> None:
+    """Set ``f.verdict``, ``f.verdict_note``, ``f.excitation`` (in place)."""
+    ch = f.judged[0] or "throttle"
+    if f.candidate.name == "motor_efficiency":
+        ch = f"motor{int(f.candidate.fixed.get('motor', 1))}"
+    ex = dict((excitation or {}).get(ch, {}))
+    ex["channel"] = ch
+    ex["residual"] = f.kind
+    ex["active_heldout_blocks"] = int(f.stats.get("n", f.n_blocks))
+    ex["supplied_by"] = supply_for(ch)
+    f.excitation = ex
+    if f.accepted:
+        f.verdict, f.verdict_note = "confirmed", f"t={f.t_stat:.1f} over {f.n_blocks} held-out blocks"
+        return
+    if explained_by:
+        f.verdict, f.verdict_note = "rejected", f"explained by {explained_by}"
+        return
+    fails = likely_failures(f, t_crit, min_rel)
+    significant = f.t_stat > t_crit
+    if fails or significant:
+        f.verdict = "rejected"
+        f.verdict_note = "; ".join(fails) if fails else "significant but below the acceptance bar"
+        return
+    need = blocks_needed(f.stats, t_crit)
+    have = int(f.stats.get("n", 0))
+    missing = max((need or have + 1) - have, 1)
+    ex["blocks_needed"] = need
+    ex["blocks_missing"] = missing
+    ex["plans"] = list(EFFECT_MANOEUVRES.get(f.candidate.name, ("rate_doublets",)))
+    f.verdict = "likely"
+    f.verdict_note = (f"held-out cut {100 * f.mode_cut:.0f} % in {ch} ({f.kind} error), t={f.t_stat:.1f} over "
+                      f"{have} active blocks; about {missing} more excited {ch} blocks needed for the "
+                      f"3-sigma test: fly {supply_for(ch)}")
+
+
+__all__ = ["EFFECT_MANOEUVRES", "LIKELY_MIN_CUT", "LIKELY_MIN_T", "blocks_needed", "far_from_nominal",
+           "folds_agree", "grade", "likely_failures"]

@@ -1,0 +1,156 @@
+"""One flight -> one catalog row: identity and date from the ULog header, params, discovery or the twin.
+
+:func:`process_flight` never raises for a bad flight: it returns a ``failed`` row carrying the
+one-line error (the :class:`~twin_nodes.base.errors.TwinError` message), so one bad log never
+stops a fleet run.  It runs on a Dask worker; everything it needs is imported inside it.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+from twin_nodes.base.errors import TwinError
+from twin_nodes.fleet.catalog import effect_columns, file_key, now_utc, verdict, write_row
+
+
+def identity(path: str | os.PathLike[str]) -> dict:
+    """Vehicle identity and flight date from the ULog header (pyulog, header only).
+
+    ``vehicle_id``: ``sys_uuid`` if logged, else the hardware id (``ver_hw`` + ``ver_hw_subtype``)
+    with ``sys_name``, else the file's folder; ``vehicle_id_source`` says which.  Date:
+    ``time_ref_utc`` (info), else the first GPS fix time, else the file mtime (``date_source``)."""
+    from pyulog import ULog
+
+    try:
+        u = ULog(str(path), parse_header_only=True)
+    except Exception as exc:  # pyulog raises bare exceptions on damaged files
+        raise TwinError(f"{path}: <header>: expected a readable ULog header ({type(exc).__name__}: {exc})"
+                        ) from None
+    info = u.msg_info_dict
+    out = {"sys_uuid": str(info.get("sys_uuid", "") or ""), "ver_hw": str(info.get("ver_hw", "") or ""),
+           "sys_name": str(info.get("sys_name", "") or "")}
+    hw = "/".join(x for x in (out["ver_hw"], str(info.get("ver_hw_subtype", "") or "")) if x)
+    if out["sys_uuid"]:
+        out["vehicle_id"], out["vehicle_id_source"] = out["sys_uuid"], "sys_uuid"
+    elif hw and out["sys_name"]:
+        out["vehicle_id"], out["vehicle_id_source"] = f"{out['sys_name']}:{hw}", "sys_name+ver_hw"
+    else:
+        out["vehicle_id"], out["vehicle_id_source"] = f"folder:{Path(path).resolve().parent.name}", "folder"
+    ref = info.get("time_ref_utc")
+    t, src = None, None
+    if isinstance(ref, (int, float)) and ref > 0:
+        t, src = float(ref), "time_ref_utc"
+    else:
+        t = _gps_time(path)
+        src = "gps" if t is not None else None
+    if t is None:
+        t, src = Path(path).stat().st_mtime, "file_mtime"
+    out["flight_time_utc"] = _dt.datetime.fromtimestamp(t, _dt.timezone.utc).isoformat(timespec="seconds")
+    out["date_source"] = src
+    return out
+
+
+def _gps_time(path) -> float | None:
+    """The first valid GPS UTC time in the log [s], or None."""
+    from pyulog import ULog
+
+    try:
+        u = ULog(str(path), ["vehicle_gps_position", "sensor_gps"])
+    except Exception:
+        return None
+    for d in u.data_list:
+        t = d.data.get("time_utc_usec")
+        if t is not None:
+            ok = t[t > 1_000_000_000_000_000]
+            if ok.size:
+                return float(ok[0]) / 1e6
+    return None
+
+
+def resolve_params(path: str | os.PathLike[str], vehicle_id: str, params: str | None,
+                   params_map: dict[str, str] | None) -> tuple[Path, str]:
+    """The params file for one flight: ``--params``, else the per-vehicle map, else from the log."""
+    from twin_nodes.identify.nominal import params_for_log
+
+    if params:
+        return Path(params), "given"
+    if params_map and vehicle_id in params_map:
+        return Path(params_map[vehicle_id]), f"params map: {vehicle_id}"
+    p, note = params_for_log(path, None)
+    return p, (note or "from log").split(";")[0]
+
+
+def _num(v):
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    return float(v) if math.isfinite(float(v)) else None
+
+
+def metric_columns(prefix: str, m: dict | None) -> dict:
+    """Table-2 scalars as ``<prefix>_<metric>`` columns (per-motor lists as ``_m<i>``)."""
+    out = {}
+    for k, v in (m or {}).items():
+        if isinstance(v, list):
+            for i, x in enumerate(v):
+                if _num(x) is not None:
+                    out[f"{prefix}_{k}_m{i}"] = _num(x)
+        elif _num(v) is not None:
+            out[f"{prefix}_{k}"] = _num(v)
+    return out
+
+
+def analyse(path: str, mode: str, params: str | None, params_map: dict | None,
+            closed_loop_metrics: bool) -> dict:
+    """The row of one flight (raises TwinError on a bad flight)."""
+    from twin_nodes.logs.ulog_io import read_ulog
+    from twin_nodes.vehicle.params import load_params
+
+    ident = identity(path)
+    pfile, note = resolve_params(path, ident["vehicle_id"], params, params_map)
+    vp = load_params(pfile)
+    log = read_ulog(path)
+    row = {**ident, "duration_s": float(log.duration_s), "params_file": str(pfile), "params_note": note,
+           "nominal_mass_kg": float(vp.mass_kg)}
+    if mode == "compare":
+        from twin_nodes.twin.compare import compare_log
+
+        row.update(metric_columns("closed", compare_log(log, vp, mode="closed").metrics))
+        return row
+    from twin_nodes.discovery.discover import discover
+
+    res = discover(log, vp, closed_loop_metrics=closed_loop_metrics)
+    effects = [{"name": e.get("name"), "verdict": verdict(e), "params": e.get("params") or {},
+                "evidence": e.get("evidence", "")} for e in res.get("effects", [])]
+    row["effects_json"] = json.dumps(effects, default=float)
+    row["effects_present"] = ",".join(sorted({f"{e['name']}" for e in effects if e["verdict"] != "rejected"}))
+    row.update(effect_columns(effects))
+    for side in ("baseline", "after"):
+        row.update(metric_columns(f"{side}_closed", (res.get(side) or {}).get("closed_loop_heldout")))
+    return row
+
+
+def process_flight(path: str, catalog: str, mode: str = "discover", params: str | None = None,
+                   params_map: dict | None = None, closed_loop_metrics: bool = True) -> dict:
+    """Analyse one flight and write its catalog row; returns a short summary (never raises on a
+    bad flight: the row is ``failed`` with the one-line error)."""
+    t0 = time.time()
+    key = file_key(path)
+    row = {**key, "mode": mode, "status": "ok", "error": ""}
+    try:
+        row.update(analyse(path, mode, params, params_map, closed_loop_metrics))
+    except TwinError as exc:
+        row.update(status="failed", error=str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+    except Exception as exc:  # a bug on one flight must not stop the fleet; recorded, one line
+        row.update(status="failed", error=f"{path}: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
+    row.setdefault("vehicle_id", "")
+    row.setdefault("flight_time_utc", "")
+    row["elapsed_s"] = round(time.time() - t0, 2)
+    row["processed_at"] = now_utc()
+    write_row(catalog, row)
+    return {"path": key["path"], "status": row["status"], "error": row["error"], "vehicle_id": row["vehicle_id"],
+            "elapsed_s": row["elapsed_s"], "effects": row.get("effects_present", "")}

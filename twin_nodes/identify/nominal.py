@@ -1,0 +1,417 @@
+"""A complete nominal twin of the vehicle that flew, built from its own PX4 log.
+
+Nothing is silent: every value of the params file comes with its source (a log
+parameter, identified on this flight with its standard error, a PX4 default, or an
+assumption), and :func:`header` writes them into the file.
+
+- rotor layout, spin, thrust curve (``THR_MDL_FAC``), controller gains and limits:
+  the log's PX4 parameters (:mod:`twin_nodes.vehicle.px4_params`);
+- maximum thrust per rotor ``T_max`` and linear drag: the specific-force equation
+  ``f_z = (T_max/m) sum T~(s_i) - (k_z/m) v_z`` (body FLU, accelerometer) over the
+  airborne part, ``T~ = f s^2 + (1 - f) s`` of the lagged commands ``s``;
+- inertia and angular damping: the rotor moment computed from the commands (``T_max`` from
+  above, the lever arms) regressed on the measured angular acceleration and rate,
+  ``M = I w' + k_w w + trim``: the commands carry the controller's noise, so they stand on the
+  side of the equation that tolerates it; yaw gives ``Izz / km`` only, so ``Izz`` rests on the
+  assumed ``km``;
+- static trims: the median motor outputs in steady flight give a centre-of-mass offset
+  (roll/pitch) and a tangential rotor tilt (yaw); the pack voltage, when it sags, a battery term;
+- the motor time constant: the lag that best explains the roll/pitch accelerations
+  (a scan over 0.02-0.25 s; reported with the range within 2 % of the best residual);
+- mass: the user's ``--mass-kg``, else the airframe's typical mass (an assumption:
+  every identified force and inertia scales with it, so the twin's motion does not).
+
+Both sides of every regression are low-passed by the same zero-phase filter.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import math
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from twin_nodes.base.errors import LogError
+from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
+                                           rotor_states_from_commands, thrust_regressor, translational_regression,
+                                           world_to_body)
+from twin_nodes.logs.ulog_io import FlightLog, read_ulog
+from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
+from twin_nodes.vehicle.px4_params import (AIRFRAMES, RateGainsPx4, outer_loop_gains, param, rate_gains_physical,
+                                           rotor_layout)
+
+#: assumed rotor torque / thrust ratio [m] (Q = km T): 0.016 (APC 10x4.7: C_P/(2 pi C_T) D) to 0.024
+#: (Buho Negro's datasheet); PX4's CA_ROTORn_KM (0.05 by default) is an allocation value, not a measurement.
+KM_ASSUMED_M = 0.02
+TAU_SCAN_S = np.round(np.arange(0.02, 0.2501, 0.01), 3)
+#: the lag counts as identified when the scan's near-best range is no wider than this [s]
+TAU_SPREAD_MAX_S = 0.08
+TAU_ASSUMED_S = 0.05
+GRID_HZ = 50.0
+RATES = "body_rates_flu"
+
+
+@dataclass
+class Nominal:
+    """The params built from a log and where each value came from."""
+
+    params: VehicleParams
+    log_path: str
+    sources: dict[str, str]
+    fits: dict[str, float] = field(default_factory=dict)
+
+    def header(self) -> str:
+        """Comment block for the params file: one line per value and its source."""
+        lines = [f"Nominal twin built from {self.log_path} by 'rotortwin params from-ulog'.",
+                 "Every value and its source:"]
+        lines += [f"  {k}: {v}" for k, v in self.sources.items()]
+        return "\n".join(lines)
+
+
+def _airborne_grid(log: FlightLog, rate_hz: float, trim_s: float = 2.0) -> np.ndarray:
+    """Uniform times inside the airborne intervals, ``trim_s`` away from take-off and touchdown."""
+    pieces = []
+    for a, b in log.airborne_intervals():
+        if b - a > 2 * trim_s + 2.0:
+            pieces.append(np.arange(a + trim_s, b - trim_s, 1.0 / rate_hz))
+    if not pieces:
+        raise LogError(log.path, "landed", "expected at least one airborne interval longer than 6 s")
+    return np.concatenate(pieces)
+
+
+def _mass(log: FlightLog, mass_kg: float | None) -> tuple[float, str]:
+    if mass_kg is not None:
+        return float(mass_kg), "--mass-kg"
+    autostart = int(log.params.get("SYS_AUTOSTART", 0) or 0)
+    af = AIRFRAMES.get(autostart)
+    if af is not None:
+        return af.mass_kg, (f"ASSUMED typical take-off mass of airframe {autostart} ({af.name}); give --mass-kg "
+                            f"(forces and inertia scale with it, the twin's motion does not)")
+    return 1.5, "ASSUMED 1.5 kg (unknown airframe); give --mass-kg (forces and inertia scale with it)"
+
+
+def _signals(log: FlightLog, t: np.ndarray) -> dict[str, np.ndarray]:
+    return {
+        "motors": log.require("motors").at(t),
+        "rates": log.require(RATES).at(t),
+        "q": log.require("attitude_q").at(t),
+        "v_enu": log.require("velocity_enu").at(t),
+        "f_body": log.require("specific_force_flu").at(t),
+    }
+
+
+def _segments(t: np.ndarray, rate_hz: float) -> list[slice]:
+    """Contiguous runs of the (possibly gapped) grid."""
+    cut = np.flatnonzero(np.diff(t) > 1.5 / rate_hz) + 1
+    bounds = np.concatenate([[0], cut, [t.size]])
+    return [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b - a > 20]
+
+
+def _per_segment(fn, t: np.ndarray, x: np.ndarray, segs: list[slice]) -> np.ndarray:
+    out = np.empty_like(np.asarray(x, float))
+    for s in segs:
+        out[s] = fn(t[s], x[s])
+    return out
+
+
+def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: float | None = None,
+                     name: str | None = None, cutoff_hz: float = 2.5) -> Nominal:
+    """Build the nominal params of the vehicle that flew ``log`` (see the module docstring)."""
+    p = log.params
+    src: dict[str, str] = {}
+    layout = rotor_layout(p, log.path, arm_m)
+    n = len(layout.x_flu_m)
+    if log.n_motors != n:
+        raise LogError(log.path, "actuator_motors",
+                       f"{n} rotors in the parameters, {log.n_motors} motor outputs in the log")
+    src["rotors.x_flu_m/y_flu_m/z_flu_m, direction"] = layout.source
+    m, src["vehicle.mass_kg"] = _mass(log, mass_kg)
+    f_fac, src["rotors.thr_mdl_fac"] = param(p, "THR_MDL_FAC", 0.0)
+    f_fac = min(max(f_fac, 0.0), 1.0)
+
+    t = _airborne_grid(log, GRID_HZ)
+    sig = _signals(log, t)
+    ok = np.all(np.isfinite(sig["motors"]), axis=1) & np.all(np.isfinite(sig["rates"]), axis=1)
+    t = t[ok]
+    sig = {k: v[ok] for k, v in sig.items()}
+    segs = _segments(t, GRID_HZ)
+    if not segs:
+        raise LogError(log.path, "motors", "expected airborne motor outputs with body rates, found none")
+
+    def lp(x: np.ndarray) -> np.ndarray:
+        return _per_segment(lambda _t, v: lowpass(v, GRID_HZ, cutoff_hz), t, x, segs)
+
+    # central difference, then the same low-pass as the regressors: a smoothing derivative
+    # would filter one side of the equation only and bias the inertia up
+    alpha = lp(_per_segment(lambda tt, w: np.gradient(w, tt, axis=0), t, sig["rates"], segs))
+    rates_lp = lp(sig["rates"])
+    geom = RotorGeometry(np.array(layout.x_flu_m), np.array(layout.y_flu_m), np.array(layout.direction, float))
+
+    def thrust_units(tau: float) -> np.ndarray:
+        s = np.empty_like(sig["motors"])
+        for sg in segs:
+            s[sg] = rotor_states_from_commands(t[sg], sig["motors"][sg], tau_up_s=tau)
+        return lp(thrust_regressor(s, "thrust_factor", f_fac))
+
+    # --- motor time constant: the lag that best explains roll and pitch accelerations
+    cost = []
+    for tau in TAU_SCAN_S:
+        fits = _moment_fits(alpha, rates_lp, thrust_units(float(tau)), geom, 1.0, 1.0)
+        cost.append(sum(1.0 - fits[ax].r2 for ax in ("roll", "pitch")))
+    cost = np.asarray(cost)
+    i_best = int(np.argmin(cost))
+    near = TAU_SCAN_S[cost <= cost[i_best] * 1.02]
+    at_edge = i_best in (0, len(TAU_SCAN_S) - 1)
+    if near.max() - near.min() <= TAU_SPREAD_MAX_S and not at_edge:
+        tau = float(TAU_SCAN_S[i_best])
+        src["rotors.tau_up_s/tau_down_s"] = (f"identified: lag explaining roll/pitch acceleration best, {tau:.3f} s "
+                                             f"(within 2 % of the best residual: {near.min():.2f}-{near.max():.2f} s)")
+    else:
+        tau = TAU_ASSUMED_S
+        why = (f"its best fit sits at the edge of the {TAU_SCAN_S[0]}-{TAU_SCAN_S[-1]} s scan" if at_edge else
+               f"residual within 2 % of its best from {near.min():.2f} to {near.max():.2f} s")
+        src["rotors.tau_up_s/tau_down_s"] = (f"ASSUMED {tau} s (typical motor + ESC): the flight does not determine "
+                                             f"it at this log's motor rate ({why})")
+    tt = thrust_units(tau)
+
+    # --- thrust and drag from the specific force
+    v_body = lp(world_to_body(sig["q"], sig["v_enu"]))
+    trans = translational_regression(lp(sig["f_body"]), tt, v_body)
+    kt_m, kt_m_se = trans["z"]["kT/m"], trans["z"].se("kT/m")
+    if not kt_m > 0:
+        raise LogError(log.path, "specific_force_flu", "expected the thrust to carry the weight (fit kT/m > 0)")
+    # battery sag: thrust at a given command falls with the pack voltage, T = T_max (V/V_ref)^e T~;
+    # linearised, f_z = (T_max/m) sum T~ + (T_max e / m) sum T~ ln(V/V_ref) - (k_z/m) v_z
+    battery = _battery_sag(log, t, tt, lp, v_body, sig, segs)
+    if battery is not None:
+        kt_m, kt_m_se, v_ref, expo, expo_se = battery
+        src["effects.battery_sag"] = (f"identified: thrust ~ (V/{v_ref:.2f} V)^{expo:.2f} ± {expo_se:.2f} "
+                                      f"(specific force z vs pack voltage)")
+    else:
+        src["effects.battery_sag"] = "not included: no voltage trace, too little sag, or no significant effect"
+    t_max = m * kt_m
+    src["rotors.thrust_max_n"] = (f"identified: {t_max:.3f} N ± {m * kt_m_se:.3f} (specific force z, mass above"
+                                  + (f", at {battery[2]:.2f} V)" if battery is not None else ")"))
+    # isotropic horizontal drag: body x and y stacked with one shared coefficient (a mission
+    # flown nose-first excites body x only), a trim offset per axis
+    f_lp = lp(sig["f_body"])
+    nz = np.zeros(t.size)
+    X = np.vstack([np.column_stack([-v_body[:, 0], np.ones(t.size), nz]),
+                   np.column_stack([-v_body[:, 1], nz, np.ones(t.size)])])
+    hfit = fit_linear(X, np.concatenate([f_lp[:, 0], f_lp[:, 1]]), ["kd/m", "bias_x", "bias_y"])
+    drag, drag_se = m * hfit["kd/m"], m * hfit.se("kd/m")
+    use_drag = drag > 3 * drag_se
+
+    # --- inertia and damping from the rotational equations, as moment = I alpha + k_w w + trim:
+    # the moment is computed from the commands, which carry the controller's noise (no response
+    # follows it), so the commands go on the left; regressing alpha on the commands instead
+    # attenuates the effectiveness and inflated the inertia 1.5-3x on PX4 SIH flights.
+    km = KM_ASSUMED_M
+    rot = _moment_fits(alpha, rates_lp, tt, geom, t_max, km)
+    l = geom.arm_length_m
+    inertia, damp, notes = [], [], []
+    for ax in ("roll", "pitch", "yaw"):
+        f = rot[ax]
+        inertia.append(f["I"] if f["I"] > 0 else math.inf)
+        damp.append(f["k_w"])
+        notes.append(f"{f['I']:.4g} ± {f.se('I'):.2g}")
+    # A rigid frame cannot exceed all its mass at the rotor radius: I <= 0.6 m l^2 (a quad X with
+    # every gram at the rotors has 0.5 m l^2).  Beyond that bound, or below 0.05 m l^2, the
+    # value is replaced by a shape prior: 0.2 m l^2 about roll and pitch (typical of 0.5-6 kg
+    # quads: F450 0.12, X500 0.18, Iris 0.31) and Izz = Ixx + Iyy (flat frame).
+    ml2 = m * l * l
+    prior = (0.2 * ml2, 0.2 * ml2, 0.4 * ml2)
+    for j, (key, what, lo, hi) in enumerate((("vehicle.ixx_kg_m2", "roll", 0.05, 0.6),
+                                             ("vehicle.iyy_kg_m2", "pitch", 0.05, 0.6),
+                                             ("vehicle.izz_kg_m2", "yaw", 0.1, 1.2))):
+        extra = ", with km ASSUMED below" if j == 2 else ""
+        if math.isfinite(inertia[j]) and lo * ml2 <= inertia[j] <= hi * ml2:
+            src[key] = f"identified: {notes[j]} ({what} moment from the commands vs angular acceleration{extra})"
+        else:
+            src[key] = (f"ASSUMED shape prior {prior[j]:.4g} kg m^2 ({prior[j] / ml2:.1f} m l^2): the {what} fit "
+                        f"({notes[j]}{extra}) is outside the rigid-frame range {lo}-{hi} m l^2")
+            inertia[j] = prior[j]
+            damp[j] = 0.0
+    src["rotors.km_m"] = f"ASSUMED {km} m (typical propeller torque/thrust ratio; not identifiable with Izz)"
+    k_w = float(np.mean(damp[:2]))
+    use_damp = k_w > 0 and all(rot[ax].t_values[1] > 3 for ax in ("roll", "pitch"))
+
+    effects = {"enabled": []}
+    if battery is not None:
+        effects["enabled"].append("battery_sag")
+        effects["battery_sag"] = {"v_ref": battery[2], "exponent": battery[3]}
+    if use_drag:
+        effects["enabled"].append("linear_drag")
+        effects["linear_drag"] = {"k_n_s_m": drag}
+        src["effects.linear_drag"] = f"identified: {drag:.3f} N/(m/s) (body x/y specific force vs air speed)"
+    else:
+        src["effects.linear_drag"] = f"not included: horizontal drag fit {drag:.3g} N/(m/s) not significant"
+    if use_damp:
+        effects["enabled"].append("angular_damping")
+        effects["angular_damping"] = {"k_nm_s_rad": k_w}
+        src["effects.angular_damping"] = f"identified: {k_w:.4g} N m/(rad/s) (roll/pitch rate damping)"
+    else:
+        src["effects.angular_damping"] = f"not included: roll/pitch damping fit {k_w:.3g} not significant"
+
+    # --- static trims: the mean rotor moments the controller holds in steady flight balance a
+    # centre-of-mass offset (roll/pitch) and tangentially tilted rotors (yaw)
+    steady = np.linalg.norm(sig["v_enu"], axis=1) < 2.0
+    if steady.sum() < 10 * GRID_HZ:
+        steady = np.ones(t.size, bool)
+    thrust = t_max * np.median(tt[steady], axis=0)
+    total = float(thrust.sum())
+    mx = float(np.dot(layout.y_flu_m, thrust))
+    my = float(-np.dot(layout.x_flu_m, thrust))
+    mz = float(-km * np.dot(layout.direction, thrust))
+    dx, dy, lever = -my / total, mx / total, -mz / total
+    lim_d, lim_l = 0.3 * l, l * math.sin(math.radians(10.0))
+    if math.hypot(dx, dy) > 0.01 * l and max(abs(dx), abs(dy)) <= lim_d:
+        effects["enabled"].append("com_offset")
+        effects["com_offset"] = {"dx": dx, "dy": dy}
+        src["effects.com_offset"] = (f"identified: dx {dx * 1000:.1f} mm, dy {dy * 1000:.1f} mm (the roll/pitch "
+                                     f"trim of the median motor outputs in steady flight)")
+    else:
+        src["effects.com_offset"] = f"not included: trim offset ({dx:.3g}, {dy:.3g}) m below 1 % or beyond 30 % of the arm"
+    if abs(lever) > 0.002 * l and abs(lever) <= lim_l:
+        effects["enabled"].append("rotor_tilt")
+        effects["rotor_tilt"] = {"lever_m": lever}
+        src["effects.rotor_tilt"] = (f"identified: {lever * 1000:.2f} mm yaw lever = {math.degrees(math.asin(lever / l)):.2f}"
+                                     f" deg tangential tilt (the yaw trim of the median motor outputs, km ASSUMED)")
+    else:
+        src["effects.rotor_tilt"] = f"not included: yaw trim lever {lever:.3g} m negligible or beyond a 10 deg tilt"
+
+    # --- the log's own controller
+    hover_cmd = _hover_command(t_max * n, m, f_fac)
+    gains, gsrc = outer_loop_gains(p, hover_cmd)
+    slope = t_max * (2 * f_fac * hover_cmd + (1 - f_fac))
+    rate = rate_gains_physical(RateGainsPx4.from_params(p), np.array(layout.x_flu_m), np.array(layout.y_flu_m),
+                               np.array(layout.direction), float(abs(p.get("CA_ROTOR0_KM", 0.05)) or 0.05),
+                               slope, tuple(inertia))
+    src["controller (outer loops)"] = "; ".join(sorted({s for s in gsrc.values()}))
+    src["controller (rate loop)"] = ("log parameters MC_*RATE_P/I/D/K converted from PX4's normalised torque "
+                                     "to rad/s^2 with PX4's allocation scaling, the thrust slope and the inertia")
+    # The converted loop gain is PX4's only if the inertia is the real one; where it is a prior the
+    # conversion can exceed what the identified motor lag holds (phase margin ~55 deg needs
+    # Kp tau <= 0.7, as ControllerGains.auto_defaults), so it is capped there and said so.
+    for key, limit in (("rate_p_1_s", 0.7 / tau), ("yawrate_p_1_s", 0.3 / tau)):
+        if rate[key] > limit:
+            scale = limit / rate[key]
+            src["controller (rate loop)"] += (f"; {key} {rate[key]:.3g} capped at {limit:.3g} ({'0.7' if key[0] == 'r' else '0.3'}"
+                                             f"/tau for the identified lag), its I/D scaled alike")
+            for k in ((key, "rate_i_1_s2", "rate_d") if key == "rate_p_1_s" else (key, "yawrate_i_1_s2")):
+                rate[k] *= scale
+    gains.update(rate)
+    # the attitude loops must stay slower than the rate loops they drive (cascade separation >= 2,
+    # as ControllerGains.auto_defaults); PX4's own values are kept wherever that holds
+    for att, inner in (("roll_p_1_s", "rate_p_1_s"), ("pitch_p_1_s", "rate_p_1_s"), ("yaw_p_1_s", "yawrate_p_1_s")):
+        if gains[att] > gains[inner] / 2.0:
+            src["controller (rate loop)"] += (f"; {att} {gains[att]:.3g} capped at {gains[inner] / 2.0:.3g} "
+                                             f"(half the {inner.split('_')[0]} rate loop)")
+            gains[att] = gains[inner] / 2.0
+
+    rotors = {
+        "x_flu_m": list(layout.x_flu_m), "y_flu_m": list(layout.y_flu_m), "z_flu_m": list(layout.z_flu_m),
+        "direction": list(layout.direction), "thrust_model": "thrust_factor", "thrust_max_n": float(t_max),
+        "thr_mdl_fac": float(f_fac), "km_m": km, "tau_up_s": tau, "tau_down_s": tau,
+        "omega_max_rad_s": 1000.0,
+    }
+    src["rotors.omega_max_rad_s"] = "nominal 1000 rad/s: only scales the reported rotor speed (no RPM in the log)"
+    vname = name or f"from_ulog_{log.path.rsplit('/', 1)[-1].rsplit('.', 1)[0]}"
+    data = {"vehicle": {"name": vname, "mass_kg": m, "ixx_kg_m2": inertia[0], "iyy_kg_m2": inertia[1],
+                        "izz_kg_m2": inertia[2], "ixy_kg_m2": 0.0, "ixz_kg_m2": 0.0, "iyz_kg_m2": 0.0,
+                        "gravity_m_s2": 9.80665},
+            "rotors": rotors, "effects": effects, "controller": gains, "simulation": {"dt_s": 0.002}}
+    vp = from_ros_dict(data, log.path)
+    for k in ("BAT1_N_CELLS", "BAT1_V_CHARGED", "BAT1_V_EMPTY", "IMU_GYRO_CUTOFF", "IMU_DGYRO_CUTOFF"):
+        if k in p:
+            src[f"log {k}"] = f"{p[k]:g} (recorded, not modelled)"
+    fits = {"tau_s": tau, "kT/m": kt_m, "kT/m_se": kt_m_se, "hover_command": hover_cmd,
+            "drag_n_s_m": drag, "angular_damping": k_w, "roll_r2": rot["roll"].r2, "pitch_r2": rot["pitch"].r2,
+            "yaw_r2": rot["yaw"].r2, "z_r2": trans["z"].r2}
+    return Nominal(vp, log.path, src, fits)
+
+
+def _moment_fits(alpha: np.ndarray, rates: np.ndarray, thrust_units: np.ndarray, geom: RotorGeometry,
+                 t_max: float, km: float) -> dict:
+    """Per axis, the rotor moment [N m] from the commands regressed on [alpha, w, 1]: I, k_w, trim."""
+    T = t_max * thrust_units
+    moments = {"roll": T @ np.asarray(geom.y_flu_m), "pitch": -(T @ np.asarray(geom.x_flu_m)),
+               "yaw": -km * (T @ np.asarray(geom.direction, float))}
+    out = {}
+    for k, ax in enumerate(("roll", "pitch", "yaw")):
+        X = np.column_stack([alpha[:, k], rates[:, k], np.ones(alpha.shape[0])])
+        out[ax] = fit_linear(X, moments[ax], ["I", "k_w", "trim"])
+    return out
+
+
+def _battery_sag(log: FlightLog, t: np.ndarray, tt: np.ndarray, lp, v_body: np.ndarray, sig: dict,
+                 segs: list[slice]) -> tuple[float, float, float, float, float] | None:
+    """(kT/m, its se, V_ref, exponent, its se) when the pack voltage sags enough to matter and the
+    fit says so (exponent 3 sigma above 0 and below 4), else None."""
+    bv = log.get("battery_v")
+    if bv is None or len(bv) < 10:
+        return None
+    v = bv.at(t).reshape(-1)
+    if not np.isfinite(v).all() or np.nanmax(v) - np.nanmin(v) < 0.03 * np.nanmax(v):
+        return None
+    v_ref = float(np.percentile(v, 99))
+    tsum = tt.sum(axis=1)
+    X = np.column_stack([tsum, tsum * lp(np.log(np.clip(v / v_ref, 0.3, 1.5))), -v_body[:, 2]])
+    fit = fit_linear(X, lp(sig["f_body"])[:, 2], ["kT/m", "kT*e/m", "kd_z/m"])
+    c1, c2 = fit["kT/m"], fit["kT*e/m"]
+    expo = c2 / c1
+    expo_se = fit.se("kT*e/m") / c1
+    if not (c1 > 0 and expo > 3 * expo_se and expo < 4.0):
+        return None
+    return c1, fit.se("kT/m"), v_ref, float(expo), float(expo_se)
+
+
+def _hover_command(total_thrust_max_n: float, mass_kg: float, f: float, g: float = 9.80665) -> float:
+    """Per-motor command that carries the weight: solve f u^2 + (1 - f) u = m g / (N T_max)."""
+    rel = mass_kg * g / total_thrust_max_n
+    if f < 1e-9:
+        return rel
+    return (-(1 - f) + math.sqrt((1 - f) ** 2 + 4 * f * rel)) / (2 * f)
+
+
+#: PX4 airframes (SYS_AUTOSTART) with a shipped params file: (stem, what it is)
+SHIPPED_AIRFRAMES = {10040: "px4_sih_quadx", 1100: "px4_sih_quadx"}
+
+
+def params_for_log(ulog: str | os.PathLike[str], explicit: str | os.PathLike[str] | None = None
+                   ) -> tuple[Path, str | None]:
+    """The params file to fly beside ``ulog`` and a one-line note when it was not given.
+
+    ``explicit`` if given; else the shipped file for the log's airframe (SYS_AUTOSTART);
+    else the nominal built from the log itself (:func:`nominal_from_log`), written once to
+    the private cache folder, keyed on the log's bytes and this module's source."""
+    from twin_nodes.base.errors import ParamsError
+    from twin_nodes.base.io import cache_dir
+    from twin_nodes.logs.ulog_io import read_params
+    from twin_nodes.vehicle.params import params_dir, write_params
+
+    if explicit:
+        p = Path(explicit)
+        if not p.is_file():
+            raise ParamsError(str(p), "<file>", "an existing params YAML file")
+        return p, None
+    params = read_params(ulog)
+    autostart = int(params.get("SYS_AUTOSTART", 0) or 0)
+    stem = SHIPPED_AIRFRAMES.get(autostart)
+    if stem is not None:
+        return params_dir() / f"{stem}.yaml", f"params: shipped {stem}.yaml for SYS_AUTOSTART {autostart}"
+    h = hashlib.sha1(Path(ulog).read_bytes())
+    h.update(inspect.getsource(sys.modules[__name__]).encode())
+    out = cache_dir() / "nominal" / f"{Path(ulog).stem}-{h.hexdigest()[:12]}.yaml"
+    if not out.is_file():
+        nom = nominal_from_log(read_ulog(ulog))
+        out.parent.mkdir(mode=0o700, exist_ok=True)
+        write_params(nom.params, out, nom.header())
+    return out, (f"params: none given and no shipped file for SYS_AUTOSTART {autostart}: flying the nominal built "
+                 f"from the log itself ({out}; its header lists every value's source; keep one with "
+                 f"'rotortwin params from-ulog')")

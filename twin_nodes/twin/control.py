@@ -1,0 +1,407 @@
+"""A PX4-like cascaded multirotor controller (world ENU, body FLU).
+
+position P -> velocity PID -> thrust vector (tilt limit) -> attitude P (quaternion,
+reduced yaw weight) -> body-rate PID -> control allocation -> motor commands.
+
+The outer loops use PX4's multicopter defaults (MPC_*, MC_*_P).  The rate loop
+works in physical units (angular acceleration per rate error), and the
+allocation uses the vehicle's own geometry and thrust curve, so one gain set
+flies vehicles from 1 kg to 6 kg; PX4's normalised rate gains depend on each
+airframe's effectiveness matrix and would not.  Gains come from the params
+file's ``controller:`` section (keys below, unit in the name).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any, Mapping
+
+import numpy as np
+from numba import njit
+
+from twin_nodes.base.errors import ParamsError
+from twin_nodes.vehicle.geometry import allocation_matrix
+from twin_nodes.vehicle.params import VehicleParams
+from twin_nodes.physics.core import I_FAC, I_G, I_KT, I_MASS, I_MODE, I_N, I_TMAX, I_WCMD, I_WMAX, I_WMIN
+
+
+@dataclass(frozen=True)
+class ControllerGains:
+    rate_hz: float = 250.0
+    xy_p_1_s: float = 0.95              # MPC_XY_P
+    z_p_1_s: float = 1.0                # MPC_Z_P
+    xy_vel_p_1_s: float = 1.8           # MPC_XY_VEL_P_ACC
+    xy_vel_i_1_s2: float = 0.4          # MPC_XY_VEL_I_ACC
+    xy_vel_d: float = 0.2               # MPC_XY_VEL_D_ACC
+    z_vel_p_1_s: float = 4.0            # MPC_Z_VEL_P_ACC
+    z_vel_i_1_s2: float = 2.0           # MPC_Z_VEL_I_ACC
+    z_vel_d: float = 0.0                # MPC_Z_VEL_D_ACC
+    xy_vel_max_m_s: float = 12.0        # MPC_XY_VEL_MAX
+    z_vel_max_up_m_s: float = 3.0       # MPC_Z_VEL_MAX_UP
+    z_vel_max_dn_m_s: float = 1.5       # MPC_Z_VEL_MAX_DN
+    tilt_max_deg: float = 45.0          # MPC_TILTMAX_AIR
+    thr_min: float = 0.12               # MPC_THR_MIN (fraction of max collective thrust)
+    thr_max: float = 1.0                # MPC_THR_MAX
+    roll_p_1_s: float = 6.5             # MC_ROLL_P
+    pitch_p_1_s: float = 6.5            # MC_PITCH_P
+    yaw_p_1_s: float = 2.8              # MC_YAW_P
+    yaw_weight: float = 0.4             # MC_YAW_WEIGHT
+    rollrate_max_deg_s: float = 220.0   # MC_ROLLRATE_MAX
+    yawrate_max_deg_s: float = 200.0    # MC_YAWRATE_MAX
+    rate_p_1_s: float = 14.0            # angular accel [rad/s^2] per rate error [rad/s], roll/pitch
+    rate_i_1_s2: float = 8.0
+    rate_d: float = 0.12
+    yawrate_p_1_s: float = 6.0
+    yawrate_i_1_s2: float = 2.0
+    rate_i_max_rad_s2: float = 10.0
+    vel_i_max_m_s2: float = 4.0
+
+    @classmethod
+    def from_params(cls, vp: VehicleParams) -> "ControllerGains":
+        cfg: Mapping[str, Any] = vp.controller or {}
+        names = {f.name for f in fields(cls)}
+        kwargs = {}
+        for k, v in cfg.items():
+            if k not in names:
+                raise ParamsError(vp.source, f"controller.{k}", f"unknown gain (known: {', '.join(sorted(names))})")
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ParamsError(vp.source, f"controller.{k}", f"expected a number, got {v!r}")
+            kwargs[k] = float(v)
+        g = cls(**{**cls.auto_defaults(vp), **kwargs})
+        if g.rate_hz <= 0:
+            raise ParamsError(vp.source, "controller.rate_hz", "expected > 0")
+        return g
+
+    @classmethod
+    def auto_defaults(cls, vp: VehicleParams) -> dict[str, float]:
+        """Gains that keep the cascade stable for this vehicle's motor lag.
+
+        With a first-order motor lag tau the rate loop's phase margin is about
+        90 deg - atan(Kp tau), so Kp <= 0.7 / tau keeps it near 55 deg; each outer loop
+        is kept a factor ~2-3.5 slower than the loop inside it.  The values are capped at
+        the class defaults, so fast-motor vehicles (SIH tau 0.05 s, Búho Negro 0.028 s)
+        get exactly those; slow motors (the 3DR Quad-C, tau 0.15 s) get gentler loops.
+        Keys given in the params file's ``controller:`` section override these."""
+        d = cls()
+        tau = max(vp.rotors.tau_up_s, vp.rotors.tau_down_s, 1e-3)
+
+        def cap(default, value):  # the default wherever the limit does not bind (float-exact)
+            return default if value >= default * (1 - 1e-9) else value
+        rate_p = cap(d.rate_p_1_s, 0.7 / tau)
+        s = rate_p / d.rate_p_1_s  # exactly 1 when the cap does not bind
+        att_p = cap(d.roll_p_1_s, rate_p / 2.0)
+        yawrate_p = cap(d.yawrate_p_1_s, 0.3 / tau)
+        xy_vel_p = cap(d.xy_vel_p_1_s, 0.28 * att_p)
+        sv = xy_vel_p / d.xy_vel_p_1_s
+        return {
+            "rate_p_1_s": rate_p, "rate_i_1_s2": d.rate_i_1_s2 * s, "rate_d": d.rate_d * s,
+            "roll_p_1_s": att_p, "pitch_p_1_s": att_p,
+            "yawrate_p_1_s": yawrate_p,
+            "yawrate_i_1_s2": d.yawrate_i_1_s2 * (yawrate_p / d.yawrate_p_1_s),
+            "yaw_p_1_s": cap(d.yaw_p_1_s, yawrate_p / 2.0),
+            "xy_vel_p_1_s": xy_vel_p, "xy_vel_i_1_s2": d.xy_vel_i_1_s2 * sv, "xy_vel_d": d.xy_vel_d * sv,
+            "xy_p_1_s": cap(d.xy_p_1_s, 0.53 * xy_vel_p),
+            "z_vel_p_1_s": cap(d.z_vel_p_1_s, 0.6 / tau),
+        }
+
+    def vector(self) -> np.ndarray:
+        return np.array([getattr(self, f.name) for f in fields(self)], dtype=np.float64)
+
+
+_G = {f.name: i for i, f in enumerate(fields(ControllerGains))}
+(G_XY_P, G_Z_P, G_XYV_P, G_XYV_I, G_XYV_D, G_ZV_P, G_ZV_I, G_ZV_D, G_XYV_MAX, G_ZV_UP, G_ZV_DN, G_TILT,
+ G_THR_MIN, G_THR_MAX, G_ROLL_P, G_PITCH_P, G_YAW_P, G_YAW_W, G_RR_MAX, G_YR_MAX, G_R_P, G_R_I, G_R_D,
+ G_YR_P, G_YR_I, G_R_IMAX, G_V_IMAX) = (
+    _G[k] for k in ("xy_p_1_s", "z_p_1_s", "xy_vel_p_1_s", "xy_vel_i_1_s2", "xy_vel_d", "z_vel_p_1_s",
+                    "z_vel_i_1_s2", "z_vel_d", "xy_vel_max_m_s", "z_vel_max_up_m_s", "z_vel_max_dn_m_s",
+                    "tilt_max_deg", "thr_min", "thr_max", "roll_p_1_s", "pitch_p_1_s", "yaw_p_1_s", "yaw_weight",
+                    "rollrate_max_deg_s", "yawrate_max_deg_s", "rate_p_1_s", "rate_i_1_s2", "rate_d",
+                    "yawrate_p_1_s", "yawrate_i_1_s2", "rate_i_max_rad_s2", "vel_i_max_m_s2"))
+
+# Controller memory: vel integrator (3), rate integrator (3), previous velocity (3), previous rates (3), init flag
+C_VI, C_RI, C_VPREV, C_WPREV, C_INIT = 0, 3, 6, 9, 12
+C_SIZE = 13
+# Setpoint vector: position (3), velocity (3), acceleration (3), yaw (1), yawspeed (1); NaN = not controlled
+SP_SIZE = 11
+# Info vector: collective throttle, thrust [N], attitude setpoint q (4), rate setpoint (3)
+INFO_SIZE = 9
+
+
+@njit(cache=True)
+def _thrust_to_cmd(P, t):
+    if t <= 0.0:
+        return 0.0
+    if P[I_MODE] == 0.0:
+        w = np.sqrt(t / P[I_KT])
+        u = (w - P[I_WMIN]) / (P[I_WCMD] - P[I_WMIN])
+    else:
+        rel = t / P[I_TMAX]
+        f = P[I_FAC]
+        if f < 1e-9:
+            u = rel
+        else:
+            u = (-(1.0 - f) + np.sqrt((1.0 - f) ** 2 + 4.0 * f * rel)) / (2.0 * f)
+    return min(max(u, 0.0), 1.0)
+
+
+@njit(cache=True)
+def _max_rotor_thrust(P):
+    if P[I_MODE] == 0.0:
+        w = min(P[I_WCMD], P[I_WMAX])
+        return P[I_KT] * w * w
+    return P[I_TMAX]
+
+
+@njit(cache=True)
+def _min_rotor_thrust(P):
+    if P[I_MODE] == 0.0:
+        return P[I_KT] * P[I_WMIN] * P[I_WMIN]
+    return 0.0
+
+
+@njit(cache=True)
+def controller_update(G, C, P, J, A, x, sp, dt, u, info):
+    """One control step.  ``x`` holds the estimate [p, v, q, w] (ENU/FLU); writes ``u`` (N,) and ``info``."""
+    n = int(P[I_N])
+    m = P[I_MASS]
+    g = P[I_G]
+    if C[C_INIT] == 0.0:
+        for k in range(3):
+            C[C_VPREV + k] = x[3 + k]
+            C[C_WPREV + k] = x[10 + k]
+        C[C_INIT] = 1.0
+    # ---- position -> velocity setpoint
+    vsp = np.zeros(3)
+    for k in range(3):
+        kp = G[G_XY_P] if k < 2 else G[G_Z_P]
+        if sp[k] == sp[k]:
+            vsp[k] = kp * (sp[k] - x[k])
+        if sp[3 + k] == sp[3 + k]:
+            vsp[k] += sp[3 + k]
+    vxy = np.sqrt(vsp[0] ** 2 + vsp[1] ** 2)
+    if vxy > G[G_XYV_MAX]:
+        vsp[0] *= G[G_XYV_MAX] / vxy
+        vsp[1] *= G[G_XYV_MAX] / vxy
+    # the limits bound what the position loop asks for; a velocity setpoint PX4's own flight task
+    # produced (the log's feed-forward) is already limited for its mode and is never cut below itself
+    vz_dn, vz_up = G[G_ZV_DN], G[G_ZV_UP]
+    if sp[5] == sp[5]:
+        vz_dn = max(vz_dn, -sp[5])
+        vz_up = max(vz_up, sp[5])
+    vsp[2] = min(max(vsp[2], -vz_dn), vz_up)
+    # ---- velocity PID -> acceleration setpoint (derivative on measured velocity, as PX4)
+    asp = np.zeros(3)
+    for k in range(3):
+        kp = G[G_XYV_P] if k < 2 else G[G_ZV_P]
+        ki = G[G_XYV_I] if k < 2 else G[G_ZV_I]
+        kd = G[G_XYV_D] if k < 2 else G[G_ZV_D]
+        e = vsp[k] - x[3 + k]
+        dv = (x[3 + k] - C[C_VPREV + k]) / dt
+        C[C_VPREV + k] = x[3 + k]
+        asp[k] = kp * e + C[C_VI + k] - kd * dv
+        if sp[6 + k] == sp[6 + k]:
+            asp[k] += sp[6 + k]
+        C[C_VI + k] = min(max(C[C_VI + k] + ki * e * dt, -G[G_V_IMAX]), G[G_V_IMAX])
+    # ---- thrust vector with tilt limit (PX4 keeps altitude first)
+    fz = asp[2] + g
+    if fz < 0.1 * g:
+        fz = 0.1 * g
+    tilt_max = np.tan(G[G_TILT] * np.pi / 180.0)
+    axy = np.sqrt(asp[0] ** 2 + asp[1] ** 2)
+    if axy > fz * tilt_max:
+        asp[0] *= fz * tilt_max / axy
+        asp[1] *= fz * tilt_max / axy
+    tvec = np.array([asp[0], asp[1], fz])
+    tnorm = np.sqrt(tvec[0] ** 2 + tvec[1] ** 2 + tvec[2] ** 2)
+    thrust = m * tnorm
+    tmax_all = n * _max_rotor_thrust(P)
+    thrust = min(max(thrust, G[G_THR_MIN] * tmax_all), G[G_THR_MAX] * tmax_all)
+    zb = tvec / tnorm
+    # ---- desired attitude from body z and yaw
+    yaw = sp[9]
+    if yaw != yaw:  # keep current heading
+        yaw = np.arctan2(2.0 * (x[6] * x[9] + x[7] * x[8]), 1.0 - 2.0 * (x[8] ** 2 + x[9] ** 2))
+    yc = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+    xb = np.cross(yc, zb)
+    xb /= np.sqrt(xb[0] ** 2 + xb[1] ** 2 + xb[2] ** 2)
+    yb = np.cross(zb, xb)
+    qd = _rotmat_to_quat(xb, yb, zb)
+    # ---- attitude error as PX4 AttitudeControl::update: tilt first (reduced attitude),
+    # yaw mixed in with MC_YAW_WEIGHT, yaw gain divided by the weight to compensate.
+    q = x[6:10]
+    ez = _qrot(q, np.array([0.0, 0.0, 1.0]))
+    qd_red = _quat_between(ez, zb)
+    if abs(qd_red[1]) > 1.0 - 1e-5 or abs(qd_red[2]) > 1.0 - 1e-5:
+        qd_red = qd.copy()
+    else:
+        qd_red = _qmul(qd_red, q)
+    q_mix = _qmul(_qconj(qd_red), qd)
+    if q_mix[0] < 0.0:
+        q_mix = -q_mix
+    yw = G[G_YAW_W]
+    a0 = np.arccos(min(max(q_mix[0], -1.0), 1.0))
+    a3 = np.arcsin(min(max(q_mix[3], -1.0), 1.0))
+    qd_mixed = _qmul(qd_red, np.array([np.cos(yw * a0), 0.0, 0.0, np.sin(yw * a3)]))
+    qe = _qmul(_qconj(q), qd_mixed)
+    if qe[0] < 0.0:
+        qe = -qe
+    wsp = np.zeros(3)
+    wsp[0] = 2.0 * qe[1] * G[G_ROLL_P]
+    wsp[1] = 2.0 * qe[2] * G[G_PITCH_P]
+    wsp[2] = 2.0 * qe[3] * (G[G_YAW_P] / yw if yw > 1e-4 else 0.0)
+    if sp[10] == sp[10]:
+        # yaw-rate feed-forward about world z, expressed in the body frame
+        zw = _qrot(_qconj(q), np.array([0.0, 0.0, 1.0]))
+        for k in range(3):
+            wsp[k] += zw[k] * sp[10]
+    rmax = G[G_RR_MAX] * np.pi / 180.0
+    ymax = G[G_YR_MAX] * np.pi / 180.0
+    for k in range(2):
+        wsp[k] = min(max(wsp[k], -rmax), rmax)
+    wsp[2] = min(max(wsp[2], -ymax), ymax)
+    # ---- rate PID -> angular acceleration -> torque (J alpha + w x J w)
+    alpha = np.zeros(3)
+    for k in range(3):
+        kp = G[G_R_P] if k < 2 else G[G_YR_P]
+        ki = G[G_R_I] if k < 2 else G[G_YR_I]
+        kd = G[G_R_D] if k < 2 else 0.0
+        e = wsp[k] - x[10 + k]
+        dw = (x[10 + k] - C[C_WPREV + k]) / dt
+        C[C_WPREV + k] = x[10 + k]
+        alpha[k] = kp * e + C[C_RI + k] - kd * dw
+        C[C_RI + k] = min(max(C[C_RI + k] + ki * e * dt, -G[G_R_IMAX]), G[G_R_IMAX])
+    w = x[10:13]
+    Jw = J @ w
+    tau = J @ alpha + np.cross(w, Jw)
+    # ---- allocation with yaw de-prioritised on saturation
+    tmin_r = _min_rotor_thrust(P)
+    tmax_r = _max_rotor_thrust(P)
+    base = np.empty(n)
+    rp = np.empty(n)
+    yw = np.empty(n)
+    for i in range(n):
+        base[i] = A[i, 0] * thrust
+        rp[i] = A[i, 1] * tau[0] + A[i, 2] * tau[1]
+        yw[i] = A[i, 3] * tau[2]
+    # PX4-style desaturation (airmode off): lower the collective until roll/pitch fit
+    cut = 0.0
+    for i in range(n):
+        if A[i, 0] > 1e-12:
+            cut = max(cut, (base[i] + rp[i] - tmax_r) / A[i, 0])
+    cut = min(cut, thrust)
+    for i in range(n):
+        base[i] -= cut * A[i, 0]
+    scale_y = 1.0
+    for i in range(n):
+        t = base[i] + rp[i] + yw[i]
+        if t > tmax_r and yw[i] > 0.0:
+            scale_y = min(scale_y, max(0.0, (tmax_r - base[i] - rp[i]) / yw[i]))
+        elif t < tmin_r and yw[i] < 0.0:
+            scale_y = min(scale_y, max(0.0, (tmin_r - base[i] - rp[i]) / yw[i]))
+    for i in range(n):
+        t = base[i] + rp[i] + scale_y * yw[i]
+        u[i] = _thrust_to_cmd(P, min(max(t, 0.0), tmax_r))
+    info[0] = _thrust_to_cmd(P, thrust / n)
+    info[1] = thrust
+    for k in range(4):
+        info[2 + k] = qd[k]
+    for k in range(3):
+        info[6 + k] = wsp[k]
+
+
+@njit(cache=True)
+def _qmul(a, b):
+    return np.array([
+        a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
+        a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
+        a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
+        a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0]])
+
+
+@njit(cache=True)
+def _qrot(q, v):
+    """Rotate vector v by quaternion q (body -> world for the attitude)."""
+    qv = np.array([0.0, v[0], v[1], v[2]])
+    r = _qmul(_qmul(q, qv), _qconj(q))
+    return r[1:4]
+
+
+@njit(cache=True)
+def _quat_between(a, b):
+    """Shortest-arc quaternion rotating unit vector a onto b."""
+    c = np.cross(a, b)
+    d = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    q = np.array([1.0 + d, c[0], c[1], c[2]])
+    nq = np.sqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
+    if nq < 1e-9:
+        return np.array([0.0, 1.0, 0.0, 0.0])
+    return q / nq
+
+
+@njit(cache=True)
+def _qconj(q):
+    return np.array([q[0], -q[1], -q[2], -q[3]])
+
+
+@njit(cache=True)
+def _rotmat_to_quat(xb, yb, zb):
+    # columns of R are the body axes in world coordinates
+    r00, r10, r20 = xb[0], xb[1], xb[2]
+    r01, r11, r21 = yb[0], yb[1], yb[2]
+    r02, r12, r22 = zb[0], zb[1], zb[2]
+    tr = r00 + r11 + r22
+    if tr > 0.0:
+        s = np.sqrt(tr + 1.0) * 2.0
+        q = np.array([0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s])
+    elif r00 > r11 and r00 > r22:
+        s = np.sqrt(1.0 + r00 - r11 - r22) * 2.0
+        q = np.array([(r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s])
+    elif r11 > r22:
+        s = np.sqrt(1.0 + r11 - r00 - r22) * 2.0
+        q = np.array([(r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s])
+    else:
+        s = np.sqrt(1.0 + r22 - r00 - r11) * 2.0
+        q = np.array([(r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s])
+    return q / np.sqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
+
+
+class Controller:
+    """Stateful wrapper: ``u, info = ctrl.update(x_est, setpoint, dt)``."""
+
+    def __init__(self, vp: VehicleParams, gains: ControllerGains | None = None):
+        from twin_nodes.physics.core import pack
+
+        self.params = vp
+        self.gains = gains or ControllerGains.from_params(vp)
+        self.G = self.gains.vector()
+        self.P = pack(vp)
+        self.J = vp.inertia.copy()
+        self.A = np.ascontiguousarray(allocation_matrix(vp))
+        self.C = np.zeros(C_SIZE)
+        self.n = vp.rotors.count
+
+    def reset(self) -> None:
+        self.C[:] = 0.0
+
+    def update(self, x: np.ndarray, sp: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        u = np.empty(self.n)
+        info = np.empty(INFO_SIZE)
+        controller_update(self.G, self.C, self.P, self.J, self.A, np.ascontiguousarray(x[:13], dtype=np.float64),
+                          np.ascontiguousarray(sp, dtype=np.float64), float(dt), u, info)
+        return u, info
+
+
+def setpoint(position_enu=None, velocity_enu=None, accel_enu=None, yaw_enu=None, yawspeed=None) -> np.ndarray:
+    """Build a setpoint vector; anything left None is not controlled (NaN)."""
+    sp = np.full(SP_SIZE, np.nan)
+    if position_enu is not None:
+        sp[0:3] = position_enu
+    if velocity_enu is not None:
+        sp[3:6] = velocity_enu
+    if accel_enu is not None:
+        sp[6:9] = accel_enu
+    if yaw_enu is not None:
+        sp[9] = yaw_enu
+    if yawspeed is not None:
+        sp[10] = yawspeed
+    return sp

@@ -1,0 +1,262 @@
+"""The twin beside a real vehicle: one streaming engine for the ROS node and offline runs.
+
+Two ways to shadow the real vehicle:
+
+``closed``  the PX4-like controller flies the real flight's setpoints (PX4
+            ``trajectory_setpoint``; where a log has none, the real position as a
+            position setpoint), armed when the real vehicle is armed.  The twin's
+            own throttle and motor commands are then compared with the real ones
+            (the Búho Negro paper's method, with our controller in PX4's place).
+``open``    the real motor commands drive the model and the state is re-synced to
+            the real state every ``horizon_s`` (the second reference's method);
+            the prediction error over each horizon is the comparison.
+
+:class:`TwinRunner` consumes time-ordered inputs (``real_state``, ``setpoint``,
+``real_motors``, ``armed``, ``battery``) and ``advance_to(t)`` returns the twin's
+outputs at its control rate.  :func:`run_twin_on_log` feeds a whole
+:class:`~twin_nodes.logs.ulog_io.FlightLog` through the same engine.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from twin_nodes.twin.control import SP_SIZE, Controller
+from twin_nodes.vehicle.params import VehicleParams
+from twin_nodes.physics.core import NX_BODY
+from twin_nodes.physics.effects import default_ext
+from twin_nodes.physics.model import Multirotor
+from twin_nodes.twin.sim import DelayLine
+
+MODES = ("closed", "open")
+
+
+@dataclass
+class TwinSample:
+    t: float
+    x: np.ndarray          # (nx,) twin state, ENU/FLU
+    motors: np.ndarray     # (N,) motor commands the twin used (0..1, NaN stopped)
+    throttle: float        # collective throttle (PX4 thrust-setpoint convention)
+    specific_force: np.ndarray  # (3,) FLU
+    resynced: bool = False
+
+
+class TwinRunner:
+    """Streaming twin.  Feed inputs in time order, call ``advance_to(t)``."""
+
+    def __init__(self, vp: VehicleParams, mode: str = "closed", horizon_s: float = 2.0,
+                 rate_hz: float | None = None):
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        self.params = vp
+        self.mode = mode
+        self.horizon_s = float(horizon_s)
+        self.model = Multirotor(vp)
+        # the controller knows the twin as it is (parameter-type effects applied), as PX4 knows
+        # the real vehicle through its hover-thrust estimate
+        self.ctrl = Controller(self.model.params)
+        self.rate_hz = float(rate_hz or self.ctrl.gains.rate_hz)
+        self.dt_c = 1.0 / self.rate_hz
+        self.nsub = max(int(round(self.dt_c / vp.dt_s)), 1)
+        self.dt = self.dt_c / self.nsub
+        n = self.model.n_rotors
+        self.n = n
+        self.t: float | None = None
+        self.x = self.model.initial_state()
+        self.ext = default_ext()
+        self.sp = np.full(SP_SIZE, np.nan)
+        self.real_x: np.ndarray | None = None
+        self.real_u = np.full(n, np.nan)
+        self.is_armed = False
+        self.u = np.full(n, np.nan)
+        self.throttle = float("nan")
+        self.last_resync = -np.inf
+        self._delay = DelayLine(self.model.command_delay_s, self.dt_c, np.full(n, np.nan))
+        self._initialised = False
+        #: real-frame height of the twin's ground plane [m, ENU up]: the physics has its ground at
+        #: z = 0, PX4's EKF origin is often not at ground level (a log may start at z = -3.8 m NED)
+        self.ground_z = 0.0
+        self.sp_t: float | None = None
+
+    # ---------------------------------------------------------------- inputs
+    def real_state(self, t: float, p_enu, v_enu, q_wxyz, w_flu) -> None:
+        x = np.concatenate([np.asarray(p_enu, float), np.asarray(v_enu, float),
+                            np.asarray(q_wxyz, float), np.asarray(w_flu, float)])
+        if not np.all(np.isfinite(x)):
+            return
+        if not self._initialised and np.linalg.norm(x[3:6]) < 0.3:
+            # at rest when the twin starts (PX4 logs start at boot or at arming, on the ground):
+            # that height is the ground (not the arming state: its message may come first or last)
+            self.ground_z = float(x[2])
+        x[2] -= self.ground_z
+        self.real_x = x
+        if not self._initialised:
+            self._start(t)
+
+    def setpoint(self, sp: np.ndarray) -> None:
+        sp = np.asarray(sp, float)
+        if sp.shape != (SP_SIZE,):
+            raise ValueError(f"setpoint must have {SP_SIZE} entries")
+        sp = sp.copy()
+        sp[2] -= self.ground_z
+        if not np.array_equal(sp, self.sp, equal_nan=True):
+            self.sp_t = self.t  # a new setpoint sample: the trajectory is carried on from here
+        self.sp = sp
+
+    def real_motors(self, u) -> None:
+        self.real_u = np.asarray(u, float)
+
+    def armed(self, armed: bool) -> None:
+        self.is_armed = bool(armed)
+
+    def battery(self, volts: float) -> None:
+        self.ext[0] = volts
+
+    # ---------------------------------------------------------------- stepping
+    def _start(self, t: float) -> None:
+        rx = self.real_x
+        self.x = self.model.initial_state(position_enu=rx[0:3], velocity_enu=rx[3:6], q_wxyz=rx[6:10],
+                                          rates_flu=rx[10:13])
+        self.t = float(t)
+        self.last_resync = float(t)
+        self._initialised = True
+
+    def _resync(self) -> None:
+        rx = self.real_x
+        self.x[:13] = rx
+        # rotor speeds are not logged: take the steady state of the last real command
+        self.x[NX_BODY:] = self.params.rotors.reference_from_command(self.real_u)
+        self.last_resync = self.t
+
+    def advance_to(self, t: float) -> list[TwinSample]:
+        """Step the twin up to time ``t`` at its control rate; one sample per control step."""
+        out: list[TwinSample] = []
+        if not self._initialised or self.t is None:
+            return out
+        while self.t + self.dt_c <= t + 1e-9:
+            resynced = False
+            if self.mode == "open":
+                if self.real_x is not None and self.t - self.last_resync >= self.horizon_s - 1e-9:
+                    self._resync()
+                    resynced = True
+                u = self.real_u.copy()
+                mean_u = np.nanmean(u) if np.any(np.isfinite(u)) else np.nan
+                self.throttle = float(mean_u)
+            else:
+                if self.is_armed:
+                    u, info = self.ctrl.update(self.x[:13], self._effective_setpoint(), self.dt_c)
+                    self.throttle = float(info[0])
+                else:
+                    self.ctrl.reset()
+                    u = np.full(self.n, np.nan)
+                    self.throttle = float("nan")
+            self.u = u
+            applied = self._delay.push(u)
+            self.x = self.model.step(self.x, applied, self.dt, self.ext, self.nsub)
+            self.t += self.dt_c
+            sf = self.model.specific_force_flu(self.x, applied, self.ext)
+            x_real_frame = self.x.copy()
+            x_real_frame[2] += self.ground_z
+            out.append(TwinSample(self.t, x_real_frame, u.copy(), self.throttle, sf, resynced))
+        return out
+
+    def _carried_setpoint(self) -> np.ndarray:
+        """The position setpoint carried along by the velocity and acceleration setpoints since the
+        last setpoint sample: PX4's trajectory is smooth at the controller rate, its log (and the
+        /real topic) a 5-25 Hz subsample of it; a held staircase makes the twin chase 1 m steps at
+        5 m/s.  Never carried more than 1 s (a logging gap)."""
+        sp = self.sp
+        if self.sp_t is None or self.t is None or not np.any(np.isfinite(sp[3:6])):
+            return sp
+        dt = min(max(self.t - self.sp_t, 0.0), 1.0)
+        vel = np.nan_to_num(sp[3:6])
+        acc = np.nan_to_num(sp[6:9])
+        out = sp.copy()
+        out[0:3] = sp[0:3] + vel * dt + 0.5 * acc * dt * dt
+        return out
+
+    def _effective_setpoint(self) -> np.ndarray:
+        sp = self._carried_setpoint()
+        if not (np.any(np.isfinite(sp[0:3])) or np.any(np.isfinite(sp[3:6]))):
+            # no position or velocity setpoint (manual modes, old logs): fly the real position
+            sp = sp.copy()
+            if self.real_x is not None:
+                sp[0:3] = self.real_x[0:3]
+                if not np.isfinite(sp[9]):
+                    q = self.real_x[6:10]
+                    sp[9] = np.arctan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
+        return sp
+
+
+@dataclass
+class TwinRun:
+    """Twin outputs on its own control-rate grid, ready for alignment with the real log."""
+
+    t: np.ndarray
+    x: np.ndarray
+    motors: np.ndarray
+    throttle: np.ndarray
+    specific_force: np.ndarray
+    mode: str
+    info: dict = field(default_factory=dict)
+
+
+def log_inputs(log, rate_hz: float, t0: float | None = None, t1: float | None = None) -> dict[str, np.ndarray]:
+    """The real-vehicle inputs the twin needs, on one uniform grid (uses the log's resampler)."""
+    names = ["position_enu", "velocity_enu", "attitude_q", "body_rates_flu", "motors"]
+    optional = ["setpoint_position_enu", "setpoint_velocity_enu", "setpoint_accel_enu", "setpoint_yaw_enu",
+                "setpoint_yawspeed", "armed", "battery_v"]
+    present = names + [n for n in optional if log.get(n) is not None]
+    grid, data = log.resample(present, rate_hz, t0, t1)
+    data["t"] = grid
+    return data
+
+
+def _setpoints(data: dict[str, np.ndarray], n: int) -> np.ndarray:
+    sp = np.full((n, SP_SIZE), np.nan)
+    for key, sl in (("setpoint_position_enu", slice(0, 3)), ("setpoint_velocity_enu", slice(3, 6)),
+                    ("setpoint_accel_enu", slice(6, 9)), ("setpoint_yaw_enu", slice(9, 10)),
+                    ("setpoint_yawspeed", slice(10, 11))):
+        if key in data:
+            sp[:, sl] = np.asarray(data[key]).reshape(n, -1)[:, : sl.stop - sl.start]
+    return sp
+
+
+def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: float = 2.0,
+                    t0: float | None = None, t1: float | None = None, progress: bool = False) -> TwinRun:
+    """Run the twin beside a whole log (offline), returning its outputs on the control grid."""
+    runner = TwinRunner(vp, mode, horizon_s)
+    data = log_inputs(log, runner.rate_hz, t0, t1)
+    t = data["t"]
+    n = len(t)
+    sp = _setpoints(data, n)
+    armed = np.asarray(data["armed"]).reshape(n) > 0.5 if "armed" in data else np.isfinite(
+        np.asarray(data["motors"])).any(axis=1)
+    batt = np.asarray(data["battery_v"]).reshape(n) if "battery_v" in data else np.full(n, np.nan)
+    P, V, Q, W, U = (np.asarray(data[k]) for k in ("position_enu", "velocity_enu", "attitude_q",
+                                                     "body_rates_flu", "motors"))
+    out_t, out_x, out_u, out_thr, out_sf = [], [], [], [], []
+    it = range(n)
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(it, desc=f"twin ({mode} loop)", unit="step", mininterval=0.5, leave=False)
+    for k in it:
+        runner.real_state(t[k], P[k], V[k], Q[k], W[k])
+        runner.real_motors(U[k])
+        runner.setpoint(sp[k])
+        runner.armed(bool(armed[k]))
+        if np.isfinite(batt[k]):
+            runner.battery(batt[k])
+        if k + 1 < n:
+            for s in runner.advance_to(t[k + 1]):
+                out_t.append(s.t)
+                out_x.append(s.x)
+                out_u.append(s.motors)
+                out_thr.append(s.throttle)
+                out_sf.append(s.specific_force)
+    return TwinRun(t=np.array(out_t), x=np.array(out_x).reshape(-1, runner.model.nx),
+                   motors=np.array(out_u).reshape(-1, runner.n), throttle=np.array(out_thr),
+                   specific_force=np.array(out_sf).reshape(-1, 3), mode=mode,
+                   info={"rate_hz": runner.rate_hz, "horizon_s": horizon_s, "params": vp.name})

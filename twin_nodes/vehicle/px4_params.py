@@ -1,0 +1,249 @@
+"""What a PX4 flight log's own parameters say about the vehicle that flew.
+
+PX4 logs carry the whole parameter set.  This module reads from it, with the source
+of every value:
+
+- the rotor layout: ``CA_ROTOR_COUNT``, ``CA_ROTORn_PX/PY/PZ`` [m, FRD] and the spin sign
+  of ``CA_ROTORn_KM`` (> 0 = CCW) on PX4 >= v1.13; older logs (mixer files, no ``CA_*``)
+  take the airframe's geometry from :data:`AIRFRAMES` by ``SYS_AUTOSTART``.  Many PX4
+  airframes give ``CA_ROTORn_PX/PY`` normalised to +-1 (only the ratios matter to the
+  allocation); such a layout is scaled to the airframe's real arm length when the
+  airframe is known, else the caller must supply one;
+- the thrust curve ``THR_MDL_FAC`` and PX4's own hover estimate ``MPC_THR_HOVER``;
+- the controller: PX4's position/velocity/attitude gains map one to one onto
+  :class:`twin_nodes.twin.control.ControllerGains` (:func:`outer_loop_gains`); the rate
+  gains are in PX4's normalised torque units and are converted to physical units with
+  the vehicle's thrust slope and inertia (:func:`rate_gains_physical`), following PX4's
+  control-allocation normalisation (``ControlAllocationPseudoInverse``: roll and pitch
+  columns scaled so the mean non-zero entry has magnitude 1/sqrt(2) on a quad X, yaw so
+  its largest entry is 1).
+
+Positions come back in body FLU (REP-103); the FRD -> FLU change is the one in
+:mod:`twin_nodes.base.frames`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from twin_nodes.base.errors import ParamsError
+from twin_nodes.base.frames import frd_to_flu
+
+
+@dataclass(frozen=True)
+class Airframe:
+    """Geometry (and a typical take-off mass) of a PX4 airframe whose parameters lack it."""
+
+    name: str
+    layout: str            # "quad_x": PX4 quad X, Motor1 front-right CCW
+    arm_m: float           # centre to rotor axis [m]
+    mass_kg: float         # typical take-off mass, used only when the user gives none
+    source: str
+
+
+#: PX4 airframes by SYS_AUTOSTART whose logs may lack a metric rotor layout.
+AIRFRAMES: dict[int, Airframe] = {
+    4001: Airframe("Generic Quadrotor X", "quad_x", 0.25, 1.5,
+                   "generic: PX4 4001_quad_x gives no dimensions; 0.25 m arm (500 mm class) assumed"),
+    4014: Airframe("Holybro S500", "quad_x", 0.24, 1.3,
+                   "Holybro S500 frame, 480 mm wheelbase (vendor spec); ~1.3 kg with a 3S pack"),
+    4019: Airframe("Holybro X500 V2", "quad_x", 0.25, 1.6,
+                   "Holybro X500 V2 frame, 500 mm wheelbase (vendor spec); ~1.6 kg with a 4S pack"),
+    10040: Airframe("PX4 SIH quadrotor X", "quad_x", 0.2 * math.sqrt(2.0), 1.0,
+                    "PX4 simulator_sih quad X: arms 0.2 m along x and y (sih_params.c defaults)"),
+}
+
+
+@dataclass(frozen=True)
+class RotorLayout:
+    x_flu_m: tuple[float, ...]
+    y_flu_m: tuple[float, ...]
+    z_flu_m: tuple[float, ...]
+    direction: tuple[int, ...]
+    source: str
+
+
+def _quad_x(arm_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """PX4 quad X in FRD: M1 (+,+), M2 (-,-), M3 (+,-), M4 (-,+); arms along the diagonals."""
+    a = arm_m / math.sqrt(2.0)
+    return np.array([a, -a, a, -a]), np.array([a, -a, -a, a])
+
+
+def rotor_layout(params: Mapping[str, float], path: str = "<log>", arm_m: float | None = None) -> RotorLayout:
+    """The rotor layout from a log's parameters (see the module docstring).
+
+    ``arm_m`` [m] scales a normalised layout (or gives an unknown airframe's arm).
+    Raises :class:`ParamsError` naming the missing parameter when nothing fits."""
+    autostart = int(params.get("SYS_AUTOSTART", 0) or 0)
+    airframe = AIRFRAMES.get(autostart)
+    n = int(params.get("CA_ROTOR_COUNT", 0) or 0)
+    if n > 0:
+        px = np.array([float(params.get(f"CA_ROTOR{i}_PX", 0.0)) for i in range(n)])
+        py = np.array([float(params.get(f"CA_ROTOR{i}_PY", 0.0)) for i in range(n)])
+        pz = np.array([float(params.get(f"CA_ROTOR{i}_PZ", 0.0)) for i in range(n)])
+        km = np.array([float(params.get(f"CA_ROTOR{i}_KM", 0.05)) for i in range(n)])
+        source = f"log parameters CA_ROTOR0..{n - 1}_PX/PY/PZ/KM"
+        radius = np.hypot(px, py)
+        if not np.all(radius > 1e-6):
+            raise ParamsError(path, f"CA_ROTOR{int(np.argmin(radius))}_PX",
+                              "a rotor position away from the centre (CA_ROTOR_COUNT is set but the positions "
+                              "are missing or zero); supply a params file with --params")
+        if np.allclose(radius, radius[0]) and abs(radius[0] - math.sqrt(2.0)) < 1e-6:
+            target = arm_m if arm_m is not None else (airframe.arm_m if airframe else None)
+            if target is None:
+                raise ParamsError(path, "CA_ROTOR0_PX",
+                                  f"a metric rotor layout (the log's is normalised to +-1 and SYS_AUTOSTART "
+                                  f"{autostart} is not a known airframe); give the arm length with --arm-m")
+            scale = target / radius[0]
+            px, py, pz = px * scale, py * scale, pz * scale
+            source += (f", normalised +-1 layout scaled to a {target:.3f} m arm "
+                       f"({'--arm-m' if arm_m is not None else airframe.source})")
+        direction = np.where(km >= 0.0, 1, -1)
+    else:
+        if airframe is None:
+            raise ParamsError(path, "CA_ROTOR_COUNT",
+                              f"rotor geometry: the log has no CA_* parameters and SYS_AUTOSTART {autostart} "
+                              f"is not a known airframe ({', '.join(str(k) for k in sorted(AIRFRAMES))}); "
+                              f"supply a params file with --params")
+        px, py = _quad_x(arm_m if arm_m is not None else airframe.arm_m)
+        pz = np.zeros(4)
+        direction = np.array([1, 1, -1, -1])
+        source = (f"airframe {autostart} ({airframe.name}, no CA_* parameters in this log): PX4 quad X "
+                  f"layout, {'--arm-m' if arm_m is not None else airframe.source}")
+    flu = frd_to_flu(np.column_stack([px, py, pz]))
+    return RotorLayout(tuple(float(v) for v in flu[:, 0]), tuple(float(v) for v in flu[:, 1]),
+                       tuple(float(v) for v in flu[:, 2]), tuple(int(d) for d in direction), source)
+
+
+def param(params: Mapping[str, float], name: str, default: float) -> tuple[float, str]:
+    """A PX4 parameter with its source: the log's value, else PX4's default."""
+    if name in params and params[name] is not None and math.isfinite(float(params[name])):
+        return float(params[name]), f"log parameter {name}"
+    return float(default), f"PX4 default {name}"
+
+
+#: ControllerGains key -> (PX4 parameter(s), PX4 default); first name present wins.
+OUTER_LOOP = {
+    "xy_p_1_s": (("MPC_XY_P",), 0.95),
+    "z_p_1_s": (("MPC_Z_P",), 1.0),
+    "xy_vel_p_1_s": (("MPC_XY_VEL_P_ACC",), 1.8),
+    "xy_vel_i_1_s2": (("MPC_XY_VEL_I_ACC",), 0.4),
+    "xy_vel_d": (("MPC_XY_VEL_D_ACC",), 0.2),
+    "z_vel_p_1_s": (("MPC_Z_VEL_P_ACC",), 4.0),
+    "z_vel_i_1_s2": (("MPC_Z_VEL_I_ACC",), 2.0),
+    "z_vel_d": (("MPC_Z_VEL_D_ACC",), 0.0),
+    "xy_vel_max_m_s": (("MPC_XY_VEL_MAX",), 12.0),
+    "z_vel_max_up_m_s": (("MPC_Z_VEL_MAX_UP",), 3.0),
+    "z_vel_max_dn_m_s": (("MPC_Z_VEL_MAX_DN",), 1.5),
+    "tilt_max_deg": (("MPC_TILTMAX_AIR",), 45.0),
+    "thr_min": (("MPC_THR_MIN",), 0.12),
+    "thr_max": (("MPC_THR_MAX",), 1.0),
+    "roll_p_1_s": (("MC_ROLL_P",), 6.5),
+    "pitch_p_1_s": (("MC_PITCH_P",), 6.5),
+    "yaw_p_1_s": (("MC_YAW_P",), 2.8),
+    "yaw_weight": (("MC_YAW_WEIGHT",), 0.4),
+    "rollrate_max_deg_s": (("MC_ROLLRATE_MAX",), 220.0),
+    "yawrate_max_deg_s": (("MC_YAWRATE_MAX",), 200.0),
+}
+
+#: PX4 < v1.12 velocity gains were in normalised thrust per m/s; PX4 converts them to
+#: the _ACC form by multiplying with g / hover thrust (mc_pos_control's parameter migration).
+LEGACY_VEL = {"xy_vel_p_1_s": "MPC_XY_VEL_P", "xy_vel_i_1_s2": "MPC_XY_VEL_I", "xy_vel_d": "MPC_XY_VEL_D",
+              "z_vel_p_1_s": "MPC_Z_VEL_P", "z_vel_i_1_s2": "MPC_Z_VEL_I", "z_vel_d": "MPC_Z_VEL_D"}
+
+
+def outer_loop_gains(params: Mapping[str, float], hover_thrust: float,
+                     g_m_s2: float = 9.80665) -> tuple[dict[str, float], dict[str, str]]:
+    """Position, velocity and attitude gains and limits (ControllerGains keys) with sources."""
+    gains, sources = {}, {}
+    for key, (names, default) in OUTER_LOOP.items():
+        name = next((nm for nm in names if nm in params), None)
+        legacy = LEGACY_VEL.get(key)
+        if name is None and legacy is not None and legacy in params:
+            gains[key] = float(params[legacy]) * g_m_s2 / hover_thrust
+            sources[key] = f"log parameter {legacy} x g / hover thrust (pre-v1.12 units)"
+            continue
+        gains[key], sources[key] = param(params, name or names[0], default)
+    return gains, sources
+
+
+@dataclass(frozen=True)
+class RateGainsPx4:
+    """PX4's rate-loop gains in its normalised torque units (the K factor folded in)."""
+
+    roll_p: float
+    roll_i: float
+    roll_d: float
+    pitch_p: float
+    pitch_i: float
+    pitch_d: float
+    yaw_p: float
+    yaw_i: float
+    sources: tuple[str, ...]
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, float]) -> "RateGainsPx4":
+        vals, srcs = {}, []
+        defaults = {"ROLLRATE_P": 0.15, "ROLLRATE_I": 0.2, "ROLLRATE_D": 0.003, "ROLLRATE_K": 1.0,
+                    "PITCHRATE_P": 0.15, "PITCHRATE_I": 0.2, "PITCHRATE_D": 0.003, "PITCHRATE_K": 1.0,
+                    "YAWRATE_P": 0.2, "YAWRATE_I": 0.1, "YAWRATE_K": 1.0}
+        for k, d in defaults.items():
+            vals[k], s = param(params, f"MC_{k}", d)
+            srcs.append(s)
+        k_r, k_p, k_y = vals["ROLLRATE_K"], vals["PITCHRATE_K"], vals["YAWRATE_K"]
+        return cls(k_r * vals["ROLLRATE_P"], k_r * vals["ROLLRATE_I"], k_r * vals["ROLLRATE_D"],
+                   k_p * vals["PITCHRATE_P"], k_p * vals["PITCHRATE_I"], k_p * vals["PITCHRATE_D"],
+                   k_y * vals["YAWRATE_P"], k_y * vals["YAWRATE_I"], tuple(srcs))
+
+
+def normalised_mix(x_flu: np.ndarray, y_flu: np.ndarray, direction: np.ndarray, km_m: float) -> np.ndarray:
+    """PX4's normalised allocation (N, 3): motor command change per unit roll, pitch, yaw torque setpoint.
+
+    The pseudo-inverse of the effectiveness (unit thrust per motor) with PX4's scaling:
+    roll and pitch columns divided by ``max(sqrt(|col|^2 / (n_nonzero / 2)))``, yaw by its
+    largest entry (``ControlAllocationPseudoInverse::updateControlAllocationMatrixScale``)."""
+    B = np.vstack([np.asarray(y_flu, float), -np.asarray(x_flu, float),
+                   -np.asarray(direction, float) * km_m, np.ones(len(x_flu))])
+    mix = np.linalg.pinv(B)[:, :3]
+    scales = []
+    for c in (0, 1):
+        nz = int(np.sum(np.abs(mix[:, c]) > 1e-3))
+        scales.append(math.sqrt(float(mix[:, c] @ mix[:, c]) / (nz / 2.0)) if nz else 1.0)
+    rp = max(scales)
+    mix[:, 0] /= rp
+    mix[:, 1] /= rp
+    ymax = float(np.max(mix[:, 2]))
+    if ymax > 1e-12:
+        mix[:, 2] /= ymax
+    return mix
+
+
+def rate_gains_physical(px4: RateGainsPx4, x_flu: np.ndarray, y_flu: np.ndarray, direction: np.ndarray,
+                        km_m: float, thrust_slope_n: float, inertia_kg_m2: tuple[float, float, float]
+                        ) -> dict[str, float]:
+    """PX4's normalised rate gains as the twin's physical ones (ControllerGains keys).
+
+    A unit torque setpoint moves the motor commands by PX4's normalised mix; times the thrust
+    slope dT/du [N] at hover and the lever arms that is a moment [N m], over the inertia an
+    angular acceleration.  So ``Kp [rad/s^2 per rad/s] = P_px4 * moment_per_unit / I``;
+    the same factor converts I and D.  Roll and pitch share one gain set in the twin:
+    the mean of the two axes."""
+    mix = normalised_mix(x_flu, y_flu, direction, km_m)
+    dT = thrust_slope_n * mix  # (N, 3) thrust change per unit torque setpoint
+    roll_moment = float(np.asarray(y_flu) @ dT[:, 0])
+    pitch_moment = float(-np.asarray(x_flu) @ dT[:, 1])
+    yaw_moment = float((-np.asarray(direction, float) * km_m) @ dT[:, 2])
+    a_roll = roll_moment / inertia_kg_m2[0]
+    a_pitch = pitch_moment / inertia_kg_m2[1]
+    a_yaw = yaw_moment / inertia_kg_m2[2]
+    return {
+        "rate_p_1_s": 0.5 * (px4.roll_p * a_roll + px4.pitch_p * a_pitch),
+        "rate_i_1_s2": 0.5 * (px4.roll_i * a_roll + px4.pitch_i * a_pitch),
+        "rate_d": 0.5 * (px4.roll_d * a_roll + px4.pitch_d * a_pitch),
+        "yawrate_p_1_s": px4.yaw_p * a_yaw,
+        "yawrate_i_1_s2": px4.yaw_i * a_yaw,
+    }
