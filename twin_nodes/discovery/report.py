@@ -82,6 +82,13 @@ def summary_text(res: dict) -> str:
     return "\n".join(lines)
 
 
+def _axes_text(res: dict) -> str:
+    axes = (res.get("output_error_axes") or {}).get("axes")
+    if not axes:
+        return "output error not used on this flight"
+    return "; ".join(f"{k} r\u00b2 {v['r2']:.2f} {'used' if v['used'] else 'left out'}" for k, v in axes.items())
+
+
 def write_report(folder, res: dict, series: dict) -> None:
     """Plots of the residual before/after on the held-out part and the candidate ranking, plus index.html."""
     import matplotlib
@@ -165,8 +172,8 @@ def write_report(folder, res: dict, series: dict) -> None:
 <h2>{head}</h2>
 <p>Residual = what the log measured minus what the model predicts from the logged motor commands, per motor and as horizontal force,
 in fraction of full motor output (the <i>equation error</i>); the <i>output error</i> flies the model open loop from the logged state for
-short horizons on the logged commands and compares body rates and vertical velocity, in the same channels and units
-({html.escape(str((res.get('output_error_axes') or {}).get('axes', 'not used')))}). Fit on {res['method']['fit_interval_s']} s, judged on {res['method']['heldout_interval_s']} s.
+short horizons on the logged commands and compares body rates and vertical velocity, in the same channels, each axis
+in units of the nominal model's typical error on it ({html.escape(_axes_text(res))}). Fit on {res['method']['fit_interval_s']} s, judged on {res['method']['heldout_interval_s']} s.
 {html.escape(res['method']['acceptance'])}.</p>
 <img src="residuals.png" width="100%"><h2>Candidates</h2><img src="candidates.png">
 <table><tr><th>verdict</th><th>effect</th><th>parameters</th><th>held-out before</th><th>after</th><th>both residuals (held-out cut)</th><th>excitation</th><th>evidence</th></tr>{rows}</table>
