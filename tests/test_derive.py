@@ -417,3 +417,22 @@ def test_export_refuses_thrust_factor_model():
         sdf_motor_plugins(vp)
     with pytest.raises(ParamsError, match="rotors.thrust_model"):
         px4_airframe_params(vp)
+
+
+@pytest.mark.parametrize("name", ["px4_sih_quadx", "buho_negro"])
+def test_simulated_log_params_round_trip_through_the_log_reader(name):
+    """What a simulated flight log carries (export_px4.simulated_log_params) is read back by the
+    log-side reader (px4_params.rotor_layout) as the same rotor positions (FLU) and spins."""
+    from twin_nodes.vehicle.export_px4 import simulated_log_params
+    from twin_nodes.vehicle.params import shipped
+    from twin_nodes.vehicle.px4_params import rotor_layout
+
+    vp = shipped(name)
+    p = simulated_log_params(vp)
+    assert p["CA_ROTOR_COUNT"] == vp.rotors.count and p["SYS_AUTOSTART"] == 0
+    lay = rotor_layout(p)
+    np.testing.assert_allclose(lay.x_flu_m, vp.rotors.x_flu_m, atol=1e-12)
+    np.testing.assert_allclose(lay.y_flu_m, vp.rotors.y_flu_m, atol=1e-12)
+    np.testing.assert_allclose(lay.z_flu_m, vp.rotors.z_flu_m, atol=1e-12)
+    assert tuple(lay.direction) == tuple(int(d) for d in vp.rotors.direction)
+    assert p["MPC_THR_HOVER"] == pytest.approx(vp.hover_command)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import pkgutil
 import sys
 
@@ -31,7 +32,43 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Once(logging.Filter):
+    """Each warning once per command, however often the same log is loaded."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        msg = record.getMessage()
+        if msg in self.seen:
+            return False
+        self.seen.add(msg)
+        return True
+
+
+def _show_log_warnings() -> logging.Handler:
+    """Data-loss warnings of the logs a command loads (``rotortwin.logs``) on stderr, one line each:
+    ``rotortwin: warning: <file>: <what>``."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("rotortwin: warning: %(message)s"))
+    handler.addFilter(_Once())
+    logger = logging.getLogger("rotortwin")
+    logger.addHandler(handler)
+    logger.setLevel(logging.WARNING)
+    logger.propagate = False
+    return handler
+
+
 def main(argv: list[str] | None = None) -> int:
+    handler = _show_log_warnings()
+    try:
+        return _main(argv)
+    finally:
+        logging.getLogger("rotortwin").removeHandler(handler)
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:

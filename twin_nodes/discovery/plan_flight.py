@@ -22,9 +22,9 @@ from typing import Sequence
 
 import numpy as np
 
-from twin_nodes.base import frames
 from twin_nodes.discovery.prove import EstimateNoise, Hidden, record_to_topics
 from twin_nodes.twin.sim import fly_closed_loop
+from twin_nodes.vehicle.export_px4 import simulated_log_params
 from twin_nodes.vehicle.params import VehicleParams
 
 YAW_RATE = 0.8          # rad/s (PX4 MPC_YAWRAUTO_MAX 45 deg/s)
@@ -168,13 +168,7 @@ def write_plan_flight(path: str | Path, vp: VehicleParams, hidden: Hidden, seed:
     rec = fly_closed_loop(plant, t_sp, SP, controller_params=vp, battery_v=battery,
                           estimate_noise=EstimateNoise(rng, 1.0 / 250.0), armed=armed, rng=rng)
     topics = record_to_topics(rec, vp, battery, (t_sp, SP), np.random.default_rng(seed + 7))
-    r = vp.rotors
-    params = {"SYS_AUTOSTART": 0, "CA_ROTOR_COUNT": int(r.count), "MPC_THR_HOVER": float(vp.hover_command),
-              "THR_MDL_FAC": float(r.thr_mdl_fac) if r.thrust_model == "thrust_factor" else 0.0}
-    frd = frames.flu_to_frd(np.column_stack([r.x_flu_m, r.y_flu_m, r.z_flu_m]))
-    for i in range(r.count):
-        params.update({f"CA_ROTOR{i}_PX": float(frd[i, 0]), f"CA_ROTOR{i}_PY": float(frd[i, 1]),
-                       f"CA_ROTOR{i}_PZ": float(frd[i, 2]), f"CA_ROTOR{i}_KM": float(r.direction[i]) * r.km_m})
+    params = simulated_log_params(vp)  # the rotor layout and hover command as PX4 logs them
     write_px4_ulog(str(path), topics, params, {"sys_name": "rotortwin-sim", "ver_hw": "ROTORTWIN_SIM",
                                                 "sim_vehicle": vp.name})
     flying = np.isfinite(rec.u).all(1) & (rec.x[:, 2] > 0.5)

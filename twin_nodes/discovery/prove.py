@@ -23,6 +23,7 @@ import numpy as np
 
 from twin_nodes.base import frames
 from twin_nodes.twin.control import setpoint
+from twin_nodes.vehicle.export_px4 import simulated_log_params
 from twin_nodes.vehicle.params import VehicleParams, load_params, shipped
 from twin_nodes.physics.effects import make_effect
 from twin_nodes.twin.sim import fly_closed_loop
@@ -315,14 +316,7 @@ def write_flight(path: str | Path, vp: VehicleParams, hidden: Hidden, seed: int)
     rec, battery, sp_hist = simulate_flight(vp, hidden, seed)
     rng = np.random.default_rng(seed + 7)
     topics = record_to_topics(rec, vp, battery, sp_hist, rng)
-    r = vp.rotors
-    params = {"SYS_AUTOSTART": 0, "CA_ROTOR_COUNT": int(r.count), "MPC_THR_HOVER": float(vp.hover_command),
-              "THR_MDL_FAC": float(r.thr_mdl_fac) if r.thrust_model == "thrust_factor" else 0.0}
-    # the rotor layout as PX4 logs it: CA_ROTORn_PX/PY/PZ in FRD, spin in the sign of KM
-    frd = frames.flu_to_frd(np.column_stack([r.x_flu_m, r.y_flu_m, r.z_flu_m]))
-    for i in range(r.count):
-        params.update({f"CA_ROTOR{i}_PX": float(frd[i, 0]), f"CA_ROTOR{i}_PY": float(frd[i, 1]),
-                       f"CA_ROTOR{i}_PZ": float(frd[i, 2]), f"CA_ROTOR{i}_KM": float(r.direction[i]) * r.km_m})
+    params = simulated_log_params(vp)  # the rotor layout and hover command as PX4 logs them
     info = {"sys_name": "rotortwin-sim", "ver_hw": "ROTORTWIN_SIM", "sim_vehicle": vp.name}
     write_px4_ulog(str(path), topics, params, info)
     armed = np.isfinite(rec.u).all(1) & (rec.x[:, 2] > 0.5)
@@ -552,7 +546,8 @@ def score_flight(flight: str, truth: Truth, result: dict, nominal: VehicleParams
 
 def _vehicle(name_or_path: str) -> VehicleParams:
     """A params YAML path, or the stem of a shipped one (``px4_sih_quadx``)."""
-    return load_params(name_or_path) if os.path.exists(name_or_path) else shipped(name_or_path)
+    is_path = os.path.exists(name_or_path) or os.sep in name_or_path or name_or_path.endswith((".yaml", ".yml"))
+    return load_params(name_or_path) if is_path else shipped(name_or_path)
 
 
 def run_one(args) -> dict:
@@ -608,9 +603,9 @@ def map_jobs(fn, jobs: list, workers: int, desc: str, progress: bool = True) -> 
 def run_suite(out_dir: str | Path, vehicle: str = "px4_sih_quadx", size: str = "full", workers: int = 2,
               progress: bool = True) -> dict:
     """Our generator's suite (source ``ours``): flights written and judged in ``out_dir``."""
+    vp = _vehicle(vehicle)          # bad --vehicle: the error comes before anything is written
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    vp = _vehicle(vehicle)
     jobs = [(vehicle, h, seed, str(out)) for h, seed in suite(vp, size)]
     return score(map_jobs(run_one, jobs, workers, "prove ours", progress), source="ours")
 

@@ -62,21 +62,15 @@ def plan(n_vehicles: int = 5, flights_per_vehicle: int = 10, *, weak_motor: int 
 
 def write_fleet_flight(folder: str | os.PathLike[str], f: Flight, params_file: str | os.PathLike[str]) -> Path:
     """Simulate one flight of the plan and write it (atomically) as ``folder/<vehicle>_dNN.ulg``."""
-    from twin_nodes.base import frames
     from twin_nodes.discovery.prove import Hidden, record_to_topics, simulate_flight
     from twin_nodes.logs.ulog_write import write_px4_ulog
+    from twin_nodes.vehicle.export_px4 import simulated_log_params
     from twin_nodes.vehicle.params import load_params
 
     vp = load_params(params_file)
     rec, battery, sp_hist = simulate_flight(vp, Hidden(f.effect, dict(f.params)), f.seed)
     topics = record_to_topics(rec, vp, battery, sp_hist, np.random.default_rng(f.seed + 7))
-    r = vp.rotors
-    params = {"SYS_AUTOSTART": 0, "CA_ROTOR_COUNT": int(r.count), "MPC_THR_HOVER": float(vp.hover_command),
-              "THR_MDL_FAC": float(r.thr_mdl_fac) if r.thrust_model == "thrust_factor" else 0.0}
-    frd = frames.flu_to_frd(np.column_stack([r.x_flu_m, r.y_flu_m, r.z_flu_m]))
-    for i in range(r.count):
-        params.update({f"CA_ROTOR{i}_PX": float(frd[i, 0]), f"CA_ROTOR{i}_PY": float(frd[i, 1]),
-                       f"CA_ROTOR{i}_PZ": float(frd[i, 2]), f"CA_ROTOR{i}_KM": float(r.direction[i]) * r.km_m})
+    params = simulated_log_params(vp)  # the rotor layout and hover command as PX4 logs them
     info = {"sys_name": f.vehicle, "sys_uuid": f.uuid, "ver_hw": "ROTORTWIN_SIM", "sim_vehicle": vp.name,
             "time_ref_utc": int(f.time_ref_utc)}
     out = Path(folder) / f.name

@@ -41,7 +41,8 @@ Cleaning rules (see /work/shared/flightlogs/*/MANIFEST.md):
 - A file cut in the middle of a record (a truncated log) is reported as
   ``file truncated`` in the warnings (pyulog reads what is there silently).
   :meth:`FlightLog.data_warnings` lists just these data-loss warnings, for a
-  command to show its user.
+  command to show its user; :func:`read_ulog` also sends each to the ``rotortwin.logs``
+  logger (the ``rotortwin`` command prints them as ``rotortwin: warning: <file>: ...``).
 - A definitions section whose formats expand beyond a ULog message's 65535
   bytes (or contain themselves) is refused before pyulog expands it.
 - ``duration_s`` is the last sample time over all series.
@@ -81,6 +82,7 @@ from __future__ import annotations
 import bisect
 import contextlib
 import io
+import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -89,6 +91,10 @@ from typing import Any, Iterable
 import numpy as np
 
 from twin_nodes.base import frames
+
+#: data-loss warnings of every loaded log (:meth:`FlightLog.data_warnings`) go to this logger as
+#: ``<file>: <warning>``; the ``rotortwin`` command prints them on stderr, once each
+LOG = logging.getLogger("rotortwin.logs")
 
 from twin_nodes.logs import time_sync
 from twin_nodes.base.errors import LogError
@@ -1173,8 +1179,11 @@ def read_ulog(path: str | os.PathLike[str]) -> FlightLog:
     start = int(ulog.start_timestamp) + shift
     changes = [(max(0.0, (int(t) - start) * 1e-6), str(n), _float(v))
                for t, n, v in ulog.changed_parameters]
-    return FlightLog(path=str(p), start_us=start, duration_s=duration, params=params, info=info,
-                     series=series, warnings=warnings, n_motors=n_motors, param_changes=changes)
+    log = FlightLog(path=str(p), start_us=start, duration_s=duration, params=params, info=info,
+                    series=series, warnings=warnings, n_motors=n_motors, param_changes=changes)
+    for w in log.data_warnings():
+        LOG.warning("%s: %s", p, w)
+    return log
 
 
 def list_topics(path: str | os.PathLike[str]) -> list[tuple[str, int, int, float]]:

@@ -156,6 +156,22 @@ def px4_airframe_params(vp: VehicleParams) -> dict[str, int | float]:
     return out
 
 
+def simulated_log_params(vp: VehicleParams) -> dict[str, int | float]:
+    """The PX4 parameters a ULog of a flight simulated with ``vp`` carries, as PX4 would log them:
+    ``SYS_AUTOSTART`` 0 (no PX4 airframe), ``CA_ROTOR_COUNT``, ``CA_ROTOR{i}_PX/PY/PZ`` [m, body FRD],
+    ``CA_ROTOR{i}_KM`` (spin in the sign, PX4's "> 0 = CCW"), ``MPC_THR_HOVER`` (hover command) and
+    ``THR_MDL_FAC`` (0 unless the thrust model is PX4's thrust factor); unrounded, unlike the airframe file."""
+    r = vp.rotors
+    frd = rotor_positions_frd_m(vp)
+    out: dict[str, int | float] = {
+        "SYS_AUTOSTART": 0, "CA_ROTOR_COUNT": int(r.count), "MPC_THR_HOVER": float(vp.hover_command),
+        "THR_MDL_FAC": float(r.thr_mdl_fac) if r.thrust_model == "thrust_factor" else 0.0}
+    for i in range(r.count):
+        out.update({f"CA_ROTOR{i}_PX": float(frd[i, 0]), f"CA_ROTOR{i}_PY": float(frd[i, 1]),
+                    f"CA_ROTOR{i}_PZ": float(frd[i, 2]), f"CA_ROTOR{i}_KM": float(r.direction[i]) * r.km_m})
+    return out
+
+
 def px4_airframe_script(vp: VehicleParams) -> str:
     """``param set-default NAME VALUE`` lines for a PX4 airframe file (ROMFS init.d-posix)."""
     params = px4_airframe_params(vp)
@@ -186,4 +202,4 @@ def _value(v: Any) -> str:
 
 
 __all__ = ["px4_airframe_params", "px4_airframe_script", "qgc_params_table",
-           "rotor_positions_frd_m", "sdf_motor_plugins"]
+           "rotor_positions_frd_m", "sdf_motor_plugins", "simulated_log_params"]
