@@ -88,3 +88,32 @@ def test_compare_log_runs_on_every_shared_log(log_path):
     for k in ("xy_rmse_m", "xy_p75_m", "z_rmse_m", "z_p75_m"):
         assert np.isfinite(m[k]), k
     assert np.all(np.isfinite(m["motor_p75"]))
+
+
+def test_runner_flies_px4_manual_modes_and_the_params_wind():
+    """In PX4's MANUAL/STAB/ACRO nav_states the twin flies the logged collective thrust and the real
+    attitude (mc_pos_control does not run); elsewhere its position/velocity cascade.  A steady wind
+    in the params reaches the closed-loop twin."""
+    from twin_nodes.twin.control import setpoint
+    from twin_nodes.twin.runner import MANUAL_NAV_STATES, TwinRunner
+
+    vp = shipped("px4_sih_quadx")
+    windy = vp.with_effect("wind", vx=3.0, vy=-1.0)
+    assert TwinRunner(windy).ext[1:4].tolist() == [3.0, -1.0, 0.0]
+    assert TwinRunner(vp).ext[1:4].tolist() == [0.0, 0.0, 0.0]
+    assert MANUAL_NAV_STATES == (0.0, 10.0, 15.0)
+
+    r = TwinRunner(vp)
+    q = [1.0, 0.0, 0.0, 0.0]
+    r.real_state(0.0, [0.0, 0.0, 30.0], [0.5, 0.0, 0.0], q, [0.0, 0.0, 0.0])   # airborne, moving: ground at 0
+    r.armed(True)
+    r.setpoint(setpoint(velocity_enu=(0.0, 0.0, 0.0)))
+    r.px4_mode(2.0, 0.08)                     # POSCTL: the cascade holds the velocity setpoint
+    out = r.advance_to(0.5)
+    assert out[-1].x[2] > 29.5 and abs(out[-1].x[5]) < 0.3 and out[-1].throttle > 0.3
+    r.px4_mode(0.0, 0.08)                     # MANUAL at 8 % thrust: the twin flies the pilot's throttle
+    out = r.advance_to(1.0)
+    assert all(s.throttle == pytest.approx(0.08) for s in out)
+    assert out[-1].x[5] < -2.0
+    r.px4_mode(0.0, float("nan"))             # no throttle in the log: back to the cascade
+    assert not r.manual

@@ -125,3 +125,47 @@ def test_auto_gains_keep_fast_vehicles_at_defaults_and_slow_motors_stable():
     fast = qc.replace(controller={k: v for k, v in vars(ControllerGains()).items()})
     rec_fast = fly_closed_loop(fast, t_sp, sp, t_end=20.0)
     assert np.nanstd(rec_fast.u[-250:], axis=0).max() > 0.05
+
+
+@pytest.mark.parametrize("name", VEHICLES)
+def test_manual_mode_flies_the_pilots_thrust_and_attitude(name):
+    """PX4 MANUAL/STAB: no position controller; the collective is the pilot's throttle (what the log's
+    vehicle_thrust_setpoint holds) and the attitude loops hold the given attitude."""
+    vp = shipped(name)
+    m = Multirotor(vp)
+    ctrl = Controller(vp)
+    x = m.initial_state(position_enu=(0.0, 0.0, 30.0), yaw_enu_rad=0.3, rotor_state="hover")
+    q_level = x[6:10].copy()
+    # hover throttle: the collective equals the hover command, motors equal
+    u, info = ctrl.update_manual(x, q_level, vp.hover_command, 0.004)
+    np.testing.assert_allclose(u, vp.hover_command, rtol=1e-9)
+    assert info[0] == pytest.approx(vp.hover_command, rel=1e-9)
+    assert info[1] == pytest.approx(vp.mass_kg * vp.gravity_m_s2, rel=1e-6)
+    # throttle near idle: the vehicle falls (as the climb35m log's 0.5 s in MANUAL at 8 % thrust)
+    dt = 0.004
+    for _ in range(int(0.5 / dt)):
+        u, info = ctrl.update_manual(x, q_level, 0.08, dt)
+        x = m.step(x, u, dt / 4, np.array([np.nan, 0.0, 0.0, 0.0]), 4)
+    assert x[5] < -2.5 and x[2] < 29.4                      # falling: thrust far below the weight
+    assert tilt_deg(x[None, :])[0] < 2.0                    # attitude held level meanwhile
+    assert np.all(np.asarray(info[0]) == pytest.approx(0.08))
+
+
+def test_vertical_integrator_does_not_wind_up_at_the_thrust_limit():
+    """PX4 PositionControl::_velocityControl: no vertical integration of an error that pushes further
+    into the thrust limit the setpoint already sits at."""
+    from twin_nodes.twin.control import C_VI
+
+    vp = shipped("px4_sih_quadx")
+    m = Multirotor(vp)
+    x = m.initial_state(position_enu=(0.0, 0.0, 10.0), rotor_state="hover")
+    ctrl = Controller(vp)
+    sp = setpoint(velocity_enu=(0.0, 0.0, 20.0))  # far beyond what full thrust gives
+    for _ in range(200):
+        _, info = ctrl.update(x, sp, 0.004)
+    assert info[1] == pytest.approx(ctrl.gains.thr_max * vp.rotors.count * vp.rotors.thrust_max_n)  # at the limit
+    assert ctrl.C[C_VI + 2] == 0.0  # saturated from the first step: nothing integrated
+    sp_ok = setpoint(velocity_enu=(0.0, 0.0, 0.5))
+    for _ in range(200):
+        ctrl.update(x, sp_ok, 0.004)
+    assert ctrl.C[C_VI + 2] > 0.0   # unsaturated: integrates again

@@ -16,7 +16,7 @@ import pytest
 from scipy import signal
 
 from twin_nodes.base import frames
-from twin_nodes.identify.regression import (RotorGeometry, fit_linear, rotational_regression,
+from twin_nodes.identify.regression import (RotorGeometry, fit_linear, fit_moment_form, rotational_regression,
                                             rotor_states_from_commands, structural_identifiability,
                                             thrust_regressor, translational_regression, world_to_body)
 from twin_nodes.identify.step_response import discretize_zoh
@@ -64,7 +64,7 @@ def synthetic():
     wd = (M + gyro - KDW * w) / I
     f_meas = f + rng.normal(0, 0.05, f.shape)
     wd_meas = wd + rng.normal(0, 0.5, wd.shape)
-    return vp, t, u, omega, tt, w, vb, f_meas, wd_meas
+    return vp, t, u, omega, tt, w, vb, f_meas, wd_meas, wd
 
 
 def test_rotor_states_are_the_discretised_motor_model(synthetic):
@@ -82,7 +82,7 @@ def test_rotor_states_are_the_discretised_motor_model(synthetic):
 
 
 def test_translational_coefficients_recovered(synthetic):
-    vp, t, u, omega, tt, w, vb, f, wd = synthetic
+    vp, t, u, omega, tt, w, vb, f, wd, _ = synthetic
     res = translational_regression(f, tt, vb)
     m = vp.mass_kg
     assert res["z"]["kT/m"] == pytest.approx(vp.rotors.kt_n_s2_rad2 / m, rel=0.01)
@@ -96,9 +96,11 @@ def test_translational_coefficients_recovered(synthetic):
 
 
 def test_rotational_coefficients_recovered(synthetic):
-    vp, t, u, omega, tt, w, vb, f, wd = synthetic
+    """Errors in the measured response only (white noise on the angular acceleration, exact
+    commands): plain least squares of the acceleration on the commands is the right estimator."""
+    vp, t, u, omega, tt, w, vb, f, wd, _ = synthetic
     geo = RotorGeometry.from_params(vp)
-    res = rotational_regression(wd, w, tt, geo)
+    res = rotational_regression(wd, w, tt, geo, form="acceleration")
     kt, km, l = vp.rotors.kt_n_s2_rad2, vp.rotors.km_m, geo.arm_length_m
     Ixx, Iyy, Izz = np.diag(vp.inertia)
     assert l == pytest.approx(0.25)
@@ -112,7 +114,7 @@ def test_rotational_coefficients_recovered(synthetic):
 
 
 def test_collinear_regressors_are_flagged_with_their_combination(synthetic):
-    vp, t, u, omega, tt, w, vb, f, wd = synthetic
+    vp, t, u, omega, tt, w, vb, f, wd, _ = synthetic
     # Vertical body velocity made proportional to the summed rotor speed^2: drag and thrust collinear.
     c = 2e-6
     vb2 = vb.copy()
@@ -189,3 +191,39 @@ def test_quad_x_geometry_matches_px4_order():
     # Motor1 front-right CCW, Motor3 front-left CW (FLU: right = -y)
     assert g.x_flu_m[0] > 0 and g.y_flu_m[0] < 0 and g.direction[0] == 1
     assert g.x_flu_m[2] > 0 and g.y_flu_m[2] > 0 and g.direction[2] == -1
+
+
+def test_errors_in_the_commands_need_the_moment_form(synthetic):
+    """The logged commands carry noise no motion follows (controller noise, aliasing of an
+    instantaneous 50 Hz sample): least squares of the acceleration on them is attenuated by
+    var(signal) / (var(signal) + var(noise)); the moment form (commands on the left) is not."""
+    vp, _, _, omega, _, w, _, _, _, wd_true = synthetic
+    r = vp.rotors
+    # rotor speeds reconstructed from the logged commands: white errors of ~ half the signal's spread
+    omega_logged = omega + np.random.default_rng(7).normal(0.0, 30.0, omega.shape)
+    tt_logged = thrust_regressor(omega_logged, "omega_squared")
+    wd_clean = wd_true + np.random.default_rng(8).normal(0, 0.05, wd_true.shape)  # a small measurement noise remains
+    geo = RotorGeometry.from_params(vp)
+    kt, km, l = r.kt_n_s2_rad2, r.km_m, geo.arm_length_m
+    Ixx, Iyy, Izz = np.diag(vp.inertia)
+    truth = {"roll": ("kT*l/Ixx", kt * l / Ixx), "pitch": ("kT*l/Iyy", kt * l / Iyy),
+             "yaw": ("km*kT/Izz", km * kt / Izz)}
+    ls = rotational_regression(wd_clean, w, tt_logged, geo, form="acceleration")
+    mom = rotational_regression(wd_clean, w, tt_logged, geo)  # default: moment form
+    for ax, (nm, val) in truth.items():
+        assert ls[ax][nm] < 0.9 * val  # attenuated by the command errors
+        assert mom[ax][nm] == pytest.approx(val, rel=0.03)
+        assert abs(mom[ax][nm] - val) < 4 * mom[ax].se(nm) + 0.01 * val  # honest standard errors
+        assert mom[ax].method.startswith("moment form") and ls[ax].method == "least squares"
+    for ax, nm, val in (("roll", "kdw_x/Ixx", KDW[0] / Ixx), ("yaw", "kdw_z/Izz", KDW[2] / Izz)):
+        assert abs(mom[ax][nm] - val) < 4 * mom[ax].se(nm)  # the other terms: within their errors
+    with pytest.raises(ValueError, match="form"):
+        rotational_regression(wd_clean, w, tt_logged, geo, form="tls")
+
+
+def test_moment_form_falls_back_where_the_input_does_not_drive_the_output():
+    rng = np.random.default_rng(4)
+    X = rng.normal(size=(400, 2))
+    y = 0.5 * X[:, 1] + rng.normal(0, 0.1, 400)  # the first column has no effect
+    fit = fit_moment_form(X, y, ["b", "c"])
+    assert fit.method == "least squares" and abs(fit["b"]) < 0.05

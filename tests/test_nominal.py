@@ -52,6 +52,65 @@ def test_sih_motor_lag_and_drag(sih_nominal):
     effects = dict(sih_nominal.params.effects)
     assert "linear_drag" in effects                           # SIH_KDV 1.0 N/(m/s)
     assert dict(effects["linear_drag"])["k_n_s_m"] == pytest.approx(1.0, rel=0.2)
+    # SIH's drag acts at the centre of mass on the ground velocity, in still air: no drag height, no wind
+    assert "rotor_drag" not in effects and "wind" not in effects
+    assert list(r.z_flu_m) == [0.0] * r.count
+    assert "h " in sih_nominal.sources["effects.linear_drag"] and "not included" in sih_nominal.sources["effects.wind"]
+
+
+def _level_flight(seed: int, n: int = 6000, rate: float = 50.0):
+    """Level flight turning through 360 deg while flying 0-5 m/s: body-frame unit vectors of east and
+    north, the ground velocity (ENU) and its body-frame view."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / rate
+    yaw = 2 * np.pi * t / t[-1] + 0.3 * np.sin(0.7 * t)
+    q = np.column_stack([np.cos(yaw / 2), 0 * t, 0 * t, np.sin(yaw / 2)])
+    v = np.column_stack([4 * np.sin(0.21 * t) + rng.normal(0, 0.05, n), 3 * np.cos(0.13 * t), 0 * t])
+    return t, q, v
+
+
+def test_wind_and_drag_height_recovered_on_synthetic_flight():
+    """f_b = -(k/m) R^T (v - w) + bias with the heading turning: the steady wind is found; the roll and
+    pitch moments holding the drag moment h k v_air give its height h."""
+    from twin_nodes.identify.nominal import _drag_height, _wind
+    from twin_nodes.identify.regression import RotorGeometry, fit_linear, world_to_body
+
+    t, q, v = _level_flight(1)
+    n = t.size
+    rng = np.random.default_rng(2)
+    m, k, w = 1.5, 0.45, np.array([2.0, -1.0, 0.0])
+    e_b = world_to_body(q, np.tile([1.0, 0, 0], (n, 1)))
+    n_b = world_to_body(q, np.tile([0, 1.0, 0], (n, 1)))
+    v_b = world_to_body(q, v)
+    v_air = world_to_body(q, v - w)
+    f = -(k / m) * v_air[:, :2] + [0.05, -0.03] + rng.normal(0, 0.05, (n, 2))
+    z, o = np.zeros(n), np.ones(n)
+    X = np.vstack([np.column_stack([-v_b[:, 0], e_b[:, 0], n_b[:, 0], o, z]),
+                   np.column_stack([-v_b[:, 1], e_b[:, 1], n_b[:, 1], z, o])])
+    hfit = fit_linear(X, np.concatenate([f[:, 0], f[:, 1]]), ["kd/m", "kd/m*w_e", "kd/m*w_n", "bias_x", "bias_y"])
+    we, wn, wse = _wind(hfit)
+    assert (we, wn) == (pytest.approx(2.0, abs=0.05), pytest.approx(-1.0, abs=0.05)) and wse < 0.05
+    assert hfit["kd/m"] == pytest.approx(k / m, rel=0.02)
+    # still air: nothing found
+    f0 = -(k / m) * v_b[:, :2] + rng.normal(0, 0.05, (n, 2))
+    assert _wind(fit_linear(X, np.concatenate([f0[:, 0], f0[:, 1]]), list(hfit.names))) is None
+
+    # rotational: I alpha = M_cmd + M_aero, M_aero = (h k va_y, -h k va_x); commands carry white noise
+    geom = RotorGeometry.quad_x(0.25)
+    h, ixx, iyy, t_max = 0.12, 0.03, 0.035, 8.0
+    alpha = np.column_stack([np.sin(1.3 * t), np.cos(0.9 * t), 0 * t]) * 2.0
+    rates = np.column_stack([np.sin(0.5 * t), np.cos(0.4 * t), 0 * t]) * 0.3
+    m_cmd = np.column_stack([ixx * alpha[:, 0] - h * k * v_air[:, 1], iyy * alpha[:, 1] + h * k * v_air[:, 0]])
+    # per-rotor thrust units that produce these moments about a hover thrust (quad X: y_i/l, -x_i/l)
+    A = np.column_stack([geom.y_flu_m, -geom.x_flu_m]).T  # (2, 4)
+    T = 0.25 * m * 9.81 + m_cmd @ np.linalg.pinv(A).T
+    units = T / t_max + rng.normal(0, 0.002, T.shape)
+    got, note = _drag_height(alpha, rates, units, geom, t_max, v_air, k, geom.arm_length_m)
+    assert got == pytest.approx(h, rel=0.05) and "mm" in note
+    # no drag moment: not significant (or below 5 % of the arm), nothing returned
+    m0 = np.column_stack([ixx * alpha[:, 0], iyy * alpha[:, 1]])
+    units0 = (0.25 * m * 9.81 + m0 @ np.linalg.pinv(A).T) / t_max + rng.normal(0, 0.002, T.shape)
+    assert _drag_height(alpha, rates, units0, geom, t_max, v_air, k, geom.arm_length_m)[0] is None
 
 
 def test_sih_inertia_within_15_percent(sih_nominal):

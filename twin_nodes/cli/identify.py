@@ -5,7 +5,7 @@
     rotortwin identify motor   STEPS.csv|LOG.ulg [--rate-hz 30] [--no-delay] [--symmetric]
     rotortwin identify hover   LOG.ulg [--mass-kg M] [--min-duration 3]
     rotortwin identify delay   LOG.ulg [--pairs thrust,torque_roll,...]
-    rotortwin identify regress LOG.ulg [--rate-hz 50] [--lowpass-hz 4] [--tau-s 0.05]
+    rotortwin identify regress LOG.ulg [--rate-hz 50] [--lowpass-hz 2.5] [--tau-s 0.05]
     rotortwin identify noise   LOG.ulg [--allow-armed] [--accel-reference mean_direction|level]
 
 Every subcommand also takes ``--params P.yaml`` (vehicle parameters: mass, rotor
@@ -93,7 +93,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("log", help="ULog")
     r.add_argument("--rate-hz", type=float, default=50.0, help="resampling rate [Hz]")
     r.add_argument("--lowpass-hz", type=float,
-                   help="zero-phase low-pass applied to both sides (default: 0.4 x the motor log rate, <= 8 Hz)")
+                   help="zero-phase low-pass applied to both sides (default: 2.5 Hz, at most 0.4 x the motor log rate)")
     r.add_argument("--tau-s", type=float, default=0.05,
                    help="motor time constant when no --params is given [s]")
     r.add_argument("--trim-s", type=float, default=2.0,

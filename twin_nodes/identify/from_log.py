@@ -348,6 +348,13 @@ def _longest_finite_run(ok: np.ndarray) -> np.ndarray | None:
     return max(runs, key=len) if runs else None
 
 
+#: default low-pass [Hz] of the equation-error regression: the band in which the gyro-derived angular
+#: acceleration is clean, so the errors sit in the commands and the moment form is unbiased (PX4 SIH:
+#: roll/pitch effectiveness within 5 % of truth at 2.5 Hz; at 8 Hz the differentiated gyro noise
+#: biases it +40-80 %).  The same cut-off as the nominal built from a log (identify/nominal.py).
+ROT_LOWPASS_HZ = 2.5
+
+
 def identify_regression(log: FlightLog, vp: VehicleParams | None, *, source: str | None = None,
                         rate_hz: float = 50.0, lowpass_hz: float | None = None, tau_s: float = 0.05,
                         trim_s: float = 2.0, accel_source: str = "rates", intercept: bool = False,
@@ -357,8 +364,9 @@ def identify_regression(log: FlightLog, vp: VehicleParams | None, *, source: str
     Rotor states come from the logged motor commands through the params file's lag
     and thrust model, else a lag ``tau_s`` [s] with thrust proportional to command.
     Samples are resampled to ``rate_hz`` [Hz], trimmed ``trim_s`` [s] after take-off and
-    before touchdown, and both sides low-passed at ``lowpass_hz`` [Hz] (default 0.4 x the
-    motor log rate, <= 8 Hz).  With ``vp``, ``kT`` and the inertias implied by its mass,
+    before touchdown, and both sides low-passed at ``lowpass_hz`` [Hz] (default
+    ``ROT_LOWPASS_HZ``, at most 0.4 x the motor log rate).  The rotational coefficients come
+    from the moment form (:func:`~twin_nodes.identify.regression.fit_moment_form`).  With ``vp``, ``kT`` and the inertias implied by its mass,
     arm length and km go to the block where the coefficients have |t| >= 20.
     ``source`` names the log in messages and the report (default ``log.path``).
     """
@@ -393,8 +401,11 @@ def identify_regression(log: FlightLog, vp: VehicleParams | None, *, source: str
     notes.append(f"angular acceleration: {aa_src}")
     vb = rg.world_to_body(v["attitude_q"], v["velocity_enu"])
     motor_rate = (len(mot) - 1) / (mot.t_s[-1] - mot.t_s[0])
-    lp = lowpass_hz if lowpass_hz is not None else min(8.0, 0.4 * motor_rate)
+    lp = lowpass_hz if lowpass_hz is not None else min(ROT_LOWPASS_HZ, 0.4 * motor_rate)
     notes.append(f"zero-phase low-pass {lp:g} Hz on both sides (motors logged at {motor_rate:.1f} Hz)")
+    notes.append("rotational coefficients by the moment form (commanded moment regressed on the measured angular "
+                 "acceleration and rates, mapped back): the logged commands carry the controller's noise, which "
+                 "attenuates plain least squares of the acceleration on them (19-24 % low on PX4 SIH)")
 
     # Airborne stretches only (ground reaction is not in the model), each filtered on its own.
     min_n = max(20, int(2 * rate_hz))

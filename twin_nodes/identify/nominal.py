@@ -53,6 +53,12 @@ TAU_SCAN_S = np.round(np.arange(0.02, 0.2501, 0.01), 3)
 TAU_SPREAD_MAX_S = 0.08
 TAU_ASSUMED_S = 0.05
 GRID_HZ = 50.0
+#: a steady wind below this [m/s] is not told apart from the estimate's floor: the PX4 SIH flights
+#: (no wind) give 0.02-0.11 m/s
+WIND_MIN_M_S = 0.3
+#: the drag's line of action counts as above the centre of mass from this fraction of the arm: the
+#: PX4 SIH flights (drag at the centre of mass) give |h| <= 2 mm (0.7 % of the arm)
+DRAG_HEIGHT_MIN = 0.05
 RATES = "body_rates_flu"
 
 
@@ -198,14 +204,33 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     src["rotors.thrust_max_n"] = (f"identified: {t_max:.3f} N ± {m * kt_m_se:.3f} (specific force z, mass above"
                                   + (f", at {battery[2]:.2f} V)" if battery is not None else ")"))
     # isotropic horizontal drag: body x and y stacked with one shared coefficient (a mission
-    # flown nose-first excites body x only), a trim offset per axis
+    # flown nose-first excites body x only), a trim offset per axis, and a steady wind: the drag
+    # acts on the air-relative velocity, f_b = -(k/m) R^T (v - w) + bias; while the heading turns,
+    # the world-fixed wind w separates from the body-fixed biases (linear in (k/m) w)
     f_lp = lp(sig["f_body"])
     nz = np.zeros(t.size)
-    X = np.vstack([np.column_stack([-v_body[:, 0], np.ones(t.size), nz]),
-                   np.column_stack([-v_body[:, 1], nz, np.ones(t.size)])])
-    hfit = fit_linear(X, np.concatenate([f_lp[:, 0], f_lp[:, 1]]), ["kd/m", "bias_x", "bias_y"])
+    one = np.ones(t.size)
+    east_b = lp(world_to_body(sig["q"], np.tile([1.0, 0.0, 0.0], (t.size, 1))))
+    north_b = lp(world_to_body(sig["q"], np.tile([0.0, 1.0, 0.0], (t.size, 1))))
+    X = np.vstack([np.column_stack([-v_body[:, 0], east_b[:, 0], north_b[:, 0], one, nz]),
+                   np.column_stack([-v_body[:, 1], east_b[:, 1], north_b[:, 1], nz, one])])
+    hfit = fit_linear(X, np.concatenate([f_lp[:, 0], f_lp[:, 1]]), ["kd/m", "kd/m*w_e", "kd/m*w_n", "bias_x",
+                                                                      "bias_y"])
+    wind = _wind(hfit)
+    if wind is None:
+        X = X[:, [0, 3, 4]]
+        hfit = fit_linear(X, np.concatenate([f_lp[:, 0], f_lp[:, 1]]), ["kd/m", "bias_x", "bias_y"])
+        src["effects.wind"] = (f"not included: no steady wind separable from the accelerometer biases (heading "
+                               f"change, > 3 sigma, {WIND_MIN_M_S}-15 m/s)")
     drag, drag_se = m * hfit["kd/m"], m * hfit.se("kd/m")
     use_drag = drag > 3 * drag_se
+    if wind is not None and not use_drag:
+        wind = None
+        src["effects.wind"] = "not included: the drag it acts through is not significant"
+    # air-relative body velocity
+    v_air = v_body.copy()
+    if wind is not None:
+        v_air[:, :2] -= wind[0] * east_b[:, :2] + wind[1] * north_b[:, :2]
 
     # --- inertia and damping from the rotational equations, as moment = I alpha + k_w w + trim:
     # the moment is computed from the commands, which carry the controller's noise (no response
@@ -238,6 +263,12 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
             inertia[j] = prior[j]
             damp[j] = 0.0
     src["rotors.km_m"] = f"ASSUMED {km} m (typical propeller torque/thrust ratio; not identifiable with Izz)"
+    # --- where the horizontal drag acts: at a height h above the centre of mass (the rotor H-force
+    # acts at the hubs) it adds the moment h x F_drag, which the commands balance:
+    # roll  M_x = I_x w'_x + k_w w_x + trim_x - h k v_air,y;  pitch  M_y = ... + h k v_air,x
+    drag_h, drag_h_note = None, "no significant horizontal drag"
+    if use_drag:
+        drag_h, drag_h_note = _drag_height(alpha, rates_lp, tt, geom, t_max, v_air, drag, l)
     k_w = float(np.mean(damp[:2]))
     use_damp = k_w > 0 and all(rot[ax].t_values[1] > 3 for ax in ("roll", "pitch"))
 
@@ -245,11 +276,43 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     if battery is not None:
         effects["enabled"].append("battery_sag")
         effects["battery_sag"] = {"v_ref": battery[2], "exponent": battery[3]}
-    if use_drag:
+    z_hub = list(layout.z_flu_m)
+    # the vertical drag (the axial inflow lowers the thrust in a climb: along the thrust, no moment),
+    # from the body-z equation with a drag quadratic in the climb rate, as the body_drag effect has it
+    vz = v_body[:, 2]
+    zfit = fit_linear(np.column_stack([tt.sum(axis=1), -np.abs(vz) * vz]), lp(sig["f_body"])[:, 2],
+                      ["kT/m", "c_dz/m"])
+    c_dz = m * zfit["c_dz/m"] if zfit["c_dz/m"] > 3 * zfit.se("c_dz/m") else 0.0
+    if use_drag and drag_h is not None:
+        # the horizontal drag as the in-plane rotor H-force, -k_d |omega_i| (hub air speed), at the hubs
+        # at the identified height; k_d gives the identified drag at hover
+        w_hover = 1000.0 * math.sqrt(min(m * 9.80665 / (n * t_max), 1.0))
+        k_d = drag / (n * w_hover)
+        effects["enabled"].append("rotor_drag")
+        effects["rotor_drag"] = {"k_d": k_d}
+        z_hub = [drag_h] * n
+        src["effects.rotor_drag"] = (f"identified: the horizontal drag {drag:.3f} N/(m/s) as the rotors' H-force at "
+                                     f"the hubs (k_d {k_d:.3g} N/((rad/s)(m/s)) at hover); {drag_h_note}")
+        src["rotors.z_flu_m"] = (f"identified: {drag_h * 1000:.0f} mm, the height of the drag's line of action "
+                                 f"above the centre of mass (hub height and blade flapping together)")
+        if c_dz > 0:
+            effects["enabled"].append("body_drag")
+            effects["body_drag"] = {"c_dx": 0.0, "c_dy": 0.0, "c_dz": c_dz}
+            src["effects.body_drag"] = (f"identified: vertical drag c_dz {c_dz:.3f} ± {m * zfit.se('c_dz/m'):.3f} "
+                                        f"N/(m/s)^2 (body z specific force vs |v_z| v_z)")
+        else:
+            src["effects.body_drag"] = "not included: no significant vertical drag"
+    elif use_drag:
         effects["enabled"].append("linear_drag")
         effects["linear_drag"] = {"k_n_s_m": drag}
-        src["effects.linear_drag"] = f"identified: {drag:.3f} N/(m/s) (body x/y specific force vs air speed)"
-    else:
+        src["effects.linear_drag"] = (f"identified: {drag:.3f} N/(m/s) (body x/y specific force vs air speed), at the "
+                                      f"centre of mass: {drag_h_note}")
+    if wind is not None:
+        effects["enabled"].append("wind")
+        effects["wind"] = {"vx": wind[0], "vy": wind[1], "gust_std": 0.0}
+        src["effects.wind"] = (f"identified: steady wind {wind[0]:+.2f} m/s east, {wind[1]:+.2f} m/s north "
+                               f"(± {wind[2]:.2f}; horizontal specific force vs the turning heading)")
+    if not use_drag:
         src["effects.linear_drag"] = f"not included: horizontal drag fit {drag:.3g} N/(m/s) not significant"
     if use_damp:
         effects["enabled"].append("angular_damping")
@@ -267,6 +330,9 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     total = float(thrust.sum())
     mx = float(np.dot(layout.y_flu_m, thrust))
     my = float(-np.dot(layout.x_flu_m, thrust))
+    if drag_h is not None:  # less the drag moment the commands hold at the median air speed
+        mx += drag_h * drag * float(np.median(v_air[steady, 1]))
+        my -= drag_h * drag * float(np.median(v_air[steady, 0]))
     mz = float(-km * np.dot(layout.direction, thrust))
     dx, dy, lever = -my / total, mx / total, -mz / total
     lim_d, lim_l = 0.3 * l, l * math.sin(math.radians(10.0))
@@ -315,7 +381,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
             gains[att] = gains[inner] / 2.0
 
     rotors = {
-        "x_flu_m": list(layout.x_flu_m), "y_flu_m": list(layout.y_flu_m), "z_flu_m": list(layout.z_flu_m),
+        "x_flu_m": list(layout.x_flu_m), "y_flu_m": list(layout.y_flu_m), "z_flu_m": z_hub,
         "direction": list(layout.direction), "thrust_model": "thrust_factor", "thrust_max_n": float(t_max),
         "thr_mdl_fac": float(f_fac), "km_m": km, "tau_up_s": tau, "tau_down_s": tau,
         "omega_max_rad_s": 1000.0,
@@ -349,6 +415,45 @@ def _moment_fits(alpha: np.ndarray, rates: np.ndarray, thrust_units: np.ndarray,
     return out
 
 
+def _wind(hfit) -> tuple[float, float, float] | None:
+    """(east, north, stderr) [m/s] of the steady wind from the stacked horizontal drag fit, or None
+    where it is not separable (rank), not significant (chi^2 of both > 11.8, 3 sigma), below
+    ``WIND_MIN_M_S`` or > 15 m/s."""
+    if hfit.rank < len(hfit.names) or hfit.cov is None or not hfit["kd/m"] > 3 * hfit.se("kd/m"):
+        return None
+    b = np.array([hfit["kd/m*w_e"], hfit["kd/m*w_n"]])
+    cb = hfit.cov[1:3, 1:3]
+    if not float(b @ np.linalg.solve(cb, b)) > 11.8:
+        return None
+    a = hfit["kd/m"]
+    w = b / a
+    if not WIND_MIN_M_S <= float(np.hypot(*w)) < 15.0:
+        return None
+    return float(w[0]), float(w[1]), float(np.sqrt(np.trace(cb) / 2.0) / a)
+
+
+def _drag_height(alpha, rates, thrust_units, geom: RotorGeometry, t_max: float, v_air, drag: float,
+                 arm: float) -> tuple[float | None, str]:
+    """Height [m] above the centre of mass at which the horizontal drag acts, from the roll and pitch
+    moment equations stacked (moment form, one shared ``h k``); None where it is not significant
+    (|t| < 3) or outside [-arm, arm] (the drag of a multirotor acts near its rotor plane)."""
+    T = t_max * thrust_units
+    mx = T @ np.asarray(geom.y_flu_m)
+    my = -(T @ np.asarray(geom.x_flu_m))
+    n = alpha.shape[0]
+    z, o = np.zeros(n), np.ones(n)
+    X = np.vstack([np.column_stack([alpha[:, 0], z, rates[:, 0], z, o, z, -v_air[:, 1]]),
+                   np.column_stack([z, alpha[:, 1], z, rates[:, 1], z, o, v_air[:, 0]])])
+    fit = fit_linear(X, np.concatenate([mx, my]), ["Ixx", "Iyy", "kw_x", "kw_y", "trim_x", "trim_y", "hk"])
+    hk, se = fit["hk"], fit.se("hk")
+    h, h_se = hk / drag, se / drag
+    text = f"h {h * 1000:.0f} ± {h_se * 1000:.0f} mm (roll/pitch moment vs air speed)"
+    if not (abs(hk) > 3 * se and DRAG_HEIGHT_MIN * arm <= abs(h) <= arm):
+        return None, (f"its height above the centre of mass, {text}, is not significant, below "
+                      f"{DRAG_HEIGHT_MIN:.0%} of the arm or beyond it")
+    return float(h), text
+
+
 def _battery_sag(log: FlightLog, t: np.ndarray, tt: np.ndarray, lp, v_body: np.ndarray, sig: dict,
                  segs: list[slice]) -> tuple[float, float, float, float, float] | None:
     """(kT/m, its se, V_ref, exponent, its se) when the pack voltage sags enough to matter and the
@@ -379,6 +484,11 @@ def _hover_command(total_thrust_max_n: float, mass_kg: float, f: float, g: float
     return (-(1 - f) + math.sqrt((1 - f) ** 2 + 4 * f * rel)) / (2 * f)
 
 
+#: the cache key of the code that builds a nominal, taken when it was imported (the source on disk may
+#: change under a running process, which must not file its results under the new code's key)
+_CODE_KEY = b"".join(inspect.getsource(sys.modules[name]).encode() for name in
+                     (__name__, "twin_nodes.identify.regression", "twin_nodes.vehicle.px4_params"))
+
 #: PX4 airframes (SYS_AUTOSTART) with a shipped params file: (stem, what it is)
 SHIPPED_AIRFRAMES = {10040: "px4_sih_quadx", 1100: "px4_sih_quadx"}
 
@@ -406,7 +516,7 @@ def params_for_log(ulog: str | os.PathLike[str], explicit: str | os.PathLike[str
     if stem is not None:
         return params_dir() / f"{stem}.yaml", f"params: shipped {stem}.yaml for SYS_AUTOSTART {autostart}"
     h = hashlib.sha1(Path(ulog).read_bytes())
-    h.update(inspect.getsource(sys.modules[__name__]).encode())
+    h.update(_CODE_KEY)
     out = cache_dir() / "nominal" / f"{Path(ulog).stem}-{h.hexdigest()[:12]}.yaml"
     if not out.is_file():
         nom = nominal_from_log(read_ulog(ulog))

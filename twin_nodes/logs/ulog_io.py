@@ -222,9 +222,9 @@ class FlightLog:
         """The warnings that mean data was dropped, cut or is missing (a truncated or corrupt
         file, clock jumps, time going backwards, logging pauses, stray samples): the ones a
         command should show its user, unlike notes such as a topic this PX4 does not log."""
-        keys = ("file truncated", "file corruption", "log: ", "timestamps go backwards",
+        keys = ("file truncated", "file corruption", "timestamps go backwards",
                 "stamped before the log start", "far after the log end", "without samples")
-        return [w for w in self.warnings if any(k in w for k in keys)]
+        return [w for w in self.warnings if w.startswith("log: ") or any(k in w for k in keys)]
 
     def require(self, name: str) -> Series:
         """The series ``name``; raises :class:`LogError` naming what is missing."""

@@ -160,16 +160,46 @@ def _min_rotor_thrust(P):
 
 
 @njit(cache=True)
-def controller_update(G, C, P, J, A, x, sp, dt, u, info):
-    """One control step.  ``x`` holds the estimate [p, v, q, w] (ENU/FLU); writes ``u`` (N,) and ``info``."""
-    n = int(P[I_N])
-    m = P[I_MASS]
-    g = P[I_G]
+def _cmd_to_rotor_thrust(P, s):
+    """Steady rotor thrust [N] at normalised command ``s`` (inverse of ``_thrust_to_cmd``)."""
+    s = min(max(s, 0.0), 1.0)
+    if P[I_MODE] == 0.0:
+        w = P[I_WMIN] + s * (P[I_WCMD] - P[I_WMIN])
+        return P[I_KT] * w * w
+    f = P[I_FAC]
+    return P[I_TMAX] * (f * s * s + (1.0 - f) * s)
+
+
+@njit(cache=True)
+def _init_memory(C, x):
     if C[C_INIT] == 0.0:
         for k in range(3):
             C[C_VPREV + k] = x[3 + k]
             C[C_WPREV + k] = x[10 + k]
         C[C_INIT] = 1.0
+
+
+@njit(cache=True)
+def manual_update(G, C, P, J, A, x, q_sp, throttle, dt, u, info):
+    """One control step of PX4's manual (stabilised/acro) modes, where the position controller does not
+    run: the pilot's attitude ``q_sp`` (w, x, y, z; FLU->ENU) and collective ``throttle`` (PX4's normalised
+    thrust setpoint, 0..1) go straight to the attitude and rate loops.  The velocity loop's memory is
+    left as it is (PX4 does not run it) but its derivative state follows the vehicle."""
+    n = int(P[I_N])
+    _init_memory(C, x)
+    for k in range(3):
+        C[C_VPREV + k] = x[3 + k]
+    thrust = n * _cmd_to_rotor_thrust(P, throttle)
+    _attitude_to_motors(G, C, P, J, A, x, thrust, q_sp, np.nan, dt, u, info)
+
+
+@njit(cache=True)
+def controller_update(G, C, P, J, A, x, sp, dt, u, info):
+    """One control step.  ``x`` holds the estimate [p, v, q, w] (ENU/FLU); writes ``u`` (N,) and ``info``."""
+    n = int(P[I_N])
+    m = P[I_MASS]
+    g = P[I_G]
+    _init_memory(C, x)
     # ---- position -> velocity setpoint
     vsp = np.zeros(3)
     for k in range(3):
@@ -191,6 +221,7 @@ def controller_update(G, C, P, J, A, x, sp, dt, u, info):
     vsp[2] = min(max(vsp[2], -vz_dn), vz_up)
     # ---- velocity PID -> acceleration setpoint (derivative on measured velocity, as PX4)
     asp = np.zeros(3)
+    verr = np.zeros(3)
     for k in range(3):
         kp = G[G_XYV_P] if k < 2 else G[G_ZV_P]
         ki = G[G_XYV_I] if k < 2 else G[G_ZV_I]
@@ -201,7 +232,7 @@ def controller_update(G, C, P, J, A, x, sp, dt, u, info):
         asp[k] = kp * e + C[C_VI + k] - kd * dv
         if sp[6 + k] == sp[6 + k]:
             asp[k] += sp[6 + k]
-        C[C_VI + k] = min(max(C[C_VI + k] + ki * e * dt, -G[G_V_IMAX]), G[G_V_IMAX])
+        verr[k] = e
     # ---- thrust vector with tilt limit (PX4 keeps altitude first)
     fz = asp[2] + g
     if fz < 0.1 * g:
@@ -215,7 +246,15 @@ def controller_update(G, C, P, J, A, x, sp, dt, u, info):
     tnorm = np.sqrt(tvec[0] ** 2 + tvec[1] ** 2 + tvec[2] ** 2)
     thrust = m * tnorm
     tmax_all = n * _max_rotor_thrust(P)
-    thrust = min(max(thrust, G[G_THR_MIN] * tmax_all), G[G_THR_MAX] * tmax_all)
+    thr_lo, thr_hi = G[G_THR_MIN] * tmax_all, G[G_THR_MAX] * tmax_all
+    # vertical anti-windup as PX4 PositionControl::_velocityControl: no integration of a vertical
+    # velocity error that pushes further into the thrust limit the setpoint already sits at
+    if (m * fz <= thr_lo and verr[2] <= 0.0) or (m * fz >= thr_hi and verr[2] >= 0.0):
+        verr[2] = 0.0
+    for k in range(3):
+        ki = G[G_XYV_I] if k < 2 else G[G_ZV_I]
+        C[C_VI + k] = min(max(C[C_VI + k] + ki * verr[k] * dt, -G[G_V_IMAX]), G[G_V_IMAX])
+    thrust = min(max(thrust, thr_lo), thr_hi)
     zb = tvec / tnorm
     # ---- desired attitude from body z and yaw
     yaw = sp[9]
@@ -226,6 +265,14 @@ def controller_update(G, C, P, J, A, x, sp, dt, u, info):
     xb /= np.sqrt(xb[0] ** 2 + xb[1] ** 2 + xb[2] ** 2)
     yb = np.cross(zb, xb)
     qd = _rotmat_to_quat(xb, yb, zb)
+    _attitude_to_motors(G, C, P, J, A, x, thrust, qd, sp[10], dt, u, info)
+
+
+@njit(cache=True)
+def _attitude_to_motors(G, C, P, J, A, x, thrust, qd, yawspeed, dt, u, info):
+    """Attitude P -> rate PID -> allocation, for collective ``thrust`` [N] and attitude setpoint ``qd``."""
+    n = int(P[I_N])
+    zb = _qrot(qd, np.array([0.0, 0.0, 1.0]))
     # ---- attitude error as PX4 AttitudeControl::update: tilt first (reduced attitude),
     # yaw mixed in with MC_YAW_WEIGHT, yaw gain divided by the weight to compensate.
     q = x[6:10]
@@ -249,11 +296,11 @@ def controller_update(G, C, P, J, A, x, sp, dt, u, info):
     wsp[0] = 2.0 * qe[1] * G[G_ROLL_P]
     wsp[1] = 2.0 * qe[2] * G[G_PITCH_P]
     wsp[2] = 2.0 * qe[3] * (G[G_YAW_P] / yw if yw > 1e-4 else 0.0)
-    if sp[10] == sp[10]:
+    if not np.isnan(yawspeed):
         # yaw-rate feed-forward about world z, expressed in the body frame
         zw = _qrot(_qconj(q), np.array([0.0, 0.0, 1.0]))
         for k in range(3):
-            wsp[k] += zw[k] * sp[10]
+            wsp[k] += zw[k] * yawspeed
     rmax = G[G_RR_MAX] * np.pi / 180.0
     ymax = G[G_YR_MAX] * np.pi / 180.0
     for k in range(2):
@@ -382,6 +429,15 @@ class Controller:
 
     def reset(self) -> None:
         self.C[:] = 0.0
+
+    def update_manual(self, x: np.ndarray, q_sp: np.ndarray, throttle: float, dt: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """PX4's manual modes: attitude setpoint ``q_sp`` (w, x, y, z) and collective ``throttle`` (0..1)."""
+        u = np.empty(self.n)
+        info = np.empty(INFO_SIZE)
+        manual_update(self.G, self.C, self.P, self.J, self.A, np.ascontiguousarray(x[:13], dtype=np.float64),
+                      np.ascontiguousarray(q_sp, dtype=np.float64), float(throttle), float(dt), u, info)
+        return u, info
 
     def update(self, x: np.ndarray, sp: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         u = np.empty(self.n)

@@ -19,6 +19,7 @@ outputs at its control rate.  :func:`run_twin_on_log` feeds a whole
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,11 +27,13 @@ import numpy as np
 from twin_nodes.twin.control import SP_SIZE, Controller
 from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.core import NX_BODY
-from twin_nodes.physics.effects import default_ext
 from twin_nodes.physics.model import Multirotor
 from twin_nodes.twin.sim import DelayLine
 
 MODES = ("closed", "open")
+#: PX4 vehicle_status.nav_state values in which mc_pos_control does not run (MANUAL, ACRO, STAB): the
+#: attitude setpoint and collective thrust come from the pilot's sticks
+MANUAL_NAV_STATES = (0.0, 10.0, 15.0)
 
 
 @dataclass
@@ -65,7 +68,8 @@ class TwinRunner:
         self.n = n
         self.t: float | None = None
         self.x = self.model.initial_state()
-        self.ext = default_ext()
+        # steady exogenous inputs from the params' effects (a steady wind); the battery voltage is fed in
+        self.ext = self.model.exogenous(np.zeros(1))[0]
         self.sp = np.full(SP_SIZE, np.nan)
         self.real_x: np.ndarray | None = None
         self.real_u = np.full(n, np.nan)
@@ -79,6 +83,9 @@ class TwinRunner:
         #: z = 0, PX4's EKF origin is often not at ground level (a log may start at z = -3.8 m NED)
         self.ground_z = 0.0
         self.sp_t: float | None = None
+        #: PX4 nav_state of the real vehicle (NaN unknown) and its logged collective thrust setpoint
+        self.nav_state = float("nan")
+        self.real_throttle = float("nan")
 
     # ---------------------------------------------------------------- inputs
     def real_state(self, t: float, p_enu, v_enu, q_wxyz, w_flu) -> None:
@@ -103,6 +110,7 @@ class TwinRunner:
         sp[2] -= self.ground_z
         if not np.array_equal(sp, self.sp, equal_nan=True):
             self.sp_t = self.t  # a new setpoint sample: the trajectory is carried on from here
+            self._sp_rates = None  # its velocity and acceleration terms, made when first carried
         self.sp = sp
 
     def real_motors(self, u) -> None:
@@ -110,6 +118,18 @@ class TwinRunner:
 
     def armed(self, armed: bool) -> None:
         self.is_armed = bool(armed)
+
+    def px4_mode(self, nav_state: float, throttle: float = float("nan")) -> None:
+        """The real vehicle's PX4 ``nav_state`` and collective thrust setpoint (0..1).  In PX4's manual
+        modes (:data:`MANUAL_NAV_STATES`) the position controller does not run: the twin then flies
+        the pilot's thrust and the real attitude (see :attr:`manual`)."""
+        self.nav_state = float(nav_state)
+        self.real_throttle = float(throttle)
+
+    @property
+    def manual(self) -> bool:
+        return (self.nav_state in MANUAL_NAV_STATES and math.isfinite(self.real_throttle)
+                and self.real_x is not None)
 
     def battery(self, volts: float) -> None:
         self.ext[0] = volts
@@ -145,7 +165,12 @@ class TwinRunner:
                 mean_u = np.nanmean(u) if np.any(np.isfinite(u)) else np.nan
                 self.throttle = float(mean_u)
             else:
-                if self.is_armed:
+                if self.is_armed and self.manual:
+                    # PX4 MANUAL/STAB/ACRO: no position controller; the pilot's collective thrust and
+                    # attitude (the real attitude stands for the stick's attitude setpoint)
+                    u, info = self.ctrl.update_manual(self.x[:13], self.real_x[6:10], self.real_throttle, self.dt_c)
+                    self.throttle = float(info[0])
+                elif self.is_armed:
                     u, info = self.ctrl.update(self.x[:13], self._effective_setpoint(), self.dt_c)
                     self.throttle = float(info[0])
                 else:
@@ -168,11 +193,15 @@ class TwinRunner:
         /real topic) a 5-25 Hz subsample of it; a held staircase makes the twin chase 1 m steps at
         5 m/s.  Never carried more than 1 s (a logging gap)."""
         sp = self.sp
-        if self.sp_t is None or self.t is None or not np.any(np.isfinite(sp[3:6])):
+        if self.sp_t is None or self.t is None:
+            return sp
+        if getattr(self, "_sp_rates", None) is None:
+            # once per setpoint sample, not per control step (the sample is held for 10-50 steps)
+            self._sp_rates = (bool(np.any(np.isfinite(sp[3:6]))), np.nan_to_num(sp[3:6]), np.nan_to_num(sp[6:9]))
+        moving, vel, acc = self._sp_rates
+        if not moving:
             return sp
         dt = min(max(self.t - self.sp_t, 0.0), 1.0)
-        vel = np.nan_to_num(sp[3:6])
-        acc = np.nan_to_num(sp[6:9])
         out = sp.copy()
         out[0:3] = sp[0:3] + vel * dt + 0.5 * acc * dt * dt
         return out
@@ -207,7 +236,7 @@ def log_inputs(log, rate_hz: float, t0: float | None = None, t1: float | None = 
     """The real-vehicle inputs the twin needs, on one uniform grid (uses the log's resampler)."""
     names = ["position_enu", "velocity_enu", "attitude_q", "body_rates_flu", "motors"]
     optional = ["setpoint_position_enu", "setpoint_velocity_enu", "setpoint_accel_enu", "setpoint_yaw_enu",
-                "setpoint_yawspeed", "armed", "battery_v"]
+                "setpoint_yawspeed", "armed", "battery_v", "nav_state", "throttle"]
     present = names + [n for n in optional if log.get(n) is not None]
     grid, data = log.resample(present, rate_hz, t0, t1)
     data["t"] = grid
@@ -235,6 +264,8 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
     armed = np.asarray(data["armed"]).reshape(n) > 0.5 if "armed" in data else np.isfinite(
         np.asarray(data["motors"])).any(axis=1)
     batt = np.asarray(data["battery_v"]).reshape(n) if "battery_v" in data else np.full(n, np.nan)
+    nav = np.asarray(data["nav_state"]).reshape(n) if "nav_state" in data else np.full(n, np.nan)
+    thr = np.asarray(data["throttle"]).reshape(n) if "throttle" in data else np.full(n, np.nan)
     P, V, Q, W, U = (np.asarray(data[k]) for k in ("position_enu", "velocity_enu", "attitude_q",
                                                      "body_rates_flu", "motors"))
     out_t, out_x, out_u, out_thr, out_sf = [], [], [], [], []
@@ -247,6 +278,7 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
         runner.real_motors(U[k])
         runner.setpoint(sp[k])
         runner.armed(bool(armed[k]))
+        runner.px4_mode(nav[k], thr[k])
         if np.isfinite(batt[k]):
             runner.battery(batt[k])
         if k + 1 < n:
