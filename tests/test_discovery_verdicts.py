@@ -160,6 +160,39 @@ def test_grade_likely_only_when_all_but_significance_holds():
     assert f.verdict == "confirmed"
 
 
+def test_locate_output_flags_mode_windows_above_3x_typical_error_merged_by_overlap():
+    """Output-error windows (0.4 s every 0.2 s) whose yaw error is above 3x the typical error merge
+    into one span per run of overlapping (or touching) windows, per channel worst first, labelled
+    with the regime they fly."""
+    from types import SimpleNamespace
+
+    from twin_nodes.discovery.locate import locate_output
+    from twin_nodes.discovery.residuals import EquationData
+
+    vp = shipped("px4_sih_quadx")
+    n = 1000  # 20 s at 50 Hz
+    t = np.arange(n) * 0.02
+    w = np.zeros((n, 3))
+    w[(t >= 4.0) & (t < 6.0), 2] = 1.0  # a yaw turn
+    z = np.zeros((n, 3))
+    data = EquationData("x", t, np.ones(n, bool), z, z, np.tile([1.0, 0, 0, 0], (n, 1)), w, z, z,
+                        np.zeros((n, 4)), 1, np.full(n, np.nan), np.full(n, 10.0), 0.02)
+    k = 95
+    win = SimpleNamespace(t=np.arange(k) * 0.2, t_end=np.arange(k) * 0.2 + 0.4)
+    err = np.zeros((k, 6))  # per window, axes in mode units: throttle, roll, pitch, yaw
+    err[20:26, 3] = [3.5, 5.0, 4.0, 2.0, 2.0, 3.2]   # 20-22 overlap (4.0-4.8 s), 25 alone (5.0-5.4 s)
+    err[60, 1] = 4.0                             # a roll window at 12 s (hover)
+    r = vp.rotors
+    b = np.vstack([np.ones(4), r.y_flu_m, -np.array(r.x_flu_m), -np.array(r.direction, float)])
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    R = np.column_stack([err[:, :4] @ np.linalg.pinv(b).T, np.zeros((k, 2))])  # as output_error lays them
+    out = locate_output(data, win, R, vp)
+    assert [(m["channel"], m["t_start"], m["t_end"], m["severity"]) for m in out] == [
+        ("roll", 12.0, 12.4, 4.0), ("yaw", 4.0, 4.8, 5.0), ("yaw", 5.0, 5.4, 3.2)]
+    assert all(m["residual"] == "output" for m in out)
+    assert [m["regime"] for m in out] == ["hover", "yaw turn", "yaw turn"]
+
+
 # ----------------------------------------------------------------------------- plans
 
 

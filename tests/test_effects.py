@@ -77,21 +77,60 @@ def test_angular_damping_decays_rates_at_k_over_i(sih, axis, inertia):
     assert np.max(np.abs(X[:, [10 + a for a in others]])) < 1e-12
 
 
-def test_rotor_drag_is_minus_kd_sum_omega_times_in_plane_airspeed(buho):
+def test_rotor_drag_is_minus_kd_omega_times_each_hubs_in_plane_airspeed(buho):
+    """H_i = -k_d |omega_i| (u_i,x, u_i,y, 0) at hub r_i, u_i = v_air + w x r_i (body); moment r_i x H_i."""
     kd = 1e-3
-    m = Multirotor(buho.with_effect("rotor_drag", k_d=kd))
+    vp = buho.with_effect("rotor_drag", k_d=kd)
+    m = Multirotor(vp)
     omega = np.array([300.0, 310.0, 290.0, 305.0])
     x = probe_state(m, omega)
     wind = (1.0, 0.5, 0.2)
     vb = air_body(x, wind)
-    expected = -kd * omega.sum() * np.array([vb[0], vb[1], 0.0])
+    r = np.column_stack([vp.rotors.x_flu_m, vp.rotors.y_flu_m, vp.rotors.z_flu_m])
+    r[:, 2] = [0.02, 0.02, -0.01, 0.03]  # hubs off the CoM plane too: roll/pitch moments
+    vp = vp.replace_rotors(z_flu_m=tuple(r[:, 2]))
+    m = Multirotor(vp)
+    u = vb + np.cross(x[10:13], r)
+    H = -kd * omega[:, None] * np.column_stack([u[:, 0], u[:, 1], np.zeros(4)])
     f, mom = m.wrench_terms(x, ext_of(wind=wind))["rotor_drag"]
-    np.testing.assert_allclose(f[0], expected, rtol=1e-12, atol=1e-15)
-    np.testing.assert_array_equal(mom[0], 0.0)
+    np.testing.assert_allclose(f[0], H.sum(0), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(mom[0], np.cross(r, H).sum(0), rtol=1e-12, atol=1e-15)
+    assert abs(mom[0][2]) > 1e-3 and abs(mom[0][0]) > 1e-4  # both moments are there, not zero
     # the dynamics see it: the accelerometer reads (thrust + drag) / m
     thrust = buho.rotors.kt_n_s2_rad2 * np.sum(omega**2)
     np.testing.assert_allclose(m.specific_force_flu(x, np.full(4, 0.5), ext_of(wind=wind)),
-                               (expected + [0.0, 0.0, thrust]) / buho.mass_kg, rtol=1e-12)
+                               (H.sum(0) + [0.0, 0.0, thrust]) / buho.mass_kg, rtol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["buho_negro", "px4_sih_quadx", "rotorpy_crazyflie"])
+def test_rotor_drag_damps_a_hovering_yaw_by_kd_sum_omega_arm_squared(name):
+    """Hover, no wind, yawing at r: every hub moves tangentially at r |r_i|, so the H-forces cancel
+    (symmetric frame, equal speeds) and leave the yaw moment -k_d r sum|omega_i| (x_i^2 + y_i^2),
+    nothing on roll and pitch; standing still in the air it is the old CoM force -k_d sum|omega| v."""
+    base = shipped(name)
+    base = base.replace(effects=())  # rotor_drag alone (SIH carries angular damping, RotorPy rotor drag)
+    rate = 0.7
+    x = Multirotor(base).initial_state(position_enu=(0.0, 0.0, 10.0), yaw_enu_rad=0.3,
+                                       rates_flu=(0.0, 0.0, rate), rotor_state="hover")
+    omega = Multirotor(base).rotor_speeds(x)
+    arm2 = np.asarray(base.rotors.x_flu_m) ** 2 + np.asarray(base.rotors.y_flu_m) ** 2
+    kd = 0.8 * base.inertia[2, 2] / np.sum(omega * arm2)  # a yaw time constant of 1.25 s
+    vp = base.with_effect("rotor_drag", k_d=kd)
+    m = Multirotor(vp)
+    f, mom = m.wrench_terms(x)["rotor_drag"]
+    np.testing.assert_allclose(mom[0][2], -kd * rate * np.sum(omega * arm2), rtol=1e-12)
+    np.testing.assert_allclose(mom[0][:2], 0.0, atol=1e-14)
+    np.testing.assert_allclose(f[0], 0.0, atol=1e-12)
+    # the opposite rate, the opposite moment; twice the rate, twice
+    x[12] = -2 * rate
+    np.testing.assert_allclose(m.wrench_terms(x)["rotor_drag"][1][0][2], 2 * kd * rate * np.sum(omega * arm2),
+                               rtol=1e-12)
+    # left to itself (equal commands: the reaction torques cancel), the yaw rate decays as
+    # exp(-t k_d sum|omega_i| |r_i|^2 / Izz)
+    x[12] = rate
+    X = m.simulate(x, np.tile(np.full(m.n_rotors, vp.hover_command), (200, 1)), 0.005)
+    np.testing.assert_allclose(X[:, 12], rate * np.exp(-0.8 * np.arange(201) * 0.005), rtol=1e-6)
+    np.testing.assert_allclose(X[:, 10:12], 0.0, atol=1e-12)
 
 
 def test_body_drag_is_quadratic_per_body_axis(buho):

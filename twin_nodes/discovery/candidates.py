@@ -93,8 +93,11 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
             unphysical=lambda th: (f"efficiency {th[0]:.3g} > 1: a motor cannot beat the nominal thrust curve "
                                    "(the nominal thrust is off, not the motor)") if th[0] > 1.03 else None)
     tu, td = r.tau_up_s, r.tau_down_s
-    add("motor_time_constant", ["tau_up", "tau_down"], [tu, td], [0.002, 0.002], [max(5 * tu, 0.3), max(5 * td, 0.3)],
-        lambda th: max(abs(th[0] - tu), abs(th[1] - td)) > dt_log)
+    # lower bound: half the motor logging interval (a shorter lag cannot be told from none on this log,
+    # and the output error's 0.01 s RK4 steps stay stable above 0.0036 s)
+    tau_lo = min(max(0.002, 0.5 * dt_log), tu, td)
+    add("motor_time_constant", ["tau_up", "tau_down"], [tu, td], [tau_lo, tau_lo],
+        [max(5 * tu, 0.3), max(5 * td, 0.3)], lambda th: max(abs(th[0] - tu), abs(th[1] - td)) > dt_log)
     add("actuator_delay", ["delay"], [0.0], [0.0], [0.3], lambda th: th[0] > dt_log)
     km = r.km_m
     add("yaw_moment", ["km"], [km], [0.2 * km], [5.0 * km], lambda th: _rel(th[0], km) > 0.03)

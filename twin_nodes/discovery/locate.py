@@ -5,7 +5,8 @@ per-motor residual, :func:`~twin_nodes.discovery.residuals.modes`), ``motor1..N`
 differential from the collective) and ``force_x``/``force_y`` (horizontal force).
 
 *Mismatch* (:func:`locate`): 2-s windows whose low-passed equation-error RMS exceeds 3x the
-channel's own noise floor, labelled by flight regime.
+channel's own noise floor, labelled by flight regime; :func:`locate_output`: output-error windows
+whose error in a mode exceeds 3x the nominal model's typical error there (``"residual": "output"``).
 
 *Excitation* (:func:`excitation`): what the flight gives a channel to be judged on, from the
 commands and the measured motion, not from any residual: per block of the block test, the RMS
@@ -123,6 +124,34 @@ def locate(data: EquationData, R: np.ndarray, raw: np.ndarray, names: list[str],
     return out
 
 
+def locate_output(data: EquationData, win, R: np.ndarray, vp: VehicleParams, factor: float = 3.0,
+                  per_channel: int = 8) -> list[dict]:
+    """Output-error windows whose error in a mode (throttle, roll, pitch, yaw; units of the nominal
+    model's typical error on that axis) exceeds ``factor``, merged when they overlap, by regime."""
+    m, mnames = modes(R, vp)
+    lab = regimes(data)
+    out = []
+    for k, ch in enumerate(mnames[:4]):
+        col = np.abs(m[:, k])
+        if not np.any(col):
+            continue  # an axis the output error leaves out
+        merged: list[list] = []
+        for i in np.flatnonzero(col > factor):
+            t0, t1 = float(win.t[i]), float(win.t_end[i])
+            if merged and t0 <= merged[-1][1] + 1e-6:
+                merged[-1][1] = max(merged[-1][1], t1)
+                merged[-1][2] = max(merged[-1][2], float(col[i]))
+            else:
+                merged.append([t0, t1, float(col[i])])
+        merged.sort(key=lambda f: -f[2])
+        for t0, t1, sev in merged[:per_channel]:
+            sel = (data.t >= t0) & (data.t <= t1)
+            vals, counts = np.unique(lab[sel], return_counts=True)
+            out.append({"channel": ch, "residual": "output", "t_start": round(t0, 2), "t_end": round(t1, 2),
+                        "regime": str(vals[np.argmax(counts)]) if counts.size else "", "severity": round(sev, 2)})
+    return out
+
+
 def command_channels(data: EquationData, vp: VehicleParams, names: list[str]) -> dict[str, np.ndarray]:
     """What the flight commands in every channel, in fraction of full motor output: the nominal
     model's rotor thrusts from the logged commands (collective, moment patterns, each motor's
@@ -179,5 +208,5 @@ def supply_for(channel: str) -> str:
     return SUPPLY.get(channel, SUPPLY["pitch"])
 
 
-__all__ = ["EXCITED_FACTOR", "SUPPLY", "channel_signals", "command_channels", "excitation", "locate", "regimes",
-           "supply_for"]
+__all__ = ["EXCITED_FACTOR", "SUPPLY", "channel_signals", "command_channels", "excitation", "locate",
+           "locate_output", "regimes", "supply_for"]

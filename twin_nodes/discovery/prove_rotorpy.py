@@ -51,11 +51,10 @@ REPO = Path(__file__).resolve().parents[2]
 #: and the vertical airspeed; the Crazyflie's own 7.55e-7 is found on a no-effect flight as body_drag c_dz,
 #: see docs/prove_results.md), translational lift k_h and flapping moment k_flap (0 on the Crazyflie).
 UNMODELLED = {"k_z": 0.0, "k_h": 0.0, "k_flap": 0.0}
-#: Kept as RotorPy flies it (part of its rotor drag, which the nominal carries as rotor_drag): the rotor drag
-#: acts at each hub with the hub's own airspeed, v + w x r_i, so a yaw rate adds the yaw damping
-#: k_d * sum(w_i) * |r_i|^2 (1.36e-5 N m/(rad/s) at hover on the Crazyflie, Izz / that = 2.1 s) that our
-#: rotor_drag, a force at the centre of mass, does not have.  It is a small residual in the yaw channel during
-#: yaw turns (docs/prove_results.md).
+#: Kept as RotorPy flies it: its rotor drag acts at each hub with the hub's own airspeed v + w x r_i, so a yaw
+#: rate adds the yaw damping k_d * sum(w_i) * |r_i|^2 (1.36e-5 N m/(rad/s) at hover on the Crazyflie, Izz / that
+#: = 2.1 s).  Our rotor_drag is the same law (physics/effects.py, since 2026-11-23; before, a force at the centre
+#: of mass without that moment, which left a yaw residual during yaw turns: docs/prove_results.md).
 
 
 def rotorpy_params(vehicle: str = VEHICLE) -> dict:

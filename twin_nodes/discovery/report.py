@@ -28,13 +28,15 @@ def summary_text(res: dict) -> str:
              f"  fit on {res['method']['fit_interval_s']} s, judged on held-out {res['method']['heldout_interval_s']} s"]
     if res["mismatch"]:
         lines.append("  where the model and the flight disagree (worst window per channel):")
-        worst: dict[str, dict] = {}
+        worst: dict[tuple, dict] = {}
         for m in res["mismatch"]:
-            if m["channel"] not in worst or m["severity"] > worst[m["channel"]]["severity"]:
-                worst[m["channel"]] = m
-        for m in sorted(worst.values(), key=lambda m: -m["severity"])[:6]:
-            lines.append(f"    {m['channel']:<9} {m['t_start']:7.1f}-{m['t_end']:7.1f} s  {m['regime']:<28} "
-                         f"severity {m['severity']:.1f}x noise")
+            key = (m["channel"], m.get("residual", "equation"))
+            if key not in worst or m["severity"] > worst[key]["severity"]:
+                worst[key] = m
+        for m in sorted(worst.values(), key=lambda m: -m["severity"])[:8]:
+            kind = "OE" if m.get("residual") == "output" else "EE"
+            lines.append(f"    {m['channel']:<9} {kind} {m['t_start']:7.1f}-{m['t_end']:7.1f} s  {m['regime']:<28} "
+                         f"severity {m['severity']:.1f}x {'typical error' if kind == 'OE' else 'noise'}")
     ex = res.get("excitation") or {}
     if ex:
         lines.append("  excitation (held-out blocks with signal / all; manoeuvres):")
@@ -160,8 +162,8 @@ def write_report(folder, res: dict, series: dict) -> None:
                      f"<td>{v['blocks_flight']}/{v['blocks_flight_total']}</td><td>"
                      f"{html.escape(', '.join(f'{k} {n}' for k, n in v['manoeuvres'].items()))}</td></tr>"
                      for ch, v in ex.items())
-    mm = "".join(f"<tr><td>{m['channel']}</td><td>{m['t_start']}–{m['t_end']} s</td><td>{html.escape(m['regime'])}"
-                 f"</td><td>{m['severity']}</td></tr>" for m in res["mismatch"][:15])
+    mm = "".join(f"<tr><td>{m['channel']}</td><td>{m.get('residual', 'equation')}</td><td>{m['t_start']}–{m['t_end']} s"
+                 f"</td><td>{html.escape(m['regime'])}</td><td>{m['severity']}</td></tr>" for m in res["mismatch"][:20])
     head = (f"Confirmed: <b>{', '.join(res['accepted'])}</b>" if res["accepted"]
             else "Nothing confirmed: no candidate explains the held-out residual significantly.")
     if res.get("likely"):
@@ -179,7 +181,7 @@ in units of the nominal model's typical error on it ({html.escape(_axes_text(res
 <table><tr><th>verdict</th><th>effect</th><th>parameters</th><th>held-out before</th><th>after</th><th>both residuals (held-out cut)</th><th>excitation</th><th>evidence</th></tr>{rows}</table>
 <h2>Excitation per channel</h2><p>Blocks (0.5 s) whose commanded signal in the channel is above 3x its noise floor, on the held-out parts and over the flight, and the manoeuvres they come from.</p>
 <table><tr><th>channel</th><th>held-out</th><th>flight</th><th>manoeuvres (held-out)</th></tr>{exrows}</table>
-<h2>Where the mismatch is</h2><table><tr><th>channel</th><th>when</th><th>regime</th><th>severity (x noise)</th></tr>{mm}</table>
+<h2>Where the mismatch is</h2><table><tr><th>channel</th><th>residual</th><th>when</th><th>regime</th><th>severity (x noise; output error: x typical error)</th></tr>{mm}</table>
 </body></html>"""
     (out / "index.html").write_text(page)
 

@@ -17,7 +17,9 @@ Other effects are parameter changes (``apply_to_params``: mass, thrust
 coefficient, inertia...), a command delay (``command_delay_s``) or an
 exogenous input (``exogenous``: wind velocity).
 
-Arguments: ``p`` the effect's parameter vector (order of ``param_names``);
+Arguments: ``p`` the effect's parameter vector (order of ``param_names``), then, for an
+effect with ``kernel_reads_vehicle``, ``P`` the packed vehicle (:func:`twin_nodes.physics.core.pack`:
+rotor positions and directions);
 ``x`` the state ``[p_enu(3), v_enu(3), q_wxyz(4) FLU->ENU, w_flu(3), s(N)]``;
 ``R`` the body->world rotation; ``ext = [battery_v, wind_e, wind_n, wind_u]``
 (NaN voltage = unknown); ``omega`` rotor speeds [rad/s].
@@ -32,6 +34,7 @@ import numpy as np
 from numba import njit
 
 from twin_nodes.base.errors import ParamsError
+from twin_nodes.physics.core import I_N, I_ROT
 
 if TYPE_CHECKING:  # pragma: no cover - the catalogue is read by vehicle/params, never the reverse
     from twin_nodes.vehicle.params import VehicleParams
@@ -64,6 +67,8 @@ class Effect:
     command_kernel: ClassVar[Any] = None
     rotor_kernel: ClassVar[Any] = None
     wrench_kernel: ClassVar[Any] = None
+    #: the kernels take the packed vehicle ``P`` right after ``p`` (for rotor positions)
+    kernel_reads_vehicle: ClassVar[bool] = False
 
     def __init__(self, **params: float):
         unknown = set(params) - set(self.param_names)
@@ -161,14 +166,29 @@ def _k_angular_damping(p, x, R, ext, omega, T, Fb, Mb, Fw):
 
 
 @njit(cache=True)
-def _k_rotor_drag(p, x, R, ext, omega, T, Fb, Mb, Fw):
+def _k_rotor_drag(p, P, x, R, ext, omega, T, Fb, Mb, Fw):
+    # Each rotor's H-force acts at its hub r_i (body FLU) against the hub's in-plane airspeed
+    # u_i = v_air + w x r_i:  H_i = -k_d |omega_i| (u_ix, u_iy, 0), moment r_i x H_i.  Summed:
+    # the force -k_d sum|omega_i| v_air,xy (+ a w x r_i part that cancels on a symmetric frame at
+    # equal speeds) and, from the yaw rate r, the yaw damping -k_d sum|omega_i| (x_i^2 + y_i^2) r
+    # (plus -k_d sum|omega_i| (x_i v_y - y_i v_x), zero at equal speeds).
     k = p[0]
-    s = 0.0
-    for i in range(omega.shape[0]):
-        s += abs(omega[i])
+    n = int(P[I_N])
     vb0, vb1, _ = _air_body(x, R, ext)
-    Fb[0] -= k * s * vb0
-    Fb[1] -= k * s * vb1
+    wx, wy, wz = x[10], x[11], x[12]
+    for i in range(n):
+        rx = P[I_ROT + i]
+        ry = P[I_ROT + n + i]
+        rz = P[I_ROT + 2 * n + i]
+        c = k * abs(omega[i])
+        h0 = -c * (vb0 + wy * rz - wz * ry)
+        h1 = -c * (vb1 + wz * rx - wx * rz)
+        Fb[0] += h0
+        Fb[1] += h1
+        # r x (h0, h1, 0)
+        Mb[0] -= rz * h1
+        Mb[1] += rz * h0
+        Mb[2] += rx * h1 - ry * h0
 
 
 @njit(cache=True)
@@ -256,8 +276,10 @@ class RotorDrag(Effect):
     defaults = {"k_d": 0.0}
     units = {"k_d": "N/((rad/s)(m/s))"}
     ranges = {"k_d": (0.0, 1e4)}
-    description = "in-plane rotor H-force drag, proportional to summed rotor speed x in-plane airspeed"
+    description = ("in-plane rotor H-force drag at each hub: -k_d |omega_i| x the hub's in-plane airspeed "
+                   "(v + w x r_i); its moment damps yaw by k_d sum|omega_i| (x_i^2 + y_i^2)")
     wrench_kernel = staticmethod(_k_rotor_drag)
+    kernel_reads_vehicle = True
 
 
 class BodyDrag(Effect):

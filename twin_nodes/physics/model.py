@@ -40,7 +40,8 @@ _HOOKS = {"command_hooks": ("command_kernel", "ext, sref"),
 
 def _generate_source(kinds: Sequence[type[Effect]]) -> str:
     """stepper.py with hooks calling each effect's kernels, in order, each on its slice of the
-    effect parameters ``E`` (which follow the vehicle in ``P``)."""
+    effect parameters ``E`` (which follow the vehicle in ``P``), and on ``P`` itself right after
+    that slice for an effect whose ``kernel_reads_vehicle`` is set."""
     imports, calls, start = set(), {hook: [] for hook in _HOOKS}, 0
     for cls in kinds:
         vec = f"E[{start}:{start + len(cls.param_names)}]"
@@ -49,7 +50,8 @@ def _generate_source(kinds: Sequence[type[Effect]]) -> str:
             kernel = getattr(cls, attr)  # an @njit function or None
             if kernel is not None:
                 imports.add(f"from {kernel.__module__} import {kernel.__name__}\n")
-                calls[hook].append(f"{kernel.__name__}({vec}, {args})")
+                vehicle = "P, " if cls.kernel_reads_vehicle else ""  # the packed vehicle (rotor positions)
+                calls[hook].append(f"{kernel.__name__}({vec}, {vehicle}{args})")
     terms = calls["wrench_hooks"]
     defs = [(f"{hook}(P, {args})", calls[hook]) for hook, (_, args) in _HOOKS.items()]
     defs.append((f"wrench_term(j, P, {_HOOKS['wrench_hooks'][1]})",
