@@ -10,8 +10,9 @@
 #    PX4 SITL as airframe 10016 none_iris, which runs `simulator_mavlink start -c 4560+N`
 #    (ROMFS/px4fmu_common/init.d-posix/px4-rc.simulator), with the high-rate logging profile
 #    (SDLOG_PROFILE 17 = default set + bit 4 high rate: actuator_motors, attitude, rates at
-#    control rate instead of 10 Hz, for control-rate comparison); any PX4_PARAM_<NAME>=value in
-#    the environment is set too. Without --px4, start PX4 yourself (see docs/px4_sitl.md);
+#    control rate instead of 10 Hz, for control-rate comparison) and SDLOG_MODE 0 (a log per
+#    flight, arm to disarm; SITL's rcS default 1 logs only from boot to the first disarm); any
+#    PX4_PARAM_<NAME>=value in the environment is set too. Without --px4, start PX4 yourself;
 # 3. with --mission, waits for PX4 on UDP 14540+N (MAVSDK), uploads the plan, starts it and waits
 #    until the vehicle has landed and disarmed; --repeat K flies it K times in a row (nothing
 #    restarted: the upload sets the current item back to 0);
@@ -38,7 +39,7 @@ OUT="${ROTORTWIN_PX4_OUT:-/tmp/rotortwin_px4_sitl}"
 EXIT_WHEN_DONE=0
 ROS_FLAG=""
 
-usage() { sed -n '2,26p' "$0" | sed 's/^# \{0,1\}//'; exit "${1:-0}"; }
+usage() { sed -n '2,25p' "$0" | sed 's/^# \{0,1\}//'; exit "${1:-0}"; }
 
 while [ $# -gt 0 ]; do
     case "$1" in
@@ -104,6 +105,7 @@ if [ -n "$PX4_DIR" ]; then
         cd "$PX4_DIR"
         PX4_SYS_AUTOSTART=10016 PX4_SIM_MODEL=none_iris PX4_SIM_SPEED_FACTOR="$SPEED" \
             PX4_PARAM_SDLOG_PROFILE="${PX4_PARAM_SDLOG_PROFILE:-17}" \
+            PX4_PARAM_SDLOG_MODE="${PX4_PARAM_SDLOG_MODE:-0}" \
             exec "$PX4_BIN" -i "$INSTANCE" -d
     ) >"$OUT/px4.log" 2>&1 &
     PIDS+=($!)

@@ -75,13 +75,18 @@ def test_px4_sitl_twin_end_to_end(tmp_path):
     from twin_nodes.vehicle.params import shipped
 
     ulogs = sorted((p for p in log_dir.rglob("*.ulg") if p.stat().st_mtime > t_start), key=lambda p: p.stat().st_mtime)
-    assert len(ulogs) >= 2, ulogs
-    for p in ulogs[-2:]:
+    assert len(ulogs) == 2, f"one log per flight (SDLOG_MODE 0): {ulogs}"
+    for p in ulogs:
         log = read_ulog(p)
         m = log.require("motors")
         rate = (len(m.t_s) - 1) / max(float(m.t_s[-1] - m.t_s[0]), 1e-9)
         assert rate > 50.0, f"{p.name}: motors logged at {rate:.0f} Hz"
+        assert float(m.t_s[-1] - m.t_s[0]) > 60.0, f"{p.name}: a whole triangle flight is logged"
+        # PX4 flew the twin itself: the twin re-synced every 2 s follows it closely (2026-11-23:
+        # XY 0.06-0.07 m, Z 0.06-0.07 m), and in closed loop within a few decimetres (0.19-0.20 m)
         res = compare_log(log, shipped("px4_sih_quadx"), mode="open")
-        assert math.isfinite(res.metrics["xy_rmse_m"])
+        assert res.metrics["xy_rmse_m"] < 0.5 and res.metrics["z_rmse_m"] < 0.5, res.metrics
+        res = compare_log(log, shipped("px4_sih_quadx"), mode="closed")
+        assert res.metrics["xy_rmse_m"] < 2.0 and math.isfinite(res.metrics["throttle_rmse"]), res.metrics
     live = json.loads((out / "live.json").read_text())
     assert math.isfinite(live["xy_rmse_m"]) and live["duration_s"] > 30.0

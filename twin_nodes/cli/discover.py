@@ -37,6 +37,9 @@ def register(sub) -> None:
     q.add_argument("--size", choices=("full", "ci"), default="full")
     q.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     q.add_argument("--shared", help="px4sih: the shared folder (default ../shared beside the repository)")
+    q.add_argument("--sih-dir", action="append", default=[], metavar="DIR",
+                   help="px4sih: also these flights of our own (DIR/<name>/flight.ulg + truth.json, as "
+                        "launch_scripts/fly_sih.sh writes them); repeatable")
     q.add_argument("--cache", default="out/cache/rotorpy", help="rotorpy: where the simulated flights are kept")
     q.set_defaults(func=_prove)
 
@@ -95,7 +98,7 @@ def _prove(args) -> int:
     sources = SOURCES if args.source == "all" else (args.source,)
     out = Path(args.out)
     summaries = run_sources(sources, out, size=args.size, workers=args.workers, vehicle=args.vehicle,
-                            shared=args.shared, cache=args.cache)
+                            shared=args.shared, cache=args.cache, sih_dirs=args.sih_dir)
     tables = []
     for src, summary in summaries.items():
         table = format_table(summary)

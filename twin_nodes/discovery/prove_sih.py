@@ -4,6 +4,8 @@ The flights are not ours and are not in the repository (no licence to redistribu
 ``../shared/flightlogs/sitl_effects/eNN/`` (``flight.ulg`` with every SIH_* parameter scrubbed, the truth in
 ``truth.json``), plus the two no-effect baselines ``../shared/flightlogs/sitl/*.ulg``.  How to fly them again
 (PX4 commit, SIH parameter changes, missions, launch commands) is in ``missions/sih_effects/manifest.yaml``.
+Flights of our own making (``launch_scripts/fly_sih.sh``, same ``eNN/{flight.ulg,truth.json}`` layout) are read
+from any further folder given as ``sih_dirs`` (``rotortwin prove --source px4sih --sih-dir DIR``).
 
 The truth is mapped from the SIH parameter that changed (``truth.json``'s ``sih_changes``) onto our effect
 vocabulary (:data:`twin_nodes.physics.effects.EFFECTS`) with ``params/px4_sih_quadx.yaml`` as the nominal:
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 from twin_nodes.base.errors import TwinError
@@ -79,24 +82,50 @@ def map_truth(truth: dict, nominal: VehicleParams) -> Truth:
     raise TwinError(f"truth.json: sih_changes: expected one SIH parameter group we map, got {sorted(names)}")
 
 
-def flights(shared: str | Path | None = None, size: str = "full") -> list[dict]:
-    """The SIH flights available under ``shared``: ``{"flight", "path", "truth_json", "mission"}``.
-
-    The changed-parameter flights ``sitl_effects/eNN`` and the no-effect baselines ``sitl/*.ulg``; an empty
-    list when the shared folder is absent (PX4 is not available to CI, so nothing is generated here)."""
-    root = shared_dir(shared) / "flightlogs"
+def flight_dirs(folder: str | Path) -> list[dict]:
+    """The flights ``folder/<name>/{flight.ulg, truth.json}`` (the ``sitl_effects`` layout; ``<name>`` any
+    folder holding both files), sorted by name."""
     out = []
-    for d in sorted((root / "sitl_effects").glob("e[0-9][0-9]")):
+    for d in sorted(p for p in Path(folder).iterdir() if p.is_dir()) if Path(folder).is_dir() else ():
         f, tj = d / "flight.ulg", d / "truth.json"
         if f.is_file() and tj.is_file():
-            truth = json.loads(tj.read_text())
+            try:
+                truth = json.loads(tj.read_text())
+            except ValueError as exc:
+                raise TwinError(f"{tj}: not valid JSON ({exc})") from None
+            if not isinstance(truth, dict) or not isinstance(truth.get("sih_changes", {}), dict):
+                raise TwinError(f"{tj}: sih_changes: expected a mapping {{PARAM: [default, used]}}")
             out.append({"flight": d.name, "path": str(f), "truth_json": truth, "mission": truth.get("mission", "")})
+    return out
+
+
+def flights(shared: str | Path | None = None, size: str = "full",
+            sih_dirs: list[str | Path] | tuple = ()) -> list[dict]:
+    """The SIH flights available under ``shared`` and in each of ``sih_dirs``:
+    ``{"flight", "path", "truth_json", "mission"}``.
+
+    The changed-parameter flights ``sitl_effects/eNN`` and the no-effect baselines ``sitl/*.ulg``; an empty
+    list when the shared folder is absent (PX4 is not available to CI, so nothing is generated here).  A flight
+    of a ``sih_dirs`` folder whose name is taken already is named ``<folder>/<name>``."""
+    root = shared_dir(shared) / "flightlogs"
+    out = [f for f in flight_dirs(root / "sitl_effects") if re.fullmatch(r"e\d\d", f["flight"])]
     for f in sorted((root / "sitl").glob("px4sih_*.ulg")):
         mission = {"triangle": "M1", "grid": "M2"}.get(f.stem.rsplit("_", 1)[-1], "")
         out.append({"flight": f.stem, "path": str(f), "mission": mission,
                     "truth_json": {"effects": [{"name": "none", "params": {}}], "sih_changes": {}}})
     if size == "ci":
         out = [f for f in out if f["flight"] in CI_FLIGHTS]
+    for d in sih_dirs:
+        if not Path(d).is_dir():
+            raise TwinError(f"--sih-dir {d}: not a folder (expected <name>/flight.ulg + truth.json inside)")
+        own = flight_dirs(d)
+        if not own:
+            raise TwinError(f"--sih-dir {d}: no <name>/flight.ulg + truth.json inside")
+        taken = {f["flight"] for f in out}
+        for f in own:
+            if f["flight"] in taken:
+                f["flight"] = f"{Path(d).name}/{f['flight']}"
+        out += own
     return out
 
 
@@ -113,15 +142,15 @@ def run_one(args) -> dict:
     res.pop("_series", None)
     drag = DragContext.from_log(log, vp) if effect_class(truth.hidden.name) == "drag" else None
     name = f"{flight['flight']} ({flight['mission']})" if flight["mission"] else flight["flight"]
-    write_result(Path(out_dir) / f"{flight['flight']}.json", res)
+    write_result(Path(out_dir) / f"{flight['flight'].replace('/', '_')}.json", res)
     return score_flight(name, truth, res, vp, drag, source="px4sih", log=flight["path"])
 
 
 def run_suite(out_dir: str | Path, size: str = "full", workers: int = 2, shared: str | Path | None = None,
-              progress: bool = True) -> dict:
+              progress: bool = True, sih_dirs: list[str | Path] | tuple = ()) -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    fl = flights(shared, size)
+    fl = flights(shared, size, sih_dirs)
     if not fl:
         raise TwinError(f"--source px4sih: {shared_dir(shared) / 'flightlogs'}: expected the PX4 SIH flights "
                         "(sitl_effects/eNN/flight.ulg + truth.json, sitl/px4sih_*.ulg); none found "

@@ -16,7 +16,8 @@ SOURCES = ("ours", "px4sih", "rotorpy")
 
 def run_sources(sources, out_dir: str | Path, *, size: str = "full", workers: int = 2,
                 vehicle: str = "px4_sih_quadx", shared: str | Path | None = None,
-                cache: str | Path = "out/cache/rotorpy", progress: bool = True) -> dict[str, dict]:
+                cache: str | Path = "out/cache/rotorpy", progress: bool = True,
+                sih_dirs: list[str | Path] | tuple = ()) -> dict[str, dict]:
     """Run the prove suite of each source; ``{source: summary}``.  Each source writes its per-flight
     results into ``out_dir/<source>/``."""
     from twin_nodes.discovery import prove, prove_rotorpy, prove_sih
@@ -28,7 +29,7 @@ def run_sources(sources, out_dir: str | Path, *, size: str = "full", workers: in
         if src == "ours":
             summaries[src] = prove.run_suite(d, vehicle, size, workers, progress)
         elif src == "px4sih":
-            summaries[src] = prove_sih.run_suite(d, size, workers, shared, progress)
+            summaries[src] = prove_sih.run_suite(d, size, workers, shared, progress, sih_dirs=sih_dirs)
         elif src == "rotorpy":
             summaries[src] = prove_rotorpy.run_suite(d, size, workers, cache, progress)
         else:

@@ -9,7 +9,9 @@ May import: base, vehicle, twin.
   HIL_GPS / HIL_STATE_QUATERNION out, HIL_ACTUATOR_CONTROLS in, lockstep).
 - :mod:`twin_nodes.mavlink.telemetry` — a client for a real vehicle's telemetry
   stream, parsed into ROS-frame numbers.
-- :mod:`twin_nodes.mavlink.mission` — YAML plan files and MAVSDK upload/start.
+- :mod:`twin_nodes.mavlink.mission` — YAML plan files (per-item yaw) and MAVSDK upload/start.
+- :mod:`twin_nodes.mavlink.sih_flight` — PX4 SIH flights with SIH parameters changed, the log
+  scrubbed of SIH_* and the truth beside it (``launch_scripts/fly_sih.sh``).
 
 None of these import ``rclpy``; the ROS shell is :mod:`twin_nodes.nodes.px4_bridge`.
 

@@ -12,12 +12,16 @@ A plan file is YAML::
       waypoints:                  # [north_m, east_m, alt_m above home], relative to home
         - [20.0, 0.0, 15.0]
         - {north_m: 80.0, east_m: 0.0, alt_m: 15.0, speed_m_s: 4.0}   # per-item overrides
+        - {north_m: 80.0, east_m: 0.0, alt_m: 15.0, yaw_deg: 90.0, fly_through: false}  # heading
 
 Waypoints are relative to home (the take-off point), as in
 ``../shared/flightlogs/sitl/MANIFEST.md``; they become MAVSDK ``MissionItem``\\ s
 with absolute latitude/longitude through PX4's own map projection
 (:func:`twin_nodes.mavlink.sensors.reproject_ne_to_latlon`) and
-``relative_altitude_m`` = ``alt_m``.  Yaw is left to PX4 (NaN: ``MPC_YAW_MODE``);
+``relative_altitude_m`` = ``alt_m``.  Yaw is left to PX4 (NaN: ``MPC_YAW_MODE``) unless
+an item gives ``yaw_deg`` (its commanded heading, degrees clockwise from north, -360..360;
+MAVLink ``param4`` of the NAV_WAYPOINT; PX4 accepts the item once the heading error is below
+``MIS_YAW_ERR``); a second item at the same position with another ``yaw_deg`` turns in place.
 PX4 inserts the take-off to the first item's altitude itself.
 
 Without ``home`` in the file the vehicle's home position is read over the link
@@ -50,7 +54,7 @@ DEFAULT_URL = "udpin://0.0.0.0:14540"  # PX4 SITL sends to offboard APIs on UDP 
 
 _PLAN_KEYS = {"name", "speed_m_s", "acceptance_radius_m", "fly_through", "rtl_after", "home", "waypoints",
               "notes"}
-_WP_KEYS = {"north_m", "east_m", "alt_m", "speed_m_s", "acceptance_radius_m", "fly_through"}
+_WP_KEYS = {"north_m", "east_m", "alt_m", "speed_m_s", "acceptance_radius_m", "fly_through", "yaw_deg"}
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,7 @@ class Waypoint:
     speed_m_s: float
     acceptance_radius_m: float
     fly_through: bool
+    yaw_deg: float | None = None  # commanded heading [deg from north, clockwise]; None: left to PX4
 
 
 @dataclass(frozen=True)
@@ -159,18 +164,20 @@ def plan_from_mapping(doc: Any, path: str = "<memory>") -> MissionPlanFile:
             sp = _num(path, f"{key}.speed_m_s", wp.get("speed_m_s", speed), gt=0.0, le=30.0)
             rad = _num(path, f"{key}.acceptance_radius_m", wp.get("acceptance_radius_m", radius), gt=0.0, le=100.0)
             ft = _bool(path, f"{key}.fly_through", wp.get("fly_through", fly_through))
+            yaw = None if wp.get("yaw_deg") is None else _num(path, f"{key}.yaw_deg", wp["yaw_deg"],
+                                                              ge=-360.0, le=360.0)
         elif isinstance(wp, (list, tuple)):
             if len(wp) != 3:
                 raise ParamsError(path, key, f"expected [north_m, east_m, alt_m] (3 numbers), got {list(wp)!r}")
             n = _num(path, f"{key}[0]", wp[0])
             e = _num(path, f"{key}[1]", wp[1])
             a = _num(path, f"{key}[2]", wp[2], gt=0.0, le=1000.0)
-            sp, rad, ft = speed, radius, fly_through
+            sp, rad, ft, yaw = speed, radius, fly_through, None
         else:
             raise ParamsError(path, key, f"expected [north_m, east_m, alt_m] or a mapping, got {wp!r}")
         if math.hypot(n, e) > 50_000.0:
             raise ParamsError(path, key, f"expected within 50 km of home, got {math.hypot(n, e):.0f} m")
-        out.append(Waypoint(n, e, a, sp, rad, ft))
+        out.append(Waypoint(n, e, a, sp, rad, ft, yaw))
     return MissionPlanFile(name=name, waypoints=tuple(out), rtl_after=rtl_after,
                            home_lat_deg=home_lat, home_lon_deg=home_lon, source=path)
 
@@ -194,7 +201,8 @@ def plan_to_mission_items(plan: MissionPlanFile, home_lat_deg: float, home_lon_d
         items.append(MissionItem(
             latitude_deg=float(lat), longitude_deg=float(lon), relative_altitude_m=float(wp.alt_m),
             speed_m_s=float(wp.speed_m_s), is_fly_through=bool(wp.fly_through),
-            acceptance_radius_m=float(wp.acceptance_radius_m), yaw_deg=float("nan"),
+            acceptance_radius_m=float(wp.acceptance_radius_m),
+            yaw_deg=float("nan") if wp.yaw_deg is None else float(wp.yaw_deg),
             gimbal_pitch_deg=float("nan"), gimbal_yaw_deg=float("nan"), loiter_time_s=float("nan"),
             camera_action=MissionItem.CameraAction.NONE, vehicle_action=MissionItem.VehicleAction.NONE))
     return items
