@@ -166,3 +166,29 @@ class FoxgloveClient:
                     self.cap.errors.setdefault(topic, f"decode: {exc!r}")
                     continue
                 self.cap.messages[topic].append((log_time, obj))
+
+
+def silent_channels(cap: Capture) -> list[str]:
+    """Advertised channels that delivered no decodable message."""
+    return sorted(t for t in cap.topics() if not cap.messages[t])
+
+
+def url_from_stderr(proc, timeout_s: float = 120.0, marker: str = "rotortwin: Foxglove: open ") -> tuple[str, list[str]]:
+    """The ``ws://`` URL a ``--foxglove`` command prints on stderr, and the lines read so far; the
+    rest of stderr keeps being collected into that list in a thread."""
+    lines: list[str] = []
+    found = threading.Event()
+
+    def reader() -> None:
+        for line in proc.stderr:
+            lines.append(line)
+            if line.startswith(marker):
+                found.set()
+        found.set()
+
+    threading.Thread(target=reader, daemon=True).start()
+    found.wait(timeout_s)
+    for line in lines:
+        if line.startswith(marker):
+            return line[len(marker):].split()[0], lines
+    raise AssertionError(f"no Foxglove URL on stderr within {timeout_s:g} s:\n{''.join(lines)[-3000:]}")

@@ -3,10 +3,10 @@
 ::
 
     rotortwin bridge sim [--params P.yaml] [--port 4560] [--host 127.0.0.1] [--step-ms 4]
-                         [--speed-factor 1] [--publish-every N] [--duration S] [--no-ros]
+                         [--speed-factor 1] [--publish-every N] [--duration S] [--no-ros] [--foxglove [PORT]]
     rotortwin bridge telemetry --url URL [--pwm-min 1000] [--pwm-max 2000] [--motors 4]
                                [--motor-channels 4,5,6,7] [--stale-after 3] [--no-request-streams]
-                               [--duration S] [--no-ros]
+                               [--duration S] [--no-ros] [--foxglove [PORT]]
 
 ``sim`` is the simulator PX4 SITL's ``simulator_mavlink`` connects to (TCP
 server, lockstep HIL; see docs/px4_sitl.md).  It listens on loopback unless
@@ -20,6 +20,8 @@ With ROS (the default when rclpy imports) both run the ``px4_bridge`` node and
 publish ``/clock`` + ``/twin/...`` or ``/real/...`` topics in the layouts of
 msgs_py/topics.py (see twin_nodes/nodes/px4_bridge.py).
 ``--no-ros`` runs the bare link and prints a status line every second.
+``--foxglove [PORT]`` also serves the node's topics to Foxglove (``ws://127.0.0.1:8765`` by
+default; layout ``layouts/rotortwin.json``) on the same ROS domain, for as long as the bridge runs.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import os
 import sys
 import time
 
+from twin_nodes.live.attach import add_foxglove_option, foxglove_beside
 from twin_nodes.mavlink.simlink import DEFAULT_HOST, DEFAULT_PORT, DEFAULT_STEP_S
 
 
@@ -71,6 +74,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _ros_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-ros", action="store_true", help="run without ROS (print status lines)")
     p.add_argument("-v", "--verbose", action="store_true", help="log the link's events")
+    add_foxglove_option(p)
 
 
 def _ros_available() -> bool:
@@ -87,7 +91,16 @@ def _run_node(mode: str, params: dict, args: argparse.Namespace) -> int:
     ros = ["--ros-args"]
     for k, v in params.items():
         ros += ["-p", f"{k}:={v}"]
-    return px4_bridge.main(["px4_bridge", mode, *ros])
+    with foxglove_beside(args.foxglove):  # on this process's ROS domain (the environment's)
+        return px4_bridge.main(["px4_bridge", mode, *ros])
+
+
+def _no_foxglove(args: argparse.Namespace) -> None:
+    if args.foxglove is not None:
+        from twin_nodes.base.errors import TwinError
+
+        raise TwinError(f"bridge {args.bridge_command}: --foxglove needs ROS (rclpy); "
+                        + ("drop --no-ros" if args.no_ros else "install the [ros] extra"))
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
@@ -106,6 +119,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         if args.params:
             params["params_file"] = args.params
         return _run_node("sim", params, args)
+    _no_foxglove(args)
     from twin_nodes.mavlink.simlink import SimLinkServer
     from twin_nodes.vehicle.params import load_params, shipped
 
@@ -153,6 +167,7 @@ def _cmd_telemetry(args: argparse.Namespace) -> int:
                   "n_motors": args.motors, "motor_channels": f"'{args.motor_channels}'",
                   "stale_after_s": args.stale_after, "request_streams": str(not args.no_request_streams).lower()}
         return _run_node("telemetry", params, args)
+    _no_foxglove(args)
     client = TelemetryClient(args.url, cfg)
     client.start_thread()
     t_end = time.monotonic() + args.duration if args.duration else float("inf")

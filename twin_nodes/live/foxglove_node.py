@@ -19,7 +19,10 @@ What is served (foxglove-sdk, ws-protocol):
   params, ``/twin/config``; real blue, twin orange), their paths, the position setpoint;
 - ``/viz/errors`` (JSON): every channel's rolling statistics from ``/twin_error/diagnostics`` and the
   link-loss flag; ``/viz/motors`` (JSON): real and twin motor commands side by side and their
-  difference; ``/viz/status`` (JSON, 2 Hz): source, time, armed/mode/landed, link, twin, message
+  difference (either alone when only one side runs, e.g. ``bridge``); these two and
+  ``/viz/transforms`` are advertised with their first record (a graph without metrics has no
+  ``/viz/errors``, one without odometry no ``/viz/transforms``); ``/viz/status`` (JSON, 2 Hz):
+  source (``replay``, ``simulator`` or ``live``), time, armed/mode/landed, link, twin, message
   counts, the final metrics once published.
 
 Message times (``log_time``): a message's header stamp, else the latest ``/clock`` (replay), else
@@ -64,6 +67,7 @@ from twin_nodes.nodes.common import GraphNode, declare, run_node
 DEFAULT_TOPICS = r"^/(real|twin|twin_error)/|^/(clock|diagnostics)$"
 #: derived channels (Foxglove schemas / JSON), served beside the forwarded topics
 VIZ_CHANNELS = ("/viz/transforms", "/viz/scene", "/viz/errors", "/viz/motors", "/viz/status")
+JSON_SCHEMAS = {"/viz/errors": ERRORS_SCHEMA, "/viz/motors": MOTORS_SCHEMA, "/viz/status": STATUS_SCHEMA}
 #: not latched, but sent on change only: a new subscriber gets the last one
 STICKY = ("/real/status", "/twin_error/link_lost")
 #: forwarded topics the node also reads (deserialised) for the derived channels
@@ -98,11 +102,11 @@ class FoxgloveNode(GraphNode):
             raise TwinError(f"Foxglove server on {host}:{port}: {exc}") from None
         self.port = int(self.server.port)
         self.mcap_writer = foxglove.open_mcap(mcap, allow_overwrite=True) if mcap else None
-        self.ch_tf = FrameTransformsChannel("/viz/transforms")
+        self._tf_channel_cls = FrameTransformsChannel
+        self._ch_tf: Any = None  # advertised with the first pose
         self.ch_scene = SceneUpdateChannel("/viz/scene")
-        self.ch_json = {"/viz/errors": foxglove.Channel("/viz/errors", schema=ERRORS_SCHEMA),
-                        "/viz/motors": foxglove.Channel("/viz/motors", schema=MOTORS_SCHEMA),
-                        "/viz/status": foxglove.Channel("/viz/status", schema=STATUS_SCHEMA)}
+        # the JSON channels are advertised with their first record: a bridge alone has no errors to show
+        self.ch_json: dict[str, Any] = {}
         self.channels: dict[str, Any] = {}
         self.subs: dict[str, Any] = {}
         self.skipped: set[str] = set()
@@ -123,6 +127,7 @@ class FoxgloveNode(GraphNode):
         self._tf_due = {"real": 0.0, "twin": 0.0}
         self._motors_due = 0.0
         self.real_motors: Any = None
+        self.twin_motors: Any = None
         self.status: Any = None
         self.setpoint: Any = None
         self.errors: dict[str, dict[str, float]] = {}
@@ -227,14 +232,17 @@ class FoxgloveNode(GraphNode):
                 now = time.monotonic()
                 if now >= self._tf_due[name]:
                     self._tf_due[name] = now + self.tf_period_s
-                    self.ch_tf.log(frame_transforms({name: self.poses[name]}), log_time=t)
-        elif topic == "/real/motors":
-            self.real_motors = cv.motors_array(m)
-        elif topic == "/twin/motors":
+                    self._log_tf(frame_transforms({name: self.poses[name]}), t)
+        elif topic in ("/real/motors", "/twin/motors"):
+            if topic == "/real/motors":
+                self.real_motors = cv.motors_array(m)
+            else:
+                self.twin_motors = cv.motors_array(m)
             now = time.monotonic()
-            if now >= self._motors_due:
+            if now >= self._motors_due:  # either side alone (a bridge) is shown too
                 self._motors_due = now + 0.05
-                self._log_json("/viz/motors", motors_record(t, self.real_motors, cv.motors_array(m)), t)
+                twin = self.twin_motors if self.twin_motors is not None else []
+                self._log_json("/viz/motors", motors_record(t, self.real_motors, twin), t)
         elif topic == "/real/status":
             self.status = cv.status_array(m)
         elif topic == "/real/setpoint_pose":
@@ -265,12 +273,28 @@ class FoxgloveNode(GraphNode):
             except ValueError:
                 pass
 
+    def _log_tf(self, transforms: Any, t: int) -> None:
+        if self._ch_tf is None:
+            self._ch_tf = self._tf_channel_cls("/viz/transforms")
+        self._ch_tf.log(transforms, log_time=t)
+
     def _log_json(self, topic: str, record: dict[str, Any], t: int) -> None:
-        self.ch_json[topic].log(record, log_time=t)
+        ch = self.ch_json.get(topic)
+        if ch is None:
+            import foxglove
+
+            ch = self.ch_json[topic] = foxglove.Channel(topic, schema=JSON_SCHEMAS[topic])
+        ch.log(record, log_time=t)
         self.last[topic] = (record, t)
 
     def _now_ns(self) -> int:
         return self.clock_ns if self.clock_ns is not None else time.time_ns()
+
+    def _source(self) -> str:
+        """``replay`` (/clock and /real), ``simulator`` (/clock, /twin only: ``bridge sim``), ``live``."""
+        if self.clock_ns is None:
+            return "live"
+        return "replay" if self.counts.get("/real/odom") else "simulator"
 
     def step(self) -> None:
         now = time.monotonic()
@@ -280,10 +304,10 @@ class FoxgloveNode(GraphNode):
             sp = np.asarray(self.setpoint, float) if self.setpoint is not None else None
             self.ch_scene.log(scene_update(t, self.outline, self.trails, sp), log_time=t)
             if self.poses:
-                self.ch_tf.log(frame_transforms(self.poses), log_time=t)
+                self._log_tf(frame_transforms(self.poses), t)
         if now >= self._status_due:
             self._status_due = now + 0.5
-            rec = status_record(source="replay" if self.clock_ns is not None else "live", t_ns=t,
+            rec = status_record(source=self._source(), t_ns=t,
                                 status=self.status, link=self.link, link_lost=self.link_lost, twin=self.twin_info,
                                 messages=self.counts, final=self.final)
             self._log_json("/viz/status", rec, t)

@@ -8,7 +8,8 @@ in open loop with the newest input time as its watermark, and the metrics node's
 :class:`~twin_nodes.nodes.engine.MetricsEngine` totals -- is done here message by message, so the
 live run of a stream can be checked against the offline computation of the same stream
 (``tests/test_live_shadow.py``: within 5 %).  Messages are stamped with their stream time, where
-the live graph stamps them with each node's clock at reception.
+the live graph stamps them with the bridge's clock at reception (the twin and the metrics read the
+header-less ones' DDS source timestamps, see :mod:`twin_nodes.live.shadow`).
 """
 
 from __future__ import annotations
@@ -45,14 +46,10 @@ def read_tlog(path: str | Path) -> list[tuple[float, Any]]:
 def compare_telemetry(messages: Iterable[tuple[float, Any]], vp: Any, *, config: Any = None, mode: str = "open",
                       horizon_s: float = 2.0, window_s: float = 5.0, airborne_only: bool = True,
                       publish_rate_hz: float = 50.0, reorder_lag_s: float = 0.5, rate_hz: float = 50.0,
-                      flush: bool = False, twin_input_delay_s: float = 0.0) -> dict[str, Any]:
+                      flush: bool = True) -> dict[str, Any]:
     """Whole-run metrics of the twin beside a telemetry stream ``[(t_s, mavlink message), ...]``,
     computed as the live graph computes them (``flush``: also apply the last ``reorder_lag_s`` of
-    inputs, which a live twin stopped by Ctrl-C never does).
-
-    ``twin_input_delay_s``: the twin's header-less inputs (motors, setpoint, status) stamped this
-    much after the odometry, as a live twin node that runs behind stamps them (it times them with
-    its clock when their callback runs): what a loaded machine does to ``rotortwin live``."""
+    inputs at the end, as the live twin node does when it is stopped)."""
     from twin_nodes.logs import conversions as cv
     from twin_nodes.mavlink.telemetry import TelemetryAggregator, TelemetryConfig
     from twin_nodes.nodes.engine import MetricsEngine, TwinEngine, as_float32
@@ -63,13 +60,9 @@ def compare_telemetry(messages: Iterable[tuple[float, Any]], vp: Any, *, config:
                       reorder_lag_s=reorder_lag_s)
     met = MetricsEngine(vp.rotors.count, window_s, NS // 2, airborne_only)
 
-    delay_ns = int(round(twin_input_delay_s * NS))
-
     def twin_in(t: int, topic: str, msg: Any) -> None:
-        if topic in ("/real/motors", "/real/setpoint", "/real/status"):
-            t += delay_ns
         twin.push(t, topic, msg)
-        twin.advance(t)  # live: the newest input time is the twin's watermark
+        twin.advance_live(topic, t, t / NS)  # live: the inputs' own times are the twin's watermark
 
     def drain(flush_: bool = False) -> None:
         for t, s in twin.pop(flush=flush_):

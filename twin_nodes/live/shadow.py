@@ -15,6 +15,14 @@ process        what it does
 ``foxglove``   (with ``foxglove_port``) :mod:`twin_nodes.live.foxglove_node`
 =============  ==============================================================================
 
+Times: the bridge stamps what it publishes with its clock when the MAVLink message arrives; the
+twin and the metrics time the header-less ``/real/...`` messages (motors, throttle, setpoint,
+status) by their DDS source timestamp, i.e. the bridge's clock when it published them, so every
+node puts every input at the same time however late its own callback runs (the processes run
+rclpy's classic executor for this: see :func:`twin_nodes.nodes.common.source_stamps`).  On stop the
+twin applies the inputs its reorder buffer still holds and the metrics read every twin sample
+already delivered, so the totals cover the data up to the last input, whenever the stop comes.
+
 Reconnects: the bridge keeps its link (a UDP listener waits, TCP/serial are reopened) and the
 processes keep running through an outage; the link flag goes up after ``stale_after_s`` of
 silence and down with the first message after it.  Measured recovery of the error topics after a
@@ -132,7 +140,8 @@ def run_live(cfg: LiveConfig, *, domain_id: int | None = None, run_dir: str | os
     rd = Path(run_dir) if run_dir else Path(tempfile.mkdtemp(prefix="rotortwin_live_"))
     rd.mkdir(parents=True, exist_ok=True)
     (rd / "domain_id").write_text(f"{lease.domain_id}\n")
-    g = _LiveGraph(rd, ros_env(lease.domain_id))
+    # the classic executor: header-less inputs timed by their DDS source timestamp (common.source_stamps)
+    g = _LiveGraph(rd, {**ros_env(lease.domain_id), "ROTORTWIN_EXECUTOR": "single"})
     json_path, link_path, aligned_path = rd / "final_metrics.json", rd / "link.json", rd / "aligned.npz"
     stop = stop or threading.Event()
     old = {}
@@ -157,7 +166,8 @@ def run_live(cfg: LiveConfig, *, domain_id: int | None = None, run_dir: str | os
         g.start("metrics", {"window_s": cfg.window_s, "n_motors": n_motors, "mode": "open",
                             "airborne_only": cfg.airborne_only, "json_out": str(json_path),
                             "aligned_out": str(aligned_path)})
-        g.start("twin", {"params_file": str(cfg.params_file), "mode": "open", "horizon_s": cfg.horizon_s})
+        g.start("twin", {"params_file": str(cfg.params_file), "mode": "open", "horizon_s": cfg.horizon_s,
+                         "diagnostics_period_s": 1.0})
         g.start_cmd("bridge", module_command("twin_nodes.nodes.px4_bridge", ["telemetry"], {
             "url": cfg.url, "pwm_min_us": float(cfg.pwm_min_us), "pwm_max_us": float(cfg.pwm_max_us),
             "n_motors": n_motors, "motor_channels": cfg.motor_channels, "stale_after_s": float(cfg.stale_after_s),

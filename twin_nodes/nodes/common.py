@@ -35,7 +35,7 @@ from msgs_py.topics import ACK_READY, DEPTH
 from twin_nodes.nodes.engine import NS, ReorderBuffer, Timeline  # noqa: F401  (re-exported)
 
 __all__ = ["Timeline", "ReorderBuffer", "reliable_qos", "make_executor", "run_node", "GraphNode",
-           "NS", "declare"]
+           "NS", "declare", "source_stamps"]
 
 # ============================================================================ rclpy parts
 
@@ -47,18 +47,34 @@ def reliable_qos(depth: int = DEPTH, latched: bool = False) -> Any:
                       durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
 
+def _events_executor() -> Any:
+    """rclpy's EventsExecutor class, or None (``ROTORTWIN_EXECUTOR=single``, or an older rclpy)."""
+    if os.environ.get("ROTORTWIN_EXECUTOR", "events") == "single":
+        return None
+    try:
+        from rclpy.experimental import EventsExecutor
+    except ImportError:  # older rclpy
+        return None
+    return EventsExecutor
+
+
 def make_executor() -> Any:
     """rclpy's EventsExecutor (several times faster than the SingleThreadedExecutor for
     high-rate topics); ``ROTORTWIN_EXECUTOR=single`` selects the classic one."""
-    if os.environ.get("ROTORTWIN_EXECUTOR", "events") == "single":
-        from rclpy.executors import SingleThreadedExecutor
-        return SingleThreadedExecutor()
-    try:
-        from rclpy.experimental import EventsExecutor
-        return EventsExecutor()
-    except ImportError:  # older rclpy
-        from rclpy.executors import SingleThreadedExecutor
-        return SingleThreadedExecutor()
+    events = _events_executor()
+    if events is not None:
+        return events()
+    from rclpy.executors import SingleThreadedExecutor
+    return SingleThreadedExecutor()
+
+
+def source_stamps() -> bool:
+    """Whether subscriptions get the message info (callbacks ``(msg, info)``), so that header-less
+    live messages are timed by their DDS source timestamp: the publisher's clock when it published,
+    the same for every consumer however late each one runs.  Only with the classic executor: rclpy
+    9's EventsExecutor fails on such callbacks ("null argument to internal routine"); ``rotortwin
+    live`` runs its nodes with ``ROTORTWIN_EXECUTOR=single``."""
+    return _events_executor() is None
 
 
 def declare(node: Any, name: str, default: Any, description: str = "") -> Any:
@@ -207,6 +223,7 @@ class GraphNode(_node_base()):  # type: ignore[misc]
         self.plan: dict[str, Any] | None = None
         self.replay_done = False
         self.received: dict[str, int] = {}
+        self.n_callbacks = 0  # input callbacks run (see drain())
         self.inputs: tuple[str, ...] = ()
         self.clock_ns: int | None = None
         self._last_ack = -(2 ** 62)
@@ -280,13 +297,40 @@ class GraphNode(_node_base()):  # type: ignore[misc]
         counts = self.plan.get("counts", {})
         return all(self.received.get(t, 0) >= int(counts.get(t, 0)) for t in self.inputs)
 
-    def stamp_of(self, topic: str) -> int:
+    def stamp_of(self, topic: str, info: Any = None) -> int:
         """Time [ns] of the next header-less message of ``topic``: its timeline entry on
-        replay, else the node's clock now (live)."""
+        replay; live, its DDS source timestamp when the callback got the message ``info``
+        (:func:`source_stamps`), else the node's clock now (when the callback runs)."""
         t = self.timeline.take(topic)
         if t is None:
-            return int(self.get_clock().now().nanoseconds)
+            src = int(info["source_timestamp"]) if info is not None else 0
+            return src if src > 0 else int(self.get_clock().now().nanoseconds)
         return t
+
+    def header_less_callback(self, topic: str, handle: Callable[[Any, int], None]) -> Callable[..., None]:
+        """A subscription callback that times each message with :meth:`stamp_of` and calls
+        ``handle(msg, t_ns)``: ``(msg, info)`` where :func:`source_stamps`, else ``(msg)``."""
+        if source_stamps():
+            def cb_info(msg: Any, info: Any) -> None:
+                handle(msg, self.stamp_of(topic, info))
+            return cb_info
+
+        def cb(msg: Any) -> None:
+            handle(msg, self.stamp_of(topic))
+        return cb
+
+    def drain(self, quiet_s: float = 0.15, max_s: float = 3.0) -> None:
+        """On stop: run the callbacks of messages already delivered (until ``n_callbacks`` stays
+        unchanged for ``quiet_s``, ``max_s`` at most), so the last inputs are not left unread."""
+        ex = self.executor_ref
+        if ex is None:
+            return
+        t_end = time.monotonic() + max_s
+        last, t_quiet = self.n_callbacks, time.monotonic()
+        while time.monotonic() < t_end and time.monotonic() - t_quiet < quiet_s:
+            ex.spin_once(timeout_sec=0.02)
+            if self.n_callbacks != last:
+                last, t_quiet = self.n_callbacks, time.monotonic()
 
     # ------------------------------------------------------------------ hooks
     def on_clock(self, t_ns: int) -> None:

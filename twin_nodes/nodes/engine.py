@@ -34,6 +34,10 @@ __all__ = ["NS", "Timeline", "ReorderBuffer", "TwinEngine", "Track", "final_stre
 NS = 1_000_000_000
 #: the twin's inputs
 TWIN_INPUTS = ("/real/odom", "/real/setpoint", "/real/motors", "/real/status", "/real/battery")
+#: live, the inputs whose times move the twin's watermark (TwinEngine.advance_live), and how long
+#: one may be silent [s of the receiving clock] before it no longer holds the others back
+LIVE_PACED = ("/real/odom", "/real/motors")
+LIVE_STALE_S = 1.0
 #: latched JSON published by the twin node: the params file (path, text, sha256) and its settings
 CONFIG_TOPIC = "/twin/config"
 
@@ -78,6 +82,7 @@ class ReorderBuffer:
         self.watermark = -(2 ** 62)
         self.released_until = -(2 ** 62)
         self.late = 0  # items that arrived after their time had been released (processed late)
+        self.max_late_ns = 0  # by how much the latest of them missed its turn
 
     def __len__(self) -> int:
         return len(self._heap)
@@ -85,6 +90,7 @@ class ReorderBuffer:
     def push(self, t_ns: int, item: Any) -> None:
         if t_ns < self.released_until:
             self.late += 1
+            self.max_late_ns = max(self.max_late_ns, self.released_until - int(t_ns))
         heapq.heappush(self._heap, (int(t_ns), next(self._seq), item))
 
     def advance(self, watermark_ns: int) -> None:
@@ -128,12 +134,24 @@ class TwinEngine:
         self.t0_ns: int | None = None
         self.next_pub_ns: int | None = None
         self.n_out = 0
+        self.newest: dict[str, tuple[int, float]] = {}  # advance_live: topic -> (newest time, received at)
 
     def push(self, t_ns: int, topic: str, msg: Any) -> None:
         self.buf.push(t_ns, (topic, msg))
 
     def advance(self, t_ns: int) -> None:
         self.buf.advance(t_ns)
+
+    def advance_live(self, topic: str, t_ns: int, now_s: float) -> None:
+        """Live (no replay clock): move the watermark with the inputs themselves, to the oldest of
+        the newest times of the paced inputs (``LIVE_PACED``: odometry and motor commands) that
+        are flowing (one arrived within ``LIVE_STALE_S`` of ``now_s``, the receiving clock).  A
+        backlog is taken about round-robin per topic, so a 10 Hz topic's queue runs ahead of a
+        30 Hz one's; the newest input of any topic as the watermark released inputs still queued."""
+        self.newest[topic] = (max(self.newest[topic][0], t_ns) if topic in self.newest else t_ns, now_s)
+        paced = [self.newest[k] for k in LIVE_PACED if k in self.newest]
+        flowing = [t for t, rx in paced if now_s - rx <= LIVE_STALE_S]
+        self.buf.advance(min(flowing) if flowing else t_ns)
 
     def pop(self, flush: bool = False) -> list[tuple[int, Any]]:
         out: list[tuple[int, Any]] = []

@@ -77,18 +77,21 @@ class MetricsNode(GraphNode):
 
     # ------------------------------------------------------------------ inputs
     def _make_cb(self, topic: str):
-        stamped = TOPICS[topic].stamped
         if topic.startswith("/twin/"):
             def twin_cb(msg: Any) -> None:
+                self.n_callbacks += 1
                 self.twin_q[topic].append(msg)
                 self._pair_twin()
             return twin_cb
 
-        def cb(msg: Any) -> None:
+        def handle(msg: Any, t: int) -> None:
             self.count(topic)
-            t = cv.stamp_to_ns(msg.header.stamp) if stamped else self.stamp_of(topic)
+            self.n_callbacks += 1
             self.engine.add_real(topic, t, msg)
-        return cb
+
+        if TOPICS[topic].stamped:
+            return lambda msg: handle(msg, cv.stamp_to_ns(msg.header.stamp))
+        return self.header_less_callback(topic, handle)
 
     def _on_twin_done(self, msg: Any) -> None:
         self.twin_done = int(msg.data)
@@ -139,6 +142,8 @@ class MetricsNode(GraphNode):
 
     def close(self, interrupted: bool = False) -> None:
         # live data (no replay, so no /replay/done): the totals of what was seen, on Ctrl-C
+        if self.final is None and self.plan is None:
+            self.drain()  # the twin's last (flushed) samples, already delivered
         if self.final is None and self.twin and self.real["p"].t:
             self.get_logger().info("stopping before the end of a replay: totals of the data received so far")
             self._pair_twin()

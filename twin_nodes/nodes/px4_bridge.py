@@ -19,10 +19,12 @@ a real vehicle's MAVLink telemetry (:class:`~twin_nodes.mavlink.telemetry.Teleme
 the same ``/real/...`` topics the ULog replay publishes (:mod:`msgs_py.topics`): ``/real/odom``,
 ``/real/imu`` (HIGHRES_IMU), ``/real/motors``, ``/real/throttle``, ``/real/battery``,
 ``/real/setpoint`` (11 entries), ``/real/setpoint_pose``, ``/real/status`` ([armed, nav_state,
-landed] on change and once a second for late joiners).  Stamps are this node's clock at reception (live: header-less messages are
-timed by their DDS source timestamp).  The link state goes to ``/diagnostics``
-(``px4_bridge/link``: OK, or STALE after ``stale_after_s`` of silence) once a second and on
-change.  Parameters: ``url``, ``pwm_min_us`` (1000), ``pwm_max_us`` (2000), ``n_motors`` (4),
+landed] on change and once a second for late joiners).  Stamps are this node's clock at
+reception (consumers in ``rotortwin live`` time the header-less messages by their DDS source
+timestamp: this node's clock when it published them).  The link state goes to ``/diagnostics``
+(``px4_bridge/link``: OK, or STALE after ``stale_after_s`` of silence, with the numbers of
+subscriptions matched by ``/real/odom`` and ``/real/motors``) once a second and on change.
+Parameters: ``url``, ``pwm_min_us`` (1000), ``pwm_max_us`` (2000), ``n_motors`` (4),
 ``motor_channels`` ("" or e.g. "4,5,6,7", 0-based), ``stale_after_s`` (3.0),
 ``request_streams`` (true).
 
@@ -168,6 +170,10 @@ class TelemetryBridgeNode(GraphNode):
         s.message = f"{'armed' if st.armed else 'disarmed'} {st.mode} (link {'stale' if st.stale else 'ok'})"
         s.values = [kv(key="stale", value=str(st.stale).lower()), kv(key="mode", value=st.mode),
                     kv(key="armed", value=str(st.armed).lower()), kv(key="messages", value=str(st.messages_rx))]
+        # who listens: the subscriptions matched by /real/odom and /real/motors (a live graph is
+        # ready for a vehicle's first message once its twin, metrics and watchdog are counted here)
+        s.values += [kv(key=f"{t.split('/')[-1]}_subscribers", value=str(self.pub[t].get_subscription_count()))
+                     for t in ("/real/odom", "/real/motors")]
         cv.ns_to_stamp(t_ns, arr.header.stamp)
         arr.status = [s]
         self.pub_diag.publish(arr)
