@@ -90,6 +90,57 @@ def test_logger_topics_are_the_manifests_and_the_shared_flights():
         assert theirs == lines
 
 
+HIGHRATE = ("actuator_motors", "vehicle_angular_velocity", "vehicle_torque_setpoint", "vehicle_thrust_setpoint",
+            "sensor_combined")
+
+
+def test_highrate_logging_profile_changes_only_its_five_topics():
+    man = sf.load_manifest()
+    default = [ln.split() for ln in sf.logger_topics_text(man).splitlines() if not ln.startswith("#")]
+    high = [ln.split() for ln in sf.logger_topics_text(man, "highrate").splitlines() if not ln.startswith("#")]
+    assert [t for t, *_ in high] == [t for t, *_ in default]  # same 47 topics, same order
+    assert sf.logger_topics_text(man, "default") == sf.logger_topics_text(man)
+    for (topic, iv, inst), (_, iv0, _) in zip(high, default):
+        assert inst == "0"
+        assert iv == ("4" if topic in HIGHRATE else iv0), topic
+    assert {t: int(iv) for t, iv, _ in default}["actuator_motors"] == 20
+    assert "logging profile highrate" in sf.logger_topics_text(man, "highrate").splitlines()[0]
+
+
+def test_logging_profile_is_recorded_and_bad_profiles_are_one_line_errors(tmp_path):
+    man = sf.load_manifest()
+    lg = {"profile": "highrate", "topics_interval_ms": {t: 4 for t in HIGHRATE}}
+    t = sf.truth_json({"SIH_T_TAU": 0.12}, "M4", "02e73e3b6f", lg)
+    assert t["logging"] == lg and "logging" not in sf.truth_json({"SIH_T_TAU": 0.12}, "M4", "x")
+    assert "logging" not in sf.truth_json({}, "M4", "x", {"profile": "default", "topics_interval_ms": {}})
+    # the prove suite maps a truth.json with logging exactly as one without
+    vp = load_params(prove_sih.NOMINAL)
+    assert prove_sih.map_truth(t, vp).hidden.params == pytest.approx({"tau_up": 0.12, "tau_down": 0.12})
+    with pytest.raises(ParamsError, match=r"manifest\.yaml: px4\.logging\.profiles\.fast: no such logging profile "
+                                          r"\(known: default, highrate\)"):
+        sf.logger_topics_text(man, "fast")
+    bad = tmp_path / "m.yaml"
+    base = "px4: {environment: {PX4_SYS_AUTOSTART: 10040}, logging: {topics_interval_ms: {a: 20}, profiles: %s}}\n"
+    bad.write_text(base % "{hr: {topics_interval_ms: {a: 2.5}}}")
+    with pytest.raises(ParamsError, match=r"m\.yaml: px4\.logging\.profiles\.hr\.topics_interval_ms\.a: expected an "
+                                          r"integer >= 0, got 2\.5"):
+        sf.load_manifest(bad)
+    bad.write_text(base % "{hr: {}}")
+    with pytest.raises(ParamsError, match=r"m\.yaml: px4\.logging\.profiles\.hr\.topics_interval_ms: expected a mapping"):
+        sf.load_manifest(bad)
+    bad.write_text((base % "{hr: {topics_interval_ms: {a: 4}}}") + "missions: {M3: {plan_file: missions/sih_effects/"
+                   "M3_yaw_square.plan.yaml}}\nflights: {x1: {mission: M3, sih: {}, logging: turbo}}\n")
+    with pytest.raises(ParamsError, match=r"m\.yaml: px4\.logging\.profiles\.turbo: no such logging profile"):
+        sf.flights_from_manifest(sf.load_manifest(bad), ["x1"])
+    px4 = tmp_path / "px4"
+    (px4 / "build" / "px4_sitl_default" / "bin").mkdir(parents=True)
+    (px4 / "build" / "px4_sitl_default" / "bin" / "px4").write_text("")
+    # --logging: an unknown profile, or one that contradicts a manifest flight's own, is refused before flying
+    assert sf.main(["--out", str(tmp_path), "--px4", str(px4), "--flight", "e09", "--logging", "turbo"]) == 1
+    assert sf.main(["--out", str(tmp_path), "--px4", str(px4), "--flight", "h01", "--logging", "default"]) == 1
+    assert not (tmp_path / "h01").exists() and not (tmp_path / "e09").exists()
+
+
 NEW_FLIGHTS = {  # id: (mission, {param: value}, our vocabulary's effect and truth)
     "e09": ("M3", {"SIH_Q_MAX": 0.16}, ("yaw_moment", {"km": 0.032})),
     "e10": ("M4", {"SIH_T_TAU": 0.12}, ("motor_time_constant", {"tau_up": 0.12, "tau_down": 0.12})),
@@ -100,6 +151,13 @@ NEW_FLIGHTS = {  # id: (mission, {param: value}, our vocabulary's effect and tru
     "e15": ("M4", {"SIH_MASS": 1.3}, ("mass", {"mass": 1.3})),
     "e16": ("M3", {}, ("none", {})),
     "e17": ("M4", {}, ("none", {})),
+    # high-rate logging twins (logging profile highrate)
+    "h01": ("M4", {"SIH_T_TAU": 0.12}, ("motor_time_constant", {"tau_up": 0.12, "tau_down": 0.12})),
+    "h02": ("M4", {"SIH_IXX": 0.0375, "SIH_IYY": 0.0375}, ("inertia", {"ixx": 0.0375, "iyy": 0.0375, "izz": 0.03})),
+    "h03": ("M3", {"SIH_IXX": 0.0375, "SIH_IYY": 0.0375}, ("inertia", {"ixx": 0.0375, "iyy": 0.0375, "izz": 0.03})),
+    "h04": ("M3", {"SIH_Q_MAX": 0.16}, ("yaw_moment", {"km": 0.032})),
+    "h05": ("M3", {}, ("none", {})),
+    "h06": ("M4", {}, ("none", {})),
 }
 
 
@@ -112,6 +170,7 @@ def test_manifest_flights_of_our_own_map_to_their_truth(fid):
     job = sf.flights_from_manifest(man, [fid])[0]
     assert job["mission"] == mission and job["sih"] == pytest.approx(sih)
     assert job["plan"].name.startswith(mission)
+    assert job["logging"] == ("highrate" if fid.startswith("h") else None)
     truth = sf.truth_json(job["sih"], mission, "02e73e3b6f")
     t = prove_sih.map_truth(truth, load_params(prove_sih.NOMINAL))
     assert t.hidden.name == eff and t.hidden.params == pytest.approx(params, rel=1e-9)
@@ -248,7 +307,7 @@ def test_fly_one_sih_flight_against_real_px4(tmp_path):
     plan = tmp_path / "hop.plan.yaml"
     plan.write_text("mission: {name: hop, speed_m_s: 4.0, acceptance_radius_m: 2.0, fly_through: false,\n"
                     "  rtl_after: true, waypoints: [{north_m: 10.0, east_m: 0.0, alt_m: 6.0, yaw_deg: 90.0}]}\n")
-    r = sf.fly_sih(px4_dir, plan, {"SIH_MASS": 1.25}, tmp_path / "out", "x01", timeout_s=600.0)
+    r = sf.fly_sih(px4_dir, plan, {"SIH_MASS": 1.25}, tmp_path / "out", "x01", timeout_s=600.0, logging="highrate")
     d = tmp_path / "out" / "x01"
     assert {p.name for p in d.iterdir()} >= {"flight.ulg", "truth.json", "MANIFEST.md", "px4.log"}
     f = r["facts"]
@@ -262,6 +321,12 @@ def test_fly_one_sih_flight_against_real_px4(tmp_path):
     assert prove_sih.map_truth(truth, load_params(prove_sih.NOMINAL)).hidden.params == {"mass": 1.25}
     # a heavier vehicle: PX4's hover thrust estimate above the nominal 0.49
     assert f["hover_thrust_estimate"] > 0.55
+    # the highrate logging profile: its topics every 4 ms (SIH's 250 Hz rate loop), the rest as the default list
+    assert truth["logging"]["profile"] == "highrate" and "profile `highrate`" in (d / "MANIFEST.md").read_text()
+    for d_ in u.data_list:
+        if d_.multi_id == 0 and d_.name in HIGHRATE + ("vehicle_attitude",):
+            dt_ms = float(np.median(np.diff(d_.data["timestamp"]))) * 1e-3
+            assert dt_ms == pytest.approx(20.0 if d_.name == "vehicle_attitude" else 4.0, abs=0.5), d_.name
 
 
 def test_a_running_px4_instance_is_refused():

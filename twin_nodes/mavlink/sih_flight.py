@@ -63,6 +63,17 @@ def load_manifest(path: str | Path = MANIFEST) -> dict:
     for k, v in topics.items():
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
             raise ParamsError(p, f"px4.logging.topics_interval_ms.{k}", f"expected an integer >= 0, got {v!r}")
+    profiles = px4["logging"].get("profiles") or {}
+    if not isinstance(profiles, dict):
+        raise ParamsError(p, "px4.logging.profiles", "expected a mapping name: {topics_interval_ms: ...}")
+    for name, prof in profiles.items():
+        over = prof.get("topics_interval_ms") if isinstance(prof, dict) else None
+        if not isinstance(over, dict) or not over:
+            raise ParamsError(p, f"px4.logging.profiles.{name}.topics_interval_ms", "expected a mapping topic: interval_ms")
+        for k, v in over.items():
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ParamsError(p, f"px4.logging.profiles.{name}.topics_interval_ms.{k}",
+                                  f"expected an integer >= 0, got {v!r}")
     for key in ("missions", "flights"):
         if not isinstance(doc.get(key), dict):
             raise ParamsError(p, key, "expected a mapping")
@@ -70,10 +81,26 @@ def load_manifest(path: str | Path = MANIFEST) -> dict:
     return doc
 
 
-def logger_topics_text(manifest: dict) -> str:
-    """``etc/logging/logger_topics.txt``: one ``<topic> <interval_ms> 0`` line per manifest topic."""
-    lines = ["# <topic> [interval_ms]; interval 0 = every update (written from missions/sih_effects/manifest.yaml)"]
-    lines += [f"{k} {int(v)} 0" for k, v in manifest["px4"]["logging"]["topics_interval_ms"].items()]
+def logging_topics(manifest: dict, profile: str | None = None) -> dict[str, int]:
+    """``{topic: interval_ms}`` of the manifest's default logging (``profile`` None or ``"default"``) or of a named
+    profile of ``px4.logging.profiles`` (its ``topics_interval_ms`` replace those entries of the default list)."""
+    topics = dict(manifest["px4"]["logging"]["topics_interval_ms"])
+    if profile in (None, "default"):
+        return topics
+    profiles = manifest["px4"]["logging"].get("profiles") or {}
+    if profile not in profiles:
+        raise ParamsError(manifest["_path"], f"px4.logging.profiles.{profile}",
+                          f"no such logging profile (known: {', '.join(['default', *profiles])})")
+    topics.update(profiles[profile]["topics_interval_ms"])
+    return topics
+
+
+def logger_topics_text(manifest: dict, profile: str | None = None) -> str:
+    """``etc/logging/logger_topics.txt``: one ``<topic> <interval_ms> 0`` line per topic of the logging profile."""
+    name = profile or "default"
+    lines = [(f"# <topic> [interval_ms]; interval 0 = every update (written from missions/sih_effects/manifest.yaml, "
+              f"logging profile {name})")]
+    lines += [f"{k} {int(v)} 0" for k, v in logging_topics(manifest, profile).items()]
     return "\n".join(lines) + "\n"
 
 
@@ -147,12 +174,16 @@ def truth_effects(sih: dict[str, float]) -> list[dict]:
                     "inertia, KDV, KDW, arm lengths)")
 
 
-def truth_json(sih: dict[str, float], mission: str, ver_sw: str) -> dict:
-    """``truth.json`` of a flight: ``effects``, ``sih_changes`` ``{PARAM: [default, used]}``, ``mission``, ``notes``."""
+def truth_json(sih: dict[str, float], mission: str, ver_sw: str, logging: dict | None = None) -> dict:
+    """``truth.json`` of a flight: ``effects``, ``sih_changes`` ``{PARAM: [default, used]}``, ``mission``, ``notes``,
+    and ``logging`` (``{"profile", "topics_interval_ms"}``) when a logging profile other than the default was used."""
     changes = {k: [SIH_DEFAULTS[k], v] for k, v in sih.items()}
     text = ", ".join(f"{k} {a:g} -> {b:g}" for k, (a, b) in changes.items()) or "No SIH parameter changed"
-    return {"effects": truth_effects(sih), "sih_changes": changes, "mission": mission,
-            "notes": f"{text} (PX4 {ver_sw[:10]} SIH, flown with launch_scripts/fly_sih.sh)."}
+    out = {"effects": truth_effects(sih), "sih_changes": changes, "mission": mission,
+           "notes": f"{text} (PX4 {ver_sw[:10]} SIH, flown with launch_scripts/fly_sih.sh)."}
+    if logging and logging.get("profile") not in (None, "default"):
+        out["logging"] = logging
+    return out
 
 
 # --------------------------------------------------------------------------- ULog scrubbing
@@ -333,12 +364,14 @@ def _stop(proc: subprocess.Popen, grace_s: float = 15.0) -> None:
 
 def fly_sih(px4_dir: str | Path, plan_file: str | Path, sih: dict[str, float], out_dir: str | Path,
             flight_id: str, *, mission: str = "", manifest: dict | None = None, speed_factor: float | None = None,
-            instance: int = 0, timeout_s: float = 1800.0, progress=print) -> dict:
+            instance: int = 0, timeout_s: float = 1800.0, logging: str | None = None, progress=print) -> dict:
     """Boot PX4 SIH with ``sih`` set, fly ``plan_file``, wait for the disarm, stop PX4, and write
-    ``out_dir/flight_id/{flight.ulg (SIH_* scrubbed), truth.json, MANIFEST.md, px4.log}``.  Returns the facts."""
+    ``out_dir/flight_id/{flight.ulg (SIH_* scrubbed), truth.json, MANIFEST.md, px4.log}``.  ``logging``: a logging
+    profile of the manifest (``px4.logging.profiles``; None = the default topic list).  Returns the facts."""
     from twin_nodes.mavlink.mission import load_plan, start_mission, upload_plan, wait_flight_done
 
     manifest = manifest or load_manifest()
+    topics_text = logger_topics_text(manifest, logging)
     px4 = px4_binary(px4_dir)
     _check_instance_free(instance)
     plan = load_plan(plan_file)
@@ -347,7 +380,7 @@ def fly_sih(px4_dir: str | Path, plan_file: str | Path, sih: dict[str, float], o
     work = Path(tempfile.mkdtemp(prefix=f"sih_{flight_id}_"))
     shutil.copytree(px4.parent.parent / "etc", work / "etc", symlinks=False)
     (work / "etc" / "logging").mkdir(exist_ok=True)
-    (work / "etc" / "logging" / "logger_topics.txt").write_text(logger_topics_text(manifest))
+    (work / "etc" / "logging" / "logger_topics.txt").write_text(topics_text)
     env = {k: v for k, v in os.environ.items() if not k.startswith("PX4_")}
     env.update({k: str(v) for k, v in manifest["px4"]["environment"].items()})
     if speed_factor is not None:
@@ -394,7 +427,10 @@ def fly_sih(px4_dir: str | Path, plan_file: str | Path, sih: dict[str, float], o
     facts.update({"removed_sih_messages": removed, "scrub_check": check, "wall_s": wall_s,
                   "flight_wall_s": done["flight_s"], "raw_size_bytes": raw.stat().st_size,
                   "size_bytes": (dest / "flight.ulg").stat().st_size})
-    truth = truth_json(sih, mission or plan.name, facts["ver_sw"])
+    prof = logging or "default"
+    over = (manifest["px4"]["logging"].get("profiles") or {}).get(prof, {}).get("topics_interval_ms", {})
+    facts["logging"] = {"profile": prof, "topics_interval_ms": dict(over)}
+    truth = truth_json(sih, mission or plan.name, facts["ver_sw"], facts["logging"])
     (dest / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
     (dest / "MANIFEST.md").write_text(manifest_md(flight_id, truth, facts, plan_file, env, manifest))
     shutil.rmtree(work, ignore_errors=True)
@@ -413,6 +449,9 @@ def manifest_md(flight_id: str, truth: dict, f: dict, plan_file, env: dict, mani
     rows = [("PX4", (f"commit `{f['ver_sw']}` (manifest: `{manifest['px4'].get('commit', '?')}`), "
                      "`px4_sitl_default` with gyro_fft and uxrce_dds_client off")),
             ("launch", f"`px4 -i 0 -d -w WORK` (WORK: empty, with etc/ and etc/logging/logger_topics.txt); {px4_env}"),
+            ("logging", (f"profile `{f['logging']['profile']}` of the manifest's px4.logging"
+                         + (f" (intervals ms changed from the default list: {f['logging']['topics_interval_ms']})"
+                            if f["logging"]["topics_interval_ms"] else " (its default topic list)"))),
             ("mission", f"{truth['mission']} (`{plan_rel}`), RTL after, MAVSDK over UDP 14540"),
             ("SIH change", ", ".join(f"{k} {a:g} -> {b:g}" for k, (a, b) in truth["sih_changes"].items()) or "none"),
             ("truth", json.dumps(truth["effects"])),
@@ -449,8 +488,12 @@ def flights_from_manifest(manifest: dict, ids: list[str]) -> list[dict]:
             raise ParamsError(manifest["_path"], f"flights.{fid}", "no such flight (expected mission: and sih:)")
         if fl.get("log"):
             raise ParamsError(manifest["_path"], f"flights.{fid}.log", "a shared log, not a flight fly_sih flies")
+        prof = fl.get("logging")
+        if prof is not None:
+            logging_topics(manifest, prof)  # a known profile, or a one-line error naming it
         out.append({"id": fid, "mission": fl["mission"], "plan": mission_plan_path(manifest, fl["mission"]),
-                    "sih": parse_sih(fl.get("sih") or {}, f"{manifest['_path']}: flights.{fid}.sih")})
+                    "sih": parse_sih(fl.get("sih") or {}, f"{manifest['_path']}: flights.{fid}.sih"),
+                    "logging": prof})
     return out
 
 
@@ -466,6 +509,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sih", nargs="*", default=[], help="ad-hoc: SIH changes NAME=VALUE (none: a no-effect flight)")
     ap.add_argument("--speed-factor", type=float, help="PX4_SIM_SPEED_FACTOR (default: the manifest's)")
     ap.add_argument("--instance", type=int, default=0)
+    ap.add_argument("--logging", help="logging profile of the manifest's px4.logging.profiles (e.g. highrate; "
+                    "default: a manifest flight's own logging:, else the default topic list)")
     ap.add_argument("--skip-existing", action="store_true", help="skip a flight whose folder has flight.ulg")
     a = ap.parse_args(argv)
     try:
@@ -477,7 +522,14 @@ def main(argv: list[str] | None = None) -> int:
             if not (a.id and a.mission):
                 raise TwinError("--id and --mission go together (an ad-hoc flight)")
             jobs.append({"id": a.id, "mission": a.mission, "plan": mission_plan_path(man, a.mission),
-                         "sih": parse_sih(a.sih)})
+                         "sih": parse_sih(a.sih), "logging": None})
+        if a.logging is not None:
+            logging_topics(man, a.logging)
+            for j in jobs:
+                if j["logging"] not in (None, a.logging):
+                    raise TwinError(f"--logging {a.logging}: flight {j['id']} is logged with {j['logging']} in "
+                                    f"the manifest (flights.{j['id']}.logging)")
+                j["logging"] = a.logging
         if not jobs:
             raise TwinError("nothing to fly: give --flight IDS or --id ID --mission M [--sih NAME=VALUE]")
         results = []
@@ -486,7 +538,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"[{j['id']}] exists, skipped")
                 continue
             r = fly_sih(a.px4, j["plan"], j["sih"], a.out, j["id"], mission=j["mission"] if j["mission"] in
-                        man["missions"] else "", manifest=man, speed_factor=a.speed_factor, instance=a.instance)
+                        man["missions"] else "", manifest=man, speed_factor=a.speed_factor, instance=a.instance,
+                        logging=j["logging"])
             results.append(r)
     except TwinError as exc:
         print(f"fly_sih: {exc}", file=sys.stderr)
