@@ -36,6 +36,12 @@ BLOCKS_PER_REP = {"yaw_sweeps": 2, "rate_doublets": 4, "vertical_steps": 4, "low
 MIN_REPS = {"yaw_sweeps": 12, "rate_doublets": 6, "vertical_steps": 4, "low_hover": 4, "fast_legs": 2}
 MAX_REPS = 30
 ALT_M = 10.0
+#: effects whose signature lies at the rate loop's frequencies: on PX4 SIH flights (docs/prove_results.md,
+#: "High-rate logging") a 50 Hz motor log could not tell a motor lag from a delay nor resolve roll/pitch
+#: inertia; the same flights logged every 4 ms could
+RATE_LOOP_EFFECTS = ("motor_time_constant", "actuator_delay", "inertia")
+#: a motor log slower than this (s between samples) is too slow for them
+RATE_LOOP_LOG_S = 0.01
 
 
 def _reps(kind: str, missing: int | None) -> int:
@@ -85,8 +91,20 @@ def manoeuvre(kind: str, reps: int, origin: tuple[float, float] = (5.0, 0.0), al
     return out
 
 
-def plan_for(effect: dict, flight: str = "") -> dict:
-    """The plan document (``{"mission": {...}}``) for one ``likely`` effect of a discover result."""
+def logging_advice(effect_name: str, motor_log_interval_s: float | None) -> str:
+    """What to log on the confirmation flight ('' when the flight's logging was enough)."""
+    if effect_name not in RATE_LOOP_EFFECTS or not motor_log_interval_s or motor_log_interval_s <= RATE_LOOP_LOG_S:
+        return ""
+    return (f"Log at the rate loop: this flight logged the motors every {1e3 * motor_log_interval_s:.0f} ms; "
+            "log actuator_motors, vehicle_angular_velocity, vehicle_torque_setpoint, vehicle_thrust_setpoint "
+            "and sensor_combined every 4 ms (PX4 SDLOG_PROFILE high-rate bit 4, e.g. SDLOG_PROFILE 17, or a "
+            "logger_topics.txt), which separates a motor lag from a delay and resolves roll/pitch inertia.")
+
+
+def plan_for(effect: dict, flight: str = "", motor_log_interval_s: float | None = None) -> dict:
+    """The plan document (``{"mission": {...}}``) for one ``likely`` effect of a discover result;
+    ``motor_log_interval_s``: how often the flight logged its motor commands (adds
+    :func:`logging_advice` to the notes)."""
     ex = effect.get("excitation") or {}
     kinds = ex.get("plans") or ["rate_doublets"]
     missing = ex.get("blocks_missing")
@@ -98,6 +116,9 @@ def plan_for(effect: dict, flight: str = "") -> dict:
     notes = (f"confirmation flight for {effect['name']} ({pretty}), likely on {flight or 'the flight'}: "
              f"{effect.get('verdict_note', '')}. Manoeuvres: {', '.join(kinds)}. After flying it: "
              f"rotortwin discover {flight or 'FLIGHT'} --confirm FOLLOWUP.ulg")
+    advice = logging_advice(effect["name"], motor_log_interval_s)
+    if advice:
+        notes += ". " + advice
     return {"mission": {"name": f"confirm_{effect['name']}", "speed_m_s": 3.0, "acceptance_radius_m": 1.0,
                         "fly_through": False, "rtl_after": True, "notes": notes, "waypoints": wps}}
 
@@ -119,7 +140,8 @@ def plan_yaml(doc: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_plans(result: dict, folder: str | Path, flight: str = "") -> list[Path]:
+def write_plans(result: dict, folder: str | Path, flight: str = "",
+                motor_log_interval_s: float | None = None) -> list[Path]:
     """One plan file per ``likely`` effect of ``result``; returns the paths written."""
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
@@ -128,9 +150,9 @@ def write_plans(result: dict, folder: str | Path, flight: str = "") -> list[Path
         if e.get("verdict") != "likely":
             continue
         p = out / f"confirm_{e['name']}.plan.yaml"
-        atomic_write_text(p, plan_yaml(plan_for(e, flight or str(result.get("log", "")))))
+        atomic_write_text(p, plan_yaml(plan_for(e, flight or str(result.get("log", "")), motor_log_interval_s)))
         paths.append(p)
     return paths
 
 
-__all__ = ["manoeuvre", "plan_for", "plan_yaml", "write_plans"]
+__all__ = ["RATE_LOOP_EFFECTS", "logging_advice", "manoeuvre", "plan_for", "plan_yaml", "write_plans"]
