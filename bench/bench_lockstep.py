@@ -63,7 +63,6 @@ def main() -> None:
     ]
     for name, interval, cb in cases:
         rates = [run_once(vp, args.sim_seconds, interval, cb)[0] for _ in range(args.repeat)]
-        best, med = max(rates), statistics.median(rates)
         _report(name, rates)
     _bench_ros(vp, args)
 

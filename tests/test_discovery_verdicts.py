@@ -271,9 +271,12 @@ def test_plan_setpoints_follow_the_plan():
 # ----------------------------------------------------------------------------- round trip
 
 
-HIDDEN_RT = "yaw_moment:km=0.026"
+HIDDEN_RT = "yaw_moment:km=0.023"
 # a hop with two small heading changes (20 deg early, 70 deg mid-flight) and no return: the yaw
-# moment is seen in the middle (both folds fit it) but the held-out parts hold too few yaw blocks
+# moment is seen in the middle (both folds fit it) but the held-out parts hold too few yaw blocks.
+# km 0.023 (nominal 0.020) leaves 3 active held-out blocks (too few for any test: likely); at 0.024
+# and above, since the twin's vertical anti-windup (2026-11-23) changed this flight, 4 blocks with
+# near-identical gains pass the t test and the effect is confirmed outright
 HOP_PLAN = """mission:
   name: hop
   speed_m_s: 3.0

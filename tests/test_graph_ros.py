@@ -22,7 +22,7 @@ from twin_nodes.logs.streams import replay_streams  # noqa: E402
 from twin_nodes.graph import node_command, regress_bag, ros_env, run_graph  # noqa: E402
 from twin_nodes.twin.compare import compare_log  # noqa: E402
 from twin_nodes.vehicle.params import load_params, params_dir  # noqa: E402
-from twin_nodes.logs.recording import recover, topic_counts  # noqa: E402
+from twin_nodes.logs.recording import topic_counts  # noqa: E402
 from twin_nodes.logs.ulog_io import read_ulog  # noqa: E402
 
 pytestmark = pytest.mark.ros

@@ -32,6 +32,7 @@ Method:
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import dataclass, field
@@ -40,9 +41,10 @@ from typing import Callable
 import numpy as np
 from scipy.optimize import least_squares
 
+from twin_nodes.discovery import evaluate
 from twin_nodes.discovery.candidates import Candidate, build_candidates
-from twin_nodes.discovery.locate import excitation, locate, regimes  # noqa: F401  (regimes: re-exported)
-from twin_nodes.discovery.output_error import (AXES, HORIZON_S, MIN_AXIS_R2, STRIDE_S, Windows, judge_axes,
+from twin_nodes.discovery.locate import excitation, locate, locate_output, regimes  # noqa: F401  (regimes: re-exported)
+from twin_nodes.discovery.output_error import (HORIZON_S, MIN_AXIS_R2, STRIDE_S, Windows, judge_axes,
                                                make_windows, output_error)
 from twin_nodes.discovery.residuals import (LOWPASS_HZ, EquationData, channel_names, modes, prepare,
                                             residual_channels)
@@ -187,11 +189,24 @@ def _block_stats(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_c
     k = int(np.sum(d > 0))
     p = float(binom.sf(k - 1, d.size, 0.5))
     z = float(norm.isf(max(p, 1e-300)))
-    flips = np.random.default_rng(12345).choice((-1.0, 1.0), size=(20000, d.size))
+    flips = _sign_flips(d.size)
     p_flip = (1.0 + np.sum(flips @ np.abs(d) >= d.sum())) / (1.0 + flips.shape[0])
     zw = float(norm.isf(p_flip))
     st["t"] = max(t, z, zw)
     return st
+
+
+_FLIPS: dict[int, np.ndarray] = {}
+
+
+def _sign_flips(n: int) -> np.ndarray:
+    """The sign-flip test's 20000 fixed-seed flips of n blocks (the same matrix every call: made once)."""
+    if n not in _FLIPS:
+        if len(_FLIPS) > 16:
+            _FLIPS.clear()
+        _FLIPS[n] = np.random.default_rng(12345).choice((-1.0, 1.0), size=(20000, n))
+        _FLIPS[n].flags.writeable = False
+    return _FLIPS[n]
 
 
 def _block_test(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_change: float = 0.0
@@ -215,9 +230,17 @@ def fit_candidate(c: Candidate, data: EquationData | Judge, nominal: VehiclePara
         rows = np.zeros_like(fit_mask)
         rows[idx[np.linspace(0, idx.size - 1, OE_FIT_WINDOWS).round().astype(int)]] = True
 
-    def resid(z):
-        theta = np.clip(z * s, c.lower, c.upper)
-        return judge.residual(c.build(theta), rows).ravel()
+    form = _affine_form(c, judge)
+    if form is not None:
+        # the residual is exactly linear in this candidate's parameters: fit on that form
+        lin = form.on(rows)
+
+        def resid(z):
+            return lin(np.clip(z * s, c.lower, c.upper))
+    else:
+        def resid(z):
+            theta = np.clip(z * s, c.lower, c.upper)
+            return judge.residual(c.build(theta), rows).ravel()
 
     z0 = np.clip(c.x0 / s, lo, hi)
     if len(z0) == 1:
@@ -275,31 +298,68 @@ def fit_candidate(c: Candidate, data: EquationData | Judge, nominal: VehiclePara
     return theta, c.build(theta), float(2 * sol.cost)
 
 
+_AFFINE_FORMS: dict[tuple[int, int], tuple] = {}
+
+
+def _affine_form(c: Candidate, judge: Judge) -> evaluate.Affine | None:
+    """The equation error's exact linear form in ``c``'s parameters (None: not affine, or the
+    output error, or switched off); measured once per candidate and judge (both folds use it)."""
+    if not evaluate.AFFINE_FITS or judge.kind != "equation" or judge.lean:
+        return None
+    key = (id(c), id(judge))
+    hit = _AFFINE_FORMS.get(key)
+    if hit is None or hit[0] is not c or hit[1] is not judge:
+        if len(_AFFINE_FORMS) > 32:
+            _AFFINE_FORMS.clear()
+        form = evaluate.affine(lambda th: judge.residual(c.build(th)), np.clip(c.x0, c.lower, c.upper),
+                               c.lower, c.upper)
+        hit = _AFFINE_FORMS[key] = (c, judge, form)
+    return hit[2]
+
+
 def _mode_rms(R: np.ndarray, nominal: VehicleParams) -> tuple[np.ndarray, list[str]]:
     m, names = modes(R, nominal)
     return np.sqrt(np.mean(m ** 2, axis=0)), names
 
 
+def _fold_fits(c: Candidate, judge: Judge, nominal: VehicleParams, shape: tuple[int, ...]
+               ) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """The costly part of :func:`assess`, one process's work: ``c`` fitted on each fold's fit
+    rows, as (theta, fit cost, its residual on all rows (the output error: on the fold's test
+    rows, zero elsewhere))."""
+    return [_fold_fit(c, judge, nominal, shape, k) for k in range(len(judge.folds))]
+
+
+def _fold_fit(c: Candidate, judge: Judge, nominal: VehicleParams, shape: tuple[int, ...], k: int
+              ) -> tuple[np.ndarray, float, np.ndarray]:
+    """Fold ``k`` of :func:`_fold_fits`."""
+    fit_mask, test_mask = judge.folds[k]
+    theta, vp_c, cost = fit_candidate(c, judge, nominal, fit_mask)
+    if judge.lean:
+        R1 = np.zeros(shape)
+        R1[test_mask] = judge.residual(vp_c, test_mask)
+    else:
+        R1 = judge.residual(vp_c)
+    return theta, cost, R1
+
+
 def assess(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, R0: np.ndarray,
            folds: list[tuple[np.ndarray, np.ndarray]] | None = None, blocks: list[np.ndarray] | None = None,
-           held_mask: np.ndarray | None = None) -> Fit:
+           held_mask: np.ndarray | None = None, fold_fits: list | None = None) -> Fit:
     """Fit ``c`` on each fold's fit part and judge it on that fold's unseen part (2-fold CV).
 
     The block test pools the test blocks of both folds, each predicted by the fit that did
     not see it.  The reported parameters and held-out numbers are fold 1's (fit on the
-    first part of the flight, judged on the last)."""
+    first part of the flight, judged on the last).  ``fold_fits``: :func:`_fold_fits`'s result
+    when it was computed elsewhere (another process)."""
     judge = data if isinstance(data, Judge) else _equation_judge(data, nominal, folds, blocks, held_mask)
     Rcv = np.zeros_like(R0)
     first = None
     thetas = []
-    for fit_mask, test_mask in judge.folds:
-        theta, vp_c, cost = fit_candidate(c, judge, nominal, fit_mask)
+    done = fold_fits if fold_fits is not None else _fold_fits(c, judge, nominal, R0.shape)
+    for (fit_mask, test_mask), (theta, cost, R1) in zip(judge.folds, done):
+        vp_c = c.build(theta)
         thetas.append(theta)
-        if judge.lean:
-            R1 = np.zeros_like(R0)
-            R1[test_mask] = judge.residual(vp_c, test_mask)
-        else:
-            R1 = judge.residual(vp_c)
         Rcv[test_mask] = R1[test_mask]
         if first is None:
             first = (theta, vp_c, cost, R1)
@@ -339,6 +399,29 @@ def assess(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, R0:
     k = int(np.argmax(r0 ** 2 - r1 ** 2))
     fit.judged = (mnames[k], float(r0[k]), float(r1[k]))
     return fit
+
+
+def _warm(tasks: list[tuple[Candidate, Judge, np.ndarray]]) -> None:
+    """Load each candidate's compiled model here, once, before the worker processes are forked."""
+    from twin_nodes.discovery.kernels import warm
+    from twin_nodes.physics.model import Multirotor
+    seen = set()
+    for c, judge, _ in tasks:
+        try:
+            m = Multirotor(c.build(np.clip(c.x0, c.lower, c.upper)))
+        except ValueError:
+            continue
+        key = (m._mod.__name__, judge.lean)
+        if key not in seen:
+            seen.add(key)
+            warm(m, judge.lean)
+
+
+def _task_cost(c: Candidate, judge: Judge) -> float:
+    """Rough relative cost of fitting ``c`` on ``judge`` (only orders the work across processes)."""
+    if judge.lean:
+        return 10.0
+    return 3.0 if c.name in ("battery_sag", "motor_time_constant", "actuator_delay", "ground_effect", "wind") else 1.0
 
 
 def _parsimonious(winner: Fit, accepted: list[Fit], blocks: dict[str, list[np.ndarray]] | list[np.ndarray]) -> Fit:
@@ -528,6 +611,10 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     t_start = time.time()
     S = prepare_flight(log, vp, heldout_fraction, output_error)
     data, names, fit_mask, held_mask, t_split = S.data, S.names, S.fit_mask, S.held_mask, S.t_split
+    _closed_loop_reset()
+    if closed_loop_metrics:
+        # the nominal twin's closed-loop run, in another process while the candidates are fitted
+        _prefetch_closed_loop(log, vp, t_split, S.t_end)
     eq, oe = S.eq, S.oe
     blocks = {"equation": eq.blocks, "output": oe.blocks if oe else []}
 
@@ -537,6 +624,8 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     base_held = np.sqrt(np.mean(R_base[held_mask] ** 2, axis=0))
     mismatch = locate(data, R_base, raw_base, names, vp)
     oe_base = oe.residual(vp) if oe else None
+    if oe is not None:
+        mismatch = sorted(mismatch + locate_output(data, oe.windows, oe_base, vp), key=lambda d: -d["severity"])
 
     accepted: list[Fit] = []
     last: dict[str, Fit] = {}        # the latest assessment of each candidate (label)
@@ -558,22 +647,30 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         cands = [c for c in build_candidates(current, data) if c.label not in done
                  and (rounds == 1 or r1_gain.get(c.label, 1.0) >= PRUNE_GAIN)]
         per_label: dict[str, list[Fit]] = {}
+        tasks: list[tuple[Candidate, Judge, np.ndarray]] = []
         for c in cands:
-            fe = assess(c, eq, vp, R0)
-            fe.base_vp = current
-            per_label.setdefault(c.label, []).append(fe)
-            if pbar is not None:
-                pbar.update(1)
+            tasks.append((c, eq, R0))
             if oe is not None and c.name in OUTPUT_ERROR_EFFECTS and (rounds == 1 or oe_gain.get(c.label, 0) > 0.02):
                 co = _restrict_to_axes(c, oe.windows.usable)
                 if co is not None:
-                    fo = assess(co, oe, vp, R0_oe)
-                    fo.base_vp = current
-                    per_label[c.label].append(fo)
-                    if rounds == 1:
-                        oe_gain[c.label] = fo.rel_improvement
-                    if pbar is not None:
-                        pbar.update(1)
+                    tasks.append((co, oe, R0_oe))
+        if evaluate.workers() > 1:
+            _warm(tasks)
+        # the fits (each candidate, each fold) are independent: spread over processes, results in
+        # task order (evaluate.py)
+        jobs = [(i, k) for i, (_, judge, _) in enumerate(tasks) for k in range(len(judge.folds))]
+        done = evaluate.run_tasks(
+            lambda j, tasks=tasks, jobs=jobs: _fold_fit(tasks[jobs[j][0]][0], tasks[jobs[j][0]][1], vp,
+                                                        tasks[jobs[j][0]][2].shape, jobs[j][1]),
+            len(jobs), cost=[_task_cost(tasks[i][0], tasks[i][1]) for i, _ in jobs],
+            done=(lambda j, jobs=jobs: pbar.update(1) if jobs[j][1] == 0 else None) if pbar is not None else None)
+        for i, (c, judge, R0j) in enumerate(tasks):
+            fold_fits = [res for (ti, _), res in zip(jobs, done) if ti == i]
+            f = assess(c, judge, vp, R0j, fold_fits=fold_fits)
+            f.base_vp = current
+            per_label.setdefault(c.label, []).append(f)
+            if judge is oe and rounds == 1:
+                oe_gain[c.label] = f.rel_improvement
         fits = [f for fl in per_label.values() for f in fl]
         for f in fits:
             f.accepted = (f.above_floor and not f.at_bound and f.unphysical is None and f.t_stat > T_CRIT
@@ -616,6 +713,8 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
             break
         accepted.append(winner)
         current = winner.vp
+        if closed_loop_metrics and len(accepted) == 1:
+            _prefetch_closed_loop(log, winner.vp, t_split, S.t_end)   # the closed-loop guard's first trial
     if pbar is not None:
         pbar.close()
 
@@ -701,6 +800,7 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         result["output_error_axes"] = None
     if closed_loop_metrics:
         _closed_loop(result, log, vp, current, t_split, S.t_end, closed)
+    _closed_loop_reset()
     result["elapsed_s"] = round(time.time() - t_start, 1)
     result["_series"] = {"t": data.t, "valid": data.valid, "held": held_mask, "R_before": R_base,
                          "R_after": R_after, "names": names}
@@ -784,7 +884,39 @@ def _joint_refit(accepted: list[Fit], data, nominal, fit_mask) -> VehicleParams:
     return build(theta)
 
 
+#: closed-loop twin runs of this discover call: (log, vp, t0, t1) ids -> (log, vp, evaluate.Pending)
+_CLOSED_LOOP: dict[tuple, tuple] = {}
+
+
+def _closed_loop_reset() -> None:
+    for _, _, run in _CLOSED_LOOP.values():
+        run.cancel()
+    _CLOSED_LOOP.clear()
+
+
+def _closed_loop_run(log, vp: VehicleParams, t0: float, t1: float, background: bool):
+    key = (id(log), id(vp), float(t0), float(t1))
+    hit = _CLOSED_LOOP.get(key)
+    if hit is None or hit[0] is not log or hit[1] is not vp:
+        def fn():
+            return _closed_loop_twin(log, vp, t0, t1)
+        run = evaluate.start(fn) if background else evaluate.Pending(fn, background=False)
+        hit = _CLOSED_LOOP[key] = (log, vp, run)
+    return hit[2]
+
+
+def _prefetch_closed_loop(log, vp: VehicleParams, t0: float, t1: float) -> None:
+    """Start the closed-loop run that :func:`_closed_loop_metrics` will ask for (another process)."""
+    _closed_loop_run(log, vp, t0, t1, background=True)
+
+
 def _closed_loop_metrics(log, vp: VehicleParams, t0: float, t1: float) -> dict:
+    """Closed-loop twin metrics (Table 2 + throttle + motors) on [t0, t1], each vehicle flown once
+    per discover call (or ahead, in another process: :func:`_prefetch_closed_loop`)."""
+    return copy.deepcopy(_closed_loop_run(log, vp, t0, t1, background=False).result())
+
+
+def _closed_loop_twin(log, vp: VehicleParams, t0: float, t1: float) -> dict:
     """Closed-loop twin metrics (Table 2 + throttle + motors) on [t0, t1].
 
     The twin flies the whole flight (so it reaches the window in a realistic state);

@@ -6,9 +6,9 @@ the dynamics (rotor lag, inertia, reaction torque in a yaw manoeuvre) is mostly 
 Here the model itself integrates: from the logged state at the start of each window (position,
 velocity, attitude, body rates; rotor state from the model's own command path over the whole
 flight), the model is driven by the logged motor commands for ``HORIZON_S`` and its body rates and
-velocity are compared with the log at every logged sample of the horizon.  All windows are one
-batch (:meth:`MultirotorBatch`-style ``step_batch`` over the windows), so a candidate costs one
-batched integration, not one per window.
+velocity are compared with the log at every logged sample of the horizon.  All windows are flown
+in one call (:mod:`twin_nodes.discovery.kernels`: the stepper's RK4 steps over every window and
+step), so a candidate costs one batched integration, not one per window.
 
 Per window the error trajectory ``e(h)`` of each axis is reduced to its least-squares slope over
 the horizon, with an intercept: the intercept absorbs the noise of the logged start state, the
@@ -36,7 +36,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from twin_nodes.base import frames
-from twin_nodes.discovery.residuals import EquationData, exogenous
+from twin_nodes.discovery.kernels import kernels
+from twin_nodes.discovery.residuals import EquationData, exogenous, fine_commands, model_rotor_states
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.model import Multirotor
 from twin_nodes.vehicle.params import VehicleParams
@@ -93,14 +94,18 @@ def simulate_windows(data: EquationData, win: Windows, vp: VehicleParams, step_s
     start = win.start if rows is None else win.start[rows]
     up = data.up
     dt_f = data.dt / up
-    fs = max(int(round(step_s / dt_f)), 1)
-    per = max(up // fs, 1)
+    # fine steps per RK4 step: the largest divisor of ``up`` whose step is <= step_s, so that a whole
+    # number of RK4 steps ends on every grid sample (with round(step_s / dt_f) a finer grid, e.g.
+    # 250 Hz, read the 10 ms predictions as 4 ms samples; the same value at 50 Hz)
+    fs = max([d for d in range(1, up + 1) if up % d == 0 and d * dt_f <= step_s + 1e-12] or [1])
+    per = up // fs
     dt_c = fs * dt_f
     ext = exogenous(model, data, len(data.u_fine), up)
     delay = int(round(model.command_delay_s / dt_f))
-    u = np.ascontiguousarray(data.u_fine)
-    S = model._mod.rotor_states(model.P, *model.E, u, np.ascontiguousarray(ext), dt_f, delay,
-                                np.zeros(model.n_rotors))
+    u = fine_commands(data, nan_as_zero=True)
+    # the rotor states at the window starts (grid samples) from the model's command path over the
+    # whole flight: the equation error's series (kept per flight, shared by most candidates)
+    S = model_rotor_states(model, data)
     k = len(start)
     X = np.zeros((k, model.nx))
     X[:, 0:3] = data.p[start]
@@ -108,23 +113,16 @@ def simulate_windows(data: EquationData, win: Windows, vp: VehicleParams, step_s
     X[:, 3:6] = data.v[start]
     X[:, 6:10] = data.q[start]
     X[:, 10:13] = data.w[start]
-    X[:, NX_BODY:] = S[start * up]
+    X[:, NX_BODY:] = S[start]
     X = np.nan_to_num(X)
-    PB = np.ascontiguousarray(np.tile(model.P, (k, 1)))
     H = win.horizon
     W = np.empty((H, k, 3))
     V = np.empty((H, k, 3))
-    base = start * up
-    n_f = len(u)
-    for j in range(H * per):
-        # the command in the middle of the step (commands are linear between logged samples)
-        idx = np.clip(base + j * fs + fs // 2 - delay, 0, n_f - 1)
-        U = np.nan_to_num(u[idx])
-        E = np.ascontiguousarray(ext[np.minimum(base + j * fs, n_f - 1)])
-        model._mod.step_batch(PB, X, np.ascontiguousarray(U), E, dt_c, 1)
-        if (j + 1) % per == 0:
-            W[(j + 1) // per - 1] = X[:, 10:13]
-            V[(j + 1) // per - 1] = X[:, 3:6]
+    base = np.ascontiguousarray(start * up, dtype=np.int64)
+    # every window over the whole horizon in one call: RK4 steps of dt_c, each with the command in
+    # the middle of the step (commands are linear between logged samples); rates and velocities
+    # at the logged samples
+    kernels(model).step_windows(model.P, X, u, np.ascontiguousarray(ext), base, fs, delay, dt_c, H * per, per, W, V)
     return W, V
 
 

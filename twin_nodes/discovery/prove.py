@@ -22,10 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from twin_nodes.base import frames
-from twin_nodes.twin.control import setpoint
 from twin_nodes.vehicle.export_px4 import simulated_log_params
 from twin_nodes.vehicle.params import VehicleParams, load_params, shipped
-from twin_nodes.physics.effects import make_effect
 from twin_nodes.twin.sim import fly_closed_loop
 
 LOG_RATES_HZ = {"vehicle_local_position": 25, "vehicle_attitude": 50, "vehicle_angular_velocity": 50,

@@ -22,15 +22,18 @@ separate regression formula.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from scipy.signal import butter, sosfiltfilt
 
+from twin_nodes.discovery.kernels import kernels
 from twin_nodes.vehicle.geometry import allocation_matrix
 from twin_nodes.base.errors import LogError
 from twin_nodes.vehicle.params import VehicleParams
-from twin_nodes.physics.core import NX_BODY
+from twin_nodes.physics.core import I_MODE, I_N, I_TDN, I_TUP, I_WCMD, I_WMAX, I_WMIN, NX_BODY
 from twin_nodes.physics.model import Multirotor
 
 DEFAULT_RATE_HZ = 50.0
@@ -56,6 +59,9 @@ class EquationData:
     height: np.ndarray            # (T,) m above the take-off ground level
     motor_dt_s: float             # logging interval of the motor topic
     info: dict = field(default_factory=dict)
+    #: what every candidate evaluation reuses (see :func:`model_rotor_states`, :func:`exogenous`,
+    #: :func:`residual_channels`); derived from the fields above, never changes a result
+    cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def dt(self) -> float:
@@ -66,9 +72,14 @@ class EquationData:
         return len(self.t)
 
 
+@functools.lru_cache(maxsize=32)
+def _butter_sos(order: int, cutoff_hz: float, rate_hz: float) -> np.ndarray:
+    """The Butterworth low-pass, designed once per (order, cutoff, rate)."""
+    return butter(order, cutoff_hz / (0.5 * rate_hz), output="sos")
+
+
 def _lowpass(x: np.ndarray, rate_hz: float, cutoff_hz: float) -> np.ndarray:
-    sos = butter(2, cutoff_hz / (0.5 * rate_hz), output="sos")
-    return sosfiltfilt(sos, x, axis=0)
+    return sosfiltfilt(_butter_sos(2, float(cutoff_hz), float(rate_hz)), x, axis=0)
 
 
 def _fill_nan(x: np.ndarray) -> np.ndarray:
@@ -161,23 +172,167 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     return data
 
 
+#: rotor-state series kept per flight (each (T, N), a few hundred kB); the fits of one candidate
+#: revisit a handful of command paths, the other candidates share the nominal one
+_ROTOR_CACHE_SIZE = 16
+#: what of the packed vehicle ``P`` the command path reads (stepper.rotor_states: command_to_ref,
+#: limit_ref and the lag); the command hooks' effect vectors are added to the key separately
+_COMMAND_PATH_P = np.array([I_N, I_MODE, I_WMIN, I_WCMD, I_WMAX, I_TUP, I_TDN])
+
+
+def _grid(data: EquationData, n: int, up: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Times and interpolated battery voltage of the (n samples, step/up) grid, once per flight."""
+    key = ("grid", n, up)
+    if key not in data.cache:
+        t = data.t[0] + np.arange(n) * (data.dt / up)
+        batt = (np.interp(t, data.t, _fill_nan(data.battery_v)[:, 0]) if np.isfinite(data.battery_v).any()
+                else None)
+        for a in (t, batt):
+            if a is not None:
+                a.flags.writeable = False
+        data.cache[key] = (t, batt)
+    return data.cache[key]
+
+
 def exogenous(model: Multirotor, data: EquationData, n: int, up: int = 1) -> np.ndarray:
     """Exogenous inputs (battery voltage; wind from a wind effect) on the grid (n samples, step/up)."""
-    t = data.t[0] + np.arange(n) * (data.dt / up)
-    batt = np.interp(t, data.t, _fill_nan(data.battery_v)[:, 0]) if np.isfinite(data.battery_v).any() else None
-    return model.exogenous(t, np.random.default_rng(0), batt)
+    t, batt = _grid(data, n, up)
+    return model.exogenous(t, np.random.default_rng(0), None if batt is None else batt.copy())
+
+
+def _command_path_key(model: Multirotor, data: EquationData, delay_steps: int) -> tuple | None:
+    """Everything the rotor-state integration reads besides the logged commands (the command
+    path's entries of ``P`` and the delay), or None (do not cache) when an effect hooks into the
+    command path (battery sag: its parameters change with every evaluation of its fit anyway)."""
+    if not isinstance(getattr(data, "cache", None), dict):
+        return None
+    if any(e.command_kernel is not None for e in model.kernel_effects):
+        return None
+    return ("rotor", model.P[_COMMAND_PATH_P].tobytes(), int(delay_steps))
+
+
+@njit(cache=True)
+def lag_states(P, U, dt, delay_steps, s0, up, n_out):
+    """Every ``up``-th rotor state (n_out, N) from commands U (T, N) on a grid of step dt: what
+    the model's ``rotor_states`` kernel computes for a vehicle whose command path has no effect
+    hooks (core.command_to_ref, limit_ref, the delay and the first-order lag, the same operations
+    in the same order), in one loop with the vehicle's constants read once; the model's kernel
+    goes through its generic hook machinery per sample and takes ~6x longer.  A test checks
+    both agree bit for bit (tests/test_discovery_speed.py)."""
+    n = int(P[I_N])
+    nt = U.shape[0]
+    S = np.empty((n_out, n))
+    s = s0.copy()
+    sref = np.empty(n)
+    a_up = 1.0 - np.exp(-dt / P[I_TUP]) if P[I_TUP] > 1e-9 else 1.0
+    a_dn = 1.0 - np.exp(-dt / P[I_TDN]) if P[I_TDN] > 1e-9 else 1.0
+    mode0 = P[I_MODE] == 0.0
+    wmin = P[I_WMIN]
+    wcmd = P[I_WCMD]
+    wmax = P[I_WMAX]
+    for t in range(nt):
+        if t % up == 0 and t // up < n_out:
+            for i in range(n):
+                S[t // up, i] = s[i]
+        k = max(t - delay_steps, 0)
+        for i in range(n):
+            ui = U[k, i]
+            if np.isnan(ui):  # stopped
+                sref[i] = 0.0
+                continue
+            if ui < 0.0:
+                ui = 0.0
+            elif ui > 1.0:
+                ui = 1.0
+            sref[i] = min(wmin + ui * (wcmd - wmin), wmax) if mode0 else ui
+        if mode0:  # limit_ref
+            for i in range(n):
+                sref[i] = min(sref[i], wmax)
+        for i in range(n):
+            e = sref[i] - s[i]
+            s[i] += e * (a_up if e > 0.0 else a_dn)
+    return S
+
+
+def fine_commands(data: EquationData, nan_as_zero: bool = False) -> np.ndarray:
+    """The logged commands on the fine grid, contiguous (NaN: stopped; ``nan_as_zero``: as 0),
+    made once per flight (read-only)."""
+    key = ("u_fine", nan_as_zero)
+    if key not in data.cache:
+        u = np.ascontiguousarray(data.u_fine, dtype=float)
+        u = np.nan_to_num(u) if nan_as_zero else u.copy()
+        u.flags.writeable = False
+        data.cache[key] = u
+    return data.cache[key]
 
 
 def model_rotor_states(model: Multirotor, data: EquationData) -> np.ndarray:
-    """Rotor states on the grid, from the logged commands through the model's command path."""
+    """Rotor states on the grid, from the logged commands through the model's command path.
+
+    Most candidates (mass, inertia, drag, a motor's efficiency...) leave the command path alone,
+    so the series is kept per flight, keyed on what the integration reads (read-only array)."""
     up = data.up
-    ext = exogenous(model, data, len(data.u_fine), up)
     dt_f = data.dt / up
     delay_steps = int(round(model.command_delay_s / dt_f))
+    key = _command_path_key(model, data, delay_steps)
+    if key is not None and key in data.cache:
+        return data.cache[key]
     s0 = np.zeros(model.n_rotors)
-    S = model._mod.rotor_states(model.P, *model.E, np.ascontiguousarray(data.u_fine), np.ascontiguousarray(ext),
-                                dt_f, delay_steps, s0)
-    return S[::up][:data.n]
+    if key is not None:
+        # no command hooks: the command path is the core's alone (lag_states)
+        u = fine_commands(data)
+        S = lag_states(model.P, u, dt_f, delay_steps, s0, up, min(data.n, -(-len(u) // up)))
+    else:
+        ext = exogenous(model, data, len(data.u_fine), up)
+        u = fine_commands(data)
+        S = kernels(model).lag_states(model.P, u, np.ascontiguousarray(ext), dt_f, delay_steps, s0, up,
+                                      min(data.n, -(-len(u) // up)))
+    if key is not None:
+        S.flags.writeable = False
+        old = [k for k in data.cache if isinstance(k, tuple) and k[0] == "rotor"]
+        if len(old) >= _ROTOR_CACHE_SIZE:
+            del data.cache[old[0]]
+        data.cache[key] = S
+    return S
+
+
+def _body_states(data: EquationData) -> np.ndarray:
+    """The logged body part of the model state (height for z, NaN as 0), once per flight."""
+    if "body" not in data.cache:
+        X = np.empty((data.n, NX_BODY))
+        X[:, 0:3] = data.p
+        X[:, 2] = data.height  # the model's z is height above the ground (ground contact, ground effect)
+        X[:, 3:6] = data.v
+        X[:, 6:10] = data.q
+        X[:, 10:13] = data.w
+        X = np.nan_to_num(X)
+        X.flags.writeable = False
+        data.cache["body"] = X
+    return data.cache["body"]
+
+
+def _measured(data: EquationData, vp: VehicleParams) -> tuple[np.ndarray, np.ndarray]:
+    """Measured body force (m f) and moment (J alpha + w x J w) for this mass and inertia."""
+    J = vp.inertia
+    key = ("measured", float(vp.mass_kg), J.tobytes())
+    if key not in data.cache:
+        w = data.w
+        rF = vp.mass_kg * data.f
+        rM = data.alpha @ J.T + np.cross(w, w @ J.T)
+        old = [k for k in data.cache if isinstance(k, tuple) and k[0] == "measured"]
+        if len(old) >= _ROTOR_CACHE_SIZE:
+            del data.cache[old[0]]
+        data.cache[key] = (rF, rM)
+    return data.cache[key]
+
+
+def _normalisation(data: EquationData, nominal: VehicleParams) -> tuple[np.ndarray, float, int]:
+    key = ("norm", id(nominal))
+    hit = data.cache.get(key)
+    if hit is None or hit[0] is not nominal:
+        hit = (nominal, allocation_matrix(nominal), nominal.rotors.thrust_at_full_command_n, nominal.rotors.count)
+        data.cache[key] = hit
+    return hit[1], hit[2], hit[3]
 
 
 def residual_channels(data: EquationData, vp: VehicleParams, norm_params: VehicleParams | None = None,
@@ -191,25 +346,16 @@ def residual_channels(data: EquationData, vp: VehicleParams, norm_params: Vehicl
     nominal = norm_params or vp
     S = model_rotor_states(model, data)
     X = np.empty((data.n, model.nx))
-    X[:, 0:3] = data.p
-    X[:, 2] = data.height  # the model's z is height above the ground (ground contact, ground effect)
-    X[:, 3:6] = data.v
-    X[:, 6:10] = data.q
-    X[:, 10:13] = data.w
-    X[:, NX_BODY:] = S
-    X = np.nan_to_num(X)
+    X[:, :NX_BODY] = _body_states(data)
+    X[:, NX_BODY:] = np.nan_to_num(S)
     ext = exogenous(model, data, data.n)
     terms = model.wrench_terms(X, ext)
     F = sum(v[0] for v in terms.values())
     M = sum(v[1] for v in terms.values())
-    mp = model.params
-    J = mp.inertia
-    w = data.w
-    rF = mp.mass_kg * data.f - F
-    rM = data.alpha @ J.T + np.cross(w, w @ J.T) - M
-    A = allocation_matrix(nominal)
-    tmax = nominal.rotors.thrust_at_full_command_n
-    n_rot = nominal.rotors.count
+    mF, mM = _measured(data, model.params)
+    rF = mF - F
+    rM = mM - M
+    A, tmax, n_rot = _normalisation(data, nominal)
     per_motor = np.column_stack([rF[:, 2], rM]) @ A.T / tmax
     horiz = rF[:, :2] / (n_rot * tmax)
     R = np.column_stack([per_motor, horiz])

@@ -210,7 +210,7 @@ def write_report(catalog: str | os.PathLike[str], out_dir: str | os.PathLike[str
                "failed": failed}
     atomic_write_text(out / "report.json", json.dumps(summary, indent=1, default=str))
     e = html.escape
-    parts = [f"<html><head><meta charset='utf-8'><title>fleet report</title></head><body>",
+    parts = ["<html><head><meta charset='utf-8'><title>fleet report</title></head><body>",
              f"<h1>Fleet report</h1><p>{len(rows)} flights, {len(vehicles)} vehicles, {len(failed)} failed; "
              f"catalog {e(str(catalog))}</p><h2>Alarms</h2>"]
     parts.append("<ul>" + "".join(f"<li><b>{e(a.vehicle_id)}</b> [{a.kind}] {e(a.message)}</li>" for a in al)

@@ -1,0 +1,194 @@
+"""Discovery's fast evaluation path computes what the old one did (issue 13, part 1).
+
+The caches, the fast rotor-lag kernel and the affine shortcut must not change a number: the
+residuals are compared bit for bit with the frozen previous implementation
+(``bench/discover_before.py``), and discovery's result with the old path switched in."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from twin_nodes.discovery import evaluate
+from twin_nodes.discovery import output_error as oe
+from twin_nodes.discovery import residuals as rs
+from twin_nodes.discovery.candidates import build_candidates
+from twin_nodes.logs.ulog_io import read_ulog
+from twin_nodes.physics.model import Multirotor
+from twin_nodes.vehicle.params import shipped
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+import discover_before  # bench/: the frozen previous evaluation path
+
+DEMO = ROOT / "bags" / "sim_quadx_weak_motor3.ulg"
+
+
+@pytest.mark.parametrize("name", ["px4_sih_quadx", "quad_c_3dr"])   # thrust_factor and omega_squared rotors
+@pytest.mark.parametrize("tau,delay", [(None, 0), ((0.03, 0.09), 7), ((0.0, 0.05), 0), ((0.2, 0.0), 3)])
+def test_lag_kernel_is_the_models_rotor_states(name, tau, delay):
+    vp = shipped(name)
+    if tau is not None:
+        vp = vp.with_effect("motor_time_constant", tau_up=tau[0], tau_down=tau[1])
+    m = Multirotor(vp)
+    rng = np.random.default_rng(3)
+    up, n_out = 10, 400
+    U = np.clip(np.cumsum(rng.normal(0, 0.05, (up * n_out, m.n_rotors)), axis=0) + 0.5, -0.2, 1.3)
+    U[500:900, 1] = np.nan      # a stopped motor
+    ext = np.tile([np.nan, 0.0, 0.0, 0.0], (len(U), 1))
+    ref = m._mod.rotor_states(m.P, U, ext, 0.002, delay, np.zeros(m.n_rotors))[::up][:n_out]
+    got = rs.lag_states(m.P, U, 0.002, delay, np.zeros(m.n_rotors), up, n_out)
+    assert np.array_equal(got, ref)
+    assert np.ptp(got) > 0.1     # it moved
+
+
+@pytest.mark.parametrize("name", ["px4_sih_quadx", "quad_c_3dr"])
+def test_kernels_are_the_steppers(name):
+    """The fused kernels (kernels.py) against the stepper's own rotor_states and step_batch: rotor
+    states through a command hook (battery sag), and windows flown with a wrench effect (rotor drag)."""
+    from twin_nodes.discovery.kernels import kernels
+    vp = shipped(name).with_effect("battery_sag", v_ref=15.0, exponent=0.7).with_effect("rotor_drag", k_d=2e-4)
+    m = Multirotor(vp)
+    rng = np.random.default_rng(5)
+    nf, up = 3000, 10
+    U = np.clip(np.cumsum(rng.normal(0, 0.03, (nf, m.n_rotors)), axis=0) + 0.55, -0.1, 1.1)
+    U[100:200, 2] = np.nan
+    ext = np.column_stack([np.linspace(16.0, 14.0, nf), np.full(nf, 1.0), np.zeros(nf), np.zeros(nf)])
+    ref = m._mod.rotor_states(m.P, U, ext, 0.002, 4, np.zeros(m.n_rotors))[::up][:nf // up]
+    got = kernels(m).lag_states(m.P, U, ext, 0.002, 4, np.zeros(m.n_rotors), up, nf // up)
+    assert np.array_equal(got, ref)
+    # windows: K starts, 40 RK4 steps of 10 ms with the mid-step command, outputs every 2 steps
+    k, fs, per, steps, delay = 6, 5, 2, 40, 3
+    U0 = np.nan_to_num(U)
+    X0 = np.array([m.initial_state(position_enu=(0, 0, 3 + i), velocity_enu=(1, -0.5, 0.2), rates_flu=(0.1, 0, 0.3),
+                                   rotor_state="hover") for i in range(k)])
+    base = np.arange(k, dtype=np.int64) * 400
+    W, V = np.empty((steps // per, k, 3)), np.empty((steps // per, k, 3))
+    X = X0.copy()
+    kernels(m).step_windows(m.P, X, U0, ext, base, fs, delay, 0.01, steps, per, W, V)
+    Xr = X0.copy()
+    PB = np.tile(m.P, (k, 1))
+    for j in range(steps):
+        idx = np.clip(base + j * fs + fs // 2 - delay, 0, nf - 1)
+        m._mod.step_batch(PB, Xr, np.ascontiguousarray(U0[idx]),
+                          np.ascontiguousarray(ext[np.minimum(base + j * fs, nf - 1)]), 0.01, 1)
+        if (j + 1) % per == 0:
+            assert np.array_equal(W[(j + 1) // per - 1], Xr[:, 10:13])
+            assert np.array_equal(V[(j + 1) // per - 1], Xr[:, 3:6])
+    assert np.array_equal(X, Xr)
+
+
+@pytest.fixture(scope="module")
+def demo():
+    vp = shipped("px4_sih_quadx")
+    log = read_ulog(DEMO)
+    new, old = rs.prepare(log, vp), discover_before.prepare(log, vp)
+    win_new, win_old = oe.make_windows(new), oe.make_windows(old)
+    oe.judge_axes(new, win_new, vp)
+    discover_before.judge_axes(old, win_old, vp)
+    return vp, new, old, win_new, win_old
+
+
+def test_residuals_bit_for_bit_as_before(demo):
+    """Every candidate, two parameter values each, twice (the second time from the caches): the
+    equation error and the output error (all windows and a subset) equal the old code's exactly."""
+    vp, new, old, win_new, win_old = demo
+    assert np.array_equal(win_new.scale, win_old.scale)
+    rows = np.arange(0, win_new.n, 3)
+    cands = build_candidates(vp, new)
+    assert {"battery_sag", "motor_time_constant", "actuator_delay", "mass", "inertia"} <= {c.name for c in cands}
+    for _ in range(2):
+        for c in cands:
+            for theta in (c.x0 + 0.3 * (c.upper - c.x0), c.x0 + 0.7 * (c.lower - c.x0)):
+                v = c.build(theta)
+                assert np.array_equal(rs.residual_channels(new, v, vp),
+                                      discover_before.residual_channels(old, v, vp)), c.label
+                assert np.array_equal(oe.output_error(new, win_new, v, vp),
+                                      discover_before.output_error(old, win_old, v, vp)), c.label
+                assert np.array_equal(oe.output_error(new, win_new, v, vp, rows=rows),
+                                      discover_before.output_error(old, win_old, v, vp, rows=rows)), c.label
+    assert any(isinstance(k, tuple) and k[0] == "rotor" for k in new.cache)
+
+
+def test_affine_form_is_exact_where_claimed(demo):
+    """Mass, a motor's efficiency and inertia enter the equation error linearly: the form
+    reproduces true evaluations; the rotor lag and battery sag do not, and get no form."""
+    vp, new, *_ = demo
+    by = {c.label: c for c in build_candidates(vp, new)}
+
+    def form(c):
+        return evaluate.affine(lambda th: rs.residual_channels(new, c.build(th), vp), c.x0, c.lower, c.upper)
+    for label in ("mass", "motor_efficiency(motor 3)", "inertia"):
+        c = by[label]
+        f = form(c)
+        assert f is not None, label
+        theta = c.lower + 0.61 * (c.upper - c.lower)
+        true = rs.residual_channels(new, c.build(theta), vp)
+        assert np.max(np.abs(f(theta) - true)) <= 1e-9 * np.max(np.abs(true))
+        rows = new.valid
+        assert np.array_equal(f.on(rows)(theta), f(theta)[rows].ravel())
+    for label in ("motor_time_constant", "battery_sag"):
+        assert form(by[label]) is None, label
+
+
+def test_affine_on_plain_functions():
+    A = np.arange(12.0).reshape(6, 2)
+    f = evaluate.affine(lambda th: (A @ th + 1.0)[:, None], np.array([1.0, 2.0]), np.zeros(2), np.array([4.0, 5.0]))
+    assert f is not None and np.allclose(f(np.array([3.0, -1.0])), (A @ [3.0, -1.0] + 1.0)[:, None])
+    assert evaluate.affine(lambda th: np.array([[th[0] ** 2]]), np.array([1.0]), np.zeros(1), np.ones(1) * 3) is None
+    assert evaluate.affine(lambda th: np.array([[abs(th[0] - 2.5)]]), np.array([1.0]), np.zeros(1), np.ones(1) * 3) is None
+
+    def fails(th):
+        raise ValueError("outside the effect's range")
+    assert evaluate.affine(fails, np.array([1.0]), np.zeros(1), np.ones(1)) is None
+
+
+def test_tasks_in_order_over_processes(monkeypatch):
+    monkeypatch.setattr(evaluate, "WORKERS", 2)
+    seen = []
+    out = evaluate.run_tasks(lambda i: (i, np.full(3, i * 1.5)), 7, cost=[1, 5, 2, 9, 0, 3, 3], done=seen.append)
+    assert [o[0] for o in out] == list(range(7))
+    assert np.array_equal(out[4][1], np.full(3, 6.0))
+    assert sorted(seen) == list(range(7))
+    p = evaluate.start(lambda: {"rmse": 0.25})
+    assert p._proc is not None and p.result() == {"rmse": 0.25}
+
+    def boom():
+        raise ValueError("twin failed")
+    with pytest.raises(ValueError, match="twin failed"):
+        evaluate.start(boom).result()
+    monkeypatch.setattr(evaluate, "WORKERS", 1)
+    assert evaluate.start(lambda: 3)._proc is None
+
+
+def test_no_worker_processes_inside_a_worker(monkeypatch):
+    """Inside a Dask or prove-suite worker process discovery runs in that one process."""
+    from concurrent.futures import ProcessPoolExecutor
+    monkeypatch.setattr(evaluate, "WORKERS", 2)
+    assert evaluate.workers() == 2
+    with ProcessPoolExecutor(1) as ex:
+        assert ex.submit(evaluate.workers).result() == 1
+
+
+def test_workers_from_environment(monkeypatch):
+    monkeypatch.setattr(evaluate, "WORKERS", None)
+    monkeypatch.setenv("ROTORTWIN_DISCOVER_WORKERS", "3")
+    assert evaluate.workers() == 3
+    monkeypatch.setenv("ROTORTWIN_DISCOVER_WORKERS", "two")
+    with pytest.raises(ValueError, match="ROTORTWIN_DISCOVER_WORKERS"):
+        evaluate.workers()
+
+
+@pytest.mark.slow
+def test_discover_same_result_as_before():
+    """The whole discovery on the demo flight, the old evaluation path against the new one (two
+    processes): same effects, verdicts, parameters and closed-loop numbers."""
+    import bench_discover
+    out = ROOT / "out" / "test_discovery_speed.json"
+    out.parent.mkdir(exist_ok=True)
+    assert bench_discover.main(["--no-warmup", "--json", str(out)]) == 0
+    import json
+    cmp = json.loads(out.read_text())["comparison"]
+    assert cmp["same"], cmp
+    assert cmp["param_rel_all"] < 1e-6 and cmp["closed_loop_rel"] < 1e-9
