@@ -136,3 +136,24 @@ def test_node_command_keeps_string_parameters_strings():
     assert "ulog:='12345'" in cmd and "rate:=0.0" in cmd and "progress:=true" in cmd
     assert "wait_for:=['twin','it''s']" in cmd
     assert "ulog:='true'" in node_command("replay", {"ulog": "true"})
+
+
+def test_twin_engine_flies_px4_manual_modes_from_status_and_throttle():
+    """The graph's twin gets PX4's nav_state (/real/status) and the logged collective thrust
+    (/real/throttle) as the offline runner does: in MANUAL (nav_state 0) it flies the pilot's thrust
+    (on the real climb35m log this took the graph's Z RMSE from 2.42 m to 1.24 m, offline 1.21 m)."""
+    from twin_nodes.logs import conversions as cv
+    from twin_nodes.nodes.engine import TWIN_INPUTS, TwinEngine
+
+    assert "/real/throttle" in TWIN_INPUTS
+    eng = TwinEngine(shipped("px4_sih_quadx"))
+    r = eng.runner
+    eng._apply(0, "/real/odom", cv.odom_msg(0, np.array([0.0, 0.0, 5.0]), np.array([1.0, 0, 0, 0]),
+                                             np.zeros(3), np.zeros(3)))
+    eng._apply(1_000_000, "/real/status", cv.status_msg(1.0, 2.0, 0.0))   # armed, POSCTL
+    eng._apply(2_000_000, "/real/throttle", cv.float32_msg(0.3))
+    assert r.nav_state == 2.0 and r.real_throttle == pytest.approx(0.3) and not r.manual
+    eng._apply(3_000_000, "/real/status", cv.status_msg(1.0, 0.0, 0.0))   # armed, MANUAL
+    assert r.manual and r.real_throttle == pytest.approx(0.3)
+    eng._apply(4_000_000, "/real/status", cv.status_msg(float("nan"), float("nan"), float("nan")))
+    assert not r.manual

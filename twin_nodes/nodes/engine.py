@@ -33,7 +33,7 @@ __all__ = ["NS", "Timeline", "ReorderBuffer", "TwinEngine", "Track", "final_stre
 
 NS = 1_000_000_000
 #: the twin's inputs
-TWIN_INPUTS = ("/real/odom", "/real/setpoint", "/real/motors", "/real/status", "/real/battery")
+TWIN_INPUTS = ("/real/odom", "/real/setpoint", "/real/motors", "/real/status", "/real/battery", "/real/throttle")
 #: live, the inputs whose times move the twin's watermark (TwinEngine.advance_live), and how long
 #: one may be silent [s of the receiving clock] before it no longer holds the others back
 LIVE_PACED = ("/real/odom", "/real/motors")
@@ -173,9 +173,13 @@ class TwinEngine:
         elif topic == "/real/motors":
             r.real_motors(cv.motors_array(msg))
         elif topic == "/real/status":
-            armed = cv.status_array(msg)[0]
+            st = cv.status_array(msg)
+            armed, nav_state = (float(st[0]) if st.size > 0 else np.nan), (float(st[1]) if st.size > 1 else np.nan)
             if np.isfinite(armed):
                 r.armed(armed > 0.5)
+            r.px4_mode(nav_state, r.real_throttle)  # PX4's manual modes: the twin flies the pilot's thrust
+        elif topic == "/real/throttle":
+            r.px4_mode(r.nav_state, cv.float_value(msg))
         elif topic == "/real/battery":
             v = cv.battery_arrays(msg)[1]
             if np.isfinite(v):
