@@ -109,6 +109,7 @@ def test_discover_cli_end_to_end_on_shipped_bag(tmp_path):
     res = json.loads(out.read_text())
     for key in ("baseline", "mismatch", "effects", "after"):
         assert key in res
+    assert res["method"]["motor_log_interval_s"] == pytest.approx(0.02, rel=0.02)  # motors logged at 50 Hz
     top = res["effects"][0]
     assert top["accepted"] and top["name"] == "motor_efficiency"
     assert top["params"]["motor"] == 3 and top["params"]["efficiency"] == pytest.approx(0.85, rel=0.1)

@@ -241,12 +241,13 @@ def test_plans_ask_for_rate_loop_logging_only_where_it_decides(tmp_path):
     """A likely inertia/lag/delay from a 50 Hz motor log gets a plan that says to log at the rate loop
     (measured on PX4 SIH: 4 ms logs separate lag from delay and resolve roll/pitch inertia); a yaw
     moment, or a flight already logged at the rate loop, does not."""
-    res = {"log": "f.ulg", "effects": [_likely_effect(), _likely_effect("inertia", ("rate_doublets",))]}
-    slow = write_plans(res, tmp_path / "slow", "f.ulg", motor_log_interval_s=0.02)
+    res = {"log": "f.ulg", "effects": [_likely_effect(), _likely_effect("inertia", ("rate_doublets",))],
+           "method": {"motor_log_interval_s": 0.02}}
+    slow = write_plans(res, tmp_path / "slow", "f.ulg")
     texts = {p.name: p.read_text() for p in slow}
     assert "SDLOG_PROFILE" in texts["confirm_inertia.plan.yaml"] and "every 20 ms" in texts["confirm_inertia.plan.yaml"]
     assert "SDLOG_PROFILE" not in texts["confirm_yaw_moment.plan.yaml"]
-    fast = write_plans(res, tmp_path / "fast", "f.ulg", motor_log_interval_s=0.004)
+    fast = write_plans({**res, "method": {"motor_log_interval_s": 0.004}}, tmp_path / "fast", "f.ulg")
     assert all("SDLOG_PROFILE" not in p.read_text() for p in fast)
     for p in slow:  # still a valid plan: the advice is a comment
         assert load_plan(p).rtl_after

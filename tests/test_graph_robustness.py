@@ -107,6 +107,21 @@ def test_json_into_missing_or_unwritable_folder_fails_before_running(tmp_path):
     assert time.monotonic() - t0 < 60  # refused before the graph (or the offline twin) ran
 
 
+def test_unwritable_output_folder_is_refused_even_as_root(tmp_path, monkeypatch):
+    """The unwritable-folder check itself, with the permission answer forced (as root a read-only
+    folder is writable, so the CLI case above can only skip there)."""
+    from twin_nodes.base.errors import TwinError
+    from twin_nodes.graph import outputs
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(outputs.os, "access", lambda p, mode: False if Path(p) == ro else real_access(p, mode))
+    with pytest.raises(TwinError, match=r"m\.json: --json: expected a path in a writable directory; .* is not writable"):
+        outputs.check_output_file(ro / "m.json", "--json", [])
+    assert outputs.check_output_file(tmp_path / "m.json", "--json", []) == tmp_path / "m.json"
+
+
 def test_output_equal_to_input_is_refused_and_json_is_written_whole(tmp_path):
     flight = tmp_path / "f.ulg"
     flight.write_bytes(shared_log("sitl", "px4sih_default_triangle.ulg").read_bytes())

@@ -54,16 +54,6 @@ def register(sub) -> None:
     s.set_defaults(func=_simulate)
 
 
-def _motor_interval_s(log) -> float | None:
-    """Median time between logged motor commands (s), None without them."""
-    import numpy as np
-
-    m = log.get("motors")
-    if m is None or len(m) < 2:
-        return None
-    return float(np.median(np.diff(m.t_s)))
-
-
 def _discover(args) -> int:
     from twin_nodes.discovery.discover import discover
     from twin_nodes.identify.nominal import params_for_log
@@ -84,7 +74,7 @@ def _discover(args) -> int:
     print(summary_text(res))
     if args.plan_dir:
         from twin_nodes.discovery.plans import write_plans
-        for path in write_plans(res, args.plan_dir, args.flight, _motor_interval_s(log)):
+        for path in write_plans(res, args.plan_dir, args.flight):
             print(f"confirmation plan: {path}")
     if args.json_out:
         atomic_write_text(args.json_out, json.dumps(res, indent=1, default=json_default))

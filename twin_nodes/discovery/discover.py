@@ -773,6 +773,7 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
                              f"{MIN_AXIS_R2} are left out"),
             "fit_interval_s": [round(float(data.t[data.valid][0]), 2), round(float(t_split), 2)],
             "heldout_interval_s": [round(float(t_split), 2), round(S.t_end, 2)],
+            "motor_log_interval_s": round(float(data.motor_dt_s), 5),
             "acceptance": f"above the physical resolution floor and inside the physical range; 2-fold "
                           f"cross-validated: held-out block test (t or sign test) > {T_CRIT} over up to "
                           f"{len(eq.blocks)} blocks of {BLOCK_S} s (output error: {len(blocks['output'])} "

@@ -140,9 +140,10 @@ def plan_yaml(doc: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_plans(result: dict, folder: str | Path, flight: str = "",
-                motor_log_interval_s: float | None = None) -> list[Path]:
-    """One plan file per ``likely`` effect of ``result``; returns the paths written."""
+def write_plans(result: dict, folder: str | Path, flight: str = "") -> list[Path]:
+    """One plan file per ``likely`` effect of ``result``; returns the paths written (the flight's
+    motor log interval, ``result["method"]["motor_log_interval_s"]``, decides the logging advice)."""
+    motor_log_interval_s = (result.get("method") or {}).get("motor_log_interval_s")
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     paths = []

@@ -83,6 +83,8 @@ class TwinRunner:
         #: z = 0, PX4's EKF origin is often not at ground level (a log may start at z = -3.8 m NED)
         self.ground_z = 0.0
         self.sp_t: float | None = None
+        #: the current setpoint sample's (moving, velocity, acceleration), made when first carried
+        self._sp_rates: tuple | None = None
         #: PX4 nav_state of the real vehicle (NaN unknown) and its logged collective thrust setpoint
         self.nav_state = float("nan")
         self.real_throttle = float("nan")
@@ -195,7 +197,7 @@ class TwinRunner:
         sp = self.sp
         if self.sp_t is None or self.t is None:
             return sp
-        if getattr(self, "_sp_rates", None) is None:
+        if self._sp_rates is None:
             # once per setpoint sample, not per control step (the sample is held for 10-50 steps)
             self._sp_rates = (bool(np.any(np.isfinite(sp[3:6]))), np.nan_to_num(sp[3:6]), np.nan_to_num(sp[6:9]))
         moving, vel, acc = self._sp_rates
