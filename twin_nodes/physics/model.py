@@ -219,6 +219,18 @@ class Multirotor:
         self._mod.step_batch(np.tile(self.P, (k, 1)), x, u, self._ext(ext, k), dt, int(n_substeps))
         return x
 
+    def step_unchecked(self, x: np.ndarray, u: np.ndarray, dt: float, ext: np.ndarray, n_substeps: int) -> np.ndarray:
+        """:meth:`step` for one vehicle without converting or checking its arguments (a control loop's
+        hot path): ``x`` (nx,), ``u`` (N,) and ``ext`` (EXT_SIZE,) must be float64 arrays of those
+        shapes already; ``dt`` a float, ``n_substeps`` an int.  The same kernel, the same numbers."""
+        x = x.copy()
+        self._mod.step_n(self.P, x, u, ext, dt, n_substeps)
+        return x
+
+    def specific_force_unchecked(self, x: np.ndarray, u: np.ndarray, ext: np.ndarray) -> np.ndarray:
+        """:meth:`specific_force_flu` with the arguments as :meth:`step_unchecked` needs them."""
+        return self._mod.specific_force(self.P, x, u, ext)
+
     def simulate(self, x0: np.ndarray, U: np.ndarray, dt: float | None = None, ext=None,
                  n_substeps: int = 1) -> np.ndarray:
         """States (T+1, nx) for commands U (T, N), each held for ``n_substeps`` steps of ``dt``."""

@@ -83,8 +83,10 @@ class TwinRunner:
         #: z = 0, PX4's EKF origin is often not at ground level (a log may start at z = -3.8 m NED)
         self.ground_z = 0.0
         self.sp_t: float | None = None
-        #: the current setpoint sample's (moving, velocity, acceleration), made when first carried
+        #: the current setpoint sample's (moving, velocity, half the acceleration, has a position or
+        #: velocity target), made when first carried
         self._sp_rates: tuple | None = None
+        self._sp_ground_z: float | None = None  # the ground height self.sp was shifted by
         #: PX4 nav_state of the real vehicle (NaN unknown) and its logged collective thrust setpoint
         self.nav_state = float("nan")
         self.real_throttle = float("nan")
@@ -93,7 +95,12 @@ class TwinRunner:
     def real_state(self, t: float, p_enu, v_enu, q_wxyz, w_flu) -> None:
         x = np.concatenate([np.asarray(p_enu, float), np.asarray(v_enu, float),
                             np.asarray(q_wxyz, float), np.asarray(w_flu, float)])
-        if not np.all(np.isfinite(x)):
+        self._take_real_state(t, x, bool(np.all(np.isfinite(x))))
+
+    def _take_real_state(self, t: float, x: np.ndarray, finite: bool) -> None:
+        """The real state ``x`` (13,) [p, v, q, w], a float array of the caller's that this keeps and
+        shifts; ``finite``: all of it is finite (a sample with a NaN is ignored)."""
+        if not finite:
             return
         if not self._initialised and np.linalg.norm(x[3:6]) < 0.3:
             # at rest when the twin starts (PX4 logs start at boot or at arming, on the ground):
@@ -108,15 +115,26 @@ class TwinRunner:
         sp = np.asarray(sp, float)
         if sp.shape != (SP_SIZE,):
             raise ValueError(f"setpoint must have {SP_SIZE} entries")
+        self._take_setpoint(sp, False)
+
+    def _take_setpoint(self, sp: np.ndarray, repeated: bool) -> None:
+        """The setpoint sample ``sp`` (SP_SIZE,), not modified; ``repeated``: bit for bit the sample of
+        the previous call (then nothing changes while the ground height has not)."""
+        if repeated and self._sp_ground_z == self.ground_z:
+            return
         sp = sp.copy()
         sp[2] -= self.ground_z
         if not np.array_equal(sp, self.sp, equal_nan=True):
             self.sp_t = self.t  # a new setpoint sample: the trajectory is carried on from here
             self._sp_rates = None  # its velocity and acceleration terms, made when first carried
         self.sp = sp
+        self._sp_ground_z = self.ground_z
 
     def real_motors(self, u) -> None:
-        self.real_u = np.asarray(u, float)
+        u = np.asarray(u, float)
+        if u.shape != (self.n,):
+            raise ValueError(f"expected {self.n} motor commands, got shape {u.shape}")
+        self.real_u = u
 
     def armed(self, armed: bool) -> None:
         self.is_armed = bool(armed)
@@ -158,36 +176,43 @@ class TwinRunner:
         if not self._initialised or self.t is None:
             return out
         while self.t + self.dt_c <= t + 1e-9:
-            resynced = False
-            if self.mode == "open":
-                if self.real_x is not None and self.t - self.last_resync >= self.horizon_s - 1e-9:
-                    self._resync()
-                    resynced = True
-                u = self.real_u.copy()
-                mean_u = np.nanmean(u) if np.any(np.isfinite(u)) else np.nan
-                self.throttle = float(mean_u)
-            else:
-                if self.is_armed and self.manual:
-                    # PX4 MANUAL/STAB/ACRO: no position controller; the pilot's collective thrust and
-                    # attitude (the real attitude stands for the stick's attitude setpoint)
-                    u, info = self.ctrl.update_manual(self.x[:13], self.real_x[6:10], self.real_throttle, self.dt_c)
-                    self.throttle = float(info[0])
-                elif self.is_armed:
-                    u, info = self.ctrl.update(self.x[:13], self._effective_setpoint(), self.dt_c)
-                    self.throttle = float(info[0])
-                else:
-                    self.ctrl.reset()
-                    u = np.full(self.n, np.nan)
-                    self.throttle = float("nan")
-            self.u = u
-            applied = self._delay.push(u)
-            self.x = self.model.step(self.x, applied, self.dt, self.ext, self.nsub)
-            self.t += self.dt_c
-            sf = self.model.specific_force_flu(self.x, applied, self.ext)
+            resynced, applied = self._step()
             x_real_frame = self.x.copy()
             x_real_frame[2] += self.ground_z
-            out.append(TwinSample(self.t, x_real_frame, u.copy(), self.throttle, sf, resynced))
+            out.append(TwinSample(self.t, x_real_frame, self.u.copy(), self.throttle,
+                                  self.model.specific_force_unchecked(self.x, applied, self.ext), resynced))
         return out
+
+    def _step(self) -> tuple[bool, np.ndarray]:
+        """One control step: the command (``self.u``, ``self.throttle``), then the physics
+        (``self.x``, ``self.t``); returns (re-synced, the command the rotors got after the delay)."""
+        resynced = False
+        if self.mode == "open":
+            if self.real_x is not None and self.t - self.last_resync >= self.horizon_s - 1e-9:
+                self._resync()
+                resynced = True
+            u = self.real_u.copy()
+            mean_u = np.nanmean(u) if np.any(np.isfinite(u)) else np.nan
+            self.throttle = float(mean_u)
+        else:
+            if self.is_armed and self.manual:
+                # PX4 MANUAL/STAB/ACRO: no position controller; the pilot's collective thrust and
+                # attitude (the real attitude stands for the stick's attitude setpoint)
+                u, info = self.ctrl.update_manual(self.x[:13], self.real_x[6:10], self.real_throttle, self.dt_c)
+                self.throttle = float(info[0])
+            elif self.is_armed:
+                u, info = self.ctrl.update(self.x[:13], self._effective_setpoint(), self.dt_c)
+                self.throttle = float(info[0])
+            else:
+                self.ctrl.reset()
+                u = np.full(self.n, np.nan)
+                self.throttle = float("nan")
+        self.u = u
+        applied = self._delay.push(u)
+        # the runner's own arrays (float64, checked shapes): the model's unchecked entry point
+        self.x = self.model.step_unchecked(self.x, applied, self.dt, self.ext, self.nsub)
+        self.t += self.dt_c
+        return resynced, applied
 
     def _carried_setpoint(self) -> np.ndarray:
         """The position setpoint carried along by the velocity and acceleration setpoints since the
@@ -199,18 +224,23 @@ class TwinRunner:
             return sp
         if self._sp_rates is None:
             # once per setpoint sample, not per control step (the sample is held for 10-50 steps)
-            self._sp_rates = (bool(np.any(np.isfinite(sp[3:6]))), np.nan_to_num(sp[3:6]), np.nan_to_num(sp[6:9]))
-        moving, vel, acc = self._sp_rates
+            finite = np.isfinite(sp[0:6])
+            self._sp_rates = (bool(finite[3:6].any()), np.nan_to_num(sp[3:6]), 0.5 * np.nan_to_num(sp[6:9]),
+                              bool(finite.any()))
+        moving, vel, half_acc, _ = self._sp_rates
         if not moving:
             return sp
         dt = min(max(self.t - self.sp_t, 0.0), 1.0)
         out = sp.copy()
-        out[0:3] = sp[0:3] + vel * dt + 0.5 * acc * dt * dt
+        out[0:3] = sp[0:3] + vel * dt + half_acc * dt * dt
         return out
 
     def _effective_setpoint(self) -> np.ndarray:
         sp = self._carried_setpoint()
-        if not (np.any(np.isfinite(sp[0:3])) or np.any(np.isfinite(sp[3:6]))):
+        # a position or velocity target (the carried position is finite where the sample's is)
+        target = self._sp_rates[3] if self._sp_rates is not None else (
+            bool(np.any(np.isfinite(sp[0:3])) or np.any(np.isfinite(sp[3:6]))))
+        if not target:
             # no position or velocity setpoint (manual modes, old logs): fly the real position
             sp = sp.copy()
             if self.real_x is not None:
@@ -270,26 +300,41 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
     thr = np.asarray(data["throttle"]).reshape(n) if "throttle" in data else np.full(n, np.nan)
     P, V, Q, W, U = (np.asarray(data[k]) for k in ("position_enu", "velocity_enu", "attitude_q",
                                                      "body_rates_flu", "motors"))
+    # the per-sample work done once, vectorized: the real state rows and whether each is finite,
+    # and whether each setpoint sample repeats the previous one bit for bit (the runner then skips it)
+    X = np.concatenate([np.asarray(a, float).reshape(n, -1) for a in (P, V, Q, W)], axis=1)
+    finite = np.isfinite(X).all(axis=1)
+    sp_bits = np.ascontiguousarray(sp).view(np.uint64)
+    repeated = np.zeros(n, bool)
+    repeated[1:] = (sp_bits[1:] == sp_bits[:-1]).all(axis=1)
     out_t, out_x, out_u, out_thr, out_sf = [], [], [], [], []
+    model = runner.model
     it = range(n)
     if progress:
         from tqdm import tqdm
         it = tqdm(it, desc=f"twin ({mode} loop)", unit="step", mininterval=0.5, leave=False)
     for k in it:
-        runner.real_state(t[k], P[k], V[k], Q[k], W[k])
+        runner._take_real_state(t[k], X[k].copy(), bool(finite[k]))
         runner.real_motors(U[k])
-        runner.setpoint(sp[k])
+        runner._take_setpoint(sp[k], bool(repeated[k]))
         runner.armed(bool(armed[k]))
         runner.px4_mode(nav[k], thr[k])
         if np.isfinite(batt[k]):
             runner.battery(batt[k])
-        if k + 1 < n:
-            for s in runner.advance_to(t[k + 1]):
-                out_t.append(s.t)
-                out_x.append(s.x)
-                out_u.append(s.motors)
-                out_thr.append(s.throttle)
-                out_sf.append(s.specific_force)
+        if k + 1 < n and runner._initialised and runner.t is not None:
+            # advance_to(t[k + 1]) without its per-sample objects (the same steps, the same numbers)
+            t_next = t[k + 1] + 1e-9
+            while runner.t + runner.dt_c <= t_next:
+                _, applied = runner._step()
+                out_t.append(runner.t)
+                out_x.append(runner.x.copy())
+                out_u.append(runner.u)
+                out_thr.append(runner.throttle)
+                out_sf.append(model.specific_force_unchecked(runner.x, applied, runner.ext))
+    if out_x:
+        # the twin's ground is at the real frame's take-off height (set once, before the first step)
+        out_x = np.array(out_x)
+        out_x[:, 2] += runner.ground_z
     return TwinRun(t=np.array(out_t), x=np.array(out_x).reshape(-1, runner.model.nx),
                    motors=np.array(out_u).reshape(-1, runner.n), throttle=np.array(out_thr),
                    specific_force=np.array(out_sf).reshape(-1, 3), mode=mode,
