@@ -238,9 +238,23 @@ def fit_candidate(c: Candidate, data: EquationData | Judge, nominal: VehiclePara
         def resid(z):
             return lin(np.clip(z * s, c.lower, c.upper))
     else:
+        # residuals by theta: least_squares evaluates its start again, and _fold_fit wants the whole
+        # equation error at the fitted theta, which the fit has computed already (every row is)
+        seen: dict[bytes, np.ndarray] = {}
+        whole = judge.kind == "equation"
+        _SEEN[:] = [c, judge, seen]
+
         def resid(z):
             theta = np.clip(z * s, c.lower, c.upper)
-            return judge.residual(c.build(theta), rows).ravel()
+            key = theta.tobytes()
+            R = seen.get(key)
+            if R is None:
+                vp_z = c.build(theta)
+                R = judge.residual(vp_z) if whole else judge.residual(vp_z, rows)
+                if len(seen) >= _SEEN_SIZE:
+                    del seen[next(iter(seen))]
+                seen[key] = R
+            return R[rows].ravel() if whole else R.ravel().copy()
 
     z0 = np.clip(c.x0 / s, lo, hi)
     if len(z0) == 1:
@@ -299,6 +313,9 @@ def fit_candidate(c: Candidate, data: EquationData | Judge, nominal: VehiclePara
 
 
 _AFFINE_FORMS: dict[tuple[int, int], tuple] = {}
+#: the residuals the latest non-affine fit of this process evaluated: [candidate, judge, {theta bytes: R}]
+_SEEN: list = [None, None, {}]
+_SEEN_SIZE = 16
 
 
 def _affine_form(c: Candidate, judge: Judge) -> evaluate.Affine | None:
@@ -334,12 +351,17 @@ def _fold_fit(c: Candidate, judge: Judge, nominal: VehicleParams, shape: tuple[i
               ) -> tuple[np.ndarray, float, np.ndarray]:
     """Fold ``k`` of :func:`_fold_fits`."""
     fit_mask, test_mask = judge.folds[k]
+    _SEEN[:] = [None, None, {}]
     theta, vp_c, cost = fit_candidate(c, judge, nominal, fit_mask)
     if judge.lean:
         R1 = np.zeros(shape)
         R1[test_mask] = judge.residual(vp_c, test_mask)
     else:
-        R1 = judge.residual(vp_c)
+        owner, owner_judge, seen = _SEEN
+        R1 = seen.get(theta.tobytes()) if owner is c and owner_judge is judge and judge.kind == "equation" else None
+        if R1 is None:
+            R1 = judge.residual(vp_c)
+    _SEEN[:] = [None, None, {}]
     return theta, cost, R1
 
 

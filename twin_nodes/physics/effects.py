@@ -220,7 +220,9 @@ def _k_rotor_tilt(p, x, R, ext, omega, T, Fb, Mb, Fw):
     Mb[2] += p[0] * tz
 
 
-@njit(cache=True)
+# inlined into the command hook (numba IR): called once per fine step by the lag loops, the call
+# itself cost 3x the arithmetic (same operations, same numbers)
+@njit(cache=True, inline="always")
 def _k_battery_sag(p, ext, sref):
     v = ext[0]
     if v == v and v > 0.0 and p[0] > 0.0:  # v == v: not NaN

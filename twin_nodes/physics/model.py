@@ -61,7 +61,10 @@ def _generate_source(kinds: Sequence[type[Effect]]) -> str:
     hooks += f"N_TERMS = {1 + len(terms)}\nCOMMAND_HOOKS, ROTOR_HOOKS, WRENCH_HOOKS = {used}\n"
     for signature, body in defs:
         body = ["E = effect_params(P)", *body] if body else ["pass"]
-        hooks += f"\n\n@njit(cache=True)\ndef {signature}:\n" + "".join(f"    {line}\n" for line in body)
+        # the command hook runs once per (fine) step of the rotor lag loops: inlined, as its kernels are;
+        # the other hooks stay calls (inlining them into deriv made the RK4 step slower)
+        inline = ', inline="always"' if signature.startswith("command_hooks") else ""
+        hooks += f"\n\n@njit(cache=True{inline})\ndef {signature}:\n" + "".join(f"    {line}\n" for line in body)
     lines = inspect.getsource(stepper).splitlines(keepends=True)
     begin = next(i for i, line in enumerate(lines) if line.startswith("# ---- hooks"))
     end = lines.index("# ---- end of hooks ----\n")

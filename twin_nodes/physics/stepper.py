@@ -33,7 +33,7 @@ N_TERMS = 1
 COMMAND_HOOKS, ROTOR_HOOKS, WRENCH_HOOKS = False, False, False
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def command_hooks(P, ext, sref):
     pass
 
