@@ -192,3 +192,30 @@ def test_discover_same_result_as_before():
     cmp = json.loads(out.read_text())["comparison"]
     assert cmp["same"], cmp
     assert cmp["param_rel_all"] < 1e-6 and cmp["closed_loop_rel"] < 1e-9
+
+
+def test_fold_fit_evaluates_each_theta_once_and_reuses_it_exactly():
+    """A non-affine equation-error fit (battery sag) evaluates no parameter vector twice, and the
+    fold's residual at the fitted theta, taken from what the fit computed, is the fresh evaluation
+    bit for bit."""
+    import dataclasses
+
+    from twin_nodes.discovery import discover as d
+    vp = shipped("px4_sih_quadx")
+    S = d.prepare_flight(read_ulog(DEMO), vp, output_error=False)
+    c = next(c for c in build_candidates(vp, S.data) if c.name == "battery_sag")
+    seen: list[bytes] = []
+
+    def counted(v, rows=None):
+        sag = dict(dict(v.effects)["battery_sag"])
+        seen.append(np.array([sag["v_ref"], sag["exponent"]]).tobytes())
+        return S.eq.residual(v, rows)
+    judge = dataclasses.replace(S.eq, residual=counted)
+    R0 = S.eq.residual(vp)
+    assert d._affine_form(c, judge) is None      # its probe evaluations (kept per candidate) are not the fit's
+    seen.clear()
+    theta, cost, R1 = d._fold_fit(c, judge, vp, R0.shape, 0)
+    assert len(seen) > 20 and len(seen) == len(set(seen))        # every evaluation a new theta
+    n_fit = len(seen)
+    assert np.array_equal(R1, S.eq.residual(c.build(theta)))     # the reused residual is exact
+    assert len(seen) == n_fit                                     # and was not computed again
