@@ -1,0 +1,140 @@
+"""Issue 11: the confirmation round trip on real PX4 firmware (PX4 SIH), end to end.
+
+A flight with roll/pitch inertia x1.5 (manifest flight e12: SIH_IXX/IYY 0.025 -> 0.0375, mission M3,
+PX4's default 50 Hz log) gives ``inertia`` only ``likely``; ``discover --plan-dir`` writes a
+confirmation plan that asks for rate-loop (4 ms) logging; that plan flown in PX4 SIH with the same
+SIH change and the ``highrate`` logging profile confirms it (the refit on the follow-up lands on the
+truth), and the same plan flown with no SIH change (the control) drops it.
+
+``test_round_trip_flown_in_px4_sih`` flies the follow-up and the control itself (about 2.5 min), after
+e12 from out/sih_flights/e12 when that exists, else flown here too (then it skips when that e12 confirms
+inertia outright: on M3 it sits at the 3-sigma edge, t 2.4-3.1 over three flights).
+``test_round_trip_replayed_from_out`` replays the flights recorded in ``docs/discovery.md``
+(out/sih_flights/e12, out/confirm_e12/{c1,n1}).  Both run only with ``PX4_DIR`` set to a
+PX4-Autopilot tree built with ``make px4_sitl_default`` (the replay also needs its logs under out/).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PX4_DIR = os.environ.get("PX4_DIR", "")
+PARAMS = REPO / "params" / "px4_sih_quadx.yaml"
+SIH = ["SIH_IXX=0.0375", "SIH_IYY=0.0375"]
+TRUTH, NOMINAL = 0.0375, 0.025
+
+pytestmark = pytest.mark.slow
+
+
+def _need_px4() -> None:
+    if not PX4_DIR:
+        pytest.skip("PX4_DIR not set (a PX4-Autopilot checkout built with make px4_sitl_default)")
+    b = Path(PX4_DIR) / "build" / "px4_sitl_default" / "bin" / "px4"
+    if not b.is_file():
+        pytest.skip(f"{b} not found: build PX4 SITL first (make px4_sitl_default)")
+
+
+def _run(args: list[str], timeout: float = 600) -> str:
+    env = dict(os.environ, ROTORTWIN_PYTHON=sys.executable)
+    p = subprocess.run(args, check=False, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
+    assert p.returncode == 0, f"{' '.join(args)}\n{p.stdout[-3000:]}\n{p.stderr[-3000:]}"
+    return p.stdout
+
+
+def _rotortwin(*args: str) -> str:
+    return _run([sys.executable, "-m", "twin_nodes", *map(str, args)])
+
+
+def _fly(out: Path, *args: str) -> None:
+    _run(["bash", str(REPO / "launch_scripts" / "fly_sih.sh"), "--px4", PX4_DIR, "--out", str(out), *args])
+
+
+def _discover(flight: Path, plan_dir: Path, json_out: Path) -> dict:
+    _rotortwin("discover", flight, "--params", PARAMS, "--plan-dir", plan_dir, "--json", json_out,
+               "--no-closed-loop")
+    res = json.loads(json_out.read_text())
+    eff = next(e for e in res["effects"] if e["name"] == "inertia")
+    # found on the pitch output error, on the right side of nominal, whatever its verdict
+    assert eff["residual"] == "output" and eff["heldout_channel"] == "pitch", eff["verdict_note"]
+    assert eff["heldout_improvement"] > 0.2 and eff["params"]["iyy"] > 1.2 * NOMINAL, eff["params"]
+    return res
+
+
+def _likely_plan(res: dict, plan_dir: Path) -> Path:
+    """inertia is `likely` (block t < 3) and nothing else is found: its confirmation plan, checked."""
+    eff = next(e for e in res["effects"] if e["name"] == "inertia")
+    assert res["likely"] == ["inertia"] and res["accepted"] == [], (res["likely"], res["accepted"])
+    assert eff["heldout_t_stat"] < 3.0, eff["verdict_note"]
+    plan = plan_dir / "confirm_inertia.plan.yaml"
+    assert plan.is_file(), sorted(plan_dir.iterdir())
+    checked = _rotortwin("mission", "check", plan)  # exits 2 on an invalid plan
+    assert "'confirm_inertia'" in checked and "RTL after: yes" in checked, checked[:400]
+    text = plan.read_text()
+    assert "every 4 ms" in text and "rate_doublets" in text, text[:600]  # the plan's logging advice
+    return plan
+
+
+def _confirmation(flight: Path, followup: Path, json_out: Path) -> dict:
+    _rotortwin("discover", flight, "--params", PARAMS, "--confirm", followup, "--json", json_out, "--no-closed-loop")
+    (c,) = [c for c in json.loads(json_out.read_text())["confirmation"]["effects"] if c["name"] == "inertia"]
+    return c
+
+
+def _check_round_trip(flight: Path, followup: Path, control: Path, work: Path) -> tuple[dict, dict]:
+    c = _confirmation(flight, followup, work / "confirm.json")
+    refit = c["refit_on_followup"]["params"]
+    # measured 2026-11-23: t 9.6-11.0 over 163-164 blocks, 56 % cut; refit iyy 0.0376/0.0381, ixx 0.0367/0.0378
+    assert c["verdict"] == "confirmed", c["note"]
+    assert c["followup_t_stat"] > 5.0 and c["followup_improvement"] > 0.3, c["note"]
+    assert abs(refit["iyy"] / TRUTH - 1) < 0.10, refit
+    assert abs(refit["ixx"] / TRUTH - 1) < 0.15, refit  # the 4 ms log resolves roll too (50 Hz left it nominal)
+    n = _confirmation(flight, control, work / "control.json")
+    nrefit = n["refit_on_followup"]["params"]
+    # measured: t -7.9 (the flight's fit makes the control worse), refit iyy 0.0254/0.0259 ~ nominal
+    assert n["verdict"] == "rejected" and n["note"].startswith("dropped"), n["note"]
+    assert n["followup_t_stat"] < 3.0, n["note"]
+    assert abs(nrefit["iyy"] / NOMINAL - 1) < 0.10, nrefit
+    print(f"follow-up: {c['note']}; refit {refit}\ncontrol: {n['note']}; refit {nrefit}")
+    return c, n
+
+
+def test_round_trip_flown_in_px4_sih(tmp_path):
+    """Flies the follow-up and the control; e12 is the recorded flight when out/ has it, else flown here."""
+    _need_px4()
+    flight = REPO / "out" / "sih_flights" / "e12" / "flight.ulg"
+    if not flight.is_file():
+        _fly(tmp_path, "--flight", "e12")  # the manifest flight: M3, 50 Hz motors, inertia x1.5
+        flight = tmp_path / "e12" / "flight.ulg"
+    res = _discover(flight, tmp_path / "plans", tmp_path / "e12.json")
+    if res["accepted"] == ["inertia"] and not res["likely"]:
+        # e12 on M3 sits at the 3-sigma edge: re-flown here it gave t 2.4 (likely) once and 3.1 (confirmed) once
+        pytest.skip("the re-flown e12 confirmed inertia outright: no `likely` effect to follow up")
+    plan = _likely_plan(res, tmp_path / "plans")
+    _fly(tmp_path, "--id", "f1", "--mission", str(plan), "--sih", *SIH, "--logging", "highrate")
+    _fly(tmp_path, "--id", "n1", "--mission", str(plan), "--logging", "highrate")
+    for fid, truth in (("f1", "inertia"), ("n1", "none")):
+        assert json.loads((tmp_path / fid / "truth.json").read_text())["effects"][0]["name"] == truth
+    _check_round_trip(flight, tmp_path / "f1" / "flight.ulg", tmp_path / "n1" / "flight.ulg", tmp_path)
+
+
+def test_round_trip_replayed_from_out(tmp_path):
+    _need_px4()
+    flight = REPO / "out" / "sih_flights" / "e12" / "flight.ulg"
+    followup = REPO / "out" / "confirm_e12" / "c1" / "flight.ulg"
+    control = REPO / "out" / "confirm_e12" / "n1" / "flight.ulg"
+    missing = [str(p.relative_to(REPO)) for p in (flight, followup, control) if not p.is_file()]
+    if missing:
+        pytest.skip(f"round-trip flights not flown here: {', '.join(missing)} (docs/discovery.md)")
+    _likely_plan(_discover(flight, tmp_path / "plans", tmp_path / "e12.json"), tmp_path / "plans")
+    c, n = _check_round_trip(flight, followup, control, tmp_path)
+    # the recorded flights' own numbers (docs/discovery.md, 2026-11-23)
+    assert abs(c["followup_active_blocks"] - 164) <= 5 and abs(c["followup_t_stat"] - 10.96) < 1.0, c["note"]
+    assert abs(c["refit_on_followup"]["params"]["iyy"] - 0.03758) < 0.001, c["refit_on_followup"]
+    assert abs(n["followup_t_stat"] + 7.94) < 1.0, n["note"]
