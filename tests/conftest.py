@@ -93,3 +93,14 @@ def sitl_logs() -> list[Path]:
     if not SITL_LOGS:
         missing_shared("flightlogs/sitl/*.ulg")
     return list(SITL_LOGS)
+
+
+def px4_sitl_binary() -> Path:
+    """The PX4 SITL binary under ``$PX4_DIR``; skips (one line) when it is not set or not built."""
+    px4_dir = os.environ.get("PX4_DIR", "")
+    if not px4_dir:
+        pytest.skip("PX4_DIR not set (a PX4-Autopilot checkout built with make px4_sitl_default)")
+    b = Path(px4_dir) / "build" / "px4_sitl_default" / "bin" / "px4"
+    if not b.is_file():
+        pytest.skip(f"{b} not found: build PX4 SITL first (make px4_sitl_default)")
+    return b

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import px4_sitl_binary
+
 REPO = Path(__file__).resolve().parents[1]
 PX4_DIR = os.environ.get("PX4_DIR", "")
 PARAMS = REPO / "params" / "px4_sih_quadx.yaml"
@@ -32,13 +34,6 @@ TRUTH, NOMINAL = 0.0375, 0.025
 
 pytestmark = pytest.mark.slow
 
-
-def _need_px4() -> None:
-    if not PX4_DIR:
-        pytest.skip("PX4_DIR not set (a PX4-Autopilot checkout built with make px4_sitl_default)")
-    b = Path(PX4_DIR) / "build" / "px4_sitl_default" / "bin" / "px4"
-    if not b.is_file():
-        pytest.skip(f"{b} not found: build PX4 SITL first (make px4_sitl_default)")
 
 
 def _run(args: list[str], timeout: float = 600) -> str:
@@ -107,7 +102,7 @@ def _check_round_trip(flight: Path, followup: Path, control: Path, work: Path) -
 
 def test_round_trip_flown_in_px4_sih(tmp_path):
     """Flies the follow-up and the control; e12 is the recorded flight when out/ has it, else flown here."""
-    _need_px4()
+    px4_sitl_binary()
     flight = REPO / "out" / "sih_flights" / "e12" / "flight.ulg"
     if not flight.is_file():
         _fly(tmp_path, "--flight", "e12")  # the manifest flight: M3, 50 Hz motors, inertia x1.5
@@ -125,7 +120,7 @@ def test_round_trip_flown_in_px4_sih(tmp_path):
 
 
 def test_round_trip_replayed_from_out(tmp_path):
-    _need_px4()
+    px4_sitl_binary()
     flight = REPO / "out" / "sih_flights" / "e12" / "flight.ulg"
     followup = REPO / "out" / "confirm_e12" / "c1" / "flight.ulg"
     control = REPO / "out" / "confirm_e12" / "n1" / "flight.ulg"

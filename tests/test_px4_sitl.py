@@ -21,23 +21,17 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import px4_sitl_binary
+
 REPO = Path(__file__).resolve().parents[1]
 PX4_DIR = os.environ.get("PX4_DIR", "")
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 
-def _px4_bin() -> Path:
-    if not PX4_DIR:
-        pytest.skip("PX4_DIR not set (a PX4-Autopilot checkout built with make px4_sitl_default)")
-    b = Path(PX4_DIR) / "build" / "px4_sitl_default" / "bin" / "px4"
-    if not b.is_file():
-        pytest.skip(f"{b} not found: build PX4 SITL first (make px4_sitl_default)")
-    return b
-
 
 def test_px4_sitl_twin_end_to_end(tmp_path):
-    _px4_bin()
+    px4_sitl_binary()
     from twin_nodes.graph import ros_env
     from twin_nodes.live.attach import free_domain
 
