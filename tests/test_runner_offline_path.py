@@ -75,8 +75,17 @@ def test_offline_loop_equals_streaming_inputs(flight, params, t0, t1, mode):
         assert _same_bits(getattr(fast, key), ref[key]), key
 
 
-def test_runner_rejects_a_motor_vector_of_the_wrong_size():
+def test_open_loop_rejects_a_motor_vector_of_the_wrong_size_closed_loop_ignores_it():
+    """Open loop flies the real motor commands (the model's unchecked step needs N of them); the
+    closed loop flies its own and never reads them (a 16-channel output vector is harmless)."""
     vp = load_params(ROOT / "params" / "px4_sih_quadx.yaml")
-    runner = TwinRunner(vp, "open")
-    with pytest.raises(ValueError, match="expected 4 motor commands"):
+    for mode in ("open", "closed"):
+        runner = TwinRunner(vp, mode)
+        runner.real_state(0.0, [0, 0, 0], [0, 0, 0], [1, 0, 0, 0], [0, 0, 0])
         runner.real_motors([0.5, 0.5, 0.5])
+        runner.armed(True)
+        if mode == "open":
+            with pytest.raises(ValueError, match="expected 4 motor commands"):
+                runner.advance_to(0.1)
+        else:
+            assert len(runner.advance_to(0.1)) == 25

@@ -131,10 +131,7 @@ class TwinRunner:
         self._sp_ground_z = self.ground_z
 
     def real_motors(self, u) -> None:
-        u = np.asarray(u, float)
-        if u.shape != (self.n,):
-            raise ValueError(f"expected {self.n} motor commands, got shape {u.shape}")
-        self.real_u = u
+        self.real_u = np.asarray(u, float)
 
     def armed(self, armed: bool) -> None:
         self.is_armed = bool(armed)
@@ -192,6 +189,8 @@ class TwinRunner:
                 self._resync()
                 resynced = True
             u = self.real_u.copy()
+            if u.shape != (self.n,):  # the model's unchecked step below needs the vehicle's motor count
+                raise ValueError(f"expected {self.n} motor commands, got shape {u.shape}")
             mean_u = np.nanmean(u) if np.any(np.isfinite(u)) else np.nan
             self.throttle = float(mean_u)
         else:
