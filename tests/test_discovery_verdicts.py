@@ -341,3 +341,23 @@ def test_confirmation_round_trip_on_our_simulator(tmp_path):
     d3 = json.loads((tmp_path / "d3.json").read_text())
     row = next(r for r in d3["confirmation"]["effects"] if r["name"] == name)
     assert row["verdict"] == "rejected" and row["note"].startswith("dropped"), row
+
+
+def test_parameters_the_output_error_cannot_see_are_reported_as_held_at_nominal():
+    """An inertia fit on the output error with the roll axis left out keeps ixx at nominal, and says
+    so (JSON ``held_at_nominal``, the summary line) instead of reporting it as an identified value."""
+    from twin_nodes.discovery.candidates import build_candidates
+    from twin_nodes.discovery.discover import _restrict_to_axes
+    from twin_nodes.discovery.residuals import prepare
+    from twin_nodes.logs.ulog_io import read_ulog
+    from twin_nodes.vehicle.params import shipped
+    vp = shipped("px4_sih_quadx")
+    data = prepare(read_ulog(Path(__file__).resolve().parents[1] / "bags" / "sim_quadx_weak_motor3.ulg"), vp)
+    c = next(c for c in build_candidates(vp, data) if c.name == "inertia")
+    usable = np.array([False, False, True, False, True, True])
+    r2 = np.array([0.1, 0.2, 0.95, 0.66, 0.9, 0.85])
+    co = _restrict_to_axes(c, usable, r2)
+    assert co.param_names == ("iyy", "izz")
+    assert set(co.held) == {"ixx"} and "roll r^2 0.66 < 0.8" in co.held["ixx"]
+    assert co.params_dict(np.array([0.04, 0.03]))["ixx"] == c.params_dict(c.x0)["ixx"]
+    assert _restrict_to_axes(c, np.ones(6, bool), r2).held == {}

@@ -17,7 +17,7 @@ nominal model, from physical reasoning, not from any generator:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -40,6 +40,8 @@ class Candidate:
     #: theta -> why the value is unphysical (None when it is physical): the search range may be
     #: wider than physics allows, so a fit that lands outside physics is reported, never accepted
     unphysical: Callable[[np.ndarray], str | None] = lambda theta: None
+    #: effect parameters this fit could not see, held at their nominal value: name -> why
+    held: dict = field(default_factory=dict)
 
     def params_dict(self, theta: np.ndarray) -> dict[str, float]:
         out = {k: float(v) for k, v in self.fixed.items()}

@@ -44,7 +44,7 @@ from scipy.optimize import least_squares
 from twin_nodes.discovery import evaluate
 from twin_nodes.discovery.candidates import Candidate, build_candidates
 from twin_nodes.discovery.locate import excitation, locate, locate_output, regimes  # noqa: F401  (regimes: re-exported)
-from twin_nodes.discovery.output_error import (HORIZON_S, MIN_AXIS_R2, STRIDE_S, Windows, judge_axes,
+from twin_nodes.discovery.output_error import (AXES, HORIZON_S, MIN_AXIS_R2, STRIDE_S, Windows, judge_axes,
                                                make_windows, output_error)
 from twin_nodes.discovery.residuals import (LOWPASS_HZ, EquationData, channel_names, modes, prepare,
                                             residual_channels)
@@ -491,9 +491,9 @@ def _output_judge(data: EquationData, nominal: VehicleParams, t_split: float, t_
     return Judge("output", residual, [(fit1, test1), (fit2, test2)], blocks, test1, lean=True, windows=win)
 
 
-def _restrict_to_axes(c: Candidate, usable: np.ndarray) -> Candidate | None:
+def _restrict_to_axes(c: Candidate, usable: np.ndarray, r2: np.ndarray | None = None) -> Candidate | None:
     """The candidate with only the parameters the usable output-error axes can see (the others
-    fixed at nominal); None when it sees nothing."""
+    fixed at nominal and named in ``held``, with the axis' r^2 when given); None when it sees nothing."""
     keep = [i for i, p in enumerate(c.param_names) if any(usable[a] for a in _PARAM_AXES.get(p, range(6)))]
     if not keep:
         return None
@@ -507,9 +507,15 @@ def _restrict_to_axes(c: Candidate, usable: np.ndarray) -> Candidate | None:
         th = c.x0.copy()
         th[keep] = theta_k
         return th
+    held = dict(c.held)
+    for i in drop:
+        axes = _PARAM_AXES.get(c.param_names[i], range(6))
+        why = "; ".join(f"{AXES[a]} r^2 {r2[a]:.2f} < {MIN_AXIS_R2}" if r2 is not None and r2[a] < MIN_AXIS_R2
+                        else f"{AXES[a]} not judged" for a in axes)
+        held[c.param_names[i]] = f"held at nominal, not identified on this flight: the output error leaves out {why}"
     return Candidate(c.name, tuple(c.param_names[i] for i in keep), c.x0[keep], c.lower[keep], c.upper[keep],
                      lambda th: c.build(full(th)), fixed, lambda th: c.floor(full(th)), c.label,
-                     lambda th: c.unphysical(full(th)))
+                     lambda th: c.unphysical(full(th)), held)
 
 
 def _side(judge: Judge, vp_c: VehicleParams, R0: np.ndarray, nominal: VehicleParams, rows=None) -> dict:
@@ -673,7 +679,7 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         for c in cands:
             tasks.append((c, eq, R0))
             if oe is not None and c.name in OUTPUT_ERROR_EFFECTS and (rounds == 1 or oe_gain.get(c.label, 0) > 0.02):
-                co = _restrict_to_axes(c, oe.windows.usable)
+                co = _restrict_to_axes(c, oe.windows.usable, oe.windows.axis_r2)
                 if co is not None:
                     tasks.append((co, oe, R0_oe))
         if evaluate.workers() > 1:
@@ -853,6 +859,8 @@ def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:
         "residuals": {f.kind: _summary(f)},
         "alternatives": f.alternatives,
     }
+    if f.candidate.held:
+        out["held_at_nominal"] = dict(f.candidate.held)
     if f.other is not None:
         out["residuals"][f.other["residual"]] = f.other
     if f.kind == "equation":

@@ -57,6 +57,9 @@ def summary_text(res: dict) -> str:
                      f"{100 * e['heldout_improvement']:6.1f} % {e.get('heldout_channel', ''):<8}{o}  {pretty}")
         if verdict == "likely" or (verdict == "rejected" and "confirmation" in e):
             lines.append(f"              {e.get('verdict_note', '')}")
+        if verdict != "rejected":
+            for k, why in (e.get("held_at_nominal") or {}).items():
+                lines.append(f"              {k}: {why}")
     after = res.get("confirmed_on_followup") or []
     if after:
         lines.append(f"  confirmed on the follow-up flight: {', '.join(after)}")
