@@ -214,7 +214,7 @@ def test_fold_fit_evaluates_each_theta_once_and_reuses_it_exactly():
     R0 = S.eq.residual(vp)
     assert d._affine_form(c, judge) is None      # its probe evaluations (kept per candidate) are not the fit's
     seen.clear()
-    theta, cost, R1 = d._fold_fit(c, judge, vp, R0.shape, 0)
+    theta, _, R1 = d._fold_fit(c, judge, vp, R0.shape, 0)
     assert len(seen) > 20 and len(seen) == len(set(seen))        # every evaluation a new theta
     n_fit = len(seen)
     assert np.array_equal(R1, S.eq.residual(c.build(theta)))     # the reused residual is exact

@@ -44,7 +44,7 @@ from scipy.optimize import least_squares
 from twin_nodes.discovery import evaluate
 from twin_nodes.discovery.candidates import Candidate, build_candidates
 from twin_nodes.discovery.locate import excitation, locate, locate_output, regimes  # noqa: F401  (regimes: re-exported)
-from twin_nodes.discovery.output_error import (AXES, HORIZON_S, MIN_AXIS_R2, STRIDE_S, Windows, judge_axes,
+from twin_nodes.discovery.output_error import (AXES, HORIZON_S, JUDGED, MIN_AXIS_R2, STRIDE_S, Windows, judge_axes,
                                                make_windows, output_error)
 from twin_nodes.discovery.residuals import (LOWPASS_HZ, EquationData, channel_names, modes, prepare,
                                             residual_channels)
@@ -510,8 +510,9 @@ def _restrict_to_axes(c: Candidate, usable: np.ndarray, r2: np.ndarray | None = 
     held = dict(c.held)
     for i in drop:
         axes = _PARAM_AXES.get(c.param_names[i], range(6))
-        why = "; ".join(f"{AXES[a]} r^2 {r2[a]:.2f} < {MIN_AXIS_R2}" if r2 is not None and r2[a] < MIN_AXIS_R2
-                        else f"{AXES[a]} not judged" for a in axes)
+        why = "; ".join(f"{AXES[a]} not judged" if not JUDGED[a] else
+                        f"{AXES[a]} r^2 {r2[a]:.2f} < {MIN_AXIS_R2}" if r2 is not None else
+                        f"{AXES[a]} (nominal prediction below r^2 {MIN_AXIS_R2})" for a in axes)
         held[c.param_names[i]] = f"held at nominal, not identified on this flight: the output error leaves out {why}"
     return Candidate(c.name, tuple(c.param_names[i] for i in keep), c.x0[keep], c.lower[keep], c.upper[keep],
                      lambda th: c.build(full(th)), fixed, lambda th: c.floor(full(th)), c.label,

@@ -185,12 +185,12 @@ class TwinRunner:
         (``self.x``, ``self.t``); returns (re-synced, the command the rotors got after the delay)."""
         resynced = False
         if self.mode == "open":
+            if self.real_u.shape != (self.n,):  # the model's unchecked step below needs the vehicle's motor count
+                raise ValueError(f"expected {self.n} motor commands, got shape {self.real_u.shape}")
             if self.real_x is not None and self.t - self.last_resync >= self.horizon_s - 1e-9:
                 self._resync()
                 resynced = True
             u = self.real_u.copy()
-            if u.shape != (self.n,):  # the model's unchecked step below needs the vehicle's motor count
-                raise ValueError(f"expected {self.n} motor commands, got shape {u.shape}")
             mean_u = np.nanmean(u) if np.any(np.isfinite(u)) else np.nan
             self.throttle = float(mean_u)
         else:
