@@ -361,3 +361,7 @@ def test_parameters_the_output_error_cannot_see_are_reported_as_held_at_nominal(
     assert set(co.held) == {"ixx"} and "roll r^2 0.66 < 0.8" in co.held["ixx"]
     assert co.params_dict(np.array([0.04, 0.03]))["ixx"] == c.params_dict(c.x0)["ixx"]
     assert _restrict_to_axes(c, np.ones(6, bool), r2).held == {}
+    from twin_nodes.discovery.report import _param_text
+    e = {"held_at_nominal": dict(co.held)}
+    assert _param_text(e, "ixx", 0.025).startswith("ixx=0.025 (held at nominal")
+    assert _param_text(e, "iyy", 0.0381) == "iyy=0.0381"

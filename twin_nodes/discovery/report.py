@@ -13,6 +13,12 @@ from pathlib import Path
 import numpy as np
 
 
+
+def _param_text(e: dict, name: str, value: float) -> str:
+    """``name=value``; a parameter the fit held at nominal says so (not identified on this flight)."""
+    held = (e.get("held_at_nominal") or {}).get(name)
+    return f"{name}={value:.4g}" + (f" ({held})" if held else "")
+
 def json_default(o):
     """``json.dumps`` fallback: numpy scalars and arrays as Python numbers and lists, anything else as str."""
     if isinstance(o, np.generic):
@@ -156,7 +162,7 @@ def write_report(folder, res: dict, series: dict) -> None:
         return s
     rows = "".join(
         f"<tr><td>{verdict(e)}</td><td>{html.escape(e['name'])}</td>"
-        f"<td>{html.escape(', '.join(f'{k}={v:.4g}' for k, v in e['params'].items()))}</td>"
+        f"<td>{html.escape(', '.join(_param_text(e, k, v) for k, v in e['params'].items()))}</td>"
         f"<td>{e['heldout_before']:.4f}</td><td>{e['heldout_after']:.4f}</td><td>{resid(e)}</td><td>{excit(e)}</td>"
         f"<td>{html.escape(e['evidence'])} {html.escape(e.get('verdict_note', '') if e.get('verdict') == 'likely' else '')}"
         f"</td></tr>" for e in eff)
