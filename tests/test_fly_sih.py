@@ -15,6 +15,7 @@ import pytest
 import yaml
 from pymavlink.dialects.v20 import common as mavlink2
 
+from tests.conftest import px4_sitl_binary
 from twin_nodes.base.errors import ParamsError, TwinError
 from twin_nodes.discovery import prove_sih
 from twin_nodes.logs.ulog_write import write_px4_ulog
@@ -299,9 +300,8 @@ def test_prove_reads_sih_dir_folders(tmp_path):
 
 @pytest.mark.slow
 def test_fly_one_sih_flight_against_real_px4(tmp_path):
-    px4_dir = os.environ.get("PX4_DIR", "")
-    if not px4_dir or not (Path(px4_dir) / "build" / "px4_sitl_default" / "bin" / "px4").is_file():
-        pytest.skip("PX4_DIR not set to a PX4-Autopilot tree built with make px4_sitl_default")
+    px4_sitl_binary()
+    px4_dir = os.environ["PX4_DIR"]
     from pyulog import ULog
 
     plan = tmp_path / "hop.plan.yaml"
