@@ -130,6 +130,25 @@ def test_px4sih_truth_maps_onto_our_vocabulary_as_the_manifest_says():
     assert manifest["px4"]["commit"] == "02e73e3b6f4826a376d0805ee12e30b7538ada99"
 
 
+def test_every_manifest_flight_states_the_truth_its_sih_change_maps_to():
+    """Our own flights (e09.., h.., the balanced grid g..) are declared in the manifest before they are flown:
+    the truth written beside each SIH change is what prove_sih.map_truth makes of that change."""
+    vp = load_params(prove_sih.NOMINAL)
+    manifest = yaml.safe_load((ROOT / "missions" / "sih_effects" / "manifest.yaml").read_text())
+    flights = manifest["flights"]
+    assert {f"g{i:02d}" for i in range(1, 37)} <= set(flights)
+    for name, m in flights.items():
+        t = prove_sih.map_truth({"sih_changes": m["sih"]}, vp)
+        if m["truth"] == "none":
+            assert t.hidden.name == "none", name
+            continue
+        (eff, params), = m["truth"].items()
+        assert t.hidden.name == eff, name
+        assert t.hidden.params == pytest.approx(params, rel=1e-6), name
+        assert m["mission"] in manifest["missions"], name
+        assert m.get("logging", "default") in ("default", *manifest["px4"]["logging"].get("profiles", {})), name
+
+
 @pytest.mark.parametrize("name", ["e07", "e08"])
 def test_px4sih_no_effect_flight_scores_zero_findings(name, tmp_path):
     """Real PX4 firmware, nominal SIH vehicle, missions M3/M4: no confirmed or likely finding."""
