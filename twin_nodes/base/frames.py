@@ -317,6 +317,12 @@ def yaw_ned_to_enu(yaw: np.ndarray) -> np.ndarray:
     return wrap_pi(np.pi / 2 - np.asarray(yaw, dtype=float))
 
 
+def yawspeed_ned_to_enu(rate: np.ndarray) -> np.ndarray:
+    """Heading rate (PX4, about down, clockwise seen from above) -> yaw rate about up (ROS,
+    counter-clockwise), ``-rate``; self-inverse.  NaN stays NaN (= no feed-forward)."""
+    return -np.asarray(rate, dtype=float)
+
+
 def yaw_enu_to_ned(yaw: np.ndarray) -> np.ndarray:
     """ROS yaw -> PX4 heading (the same map, it is self-inverse), wrapped to [-pi, pi)."""
     return wrap_pi(np.pi / 2 - np.asarray(yaw, dtype=float))

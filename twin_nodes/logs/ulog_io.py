@@ -136,6 +136,7 @@ SERIES_SPEC: dict[str, tuple[str, str, str]] = {
     "setpoint_velocity_enu": ("m/s", "ENU", "previous"),
     "setpoint_accel_enu": ("m/s^2", "ENU", "previous"),
     "setpoint_yaw_enu": ("rad", "ENU yaw from East, CCW", "previous"),
+    "setpoint_yawspeed": ("rad/s", "yaw-rate feed-forward about ENU up, CCW", "previous"),
     "nav_state": ("-", "PX4 nav_state", "previous"),
     "armed": ("-", "bool", "previous"),
     "landed": ("-", "bool", "previous"),
@@ -1076,6 +1077,10 @@ def _build_series(
             out["setpoint_yaw_enu"] = _series("setpoint_yaw_enu", t,
                                               frames.yaw_ned_to_enu(ts.col("yaw")),
                                               "trajectory_setpoint.yaw (NED heading)")
+        if ts.has("yawspeed"):
+            out["setpoint_yawspeed"] = _series("setpoint_yawspeed", t,
+                                               frames.yawspeed_ned_to_enu(ts.col("yawspeed")),
+                                               "trajectory_setpoint.yawspeed (NED heading rate)")
     else:
         missing("trajectory_setpoint", "setpoint_*")
 

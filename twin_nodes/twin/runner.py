@@ -224,14 +224,20 @@ class TwinRunner:
         if self._sp_rates is None:
             # once per setpoint sample, not per control step (the sample is held for 10-50 steps)
             finite = np.isfinite(sp[0:6])
+            turning = bool(np.isfinite(sp[9]) and np.isfinite(sp[10]) and sp[10] != 0.0)
             self._sp_rates = (bool(finite[3:6].any()), np.nan_to_num(sp[3:6]), 0.5 * np.nan_to_num(sp[6:9]),
-                              bool(finite.any()))
-        moving, vel, half_acc, _ = self._sp_rates
-        if not moving:
+                              bool(finite.any()), turning)
+        moving, vel, half_acc, _, turning = self._sp_rates
+        if not (moving or turning):
             return sp
         dt = min(max(self.t - self.sp_t, 0.0), 1.0)
         out = sp.copy()
-        out[0:3] = sp[0:3] + vel * dt + half_acc * dt * dt
+        if moving:
+            out[0:3] = sp[0:3] + vel * dt + half_acc * dt * dt
+        if turning:
+            # the yaw setpoint carried by its yaw-rate feed-forward, as PX4's flight task integrates it
+            # at the controller rate (held, it would lag the feed-forward and pull the yaw back)
+            out[9] = (sp[9] + sp[10] * dt + np.pi) % (2.0 * np.pi) - np.pi
         return out
 
     def _effective_setpoint(self) -> np.ndarray:
