@@ -85,6 +85,19 @@ def test_score_rules_no_effect_and_effect_rows():
     table = prove.format_table(s)
     assert "mass (confirmed)" in table and table.splitlines()[-1].startswith("x: right effect on top 2/2")
 
+    assert prove.breakdown(s, "logging") == []  # rows without the key: no breakdown
+    # per logging profile and per change, the same four numbers (px4sih rows carry both keys)
+    none_row.update(logging="default", sih_change="none")
+    ok.update(logging="highrate", sih_change="SIH_MASS")
+    low_cut.update(logging="default", sih_change="SIH_MASS")
+    lines = prove.format_table(score([none_row, ok, low_cut], "px4sih")).splitlines()
+    assert lines[-4].startswith("px4sih [logging default]: right effect on top 1/1 (100 %); findings on no-effect "
+                                "flights 1/1; params within 10 % 1/1; held-out cut >= 50 % 0/1; flights passing "
+                                "every rule 0/2")
+    assert lines[-3].startswith("px4sih [logging highrate]: right effect on top 1/1") and lines[-3].endswith("1/1")
+    assert lines[-2].startswith("px4sih [sih_change SIH_MASS]: right effect on top 2/2")
+    assert lines[-1].startswith("px4sih [sih_change none]: right effect on top 0/0")
+
 
 # ---------------------------------------------------------------- px4sih
 

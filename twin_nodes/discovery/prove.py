@@ -634,6 +634,19 @@ def score(rows: list[dict], source: str = "ours") -> dict:
     }
 
 
+def breakdown(summary: dict, key: str) -> list[str]:
+    """The summary line of each group of rows that share ``row[key]`` (e.g. the PX4 SIH flights'
+    ``logging`` profile or ``sih_change``); nothing when no row has ``key`` or there is one group."""
+    groups: dict[str, list[dict]] = {}
+    for r in summary["rows"]:
+        if key in r:
+            groups.setdefault(str(r[key]), []).append(r)
+    if len(groups) < 2:
+        return []
+    return [summary_line(score(rows, source=f"{summary.get('source', 'ours')} [{key} {name}]"))
+            for name, rows in sorted(groups.items())]
+
+
 def _pct(x: float | None) -> str:
     return "-" if x is None else f"{100 * x:.0f} %"
 
@@ -667,6 +680,7 @@ def format_table(summary: dict) -> str:
             line += f" {r.get('xy_tracking_rmse_m', math.nan):>6.2f}m {r.get('z_tracking_rmse_m', math.nan):>5.2f}m"
         lines.append(line.rstrip())
     lines.append(summary_line(summary))
+    lines += breakdown(summary, "logging") + breakdown(summary, "sih_change")
     return "\n".join(lines)
 
 

@@ -143,7 +143,12 @@ def run_one(args) -> dict:
     drag = DragContext.from_log(log, vp) if effect_class(truth.hidden.name) == "drag" else None
     name = f"{flight['flight']} ({flight['mission']})" if flight["mission"] else flight["flight"]
     write_result(Path(out_dir) / f"{flight['flight'].replace('/', '_')}.json", res)
-    return score_flight(name, truth, res, vp, drag, source="px4sih", log=flight["path"])
+    row = score_flight(name, truth, res, vp, drag, source="px4sih", log=flight["path"])
+    tj = flight["truth_json"]
+    # the groups a breakdown reports (prove.breakdown): how the flight was logged, what was changed
+    row["logging"] = str((tj.get("logging") or {}).get("profile") or "default")
+    row["sih_change"] = "+".join(sorted(tj.get("sih_changes") or {})) or "none"
+    return row
 
 
 def run_suite(out_dir: str | Path, size: str = "full", workers: int = 2, shared: str | Path | None = None,
