@@ -217,7 +217,8 @@ class TwinRunner:
         """The position setpoint carried along by the velocity and acceleration setpoints since the
         last setpoint sample: PX4's trajectory is smooth at the controller rate, its log (and the
         /real topic) a 5-25 Hz subsample of it; a held staircase makes the twin chase 1 m steps at
-        5 m/s.  Never carried more than 1 s (a logging gap)."""
+        5 m/s.  The yaw likewise by its yaw-rate feed-forward (``sp[10]``).  Never carried more than 1 s
+        (a logging gap)."""
         sp = self.sp
         if self.sp_t is None or self.t is None:
             return sp
