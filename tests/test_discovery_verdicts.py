@@ -365,3 +365,43 @@ def test_parameters_the_output_error_cannot_see_are_reported_as_held_at_nominal(
     e = {"held_at_nominal": dict(co.held)}
     assert _param_text(e, "ixx", 0.025).startswith("ixx=0.025 (held at nominal")
     assert _param_text(e, "iyy", 0.0381) == "iyy=0.0381"
+
+
+def test_rank_and_parsimony_compare_effects_on_one_residual():
+    """An effect reported with its equation-error fit (less biased parameters) ranks by its strongest
+    accepted residual, and the simpler rival is judged against it on a residual both pass on (PX4 SIH
+    e14, Izz x1.5: inertia's output-error cut 47 %, its equation-error cut 11 %, the yaw moment's
+    output-error cut 27 %: the yaw moment used to win on 27 > 11)."""
+    from twin_nodes.discovery.discover import _parsimonious, _pick
+
+    class _Inertia(_Cand):
+        name = label = "inertia"
+        param_names = ("ixx", "iyy", "izz")
+
+    rng = np.random.default_rng(0)
+    n_blocks, per = 20, 10
+    blocks = [np.arange(k * per, (k + 1) * per) for k in range(n_blocks)]
+    R0 = 5.0 + 0.25 * rng.normal(size=(n_blocks * per, 6))   # output-error units: changes above OE_MIN_CHANGE
+
+    def fit(cand, kind, rel, resid_scale, accepted=True):
+        f = Fit(cand, np.array([0.03]), None, 0.0, 0.0, np.zeros(6), 6.0, n_blocks, rel, True)
+        f.kind, f.accepted, f.R = kind, accepted, R0 * resid_scale
+        return f
+
+    in_eq, in_out = fit(_Inertia(), "equation", 0.11, 0.89), fit(_Inertia(), "output", 0.47, 0.53)
+    ym_eq, ym_out = fit(_Cand(), "equation", 0.07, 0.93, accepted=False), fit(_Cand(), "output", 0.27, 0.73)
+    inertia, yaw = _pick([in_eq, in_out]), _pick([ym_eq, ym_out])
+    assert inertia is in_eq and inertia.rank == pytest.approx(0.47)   # parameters: equation; rank: output
+    assert yaw is ym_out and yaw.rank == pytest.approx(0.27)
+    kept = sorted([yaw, inertia], key=lambda f: -f.rank)
+    assert kept[0] is inertia
+    # parsimony: the yaw moment (1 parameter) against inertia (3), on the output error both pass on;
+    # inertia's output residual is lower in every block, so it stays
+    blocks_by_kind = {"equation": blocks, "output": blocks}
+    assert _parsimonious(inertia, [inertia, yaw], blocks_by_kind) is inertia
+    # equally good on that residual: the simpler one is kept
+    in_out.R = ym_out.R.copy()
+    assert _parsimonious(inertia, [inertia, yaw], blocks_by_kind) is yaw
+    # no residual both pass on: nothing to compare, the winner stays
+    in_out.accepted = False
+    assert _parsimonious(inertia, [inertia, yaw], blocks_by_kind) is inertia

@@ -311,6 +311,36 @@ def test_interp_linear_nan_and_gaps():
     assert TS.interp_to(t, v, np.array([5.0]), max_gap_s=np.inf)[0] == pytest.approx(5.0)
 
 
+def test_bin_mean_uses_every_sample_without_delay():
+    """A 250 Hz signal onto a 50 Hz grid: each step is the mean of its five samples, so white noise
+    drops by sqrt(5) (picking one sample per step keeps it all); a 2 Hz sine keeps its phase and
+    sinc(2 Hz x 20 ms) of its amplitude; NaN samples are skipped, an empty step is interpolated."""
+    rng = np.random.default_rng(3)
+    ts = np.arange(0.0, 60.0, 0.004)
+    noise = rng.normal(0.0, 1.7, ts.size)
+    t = TS.common_grid(1.0, 59.0, 50.0)
+    picked = TS.interp_to(ts, noise, t)
+    mean = TS.bin_mean_to(ts, noise, t)
+    assert np.std(picked) == pytest.approx(1.7, rel=0.05)
+    assert np.std(mean) == pytest.approx(1.7 / np.sqrt(5), rel=0.05)
+    sine = np.sin(2 * np.pi * 2.0 * ts)
+    got = TS.bin_mean_to(ts, np.column_stack([sine, 2 * sine]), t)
+    ref = np.sin(2 * np.pi * 2.0 * t)
+    gain = float(got[:, 0] @ ref / (ref @ ref))
+    assert gain == pytest.approx(np.sinc(2.0 * 0.02), abs=2e-3) and gain > 0.99
+    assert np.max(np.abs(got[:, 0] - gain * ref)) < 0.01     # no delay: in phase
+    assert np.allclose(got[:, 1], 2 * got[:, 0])
+    # a NaN sample is left out of its step; a step with no sample falls back to linear interpolation
+    v = ts.copy()
+    v[(ts > 10.0) & (ts < 10.005)] = np.nan
+    keep = ~((ts > 20.0) & (ts < 20.03))
+    out = TS.bin_mean_to(ts[keep], v[keep], t)
+    assert np.all(np.isfinite(out))
+    assert np.allclose(out, t, atol=0.0041)     # a line: on it, or one sample step off where samples are missing
+    with pytest.raises(ValueError, match=r"t_dst: expected an increasing grid"):
+        TS.bin_mean_to(ts, v, np.array([1.0]))
+
+
 def test_interp_previous_and_nearest_2d():
     t = np.array([0.0, 1.0, 5.0])
     v = np.array([[1.0, 10.0], [2.0, 20.0], [3.0, 30.0]])

@@ -194,6 +194,36 @@ def interp_to(
     return out[:, 0] if squeeze else out
 
 
+def bin_mean_to(t_src: np.ndarray, values: np.ndarray, t_dst: np.ndarray) -> np.ndarray:
+    """Resample onto a uniform grid ``t_dst`` by averaging, for a signal sampled faster than the grid.
+
+    Each destination time ``t_k`` gets the mean of the finite source samples in
+    ``[t_k - dt/2, t_k + dt/2)`` (``dt`` the grid step): every sample is used once, so white
+    noise drops by the square root of the samples per step, where picking one sample per step
+    (:func:`interp_to`) keeps all of it.  The centred box delays nothing; its gain at frequency
+    ``f`` is ``sinc(f dt)`` (0.997 at 2 Hz on a 50 Hz grid).  A step with no finite sample falls
+    back to linear interpolation (a gap longer than :func:`auto_max_gap` stays NaN)."""
+    t, v, squeeze = _check_src(t_src, values)
+    td = np.asarray(t_dst, dtype=float)
+    if td.ndim != 1 or td.size < 2 or np.any(np.diff(td) <= 0):
+        raise ValueError(f"t_dst: expected an increasing grid of >= 2 times, got shape {td.shape}")
+    dt = float(np.median(np.diff(td)))
+    edges = np.concatenate([td - 0.5 * dt, [td[-1] + 0.5 * dt]])
+    idx = np.searchsorted(t, edges, side="left")
+    fin = np.isfinite(v)
+    csum = np.vstack([np.zeros((1, v.shape[1])), np.cumsum(np.where(fin, v, 0.0), axis=0)])
+    ccnt = np.vstack([np.zeros((1, v.shape[1])), np.cumsum(fin, axis=0)])
+    sums = csum[idx[1:]] - csum[idx[:-1]]
+    cnts = ccnt[idx[1:]] - ccnt[idx[:-1]]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = sums / cnts
+    empty = cnts == 0
+    if empty.any():
+        lin = interp_to(t, v, td, kind="linear")
+        out[empty] = lin[empty]
+    return out[:, 0] if squeeze else out
+
+
 def _quat_interp(q0: np.ndarray, q1: np.ndarray, w: np.ndarray, kind: str) -> np.ndarray:
     q0 = quat_normalize(q0)
     q1 = quat_normalize(q1)
