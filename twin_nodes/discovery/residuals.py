@@ -122,9 +122,11 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
         s = log.require(name)
         if len(s.t_s) > 1 and float(np.median(np.diff(s.t_s))) < 0.75 * dt:
             d[name] = time_sync.bin_mean_to(s.t_s, s.values, t)
-    # high-rate IMU: average down before resampling would be ideal; low-pass the grid instead
+    # and low-pass the grid (the 2 Hz residual filter comes later)
     f = _lowpass(_fill_nan(d["specific_force_flu"]), rate_hz, min(10.0, 0.4 * rate_hz))
-    w = _fill_nan(d[rates_name])
+    # the body rates likewise: what the airframe does lies below 10 Hz (rotor lag, inertia), the rest
+    # is gyro noise (PX4 SIH: 0.14 rad/s in roll) that would start every output-error window off
+    w = _lowpass(_fill_nan(d[rates_name]), rate_hz, min(10.0, 0.4 * rate_hz))
     # Angular acceleration: central difference of the body rates; the 2 Hz low-pass every
     # residual goes through does the smoothing, identically on the model side (a smoothing
     # derivative here would shrink acceleration pulses and bias inertia up).  PX4's own
