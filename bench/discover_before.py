@@ -75,9 +75,15 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     t, d = log.resample(names, rate_hz, lo, hi)
     n = len(t)
     dt = 1.0 / rate_hz
-    # high-rate IMU: average down before resampling would be ideal; low-pass the grid instead
+    # (the data preparation follows the current code's, 2026-11-24: IMU and rates averaged into each
+    # grid step, the rates low-passed at 10 Hz; only the evaluation path is frozen)
+    from twin_nodes.logs import time_sync
+    for name in ("specific_force_flu", rates_name):
+        s = log.require(name)
+        if len(s.t_s) > 1 and float(np.median(np.diff(s.t_s))) < 0.75 * dt:
+            d[name] = time_sync.bin_mean_to(s.t_s, s.values, t)
     f = _lowpass(_fill_nan(d["specific_force_flu"]), rate_hz, min(10.0, 0.4 * rate_hz))
-    w = _fill_nan(d[rates_name])
+    w = _lowpass(_fill_nan(d[rates_name]), rate_hz, min(10.0, 0.4 * rate_hz))
     # Angular acceleration: central difference of the body rates; the 2 Hz low-pass every
     # residual goes through does the smoothing, identically on the model side (a smoothing
     # derivative here would shrink acceleration pulses and bias inertia up).  PX4's own
@@ -362,6 +368,13 @@ def fit_candidate(c: Candidate, data: EquationData | Judge, nominal: VehiclePara
             z = z0.copy()
             z[~zero] = z0[~zero] * f
             starts.append(z)
+        free = np.flatnonzero(~zero)
+        if free.size > 1:  # (each parameter alone, as the current fit does since 2026-11-24)
+            for j in free:
+                for f in (0.7, 1.6):
+                    z = z0.copy()
+                    z[j] = z0[j] * f
+                    starts.append(z)
     else:
         for j in np.flatnonzero(~zero):
             for f in (0.8, 1.2):
@@ -385,13 +398,17 @@ def fit_candidate(c: Candidate, data: EquationData | Judge, nominal: VehiclePara
 def _carried_setpoint(self) -> np.ndarray:
     """TwinRunner._carried_setpoint as it was (the setpoint's rates re-derived every control step)."""
     sp = self.sp
-    if self.sp_t is None or self.t is None or not np.any(np.isfinite(sp[3:6])):
+    turning = bool(np.isfinite(sp[9]) and np.isfinite(sp[10]) and sp[10] != 0.0)  # (yaw carry: 2026-11-24)
+    if self.sp_t is None or self.t is None or not (np.any(np.isfinite(sp[3:6])) or turning):
         return sp
     dt = min(max(self.t - self.sp_t, 0.0), 1.0)
-    vel = np.nan_to_num(sp[3:6])
-    acc = np.nan_to_num(sp[6:9])
     out = sp.copy()
-    out[0:3] = sp[0:3] + vel * dt + 0.5 * acc * dt * dt
+    if np.any(np.isfinite(sp[3:6])):
+        vel = np.nan_to_num(sp[3:6])
+        acc = np.nan_to_num(sp[6:9])
+        out[0:3] = sp[0:3] + vel * dt + 0.5 * acc * dt * dt
+    if turning:
+        out[9] = (sp[9] + sp[10] * dt + np.pi) % (2.0 * np.pi) - np.pi
     return out
 
 
