@@ -364,7 +364,7 @@ def fit_candidate(c: Candidate, data: EquationData | Judge, nominal: VehiclePara
                 z2[zero] = hi[zero] - frac * (hi[zero] - lo[zero])
                 starts.append(z2)
     if judge.lean:
-        for f in (0.7, 1.6):
+        for f in (0.7, 1.6, 2.5):  # (x2.5 jointly, as the current fit does since 2026-11-24)
             z = z0.copy()
             z[~zero] = z0[~zero] * f
             starts.append(z)
@@ -380,6 +380,11 @@ def fit_candidate(c: Candidate, data: EquationData | Judge, nominal: VehiclePara
             for f in (0.8, 1.2):
                 z = z0.copy()
                 z[j] = z0[j] * f
+                starts.append(z)
+        if np.count_nonzero(~zero) > 1:  # (jointly too, as the current fit does since 2026-11-24)
+            for f in (0.6, 1.6, 2.5):
+                z = z0.copy()
+                z[~zero] = z0[~zero] * f
                 starts.append(z)
     for z in starts:
         z = np.clip(z, lo, hi)

@@ -405,3 +405,70 @@ def test_rank_and_parsimony_compare_effects_on_one_residual():
     # no residual both pass on: nothing to compare, the winner stays
     in_out.accepted = False
     assert _parsimonious(inertia, [inertia, yaw], blocks_by_kind) is inertia
+
+
+class _Inertia3:
+    name = label = "inertia"
+    param_names = ("ixx", "iyy", "izz")
+    fixed: dict = {}
+    x0 = np.array([0.025, 0.025, 0.030])
+    lower = 0.2 * x0
+    upper = 5.0 * x0
+
+    def floor(self, th):
+        return bool(np.max(np.abs(np.asarray(th) - self.x0) / self.x0) > 0.03)
+
+    def params_dict(self, th):
+        return dict(zip(self.param_names, map(float, th)))
+
+
+def _fit3(kind, theta, cut, t, n, rel, channel="roll"):
+    c = _Inertia3()
+    th = np.array(theta, float)
+    f = Fit(c, th, None, 0.0, 0.0, np.zeros(6), t, n, rel, c.floor(th))
+    f.kind, f.judged = kind, (channel, 1.0, 1.0 - cut)
+    f.stats = {"n": n, "n_pos": n - 1, "mean": 0.1, "sd": 0.2, "t": t}
+    f.fold_thetas = [th, th]
+    return f
+
+
+def test_two_residuals_corroborate_a_roll_inertia_change():
+    """PX4 SIH g34 (SIH_L_ROLL 0.2 -> 0.16 m: the roll moment x0.8, i.e. Ixx 0.025 -> 0.03125): the
+    output error cuts the held-out roll error by 22 % over only 5 excited blocks (t 1.3), the
+    equation error is significant (t 4.9 over 153 blocks) but its roll channel is the differentiated
+    gyro (a 7 % cut); both fit Ixx 0.0304.  Together: ``likely``, reported with the equation error's
+    parameters (it saw the roll axis); any one piece missing: rejected."""
+    from twin_nodes.discovery.discover import _pick
+    from twin_nodes.discovery.verdicts import corroboration
+
+    ex = {"roll": {"blocks_heldout": 15, "blocks_heldout_total": 168, "manoeuvres": {"hover": 9}}}
+
+    def pair(out_theta=(0.0304, 0.0257, 0.030), eq_theta=(0.0304, 0.0269, 0.0298), out_cut=0.22, eq_t=4.9,
+             eq_fold=None):
+        o = _fit3("output", out_theta, out_cut, 1.3, 5, 0.042)
+        e = _fit3("equation", eq_theta, 0.065, eq_t, 153, 0.001)
+        if eq_fold is not None:
+            e.fold_thetas = [e.theta, np.array(eq_fold)]
+            e.folds_agree = False
+        return o, e
+
+    o, e = pair()
+    assert "t=4.9" in corroboration(o, e, 3.0)
+    f = _pick([o, e])
+    assert f is e                                   # the equation error's parameters are reported
+    grade(f, 3.0, 0.1, ex)
+    assert f.verdict == "likely", f.verdict_note
+    assert "corroborate" in f.verdict_note and "roll" in f.verdict_note
+    assert f.excitation["blocks_missing"] >= 1 and "rate_doublets" in f.excitation["plans"]
+    # each piece on its own is not enough
+    for kw in ({"eq_t": 2.5},                                  # equation error not significant
+               {"out_cut": 0.10},                              # output error's cut too small
+               {"eq_theta": (0.021, 0.025, 0.030)},            # the fits disagree in direction
+               {"eq_theta": (0.0265, 0.025, 0.030)},           # ... or in size (x4 apart)
+               {"out_theta": (0.0255, 0.025, 0.030)},          # next to nominal
+               {"eq_fold": (0.020, 0.025, 0.030)}):            # the equation error's folds disagree
+        o, e = pair(**kw)
+        assert corroboration(o, e, 3.0) is None, kw
+        f = _pick([o, e])
+        grade(f, 3.0, 0.1, ex)
+        assert f.verdict == "rejected", (kw, f.verdict_note)

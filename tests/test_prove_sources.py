@@ -99,6 +99,26 @@ def test_score_rules_no_effect_and_effect_rows():
     assert lines[-1].startswith("px4sih [sih_change none]: right effect on top 0/0")
 
 
+def test_a_true_effect_named_only_as_the_top_findings_alternative_is_shown_not_scored():
+    """SIH_T_TAU 0.05 -> 0.12 s on a 50 Hz log: the delay is named, the lag is its not-told-apart
+    alternative.  The row stays wrong (the issue's rule), the summary says how often this happens."""
+    vp = shipped("px4_sih_quadx")
+    truth = Truth(Hidden("motor_time_constant", {"tau_up": 0.12, "tau_down": 0.12}))
+    top = {"name": "actuator_delay", "verdict": "confirmed", "params": {"delay": 0.066},
+           "heldout_improvement": 0.3, "heldout_before": 1.0, "heldout_after": 0.7,
+           "alternatives": [{"name": "motor_time_constant", "params": {"tau_up": 0.13, "tau_down": 0.11},
+                             "cv_improvement": 0.2}]}
+    row = score_flight("t", truth, _res(top), vp)
+    assert not row["right_class"] and row["true_is_alternative"] and not row["passed"]
+    alone = score_flight("t", truth, _res(dict(top, alternatives=[])), vp)
+    assert not alone["true_is_alternative"]
+    s = score([row, alone], "x")
+    assert s["n_right_top"] == 0 and s["n_true_is_alternative"] == 1
+    assert prove.summary_line(s).endswith("(not scored: on 1 more the true effect is the top finding's "
+                                          "not-told-apart alternative)")
+    assert "not scored" not in prove.summary_line(score([alone], "x"))
+
+
 # ---------------------------------------------------------------- px4sih
 
 

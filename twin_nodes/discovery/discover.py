@@ -48,7 +48,7 @@ from twin_nodes.discovery.output_error import (AXES, HORIZON_S, JUDGED, MIN_AXIS
                                                make_windows, output_error)
 from twin_nodes.discovery.residuals import (LOWPASS_HZ, EquationData, channel_names, modes, prepare,
                                             residual_channels)
-from twin_nodes.discovery.verdicts import folds_agree, grade, likely_failures
+from twin_nodes.discovery.verdicts import corroboration, folds_agree, grade, likely_failures
 from twin_nodes.vehicle.params import VehicleParams
 
 HELDOUT_FRACTION = 0.35
@@ -74,6 +74,12 @@ _PARAM_AXES = {"ixx": (3,), "iyy": (4,), "izz": (5,), "km": (5,)}
 PRUNE_GAIN = 0.02
 #: an output-error block is active when the candidate changes it by half the axis' typical error
 OE_MIN_CHANGE = 0.5
+#: joint starts (every parameter with a non-zero nominal scaled together) for multi-parameter
+#: fits: the time constants' cost is a curved valley (a slower spin-down helps only once the
+#: spin-up is slower too: PX4 SIH with SIH_T_TAU 0.05 -> 0.12 s, logged at 50 Hz, stalled at
+#: tau_up 0.08 / tau_down 0.05 from the one-at-a-time starts, and the delay was named instead)
+JOINT_STARTS = (0.6, 1.6, 2.5)
+JOINT_STARTS_LEAN = (0.7, 1.6, 2.5)
 #: fits on the output error use at most this many windows (the judging uses all held-out ones)
 OE_FIT_WINDOWS = 300
 
@@ -302,7 +308,7 @@ def fit_candidate(c: Candidate, data: EquationData | Judge, nominal: VehiclePara
                 z2[zero] = hi[zero] - frac * (hi[zero] - lo[zero])
                 starts.append(z2)
     if judge.lean:
-        for f in (0.7, 1.6):
+        for f in JOINT_STARTS_LEAN:
             z = z0.copy()
             z[~zero] = z0[~zero] * f
             starts.append(z)
@@ -321,6 +327,11 @@ def fit_candidate(c: Candidate, data: EquationData | Judge, nominal: VehiclePara
             for f in (0.8, 1.2):
                 z = z0.copy()
                 z[j] = z0[j] * f
+                starts.append(z)
+        if np.count_nonzero(~zero) > 1:
+            for f in JOINT_STARTS:
+                z = z0.copy()
+                z[~zero] = z0[~zero] * f
                 starts.append(z)
     for z in starts:
         z = np.clip(z, lo, hi)
@@ -581,14 +592,18 @@ def _summary(f: Fit) -> dict:
 
 
 def _pick(fits: list[Fit]) -> Fit:
-    """One fit per candidate: accepted first, then one that is ``likely`` on its residual, and among
+    """One fit per candidate: accepted first, then one that is ``likely`` on its residual (or that the
+    two residuals corroborate, :func:`~twin_nodes.discovery.verdicts.corroboration`), and among
     equals the equation error's (the output error judges what the equation error cannot see; where
     both see an effect, the equation error, which does not integrate the aliased 50 Hz commands, is
     the less biased: on our inertia x1.6 flight ixx 0.0412 against 0.0465, truth 0.040); else the
     larger cross-validated cut."""
+    kinds = {f.kind: f for f in fits}
+    corr = corroboration(kinds.get("output"), kinds.get("equation"), T_CRIT) is not None
+
     def key(f):
         acc = f.accepted
-        lik = not likely_failures(f, T_CRIT, MIN_REL_IMPROVEMENT)
+        lik = corr or not likely_failures(f, T_CRIT, MIN_REL_IMPROVEMENT)
         return (acc, lik, (acc or lik) and f.kind == "equation", f.rel_improvement)
     best = max(fits, key=key)
     best.by_kind = {f.kind: f for f in fits}

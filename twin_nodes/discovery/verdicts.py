@@ -13,6 +13,14 @@
     statistic (> ``LIKELY_MIN_T``), but too few excited blocks for the 3-sigma test.  The verdict
     says how many more blocks the test needs at the observed gain and spread, and which manoeuvre
     supplies them (a confirmation plan, :mod:`twin_nodes.discovery.plans`).
+    A dynamic effect is also ``likely`` when its two residuals *corroborate* each other
+    (:func:`corroboration`): the output error shows the size (a held-out cut of at least
+    ``CORROBORATE_MIN_CUT`` in the channel it acts on, over too few excited blocks for a test of its
+    own) and the equation error, which sees every block, the significance (t > the acceptance
+    bar), each fit physical and well away from nominal with both folds agreeing, and both fits
+    moving the same parameter the same way by comparable amounts.  On 50 Hz PX4 logs this is how
+    a roll-inertia change shows: the equation error's roll channel is dominated by the
+    differentiated gyro (a significant but small cut), the output error's roll windows are few.
 ``rejected``
     anything else, with the reason.
 """
@@ -28,6 +36,9 @@ from twin_nodes.discovery.locate import supply_for
 LIKELY_MIN_CUT = 0.30
 LIKELY_MIN_T = 1.5
 LIKELY_MIN_POSITIVE = 0.75
+#: the output error's held-out cut a corroborated effect needs (half ``LIKELY_MIN_CUT``: the
+#: significance comes from the other residual)
+CORROBORATE_MIN_CUT = 0.15
 #: blocks, all improved, that the sign test needs for one-sided 3 sigma (2^-10 < 0.00135)
 SIGN_TEST_BLOCKS = 10
 
@@ -66,6 +77,42 @@ def folds_agree(c, thetas: list[np.ndarray], scales: np.ndarray) -> bool:
     if a * b <= 0:
         return False
     return min(abs(a), abs(b)) >= 0.5 * max(abs(a), abs(b))
+
+
+def _moves(g) -> dict[str, float]:
+    """Each fitted parameter's change from nominal, relative to its scale."""
+    c = g.candidate
+    span = c.upper - c.lower
+    scale = np.where(np.abs(c.x0) > 1e-12, np.abs(c.x0), span / 20.0)
+    return {k: float((v - x0) / max(sc, 1e-12)) for k, v, x0, sc in zip(c.param_names, g.theta, c.x0, scale)}
+
+
+def corroboration(out_fit, eq_fit, t_crit: float) -> str | None:
+    """Why the output-error fit ``out_fit`` and the equation-error fit ``eq_fit`` of one candidate
+    corroborate each other (module docstring), or None when they do not."""
+    if out_fit is None or eq_fit is None:
+        return None
+    for g in (out_fit, eq_fit):
+        if (not g.above_floor or g.at_bound or g.unphysical or g.closed_loop or not g.folds_agree
+                or not far_from_nominal(g.candidate, g.theta)):
+            return None
+    if out_fit.mode_cut < CORROBORATE_MIN_CUT or out_fit.rel_improvement <= 0:
+        return None
+    if not eq_fit.t_stat > t_crit or eq_fit.rel_improvement <= 0:
+        return None
+    mo, me = _moves(out_fit), _moves(eq_fit)
+    if not mo:
+        return None
+    k = max(mo, key=lambda p: abs(mo[p]))
+    a, b = mo[k], me.get(k, 0.0)
+    if k not in me or a * b <= 0 or min(abs(a), abs(b)) < 0.5 * max(abs(a), abs(b)):
+        return None
+    i = list(out_fit.candidate.param_names).index(k)
+    vo = float(out_fit.theta[i])
+    ve = float(eq_fit.theta[list(eq_fit.candidate.param_names).index(k)])
+    return (f"output error: {100 * out_fit.mode_cut:.0f} % held-out cut in {out_fit.judged[0]} over "
+            f"{int(out_fit.stats.get('n', out_fit.n_blocks))} active blocks; equation error: t={eq_fit.t_stat:.1f} "
+            f"over {eq_fit.n_blocks} blocks; {k} {vo:.4g} and {ve:.4g}, nominal {float(out_fit.candidate.x0[i]):.4g}")
 
 
 def blocks_needed(stats: dict, t_crit: float) -> int | None:
@@ -123,6 +170,21 @@ def grade(f, t_crit: float, min_rel: float, excitation: dict | None, explained_b
     if explained_by:
         f.verdict, f.verdict_note = "rejected", f"explained by {explained_by}"
         return
+    corr = corroboration(f.by_kind.get("output"), f.by_kind.get("equation"), t_crit)
+    if corr:
+        o = f.by_kind["output"]
+        och = o.judged[0] or ch
+        need = blocks_needed(o.stats, t_crit)
+        have = int(o.stats.get("n", 0))
+        missing = max((need or have + 1) - have, 1)
+        ex["corroborated"] = corr
+        ex["blocks_needed"] = need
+        ex["blocks_missing"] = missing
+        ex["plans"] = list(EFFECT_MANOEUVRES.get(f.candidate.name, ("rate_doublets",)))
+        f.verdict = "likely"
+        f.verdict_note = (f"the two residuals corroborate it ({corr}); about {missing} more excited {och} "
+                          f"blocks needed for the output error's own 3-sigma test: fly {supply_for(och)}")
+        return
     fails = likely_failures(f, t_crit, min_rel)
     significant = f.t_stat > t_crit
     if fails or significant:
@@ -141,5 +203,5 @@ def grade(f, t_crit: float, min_rel: float, excitation: dict | None, explained_b
                       f"3-sigma test: fly {supply_for(ch)}")
 
 
-__all__ = ["EFFECT_MANOEUVRES", "LIKELY_MIN_CUT", "LIKELY_MIN_T", "blocks_needed", "far_from_nominal",
-           "folds_agree", "grade", "likely_failures"]
+__all__ = ["CORROBORATE_MIN_CUT", "EFFECT_MANOEUVRES", "LIKELY_MIN_CUT", "LIKELY_MIN_T", "blocks_needed",
+           "corroboration", "far_from_nominal", "folds_agree", "grade", "likely_failures"]
