@@ -3,13 +3,17 @@
 Design: the effect's parameters stay those fitted on FLIGHT, and the follow-up flight (flown
 with a confirmation plan, :mod:`twin_nodes.discovery.plans`) is a pure held-out test of them: it
 was not seen by the fit, so every one of its blocks is a held-out block.  On the residual the
-effect was graded on (equation or output error), with the nominal vehicle plus FLIGHT's confirmed
-effects as the baseline:
+effect was graded on (equation or output error; the output error for an effect the two residuals
+corroborated, whose missing output-error blocks the plan supplies), with the nominal vehicle plus
+FLIGHT's confirmed effects as the baseline:
 
 - *confirmed* when the block test over all the follow-up's blocks passes the discovery bar
-  (statistic > ``T_CRIT``, >= ``MIN_REL_IMPROVEMENT`` of the follow-up residual explained, a cut
-  in the effect's own channel) and a refit on the follow-up alone (2-fold, as discovery fits)
-  lands on the same side of nominal within a factor of 1.5 of FLIGHT's change;
+  (statistic > ``T_CRIT``, >= ``MIN_REL_IMPROVEMENT`` of the follow-up residual explained in the
+  effect's own channel, no channel made worse overall) and a refit on the follow-up alone (2-fold,
+  as discovery fits) lands on the same side of nominal within a factor of 1.5 of FLIGHT's change.
+  The cut is asked in the effect's channel, not of all channels together: the plan excites the
+  effect's channel, and an effect acting in one of four axes (a roll inertia) cannot explain a
+  tenth of all four (PX4 SIH g34's follow-up: 30 % in roll, t 6, 6 % of all);
 - otherwise *dropped* (``rejected``), with the follow-up's numbers.
 
 Judging the fixed FLIGHT fit, rather than refitting on FLIGHT + FOLLOWUP, keeps the test free of
@@ -51,7 +55,9 @@ def confirm(result: dict, followup_log, vp: VehicleParams) -> dict:
     S = prepare_flight(followup_log, vp)
     cands = {c.label: c for c in build_candidates(base, S.data)}
     for e in likely:
-        kind = e.get("residual", "equation")
+        # a corroborated effect (verdicts.corroboration) lacked output-error blocks, which the plan
+        # supplies: the follow-up judges it there
+        kind = "output" if (e.get("excitation") or {}).get("corroborated") else e.get("residual", "equation")
         judge = S.oe if kind == "output" and S.oe is not None else S.eq
         if judge.kind == "equation":
             rows = S.data.valid
@@ -88,12 +94,14 @@ def confirm(result: dict, followup_log, vp: VehicleParams) -> dict:
             d1 = (f.theta - c.x0) / s
             j = int(np.argmax(np.abs(d0)))
             agree = bool(d0[j] * d1[j] > 0 and max(abs(d0[j]), abs(d1[j])) <= AGREE_FACTOR * min(abs(d0[j]), abs(d1[j])))
-        passed = st["t"] > T_CRIT and rel >= MIN_REL_IMPROVEMENT and mode_cut >= MIN_REL_IMPROVEMENT and agree
+        passed = st["t"] > T_CRIT and rel >= 0.0 and mode_cut >= MIN_REL_IMPROVEMENT and agree
         why = []
         if st["t"] <= T_CRIT:
             why.append(f"not significant on the follow-up (t={st['t']:.1f} over {st['n']} active blocks)")
-        if rel < MIN_REL_IMPROVEMENT or mode_cut < MIN_REL_IMPROVEMENT:
-            why.append(f"explains only {100 * rel:.0f} % of the follow-up residual ({100 * mode_cut:.0f} % in {ch})")
+        if rel < 0.0:
+            why.append(f"makes the follow-up residual worse overall ({100 * rel:.0f} %)")
+        if mode_cut < MIN_REL_IMPROVEMENT:
+            why.append(f"explains only {100 * mode_cut:.0f} % of the follow-up residual in {ch}")
         if not agree:
             why.append("the refit on the follow-up disagrees with the flight's fit")
         row = {"name": e["name"], "params_flight": e["params"], "residual": judge.kind, "channel": ch,
