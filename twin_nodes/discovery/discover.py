@@ -45,7 +45,7 @@ from twin_nodes.discovery import evaluate
 from twin_nodes.discovery.candidates import Candidate, build_candidates
 from twin_nodes.discovery.locate import excitation, locate, locate_output, regimes  # noqa: F401  (regimes: re-exported)
 from twin_nodes.discovery.output_error import (AXES, HORIZON_S, JUDGED, MIN_AXIS_R2, STRIDE_S, Windows, judge_axes,
-                                               make_windows, output_error)
+                                               authority_mismatch, make_windows, output_error)
 from twin_nodes.discovery.residuals import (LOWPASS_HZ, EquationData, channel_names, modes, prepare,
                                             residual_channels)
 from twin_nodes.discovery.verdicts import corroboration, folds_agree, grade, likely_failures
@@ -507,14 +507,20 @@ def _equation_judge(data: EquationData, nominal: VehicleParams, folds, blocks, h
                  held_mask if held_mask is not None else np.zeros(data.n, bool))
 
 
-def _output_judge(data: EquationData, nominal: VehicleParams, t_split: float, t_split2: float) -> Judge | None:
-    """The output-error judge: windows, their folds (a window belongs to a part when all of it
-    does) and blocks; None when no axis is predicted credibly or there are too few windows."""
+def _judged_windows(data: EquationData, nominal: VehicleParams) -> Windows | None:
+    """The output error's windows with every axis judged (None: too few windows)."""
     win = make_windows(data)
     if win.n < 20:
         return None
-    judge_axes(data, win, nominal)
-    if not win.usable.any():
+    return judge_axes(data, win, nominal)
+
+
+def _output_judge(data: EquationData, nominal: VehicleParams, t_split: float, t_split2: float,
+                  win: Windows | None = None) -> Judge | None:
+    """The output-error judge: windows, their folds (a window belongs to a part when all of it
+    does) and blocks; None when no axis is predicted credibly or there are too few windows."""
+    win = _judged_windows(data, nominal) if win is None else win
+    if win is None or not win.usable.any():
         return None
     fit1 = win.t_end < t_split
     test1 = win.t >= t_split
@@ -658,6 +664,8 @@ class Setup:
     eq: Judge
     oe: Judge | None
     excitation: dict
+    #: the output error's judged windows, also where no axis is usable (the instrumented gains)
+    windows: Windows | None = None
 
 
 def prepare_flight(log, vp: VehicleParams, heldout_fraction: float = HELDOUT_FRACTION, output_error: bool = True) -> Setup:
@@ -674,9 +682,10 @@ def prepare_flight(log, vp: VehicleParams, heldout_fraction: float = HELDOUT_FRA
     folds = [(fit_mask, held_mask), (data.valid & (data.t >= t_split2), held2)]
     held_blocks = _blocks(data.t, held_mask, BLOCK_S) + _blocks(data.t, held2, BLOCK_S)
     eq = _equation_judge(data, vp, folds, held_blocks, held_mask)
-    oe = _output_judge(data, vp, t_split, t_split2) if output_error else None
+    win = _judged_windows(data, vp) if output_error else None
+    oe = _output_judge(data, vp, t_split, t_split2, win) if win is not None else None
     ex = excitation(data, vp, names, _blocks(data.t, data.valid, BLOCK_S), held_blocks)
-    return Setup(data, names, fit_mask, held_mask, float(t_split), float(valid_t[-1]), eq, oe, ex)
+    return Setup(data, names, fit_mask, held_mask, float(t_split), float(valid_t[-1]), eq, oe, ex, win)
 
 
 def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTION, max_effects: int = MAX_EFFECTS,
@@ -868,11 +877,15 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         r0, mn = _mode_rms(oe_base[oe.held_mask], vp)
         result["baseline"]["output_error_heldout"] = {k: round(float(v), 5) for k, v in zip(mn, r0)}
         result["output_error_axes"] = {**oe.windows.describe(), "horizon_s": HORIZON_S}
+        result["authority"] = authority_mismatch(oe.windows)
         if accepted:
             r1, _ = _mode_rms(oe.residual(current, oe.held_mask), vp)
             result["after"]["output_error_heldout"] = {k: round(float(v), 5) for k, v in zip(mn, r1)}
     else:
-        result["output_error_axes"] = None
+        # no axis usable: the output error is not used, its axes and instrumented gains still shown
+        result["output_error_axes"] = ({**S.windows.describe(), "horizon_s": HORIZON_S}
+                                       if S.windows is not None else None)
+        result["authority"] = authority_mismatch(S.windows) if S.windows is not None else []
     if closed_loop_metrics:
         _closed_loop(result, log, vp, current, t_split, S.t_end, closed)
     _closed_loop_reset()

@@ -31,6 +31,7 @@ prediction but keeps the correlation); the others are reported and left out.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -65,15 +66,25 @@ class Windows:
     axis_r2: np.ndarray = field(default_factory=lambda: np.ones(6))        # nominal prediction r^2 per axis
     axis_gain: np.ndarray = field(default_factory=lambda: np.ones(6))      # measured/predicted slope gain
     scale: np.ndarray = field(default_factory=lambda: np.ones(6))          # nominal error level per axis
+    #: per axis, the rate setpoint as instrument (:func:`instrumented_gains`; NaN: no instrument)
+    iv_gain: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
+    iv_se: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
+    iv_r: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
 
     @property
     def n(self) -> int:
         return len(self.start)
 
     def describe(self) -> dict:
-        return {"horizon_s": None, "windows": int(self.n),
-                "axes": {a: {"r2": round(float(r), 3), "gain": round(float(g), 3), "used": bool(u)}
-                         for a, r, g, u, j in zip(AXES, self.axis_r2, self.axis_gain, self.usable, JUDGED) if j}}
+        axes = {}
+        for i, (a, r, g, u, j) in enumerate(zip(AXES, self.axis_r2, self.axis_gain, self.usable, JUDGED)):
+            if not j:
+                continue
+            axes[a] = {"r2": round(float(r), 3), "gain": round(float(g), 3), "used": bool(u)}
+            if np.isfinite(self.iv_gain[i]):
+                axes[a].update(iv_gain=round(float(self.iv_gain[i]), 3), iv_se=round(float(self.iv_se[i]), 3),
+                               instrument_r=round(float(self.iv_r[i]), 3))
+        return {"horizon_s": None, "windows": int(self.n), "axes": axes}
 
 
 def make_windows(data: EquationData, horizon_s: float = HORIZON_S, stride_s: float = STRIDE_S) -> Windows:
@@ -155,9 +166,87 @@ def axis_errors(data: EquationData, win: Windows, vp: VehicleParams, rows: np.nd
     return np.column_stack([am, wm]), np.column_stack([ap, wp])
 
 
+def instrumented_gains(meas: np.ndarray, pred: np.ndarray, z: np.ndarray, cluster: int = 3
+                       ) -> tuple[float, float, float, float]:
+    """How the measured change follows the predicted one, per window: the least-squares gain
+    cov(p, m) / var(p), the instrumental-variable gain cov(z, m) / cov(z, p), its standard error
+    (robust, clustered over ``cluster`` neighbouring windows, which overlap), and the instrument's
+    correlation with the prediction.
+
+    Noise in the prediction (the aliased 50 Hz motor commands it integrates) pulls the
+    least-squares gain towards zero; an instrument that drives the true signal but is independent of
+    that noise (the rate setpoint's change over the window) does not: with ``m = g s + e``,
+    ``p = s + n`` and ``z`` correlated with ``s`` only, cov(z, m) / cov(z, p) -> g."""
+    ok = np.isfinite(meas) & np.isfinite(pred) & np.isfinite(z)
+    m, p, zz = meas[ok], pred[ok], z[ok]
+    if m.size < 10:
+        return math.nan, math.nan, math.nan, math.nan
+    mc, pc, zc = m - m.mean(), p - p.mean(), zz - zz.mean()
+    ols = float(np.sum(pc * mc) / max(np.sum(pc * pc), 1e-30))
+    szp = float(np.sum(zc * pc))
+    if abs(szp) < 1e-30 or np.sum(zc * zc) < 1e-30:
+        return ols, math.nan, math.nan, math.nan
+    iv = float(np.sum(zc * mc) / szp)
+    e = mc - iv * pc
+    contrib = zc * e
+    k = contrib.size // cluster * cluster
+    clusters = np.add.reduceat(contrib[:k], np.arange(0, k, cluster)) if k else contrib
+    se = float(np.sqrt(np.sum(clusters ** 2)) / abs(szp))
+    r = float(np.corrcoef(zc, pc)[0, 1])
+    return ols, iv, se, r
+
+
+def setpoint_slopes(data: EquationData, win: Windows) -> np.ndarray | None:
+    """(K, 3) the rate setpoint's least-squares slope over each window, FLU (None: not logged)."""
+    if data.w_sp is None:
+        return None
+    H = win.horizon
+    h = np.arange(1, H + 1)
+    hc = (h - h.mean()) / (np.sum((h - h.mean()) ** 2) * data.dt)
+    return np.einsum("h,hkc->kc", hc, data.w_sp[win.start[None, :] + h[:, None]])
+
+
+#: an instrumented gain is reported as a mismatch when it is this far from 1 and ``AUTHORITY_MIN_SE``
+#: standard errors away, with an instrument at least this correlated with the prediction.  On the 12
+#: PX4 SIH no-effect flights roll reads 0.83-1.08 and pitch 0.94-1.01; the clustered standard error
+#: understates roll's spread from flight to flight (a drag-only flight: roll 0.83 +- 0.05), hence 4
+AUTHORITY_MIN_CHANGE = 0.15
+AUTHORITY_MIN_SE = 4.0
+AUTHORITY_MIN_R = 0.3
+
+
+def authority_mismatch(win: Windows) -> list[dict]:
+    """The rotational axes the output error leaves out whose instrumented gain says the vehicle
+    turns more or less per command than the nominal model: a located mismatch (not an effect: which
+    physics -- inertia, moment arm, rotor thrust split -- needs the fit, on a log that resolves the axis)."""
+    out = []
+    for i in (3, 4, 5):
+        g, se, r = win.iv_gain[i], win.iv_se[i], win.iv_r[i]
+        if win.usable[i] or not np.isfinite(g) or not np.isfinite(se) or r < AUTHORITY_MIN_R:
+            continue
+        if abs(g - 1.0) > max(AUTHORITY_MIN_CHANGE, AUTHORITY_MIN_SE * se):
+            out.append({"axis": AXES[i], "iv_gain": round(float(g), 3), "iv_se": round(float(se), 3),
+                        "ols_gain": round(float(win.axis_gain[i]), 3), "instrument_r": round(float(r), 3),
+                        "note": (f"{AXES[i]}: the vehicle's angular acceleration per command is {g:.2f} +- {se:.2f} "
+                                 f"x the nominal's (rate setpoint as instrument; the output error leaves this "
+                                 f"axis out, r^2 {win.axis_r2[i]:.2f}): {'more' if g < 1 else 'less'} inertia "
+                                 f"(x{1 / g:.2f}), {'less' if g < 1 else 'more'} moment per command"
+                                 + (", or slower motors (a lag or delay spreads the response past the "
+                                    "window)" if g < 1 else "") + "; a log with motors every 4 ms lets the fit "
+                                 "tell which")})
+    return out
+
+
 def judge_axes(data: EquationData, win: Windows, nominal: VehicleParams) -> Windows:
-    """Fill ``win.usable``/``axis_r2``/``axis_gain`` from the nominal model's prediction."""
+    """Fill ``win.usable``/``axis_r2``/``axis_gain`` from the nominal model's prediction, and the
+    rotational axes' instrumented gains (``iv_gain``, ``iv_se``, ``iv_r``) where the log has the
+    rate setpoint."""
     meas, pred = axis_errors(data, win, nominal)
+    z = setpoint_slopes(data, win)
+    if z is not None:
+        for ax in range(3):
+            _, iv, se, r = instrumented_gains(meas[:, 3 + ax], pred[:, 3 + ax], z[:, ax])
+            win.iv_gain[3 + ax], win.iv_se[3 + ax], win.iv_r[3 + ax] = iv, se, r
     dm = meas - meas.mean(0)
     dp = pred - pred.mean(0)
     cov = np.sum(dm * dp, 0)
@@ -192,5 +281,6 @@ def output_error(data: EquationData, win: Windows, vp: VehicleParams, nominal: V
     return np.where(np.isfinite(R), R, 0.0)
 
 
-__all__ = ["AXES", "HORIZON_S", "MIN_AXIS_R2", "Windows", "axis_errors", "judge_axes", "make_windows",
-           "output_error", "simulate_windows"]
+__all__ = ["AUTHORITY_MIN_CHANGE", "AUTHORITY_MIN_R", "AUTHORITY_MIN_SE", "AXES", "HORIZON_S", "MIN_AXIS_R2", "Windows",
+           "authority_mismatch", "axis_errors", "instrumented_gains", "judge_axes",
+           "make_windows", "output_error", "setpoint_slopes", "simulate_windows"]

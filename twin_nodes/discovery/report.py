@@ -43,6 +43,8 @@ def summary_text(res: dict) -> str:
             kind = "OE" if m.get("residual") == "output" else "EE"
             lines.append(f"    {m['channel']:<9} {kind} {m['t_start']:7.1f}-{m['t_end']:7.1f} s  {m['regime']:<28} "
                          f"severity {m['severity']:.1f}x {'typical error' if kind == 'OE' else 'noise'}")
+    for a in res.get("authority") or []:
+        lines.append(f"  mismatch located by the rate setpoint: {a['note']}")
     ex = res.get("excitation") or {}
     if ex:
         lines.append("  excitation (held-out blocks with signal / all; manoeuvres):")

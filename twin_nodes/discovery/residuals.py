@@ -60,6 +60,8 @@ class EquationData:
     height: np.ndarray            # (T,) m above the take-off ground level
     motor_dt_s: float             # logging interval of the motor topic
     info: dict = field(default_factory=dict)
+    #: (T, 3) the rate loop's setpoint, FLU rad/s (None: not logged); an instrument, never a residual
+    w_sp: np.ndarray | None = None
     #: what every candidate evaluation reuses (see :func:`model_rotor_states`, :func:`exogenous`,
     #: :func:`residual_channels`); derived from the fields above, never changes a result
     cache: dict = field(default_factory=dict, repr=False, compare=False)
@@ -177,6 +179,9 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     contact = np.convolve(contact.astype(float), np.ones(2 * pad + 1), mode="same") > 0
     data.valid &= ~contact
     data.info["contact_samples"] = int(contact.sum())
+    rs = log.get("setpoint_rates_flu")
+    if rs is not None and len(rs.t_s) > 1:
+        data.w_sp = rs.at(t)
     if data.valid.sum() < 5 * rate_hz:
         raise LogError(log.path, "airborne samples", "expected at least 5 s of usable airborne data")
     return data

@@ -137,6 +137,7 @@ SERIES_SPEC: dict[str, tuple[str, str, str]] = {
     "setpoint_accel_enu": ("m/s^2", "ENU", "previous"),
     "setpoint_yaw_enu": ("rad", "ENU yaw from East, CCW", "previous"),
     "setpoint_yawspeed": ("rad/s", "yaw-rate feed-forward about ENU up, CCW", "previous"),
+    "setpoint_rates_flu": ("rad/s", "FLU", "linear"),
     "nav_state": ("-", "PX4 nav_state", "previous"),
     "armed": ("-", "bool", "previous"),
     "landed": ("-", "bool", "previous"),
@@ -158,6 +159,7 @@ TOPICS = (
     "actuator_controls_0",
     "vehicle_thrust_setpoint",
     "vehicle_torque_setpoint",
+    "vehicle_rates_setpoint",
     "battery_status",
     "sensor_combined",
     "trajectory_setpoint",
@@ -1019,6 +1021,12 @@ def _build_series(
         out["torque_setpoint_flu"] = _series("torque_setpoint_flu", tq.t_s,
                                              frames.frd_to_flu(tq.arr("xyz", 3)),
                                              "vehicle_torque_setpoint.xyz (FRD)")
+    # the rate loop's setpoint: smooth (the attitude loop's output), unlike the motor commands a
+    # 50 Hz log picks from a 250 Hz loop; discovery uses it as an instrument (output_error)
+    rs = get("vehicle_rates_setpoint")
+    if rs is not None and rs.has("roll") and rs.has("pitch") and rs.has("yaw"):
+        out["setpoint_rates_flu"] = _series("setpoint_rates_flu", rs.t_s, frames.frd_to_flu(
+            np.column_stack([rs.col("roll"), rs.col("pitch"), rs.col("yaw")])), "vehicle_rates_setpoint (FRD)")
 
     # --- battery
     bat = get("battery_status")
