@@ -168,3 +168,38 @@ def test_roll_arm_round_trip_replayed_from_out(tmp_path):
     n = _confirmation(flight, control, tmp_path / "control.json")
     # measured: t -7.2 (the flight's fit makes the control worse), refit ixx 0.0261
     assert n["verdict"] == "rejected" and n["followup_t_stat"] < 0.0, n["note"]
+
+
+def test_instrumented_roll_arm_round_trip_replayed_from_out(tmp_path):
+    """SIH_L_ROLL 0.2 -> 0.16 m on grid flight g26 (yaw-square mission, 4 ms logs): roll's output error
+    is left out (r^2 0.797 < 0.8), the rate setpoint as instrument reads roll 0.73 +- 0.03 and yaw 1.00,
+    and ``inertia`` is ``likely`` on the instrumented residual (Ixx 0.0334 +- 0.0018 vs 0.03125).  Its plan
+    (15 rate doublets) flown with the same change (out/confirm_g26/c2) confirms it on the roll output
+    error, the refit within 5 % of the truth; flown with no change (n2) it is dropped.  The first plan
+    (6 doublets, c1) was too short: t 2.4 over 58 blocks, dropped.  Recorded 2026-11-25 (docs/discovery.md)."""
+    px4_sitl_binary()
+    flight = REPO / "out" / "sih_grid" / "g26" / "flight.ulg"
+    followup = REPO / "out" / "confirm_g26" / "c2" / "flight.ulg"
+    control = REPO / "out" / "confirm_g26" / "n2" / "flight.ulg"
+    missing = [str(p.relative_to(REPO)) for p in (flight, followup, control) if not p.is_file()]
+    if missing:
+        pytest.skip(f"round-trip flights not flown here: {', '.join(missing)} (docs/discovery.md)")
+    _rotortwin("discover", flight, "--params", PARAMS, "--plan-dir", tmp_path / "plans", "--json",
+               tmp_path / "g26.json", "--no-closed-loop")
+    res = json.loads((tmp_path / "g26.json").read_text())
+    eff = next(e for e in res["effects"] if e["name"] == "inertia")
+    assert res["likely"] == ["inertia"] and res["accepted"] == [], (res["likely"], res["accepted"])
+    assert eff["residual"] == "instrumented" and eff["heldout_channel"] == "roll", eff
+    assert abs(eff["params"]["ixx"] / 0.03125 - 1) < 0.10 and eff["params"]["iyy"] == 0.025, eff["params"]
+    assert eff["heldout_improvement"] > 0.5 and 0 < eff["params_se"]["ixx"] < 0.003
+    assert res["instrumented"]["axes"]["roll"]["flagged"] and abs(res["instrumented"]["yaw_gain"] - 1) < 0.02
+    plan = (tmp_path / "plans" / "confirm_inertia.plan.yaml").read_text()
+    assert plan.count("north_m") >= 45, "15 rate doublets"
+    c = _confirmation(flight, followup, tmp_path / "confirm.json")
+    # measured: t 5.1 over 113 blocks, 32 % cut in roll, refit ixx 0.0305
+    assert c["verdict"] == "confirmed" and c["residual"] == "output" and c["channel"] == "roll", c["note"]
+    assert c["followup_t_stat"] > 3.0 and c["followup_improvement"] > 0.2, c["note"]
+    assert abs(c["refit_on_followup"]["params"]["ixx"] / 0.03125 - 1) < 0.05, c["refit_on_followup"]
+    n = _confirmation(flight, control, tmp_path / "control.json")
+    # measured: t -7.9, the flight's fit makes the control 22 % worse in roll
+    assert n["verdict"] == "rejected" and n["followup_t_stat"] < 0.0, n["note"]

@@ -4,14 +4,16 @@ Design: the effect's parameters stay those fitted on FLIGHT, and the follow-up f
 with a confirmation plan, :mod:`twin_nodes.discovery.plans`) is a pure held-out test of them: it
 was not seen by the fit, so every one of its blocks is a held-out block.  On the residual the
 effect was graded on (equation or output error; the output error for an effect the two residuals
-corroborated, whose missing output-error blocks the plan supplies), with the nominal vehicle plus
+corroborated, whose missing output-error blocks the plan supplies, and for an instrumented inertia,
+found on an axis the flight's output error could not fit), with the nominal vehicle plus
 FLIGHT's confirmed effects as the baseline:
 
 - *confirmed* when the block test over all the follow-up's blocks passes the discovery bar
   (statistic > ``T_CRIT``, >= ``MIN_REL_IMPROVEMENT`` of the follow-up residual explained in the
   effect's own channel, no channel made worse overall) and a refit on the follow-up alone (2-fold,
   as discovery fits) lands on the same side of nominal within a factor of 1.5 of FLIGHT's change.
-  The cut is asked in the effect's channel, not of all channels together: the plan excites the
+  (or within ``SE_AGREE`` standard errors of it, where the flight's estimate has one: the
+  instrumented inertia).  The cut is asked in the effect's channel, not of all channels together: the plan excites the
   effect's channel, and an effect acting in one of four axes (a roll inertia) cannot explain a
   tenth of all four (PX4 SIH g34's follow-up: 30 % in roll, t 6, 6 % of all);
 - otherwise *dropped* (``rejected``), with the follow-up's numbers.
@@ -33,6 +35,8 @@ from twin_nodes.discovery.discover import (BLOCK_S, MIN_REL_IMPROVEMENT, OE_BLOC
 from twin_nodes.vehicle.params import VehicleParams
 
 AGREE_FACTOR = 1.5
+#: or within this many of the flight estimate's standard errors, where it has one
+SE_AGREE = 2.0
 
 
 def _apply(vp: VehicleParams, name: str, params: dict) -> VehicleParams:
@@ -57,7 +61,10 @@ def confirm(result: dict, followup_log, vp: VehicleParams) -> dict:
     for e in likely:
         # a corroborated effect (verdicts.corroboration) lacked output-error blocks, which the plan
         # supplies: the follow-up judges it there
-        kind = "output" if (e.get("excitation") or {}).get("corroborated") else e.get("residual", "equation")
+        # likewise an instrumented one (an axis the flight's output error could not fit): a follow-up
+        # with the motors logged at the rate loop's rate makes the axis usable there
+        kind = ("output" if (e.get("excitation") or {}).get("corroborated") or e.get("residual") == "instrumented"
+                else e.get("residual", "equation"))
         judge = S.oe if kind == "output" and S.oe is not None else S.eq
         if judge.kind == "equation":
             rows = S.data.valid
@@ -94,6 +101,12 @@ def confirm(result: dict, followup_log, vp: VehicleParams) -> dict:
             d1 = (f.theta - c.x0) / s
             j = int(np.argmax(np.abs(d0)))
             agree = bool(d0[j] * d1[j] > 0 and max(abs(d0[j]), abs(d1[j])) <= AGREE_FACTOR * min(abs(d0[j]), abs(d1[j])))
+            # where the flight's estimate has a standard error (the instrumented inertia), agreeing
+            # within two of them is agreeing too: a +25 % change estimated 7 % high in the inertia
+            # itself is 1.5 x the change (PX4 SIH g26: Ixx 0.0334 +- 0.0018 against the follow-up's 0.0305)
+            se = (e.get("params_se") or {}).get(c.param_names[j])
+            if se and d0[j] * d1[j] > 0 and abs(f.theta[j] - theta_flight[j]) <= SE_AGREE * se:
+                agree = True
         passed = st["t"] > T_CRIT and rel >= 0.0 and mode_cut >= MIN_REL_IMPROVEMENT and agree
         why = []
         if st["t"] <= T_CRIT:

@@ -44,11 +44,14 @@ from scipy.optimize import least_squares
 from twin_nodes.discovery import evaluate
 from twin_nodes.discovery.candidates import Candidate, build_candidates
 from twin_nodes.discovery.locate import excitation, locate, locate_output, regimes  # noqa: F401  (regimes: re-exported)
-from twin_nodes.discovery.output_error import (AXES, HORIZON_S, JUDGED, MIN_AXIS_R2, STRIDE_S, Windows, judge_axes,
-                                               authority_mismatch, make_windows, output_error)
+from twin_nodes.discovery.output_error import (AXES, HORIZON_S, IV_GAIN_RANGE, JUDGED, MIN_AXIS_R2, STRIDE_S, Windows,
+                                               authority_mismatch, instrumented_inertia, judge_axes, make_windows,
+                                               output_error)
 from twin_nodes.discovery.residuals import (LOWPASS_HZ, EquationData, channel_names, modes, prepare,
                                             residual_channels)
-from twin_nodes.discovery.verdicts import corroboration, folds_agree, grade, likely_failures
+from twin_nodes.discovery.plans import RATE_LOOP_LOG_S
+from twin_nodes.discovery.verdicts import LIKELY_MIN_CUT, corroboration, folds_agree, grade, likely_failures
+from twin_nodes.physics.effects import effective_params
 from twin_nodes.vehicle.params import VehicleParams
 
 HELDOUT_FRACTION = 0.35
@@ -841,7 +844,12 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
                                                   -f.rel_improvement if f.verdict != "rejected"
                                                   else rank.get(f.candidate.label, 99)))
     effects_out = [_effect_json(f, names, base_held) for f in ranked]
-    likely = [f.candidate.name for f in ranked if f.verdict == "likely"]
+    instrumented, refit = _instrumented(S, current, acc_labels, effects_out)
+    if refit is not None:
+        current = refit
+        R_after = residual_channels(data, current, vp)
+        after_held = np.sqrt(np.mean(R_after[held_mask] ** 2, axis=0))
+    likely = [e["name"] for e in effects_out if e["verdict"] == "likely"]
     result = {
         "log": str(log.path),
         "params": vp.source,
@@ -886,6 +894,8 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         result["output_error_axes"] = ({**S.windows.describe(), "horizon_s": HORIZON_S}
                                        if S.windows is not None else None)
         result["authority"] = authority_mismatch(S.windows) if S.windows is not None else []
+    if instrumented is not None:
+        result["instrumented"] = instrumented
     if closed_loop_metrics:
         _closed_loop(result, log, vp, current, t_split, S.t_end, closed)
     _closed_loop_reset()
@@ -893,6 +903,176 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     result["_series"] = {"t": data.t, "valid": data.valid, "held": held_mask, "R_before": R_base,
                          "R_after": R_after, "names": names}
     return result
+
+
+def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: np.ndarray) -> str:
+    """Attach the instrumented inertia (``iv``: :func:`instrumented_inertia`'s result with its
+    ``params``; ``residual``: its held-out numbers) to an ``inertia`` finding already made on the
+    flight's own residuals, as a third residual for the axes it flags.  It is attached where the
+    finding moves those axes the same way within x1.5, or held them at the model's value (then the
+    instrument supplies them; ``held_at_nominal`` loses them); else the disagreement is returned
+    and nothing changes.  Returns what happened, for the result's ``instrumented.verdict``."""
+    names = {"roll": ("ixx", 0), "pitch": ("iyy", 1)}
+    params, ax = iv["params"], iv["axes"]
+    agree = []
+    for a in iv["flagged"]:
+        k, j = names[a]
+        d_iv = params[k] / nominal_inertia[j] - 1.0
+        d_f = entry["params"][k] / nominal_inertia[j] - 1.0
+        held = k in (entry.get("held_at_nominal") or {})
+        ok = held or (d_iv * d_f > 0 and max(abs(d_iv), abs(d_f)) <= 1.5 * min(abs(d_iv), abs(d_f)))
+        agree.append((a, k, held, ok))
+    if not all(ok for *_, ok in agree):
+        return "disagrees with the " + entry["verdict"] + " finding"
+    for a, k, held, _ in agree:
+        if held:
+            entry["params"][k] = params[k]
+            entry["held_at_nominal"].pop(k, None)
+            entry.setdefault("instrumented_params", {})[k] = params[k]
+    if "held_at_nominal" in entry and not entry["held_at_nominal"]:
+        entry.pop("held_at_nominal")
+    entry.setdefault("residuals", {})["instrumented"] = residual
+    entry["verdict_note"] = (entry.get("verdict_note", "") + "; the rate setpoint as instrument agrees ("
+                             + ", ".join(f"{a} gain {ax[a]['gain']:.2f} +- {ax[a]['se']:.2f}, {k} {params[k]:.4g}"
+                                         + (" supplied by it" if held else "") for a, k, held, _ in agree)
+                             + f"; held-out instrument-projected {residual['heldout_channel']} error cut "
+                               f"{100 * residual['heldout_improvement']:.0f} %)")
+    return "corroborates the " + entry["verdict"] + " finding"
+
+
+#: the output-error blocks an instrumented effect's plan asks for: the axis had none a fit could use,
+#: so no block statistic says how many; PX4 SIH SIH_L_ROLL 0.16 (g26, g34): 50-65 active roll blocks
+#: gave t 3.9-4.9 in one follow-up and 58 gave t 2.4 in another, so twice g34's missing 15
+INSTRUMENTED_BLOCKS_MISSING = 30
+
+
+def _left_out_text(win: Windows, axes: list[str], motor_dt_s: float) -> str:
+    """Why the output error could not fit these axes, and what follow-up flight would."""
+    r2 = ", ".join(f"{a} r^2 {win.axis_r2[AXES.index(a)]:.3f}" for a in axes)
+    if motor_dt_s > RATE_LOOP_LOG_S:
+        return (f"the output error leaves the axis out ({r2} < {MIN_AXIS_R2}: motors logged every "
+                f"{1000 * motor_dt_s:.0f} ms, aliased): confirm on a flight with the motors logged every 4 ms "
+                "(rate doublets)")
+    return (f"the output error leaves the axis out ({r2} < {MIN_AXIS_R2}, too little of it excited): confirm "
+            "on a flight with more rate doublets")
+
+
+def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects_out: list[dict]
+                  ) -> tuple[dict | None, VehicleParams | None]:
+    """Roll/pitch inertia on the axes the output error leaves out, with the rate setpoint as
+    instrument (:func:`~twin_nodes.discovery.output_error.instrumented_inertia`), on top of what
+    was accepted.  On its own it can only be ``likely``: a single moment on an axis no fit can
+    resolve, for a follow-up flight with the motors logged at the rate loop's rate (where the axis
+    is usable) to confirm; beside an ``inertia`` finding it is a third residual
+    (:func:`attach_instrumented`).  A *confirmed* inertia that held an axis at the model's value
+    gets that axis from the instrument when it passes the same checks (the refit vehicle with it is
+    returned).  Updates the ``inertia`` entry of ``effects_out`` in place (re-sorted by grade);
+    returns the numbers for the result (None: nothing to instrument) and the new refit vehicle
+    (None: unchanged)."""
+    win = S.windows
+    if win is None:
+        return None, None
+    entry = next((e for e in effects_out if e["name"] == "inertia"), None)
+    allowed = ("roll", "pitch")
+    if "inertia" in accepted:
+        held = (entry or {}).get("held_at_nominal") or {}
+        allowed = tuple(a for a, k in (("roll", "ixx"), ("pitch", "iyy")) if k in held)
+        if not allowed or entry is None:
+            return None, None
+    elif any(name == "inertia" for name, _ in current.effects):
+        return None, None
+    d = S.data
+    t_split = S.t_split
+    valid_t = d.t[d.valid]
+    t_split2 = valid_t[0] + (valid_t[-1] - S.t_split)   # as prepare_flight's second fold
+    fold1 = (win.t_end < t_split, win.t >= t_split)
+    fold2 = (win.t >= t_split2, win.t_end < t_split2)
+
+    def build(ixx, iyy):
+        izz = float(effective_params(current).inertia[2, 2])
+        return current.with_effect("inertia", ixx=ixx, iyy=iyy, izz=izz)
+    iv = instrumented_inertia(d, win, current, fold1, fold2, build, allowed)
+    if iv is None:
+        return None, None
+    out = {"axes": {a: {k: (round(float(v), 4) if isinstance(v, float) else v) for k, v in ax.items() if k != "index"}
+                    for a, ax in iv["axes"].items()},
+           "yaw_gain": round(float(iv["yaw_gain"]), 4), "flagged": iv["flagged"], "verdict": "none"}
+    if not iv["flagged"]:
+        return out, None
+    why = []
+    if iv.get("motor_signature"):
+        why.append(f"yaw is off the same way (gain {iv['yaw_gain']:.3f} +- {iv['yaw_se']:.3f}): the motors (lag, "
+                   "delay, thrust or moment per command), not the inertia")
+    ax = iv["axes"]
+    main = max(iv["flagged"], key=lambda a: ax[a].get("heldout_before", 0.0) or 0.0)
+    for a in iv["flagged"]:
+        x = ax[a]
+        lo, hi = IV_GAIN_RANGE
+        if not lo <= x["gain"] <= hi:
+            why.append(f"{a} gain {x['gain']:.2f} outside the physical range")
+        sides = [(x[f"gain_fold{k}"] - 1.0) / x[f"se_fold{k}"] for k in (1, 2)
+                 if np.isfinite(x[f"gain_fold{k}"]) and np.isfinite(x[f"se_fold{k}"]) and x[f"se_fold{k}"] > 0]
+        if len(sides) < 2 or not all(abs(t) > 2.0 and np.sign(t) == np.sign(x["gain"] - 1.0) for t in sides):
+            why.append(f"the two folds do not both move {a} the same way at 2 standard errors")
+    m = ax[main]
+    b0, b1 = m.get("heldout_before", math.nan), m.get("heldout_after", math.nan)
+    cut = 1.0 - b1 / b0 if np.isfinite(b0) and np.isfinite(b1) and b0 > 0 else math.nan
+    if not (cut >= LIKELY_MIN_CUT):
+        why.append(f"held-out cut of the instrument-projected {main} error {100 * cut:.0f} % < "
+                   f"{100 * LIKELY_MIN_CUT:.0f} %")
+    params = iv.get("params")
+    out.update(params=params, heldout_channel=main, heldout_improvement=round(float(cut), 4) if np.isfinite(cut) else None)
+    if why or params is None:
+        out["verdict"] = "none"
+        out["why_not"] = why
+        return out, None
+    out["verdict"] = "likely"
+    note = ("likely (instrumented): the rate setpoint as instrument gives "
+            + ", ".join(f"{a} gain {ax[a]['gain']:.2f} +- {ax[a]['se']:.2f}" for a in iv["flagged"])
+            + f" (yaw {iv['yaw_gain']:.2f}: not the motors); held-out instrument-projected {main} error cut "
+              f"{100 * cut:.0f} %; " + _left_out_text(win, iv["flagged"], d.motor_dt_s))
+    prev = dict(entry) if entry is not None else {}
+    residual = {"residual": "instrumented", "heldout_channel": main, "heldout_before": round(float(b0), 5),
+                "heldout_after": round(float(b1), 5), "heldout_improvement": round(float(cut), 4),
+                "heldout_t_stat": round(float(m.get("heldout_t", math.nan)), 2), "params": params,
+                "fold_gains": [round(float(ax[main]["gain_fold1"]), 4), round(float(ax[main]["gain_fold2"]), 4)]}
+    if entry is not None and entry["verdict"] != "rejected":
+        # already a finding on its own residuals: the instrument is a third residual for its axes
+        out["verdict"] = attach_instrumented(entry, iv, residual, np.diag(effective_params(current).inertia))
+        if entry["verdict"] == "confirmed" and out["verdict"].startswith("corroborates"):
+            # the refit vehicle takes the axes the confirmed fit held and the instrument supplied
+            return out, build(float(entry["params"]["ixx"]), float(entry["params"]["iyy"]))
+        return out, None
+    # standard errors of the instrumented axes (from the fit part's gain: I/g, se_I = I se_g / g)
+    params_se = {}
+    for a in iv["flagged"]:
+        k = {"roll": "ixx", "pitch": "iyy"}[a]
+        g1, s1 = ax[a]["gain_fold1"], ax[a]["se_fold1"]
+        if np.isfinite(g1) and np.isfinite(s1) and g1 > 0:
+            params_se[k] = float(params[k] * s1 / g1)
+    new = {"name": "inertia", "accepted": False, "verdict": "likely", "verdict_note": note, "params": params,
+           "params_se": params_se,
+           "evidence": f"inertia ({', '.join(f'{k}={v:.4g}' for k, v in params.items())}): {note}",
+           "residual": "instrumented", "heldout_channel": main, "heldout_before": residual["heldout_before"],
+           "heldout_after": residual["heldout_after"],
+           "heldout_units": (f"RMS of the output error in {main} projected on the rate setpoint's change (rad/s^2) "
+                             "on the held-out part"),
+           "heldout_improvement": residual["heldout_improvement"], "heldout_t_stat": residual["heldout_t_stat"],
+           "cv_improvement": residual["heldout_improvement"], "above_resolution_floor": True,
+           "excitation": {**(prev.get("excitation") or {}), "channel": main, "residual": "instrumented",
+                          "instrument_r": round(float(m["instrument_r"]), 3),
+                          "plans": ["rate_doublets"], "blocks_missing": INSTRUMENTED_BLOCKS_MISSING,
+                          "supplied_by": "roll and pitch rate doublets with the motors logged every 4 ms (PX4: "
+                                         "SDLOG_PROFILE's high-rate bit), where the output error can fit the axis"},
+           "residuals": {**(prev.get("residuals") or {}), "instrumented": residual},
+           "alternatives": []}
+    if entry is not None:
+        effects_out.remove(entry)
+    order = {"confirmed": 0, "likely": 1, "rejected": 2}
+    k = next((i for i, e in enumerate(effects_out) if order[e["verdict"]] > 1
+              or (e["verdict"] == "likely" and (e.get("cv_improvement") or 0) < new["cv_improvement"])), len(effects_out))
+    effects_out.insert(k, new)
+    return out, None
 
 
 def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:

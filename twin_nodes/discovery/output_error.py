@@ -40,6 +40,7 @@ from twin_nodes.base import frames
 from twin_nodes.discovery.kernels import kernels
 from twin_nodes.discovery.residuals import EquationData, exogenous, fine_commands, model_rotor_states
 from twin_nodes.physics.core import NX_BODY
+from twin_nodes.physics.effects import effective_params
 from twin_nodes.physics.model import Multirotor
 from twin_nodes.vehicle.params import VehicleParams
 
@@ -237,6 +238,110 @@ def authority_mismatch(win: Windows) -> list[dict]:
     return out
 
 
+def projected_error(meas: np.ndarray, pred: np.ndarray, z: np.ndarray) -> float:
+    """RMS of the output error projected on the (centred) instrument: ``|cov(z, m - p)| / sd(z)``.
+
+    The part of the error the rate setpoint explains; the aliasing noise in the prediction and the
+    measurement noise, independent of the instrument, drop out of it (unlike the plain RMS, which
+    a more sluggish model always lowers on a 50 Hz log)."""
+    ok = np.isfinite(meas) & np.isfinite(pred) & np.isfinite(z)
+    if ok.sum() < 10:
+        return math.nan
+    e = meas[ok] - pred[ok]
+    zc = z[ok] - z[ok].mean()
+    sz = float(np.sqrt(np.mean(zc * zc)))
+    return abs(float(np.mean(zc * (e - e.mean())))) / sz if sz > 0 else math.nan
+
+
+#: an instrumented inertia is held back when the yaw axis reads this much off the model the same
+#: way (beyond 3 standard errors): the motors (a lag or a delay, thrust or moment per command)
+#: act on every axis, an inertia change of roll or pitch leaves yaw alone (PX4 SIH SIH_T_TAU 0.09 at 50 Hz: yaw 0.89 +- 0.01;
+#: SIH_IXX/IYY x1.3: yaw 1.00 +- 0.01)
+MOTOR_YAW_SLOW = 0.03
+#: the instrumented gain's physical range: an inertia within x0.2..x5 of the model's
+IV_GAIN_RANGE = (0.2, 5.0)
+#: an axis's inertia is estimated from the instrument only where the instrument is strong: a weak
+#: one biases the gain towards least squares' (down, on 50 Hz logs).  PX4 SIH roll on the yaw-square
+#: mission M3 (instrument r 0.31-0.44): no-effect flights read 0.78-0.93, Ixx x1.5 reads 0.51-0.59
+#: for 0.67; at r >= 0.55 (mission M4, 4 ms logs) no-effect flights read 0.89-1.04 and Ixx x1.5 reads
+#: 0.57-0.68.  Below this the axis is only a located mismatch (:func:`authority_mismatch`)
+IV_MIN_R_ESTIMATE = 0.5
+
+
+def instrumented_inertia(data: EquationData, win: Windows, vp: VehicleParams, fold1: tuple[np.ndarray, np.ndarray],
+                         fold2: tuple[np.ndarray, np.ndarray], build=None,
+                         axes_allowed: tuple[str, ...] = ("roll", "pitch")) -> dict | None:
+    """Roll/pitch inertia from the rate setpoint as instrument, on the axes the output error
+    leaves out (50 Hz motor logs: the aliased commands make its least-squares fit see a sluggish
+    vehicle on every flight).
+
+    For each such axis with a strong instrument (correlation with the prediction >=
+    ``IV_MIN_R_ESTIMATE``) where the instrumented gain g of measured on predicted angular acceleration
+    (model ``vp``, all windows) is ``AUTHORITY_MIN_SE`` standard errors and ``AUTHORITY_MIN_CHANGE``
+    away from 1, the inertia the fit part asks for is ``I / g_fit`` (fold 1's fit windows); it is
+    judged on fold 1's held-out windows by the instrument-projected error (:func:`projected_error`)
+    with ``vp`` and with the changed vehicle (``build(ixx, iyy)``), and fold 2 must move the same
+    axis the same way.  ``None`` when no axis is usable for this (no rate setpoint, every axis
+    already judged by the output error, or too few windows).  Only ``axes_allowed`` are looked at
+    (a confirmed inertia: the axes it held at the model's value).  The caller grades the result."""
+    z = setpoint_slopes(data, win)
+    if z is None or win.n < 20:
+        return None
+    meas, pred = axis_errors(data, win, vp)
+    (fit1, test1), (fit2, _test2) = fold1, fold2
+    inertia = np.diag(effective_params(vp).inertia).astype(float)
+    axes = {}
+    for i in (3, 4):
+        if win.usable[i] or AXES[i] not in axes_allowed:
+            continue
+        m, p, zz = meas[:, i], pred[:, i], z[:, i - 3]
+        _, g, se, r = instrumented_gains(m, p, zz)
+        if not (np.isfinite(g) and np.isfinite(se)) or r < IV_MIN_R_ESTIMATE:
+            continue
+        _, g1, se1, _ = instrumented_gains(m[fit1], p[fit1], zz[fit1])
+        _, g2, se2, _ = instrumented_gains(m[fit2], p[fit2], zz[fit2])
+        axes[AXES[i]] = {"index": i, "gain": g, "se": se, "instrument_r": r, "gain_fold1": g1, "se_fold1": se1,
+                         "gain_fold2": g2, "se_fold2": se2,
+                         "flagged": bool(abs(g - 1.0) > max(AUTHORITY_MIN_CHANGE, AUTHORITY_MIN_SE * se))}
+    if not axes:
+        return None
+    _, gy, sey, ry = instrumented_gains(meas[:, 5], pred[:, 5], z[:, 2])
+    out = {"axes": axes, "yaw_gain": gy, "yaw_se": sey}
+    flagged = [a for a, d in axes.items() if d["flagged"]]
+    out["flagged"] = flagged
+    if not flagged:
+        return out
+    # the yaw axis off the same way: a change common to every axis (the motors' lag or delay, the
+    # thrust or moment per command), not a roll/pitch inertia
+    same = [a for a in flagged if np.sign(axes[a]["gain"] - 1.0) == np.sign(gy - 1.0)]
+    out["motor_signature"] = bool(same and np.isfinite(gy) and abs(gy - 1.0) > max(MOTOR_YAW_SLOW, 3.0 * sey))
+    if build is None:
+        return out
+    new = inertia.copy()
+    for a in flagged:
+        d = axes[a]
+        j = d["index"] - 3
+        new[j] = inertia[j] / d["gain_fold1"] if np.isfinite(d["gain_fold1"]) and d["gain_fold1"] > 0 else math.nan
+    out["params"] = {"ixx": float(new[0]), "iyy": float(new[1]), "izz": float(inertia[2])}
+    if not np.all(np.isfinite(new)):
+        return out
+    vp1 = build(float(new[0]), float(new[1]))
+    meas1, pred1 = axis_errors(data, win, vp1)
+    for a in flagged:
+        d = axes[a]
+        i = d["index"]
+        zz = z[:, i - 3]
+        d["heldout_before"] = projected_error(meas[test1, i], pred[test1, i], zz[test1])
+        d["heldout_after"] = projected_error(meas1[test1, i], pred1[test1, i], zz[test1])
+        _, gt0, st0, _ = instrumented_gains(meas[test1, i], pred[test1, i], zz[test1])
+        _, gt1, st1, _ = instrumented_gains(meas1[test1, i], pred1[test1, i], zz[test1])
+        d["heldout_gain_before"], d["heldout_gain_after"] = gt0, gt1
+        # significance on the held-out part: how many standard errors the model's gain is from 1
+        d["heldout_t"] = abs(gt0 - 1.0) / st0 if np.isfinite(st0) and st0 > 0 else math.nan
+        d["heldout_t_after"] = abs(gt1 - 1.0) / st1 if np.isfinite(st1) and st1 > 0 else math.nan
+    return out
+
+
 def judge_axes(data: EquationData, win: Windows, nominal: VehicleParams) -> Windows:
     """Fill ``win.usable``/``axis_r2``/``axis_gain`` from the nominal model's prediction, and the
     rotational axes' instrumented gains (``iv_gain``, ``iv_se``, ``iv_r``) where the log has the
@@ -281,6 +386,7 @@ def output_error(data: EquationData, win: Windows, vp: VehicleParams, nominal: V
     return np.where(np.isfinite(R), R, 0.0)
 
 
-__all__ = ["AUTHORITY_MIN_CHANGE", "AUTHORITY_MIN_R", "AUTHORITY_MIN_SE", "AXES", "HORIZON_S", "MIN_AXIS_R2", "Windows",
-           "authority_mismatch", "axis_errors", "instrumented_gains", "judge_axes",
+__all__ = ["AUTHORITY_MIN_CHANGE", "AUTHORITY_MIN_R", "AUTHORITY_MIN_SE", "AXES", "HORIZON_S", "IV_GAIN_RANGE",
+           "MIN_AXIS_R2", "MOTOR_YAW_SLOW", "Windows", "authority_mismatch", "axis_errors", "instrumented_gains",
+           "instrumented_inertia", "IV_MIN_R_ESTIMATE", "judge_axes", "projected_error",
            "make_windows", "output_error", "setpoint_slopes", "simulate_windows"]

@@ -59,9 +59,10 @@ def summary_text(res: dict) -> str:
         pretty = ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items())
         kind = e.get("residual", "equation")
         other = [v for k, v in (e.get("residuals") or {}).items() if k != kind]
-        o = (f"  [{'EE' if other[0]['residual'] == 'equation' else 'OE'} {100 * other[0]['heldout_improvement']:.0f} %]"
-             if other else "")
-        lines.append(f"    {verdict.upper():<9} {e['name']:<20} {'OE' if kind == 'output' else 'EE'} "
+        o = ", ".join(f"{_KIND.get(r.get('residual'), '?')} {100 * r['heldout_improvement']:.0f} %"
+                      for r in other if r.get("heldout_improvement") is not None)
+        o = f"  [{o}]" if o else ""
+        lines.append(f"    {verdict.upper():<9} {e['name']:<20} {_KIND.get(kind, 'EE')} "
                      f"{100 * e['heldout_improvement']:6.1f} % {e.get('heldout_channel', ''):<8}{o}  {pretty}")
         if verdict == "likely" or (verdict == "rejected" and "confirmation" in e):
             lines.append(f"              {e.get('verdict_note', '')}")
@@ -93,6 +94,11 @@ def summary_text(res: dict) -> str:
             lines.append("    motor_rmse     " + " ".join(f"{a:.3f}->{b:.3f}" for a, b in
                                                          zip(cb["motor_rmse"], cl["motor_rmse"])))
     return "\n".join(lines)
+
+
+#: the residual an effect was judged on, as the summary abbreviates it (IV: the output error
+#: projected on the rate setpoint, output_error.instrumented_inertia)
+_KIND = {"equation": "EE", "output": "OE", "instrumented": "IV"}
 
 
 def _axes_text(res: dict) -> str:
@@ -149,7 +155,9 @@ def write_report(folder, res: dict, series: dict) -> None:
     def resid(e):
         out = []
         for k, r in (e.get("residuals") or {}).items():
-            out.append(f"{'equation' if k == 'equation' else 'output'}: {100 * r['heldout_improvement']:.0f} % in "
+            if r.get("heldout_improvement") is None:
+                continue
+            out.append(f"{html.escape(k)}: {100 * r['heldout_improvement']:.0f} % in "
                        f"{html.escape(str(r['heldout_channel']))}")
         return "<br>".join(out)
 
