@@ -206,3 +206,20 @@ def test_from_ulog_cli_writes_a_valid_file(tmp_path):
     text = out.read_text()
     assert "ASSUMED" in text and "identified" in text and "log parameter" in text
     assert yaml.safe_load(text)["/**"]["ros__parameters"]["controller"]["roll_p_1_s"] == pytest.approx(4.0)
+
+
+def test_yaw_rate_gain_uses_the_vehicles_km_and_pxs_mix():
+    """PX4's mix is shaped by its CA_ROTORn_KM (0.05 on every shared log); the yaw moment those motor
+    changes make is the vehicle's km (the from-log twin's 0.02, which its Izz was identified against).
+    The yaw gain scales with the physical km alone; roll/pitch do not depend on it."""
+    from twin_nodes.vehicle.px4_params import RateGainsPx4, rate_gains_physical
+    a = 0.25 / np.sqrt(2)
+    x, y = np.array([a, -a, a, -a]), np.array([a, -a, -a, a])
+    d = np.array([-1, -1, 1, 1])
+    px4 = RateGainsPx4.from_params({"MC_YAWRATE_P": 0.2, "MC_ROLLRATE_P": 0.15, "MC_PITCHRATE_P": 0.15})
+    args = (px4, x, y, d, 0.05, 6.0, (0.02, 0.02, 0.03))
+    same = rate_gains_physical(*args)
+    twin = rate_gains_physical(*args, km_physical_m=0.02)
+    assert twin["yawrate_p_1_s"] == pytest.approx(same["yawrate_p_1_s"] * 0.02 / 0.05, rel=1e-9)
+    assert twin["yawrate_i_1_s2"] == pytest.approx(same["yawrate_i_1_s2"] * 0.4, rel=1e-9)
+    assert twin["rate_p_1_s"] == same["rate_p_1_s"] and twin["rate_d"] == same["rate_d"]

@@ -140,34 +140,46 @@ def test_round_trip_replayed_from_out(tmp_path):
     assert abs(n["followup_t_stat"] + 7.94) < 1.0, n["note"]
 
 
+def _replayed(tmp_path, flight_rel: str, followups: tuple[str, ...], name: str) -> tuple[dict, Path, list[Path]]:
+    """Discover FLIGHT (out/...) with plans into tmp_path, after skipping (one line) when the flight or
+    its follow-ups were not flown here; returns the result, the flight and the follow-up paths."""
+    px4_sitl_binary()
+    flight = REPO / "out" / flight_rel
+    paths = [REPO / "out" / f for f in followups]
+    missing = [str(p.relative_to(REPO)) for p in (flight, *paths) if not p.is_file()]
+    if missing:
+        pytest.skip(f"round-trip flights not flown here: {', '.join(missing)} (docs/discovery.md)")
+    _rotortwin("discover", flight, "--params", PARAMS, "--plan-dir", tmp_path / "plans", "--json",
+               tmp_path / f"{name}.json", "--no-closed-loop")
+    return json.loads((tmp_path / f"{name}.json").read_text()), flight, paths
+
+
+def _roll_arm_confirmed_and_control_dropped(flight: Path, followup: Path, control: Path, tmp_path) -> None:
+    """The roll-arm plan flown with the change confirms the effect on the roll output error, its refit
+    within 5 % of Ixx 0.03125; flown with no change it is dropped (the flight's fit makes it worse)."""
+    c = _confirmation(flight, followup, tmp_path / "confirm.json")
+    assert c["verdict"] == "confirmed" and c["residual"] == "output" and c["channel"] == "roll", c["note"]
+    assert c["followup_t_stat"] > 3.0 and c["followup_improvement"] > 0.2, c["note"]
+    assert abs(c["refit_on_followup"]["params"]["ixx"] / 0.03125 - 1) < 0.05, c["refit_on_followup"]
+    n = _confirmation(flight, control, tmp_path / "control.json")
+    assert n["verdict"] == "rejected" and n["followup_t_stat"] < 0.0, n["note"]
+
+
 def test_roll_arm_round_trip_replayed_from_out(tmp_path):
     """SIH_L_ROLL 0.2 -> 0.16 m (the roll moment x0.8, as Ixx 0.025 -> 0.03125) on grid flight g34: the
     two residuals corroborate ``inertia`` (``likely``); its plan flown with the same change and the 4 ms
     log (out/confirm_g34/c1) confirms it on the roll output error and the refit lands on the truth; flown
     with no change (n1) it is dropped.  Recorded 2026-11-24 (docs/discovery.md)."""
-    px4_sitl_binary()
-    flight = REPO / "out" / "sih_grid" / "g34" / "flight.ulg"
-    followup = REPO / "out" / "confirm_g34" / "c1" / "flight.ulg"
-    control = REPO / "out" / "confirm_g34" / "n1" / "flight.ulg"
-    missing = [str(p.relative_to(REPO)) for p in (flight, followup, control) if not p.is_file()]
-    if missing:
-        pytest.skip(f"round-trip flights not flown here: {', '.join(missing)} (docs/discovery.md)")
-    _rotortwin("discover", flight, "--params", PARAMS, "--plan-dir", tmp_path / "plans", "--json",
-               tmp_path / "g34.json", "--no-closed-loop")
-    res = json.loads((tmp_path / "g34.json").read_text())
+    res, flight, (followup, control) = _replayed(tmp_path, "sih_grid/g34/flight.ulg",
+                                                 ("confirm_g34/c1/flight.ulg", "confirm_g34/n1/flight.ulg"), "g34")
     eff = next(e for e in res["effects"] if e["name"] == "inertia")
     assert res["likely"] == ["inertia"] and res["accepted"] == [], (res["likely"], res["accepted"])
     assert eff["excitation"].get("corroborated") and "roll" in eff["verdict_note"], eff["verdict_note"]
     assert abs(eff["params"]["ixx"] / 0.03125 - 1) < 0.10, eff["params"]
     assert (tmp_path / "plans" / "confirm_inertia.plan.yaml").is_file()
-    c = _confirmation(flight, followup, tmp_path / "confirm.json")
-    # measured: t 3.9 over 65 blocks, 30 % cut in roll (6 % of all four axes), refit ixx 0.0313
-    assert c["verdict"] == "confirmed" and c["residual"] == "output" and c["channel"] == "roll", c["note"]
-    assert c["followup_t_stat"] > 3.0 and c["followup_improvement"] > 0.2, c["note"]
-    assert abs(c["refit_on_followup"]["params"]["ixx"] / 0.03125 - 1) < 0.05, c["refit_on_followup"]
-    n = _confirmation(flight, control, tmp_path / "control.json")
-    # measured: t -7.2 (the flight's fit makes the control worse), refit ixx 0.0261
-    assert n["verdict"] == "rejected" and n["followup_t_stat"] < 0.0, n["note"]
+    # measured: t 3.9 over 65 blocks, 30 % cut in roll (6 % of all four axes), refit ixx 0.0313; the
+    # control t -7.2 (the flight's fit makes it worse), refit ixx 0.0261
+    _roll_arm_confirmed_and_control_dropped(flight, followup, control, tmp_path)
 
 
 def test_instrumented_roll_arm_round_trip_replayed_from_out(tmp_path):
@@ -177,16 +189,8 @@ def test_instrumented_roll_arm_round_trip_replayed_from_out(tmp_path):
     (15 rate doublets) flown with the same change (out/confirm_g26/c2) confirms it on the roll output
     error, the refit within 5 % of the truth; flown with no change (n2) it is dropped.  The first plan
     (6 doublets, c1) was too short: t 2.4 over 58 blocks, dropped.  Recorded 2026-11-25 (docs/discovery.md)."""
-    px4_sitl_binary()
-    flight = REPO / "out" / "sih_grid" / "g26" / "flight.ulg"
-    followup = REPO / "out" / "confirm_g26" / "c2" / "flight.ulg"
-    control = REPO / "out" / "confirm_g26" / "n2" / "flight.ulg"
-    missing = [str(p.relative_to(REPO)) for p in (flight, followup, control) if not p.is_file()]
-    if missing:
-        pytest.skip(f"round-trip flights not flown here: {', '.join(missing)} (docs/discovery.md)")
-    _rotortwin("discover", flight, "--params", PARAMS, "--plan-dir", tmp_path / "plans", "--json",
-               tmp_path / "g26.json", "--no-closed-loop")
-    res = json.loads((tmp_path / "g26.json").read_text())
+    res, flight, (followup, control) = _replayed(tmp_path, "sih_grid/g26/flight.ulg",
+                                                 ("confirm_g26/c2/flight.ulg", "confirm_g26/n2/flight.ulg"), "g26")
     eff = next(e for e in res["effects"] if e["name"] == "inertia")
     assert res["likely"] == ["inertia"] and res["accepted"] == [], (res["likely"], res["accepted"])
     assert eff["residual"] == "instrumented" and eff["heldout_channel"] == "roll", eff
@@ -195,11 +199,6 @@ def test_instrumented_roll_arm_round_trip_replayed_from_out(tmp_path):
     assert res["instrumented"]["axes"]["roll"]["flagged"] and abs(res["instrumented"]["yaw_gain"] - 1) < 0.02
     plan = (tmp_path / "plans" / "confirm_inertia.plan.yaml").read_text()
     assert plan.count("north_m") >= 45, "15 rate doublets"
-    c = _confirmation(flight, followup, tmp_path / "confirm.json")
-    # measured: t 5.1 over 113 blocks, 32 % cut in roll, refit ixx 0.0305
-    assert c["verdict"] == "confirmed" and c["residual"] == "output" and c["channel"] == "roll", c["note"]
-    assert c["followup_t_stat"] > 3.0 and c["followup_improvement"] > 0.2, c["note"]
-    assert abs(c["refit_on_followup"]["params"]["ixx"] / 0.03125 - 1) < 0.05, c["refit_on_followup"]
-    n = _confirmation(flight, control, tmp_path / "control.json")
-    # measured: t -7.9, the flight's fit makes the control 22 % worse in roll
-    assert n["verdict"] == "rejected" and n["followup_t_stat"] < 0.0, n["note"]
+    # measured: t 5.1 over 113 blocks, 32 % cut in roll, refit ixx 0.0305; the control t -7.9 (the
+    # flight's fit makes it 22 % worse in roll)
+    _roll_arm_confirmed_and_control_dropped(flight, followup, control, tmp_path)

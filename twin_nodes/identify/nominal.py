@@ -357,7 +357,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     slope = t_max * (2 * f_fac * hover_cmd + (1 - f_fac))
     rate = rate_gains_physical(RateGainsPx4.from_params(p), np.array(layout.x_flu_m), np.array(layout.y_flu_m),
                                np.array(layout.direction), float(abs(p.get("CA_ROTOR0_KM", 0.05)) or 0.05),
-                               slope, tuple(inertia))
+                               slope, tuple(inertia), km_physical_m=km)
     src["controller (outer loops)"] = "; ".join(sorted({s for s in gsrc.values()}))
     src["controller (rate loop)"] = ("log parameters MC_*RATE_P/I/D/K converted from PX4's normalised torque "
                                      "to rad/s^2 with PX4's allocation scaling, the thrust slope and the inertia")

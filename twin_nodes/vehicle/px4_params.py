@@ -223,20 +223,26 @@ def normalised_mix(x_flu: np.ndarray, y_flu: np.ndarray, direction: np.ndarray, 
 
 
 def rate_gains_physical(px4: RateGainsPx4, x_flu: np.ndarray, y_flu: np.ndarray, direction: np.ndarray,
-                        km_m: float, thrust_slope_n: float, inertia_kg_m2: tuple[float, float, float]
-                        ) -> dict[str, float]:
+                        km_m: float, thrust_slope_n: float, inertia_kg_m2: tuple[float, float, float],
+                        km_physical_m: float | None = None) -> dict[str, float]:
     """PX4's normalised rate gains as the twin's physical ones (ControllerGains keys).
 
     A unit torque setpoint moves the motor commands by PX4's normalised mix; times the thrust
     slope dT/du [N] at hover and the lever arms that is a moment [N m], over the inertia an
     angular acceleration.  So ``Kp [rad/s^2 per rad/s] = P_px4 * moment_per_unit / I``;
     the same factor converts I and D.  Roll and pitch share one gain set in the twin:
-    the mean of the two axes."""
+    the mean of the two axes.
+
+    ``km_m`` is PX4's own torque ratio (``CA_ROTORn_KM``): it shapes PX4's mix.  The yaw moment
+    those motor changes make is the *vehicle's* ratio, ``km_physical_m`` (default ``km_m``): the
+    twin's km, against which its Izz was identified.  Using PX4's 0.05 there for a twin with km
+    0.02 made every from-log twin's yaw rate gain 2.5x PX4's."""
     mix = normalised_mix(x_flu, y_flu, direction, km_m)
     dT = thrust_slope_n * mix  # (N, 3) thrust change per unit torque setpoint
     roll_moment = float(np.asarray(y_flu) @ dT[:, 0])
     pitch_moment = float(-np.asarray(x_flu) @ dT[:, 1])
-    yaw_moment = float((-np.asarray(direction, float) * km_m) @ dT[:, 2])
+    km_phys = km_m if km_physical_m is None else km_physical_m
+    yaw_moment = float((-np.asarray(direction, float) * km_phys) @ dT[:, 2])
     a_roll = roll_moment / inertia_kg_m2[0]
     a_pitch = pitch_moment / inertia_kg_m2[1]
     a_yaw = yaw_moment / inertia_kg_m2[2]
