@@ -1052,7 +1052,8 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
             params_se[k] = float(params[k] * s1 / g1)
     new = {"name": "inertia", "accepted": False, "verdict": "likely", "verdict_note": note, "params": params,
            "params_se": params_se,
-           "evidence": f"inertia ({', '.join(f'{k}={v:.4g}' for k, v in params.items())}): {note}",
+           "evidence": (f"inertia ({', '.join(f'{k}={v:.4g}' for k, v in params.items())}) cuts the held-out "
+                        f"{main} error projected on the rate setpoint by {100 * cut:.0f} %: likely (instrumented)"),
            "residual": "instrumented", "heldout_channel": main, "heldout_before": residual["heldout_before"],
            "heldout_after": residual["heldout_after"],
            "heldout_units": (f"RMS of the output error in {main} projected on the rate setpoint's change (rad/s^2) "
@@ -1062,8 +1063,9 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
            "excitation": {**(prev.get("excitation") or {}), "channel": main, "residual": "instrumented",
                           "instrument_r": round(float(m["instrument_r"]), 3),
                           "plans": ["rate_doublets"], "blocks_missing": INSTRUMENTED_BLOCKS_MISSING,
-                          "supplied_by": "roll and pitch rate doublets with the motors logged every 4 ms (PX4: "
-                                         "SDLOG_PROFILE's high-rate bit), where the output error can fit the axis"},
+                          "supplied_by": "roll and pitch rate doublets" + (
+                              " with the motors logged every 4 ms (PX4: SDLOG_PROFILE's high-rate bit), where the "
+                              "output error can fit the axis" if d.motor_dt_s > RATE_LOOP_LOG_S else "")},
            "residuals": {**(prev.get("residuals") or {}), "instrumented": residual},
            "alternatives": []}
     if entry is not None:
