@@ -844,7 +844,17 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
                                                   -f.rel_improvement if f.verdict != "rejected"
                                                   else rank.get(f.candidate.label, 99)))
     effects_out = [_effect_json(f, names, base_held) for f in ranked]
-    instrumented, refit = _instrumented(S, current, acc_labels, effects_out)
+    def guard(vp_new: VehicleParams) -> str | None:
+        """The closed-loop twin's held-out throttle RMSE must not get worse (as ``_closed_loop_guard``)."""
+        if not (closed_loop_metrics and closed):
+            return None
+        m = _closed_loop_metrics(log, vp_new, t_split, S.t_end)
+        if m["throttle_rmse"] <= closed["after"]["throttle_rmse"]:
+            closed["after"] = m
+            return None
+        return (f"makes the closed-loop twin worse on the held-out part (throttle RMSE "
+                f"{closed['after']['throttle_rmse']:.6f} -> {m['throttle_rmse']:.6f})")
+    instrumented, refit = _instrumented(S, current, acc_labels, effects_out, guard)
     if refit is not None:
         current = refit
         R_after = residual_channels(data, current, vp)
@@ -957,7 +967,8 @@ def _left_out_text(win: Windows, axes: list[str], motor_dt_s: float) -> str:
             "on a flight with more rate doublets")
 
 
-def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects_out: list[dict]
+def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects_out: list[dict],
+                  guard: Callable[[VehicleParams], str | None] = lambda vp: None
                   ) -> tuple[dict | None, VehicleParams | None]:
     """Roll/pitch inertia on the axes the output error leaves out, with the rate setpoint as
     instrument (:func:`~twin_nodes.discovery.output_error.instrumented_inertia`), on top of what
@@ -965,8 +976,8 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
     resolve, for a follow-up flight with the motors logged at the rate loop's rate (where the axis
     is usable) to confirm; beside an ``inertia`` finding it is a third residual
     (:func:`attach_instrumented`).  A *confirmed* inertia that held an axis at the model's value
-    gets that axis from the instrument when it passes the same checks (the refit vehicle with it is
-    returned).  Updates the ``inertia`` entry of ``effects_out`` in place (re-sorted by grade);
+    gets that axis from the instrument when it passes the same checks and ``guard`` (the closed-loop
+    twin on the held-out part) has nothing against it (the refit vehicle with it is returned).  Updates the ``inertia`` entry of ``effects_out`` in place (re-sorted by grade);
     returns the numbers for the result (None: nothing to instrument) and the new refit vehicle
     (None: unchanged)."""
     win = S.windows
@@ -1031,6 +1042,12 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
             + ", ".join(f"{a} gain {ax[a]['gain']:.2f} +- {ax[a]['se']:.2f}" for a in iv["flagged"])
             + f" (yaw {iv['yaw_gain']:.2f}: not the motors); held-out instrument-projected {main} error cut "
               f"{100 * cut:.0f} %; " + _left_out_text(win, iv["flagged"], d.motor_dt_s))
+    if entry is not None and entry.get("closed_loop"):
+        # the inertia the flight's own residuals fitted was dropped by the closed-loop twin: the
+        # instrument does not bring the effect back on its own
+        out["verdict"] = "none"
+        out["why_not"] = [f"the inertia fitted on this flight {entry['closed_loop']}"]
+        return out, None
     prev = dict(entry) if entry is not None else {}
     residual = {"residual": "instrumented", "heldout_channel": main, "heldout_before": round(float(b0), 5),
                 "heldout_after": round(float(b1), 5), "heldout_improvement": round(float(cut), 4),
@@ -1038,11 +1055,17 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
                 "fold_gains": [round(float(ax[main]["gain_fold1"]), 4), round(float(ax[main]["gain_fold2"]), 4)]}
     if entry is not None and entry["verdict"] != "rejected":
         # already a finding on its own residuals: the instrument is a third residual for its axes
+        refit = None
+        if entry["verdict"] == "confirmed":
+            # the refit vehicle takes the axes the confirmed fit held and the instrument supplies,
+            # unless the closed-loop twin says otherwise
+            refit = build(float(params["ixx"]), float(params["iyy"]))
+            against = guard(refit)
+            if against:
+                out["verdict"] = f"not supplied to the confirmed finding: {against}"
+                return out, None
         out["verdict"] = attach_instrumented(entry, iv, residual, np.diag(effective_params(current).inertia))
-        if entry["verdict"] == "confirmed" and out["verdict"].startswith("corroborates"):
-            # the refit vehicle takes the axes the confirmed fit held and the instrument supplied
-            return out, build(float(entry["params"]["ixx"]), float(entry["params"]["iyy"]))
-        return out, None
+        return out, refit if out["verdict"].startswith("corroborates") else None
     # standard errors of the instrumented axes (from the fit part's gain: I/g, se_I = I se_g / g)
     params_se = {}
     for a in iv["flagged"]:
@@ -1102,6 +1125,8 @@ def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:
     }
     if f.candidate.held:
         out["held_at_nominal"] = dict(f.candidate.held)
+    if f.closed_loop:
+        out["closed_loop"] = f.closed_loop
     if f.other is not None:
         out["residuals"][f.other["residual"]] = f.other
     if f.kind == "equation":
@@ -1220,7 +1245,7 @@ def _closed_loop_guard(accepted: list[Fit], log, nominal: VehicleParams, data, f
         else:
             f.accepted = False
             f.closed_loop = (f"makes the closed-loop twin worse on the held-out part (throttle RMSE "
-                             f"{best:.4f} -> {m['throttle_rmse']:.4f})")
+                             f"{best:.6f} -> {m['throttle_rmse']:.6f})")
     return kept, current, {"before": before, "after": after if kept else before}
 
 
