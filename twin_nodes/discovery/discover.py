@@ -849,7 +849,7 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         if not (closed_loop_metrics and closed):
             return None
         m = _closed_loop_metrics(log, vp_new, t_split, S.t_end)
-        if m["throttle_rmse"] <= closed["after"]["throttle_rmse"]:
+        if not _worse(m["throttle_rmse"], closed["after"]["throttle_rmse"], closed["before"]["throttle_rmse"]):
             closed["after"] = m
             return None
         return (f"makes the closed-loop twin worse on the held-out part (throttle RMSE "
@@ -1227,6 +1227,19 @@ def _closed_loop_twin(log, vp: VehicleParams, t0: float, t1: float) -> dict:
     return m
 
 
+#: the closed-loop twin is "worse" when its held-out throttle RMSE rises by more than this fraction:
+#: below it the change is the closed-loop run's numerical resolution, not the effect.  Effects that do
+#: not act on the collective (inertia, yaw moment) move it by 1e-6..4e-6 of full throttle (0.01-0.04 %);
+#: a strict comparison dropped the true inertia on 4 of 5 PX4 SIH flights and the true yaw moment on
+#: one (e.g. e11: 0.011723 -> 0.011724)
+CLOSED_LOOP_TOL_REL = 0.005
+
+
+def _worse(rmse: float, best: float, baseline: float) -> bool:
+    """Worse than the best so far (or than the nominal twin) beyond ``CLOSED_LOOP_TOL_REL``."""
+    return rmse > (1.0 + CLOSED_LOOP_TOL_REL) * min(best, baseline)
+
+
 def _closed_loop_guard(accepted: list[Fit], log, nominal: VehicleParams, data, fit_mask, t0: float, t1: float
                        ) -> tuple[list[Fit], VehicleParams, dict]:
     """Add the accepted effects one at a time (in acceptance order); drop each one that makes the
@@ -1240,7 +1253,7 @@ def _closed_loop_guard(accepted: list[Fit], log, nominal: VehicleParams, data, f
         trial = kept + [f]
         vp_t = _joint_refit(trial, data, nominal, fit_mask) if len(trial) > 1 else f.vp
         m = _closed_loop_metrics(log, vp_t, t0, t1)
-        if m["throttle_rmse"] <= best:
+        if not _worse(m["throttle_rmse"], best, before["throttle_rmse"]):
             kept, current, best, after = trial, vp_t, m["throttle_rmse"], m
         else:
             f.accepted = False
