@@ -44,7 +44,7 @@ from scipy.optimize import least_squares
 from twin_nodes.discovery import evaluate
 from twin_nodes.discovery.candidates import Candidate, build_candidates
 from twin_nodes.discovery.locate import excitation, locate, locate_output, regimes  # noqa: F401  (regimes: re-exported)
-from twin_nodes.discovery.output_error import (AXES, HORIZON_S, IV_GAIN_RANGE, JUDGED, MIN_AXIS_R2, STRIDE_S, Windows,
+from twin_nodes.discovery.output_error import (AXES, HORIZON_S, IV_AXIS_PARAM, IV_GAIN_RANGE, JUDGED, MIN_AXIS_R2, STRIDE_S, Windows,
                                                authority_mismatch, instrumented_inertia, judge_axes, make_windows,
                                                output_error)
 from twin_nodes.discovery.residuals import (LOWPASS_HZ, EquationData, channel_names, modes, prepare,
@@ -77,6 +77,8 @@ _PARAM_AXES = {"ixx": (3,), "iyy": (4,), "izz": (5,), "km": (5,)}
 PRUNE_GAIN = 0.02
 #: an output-error block is active when the candidate changes it by half the axis' typical error
 OE_MIN_CHANGE = 0.5
+#: the grades in the order results list them
+_GRADE_ORDER = {"confirmed": 0, "likely": 1, "rejected": 2}
 #: joint starts (every parameter with a non-zero nominal scaled together) for multi-parameter
 #: fits: the time constants' cost is a curved valley (a slower spin-down helps only once the
 #: spin-up is slower too: PX4 SIH with SIH_T_TAU 0.05 -> 0.12 s, logged at 50 Hz, stalled at
@@ -518,6 +520,11 @@ def _judged_windows(data: EquationData, nominal: VehicleParams) -> Windows | Non
     return judge_axes(data, win, nominal)
 
 
+def _window_folds(win: Windows, t_split: float, t_split2: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The two folds over the windows, (fit, test) each: a window belongs to a part when all of it does."""
+    return [(win.t_end < t_split, win.t >= t_split), (win.t >= t_split2, win.t_end < t_split2)]
+
+
 def _output_judge(data: EquationData, nominal: VehicleParams, t_split: float, t_split2: float,
                   win: Windows | None = None) -> Judge | None:
     """The output-error judge: windows, their folds (a window belongs to a part when all of it
@@ -525,10 +532,7 @@ def _output_judge(data: EquationData, nominal: VehicleParams, t_split: float, t_
     win = _judged_windows(data, nominal) if win is None else win
     if win is None or not win.usable.any():
         return None
-    fit1 = win.t_end < t_split
-    test1 = win.t >= t_split
-    fit2 = win.t >= t_split2
-    test2 = win.t_end < t_split2
+    (fit1, test1), (fit2, test2) = _window_folds(win, t_split, t_split2)
 
     def residual(vp, rows=None):
         if rows is None:
@@ -669,6 +673,8 @@ class Setup:
     excitation: dict
     #: the output error's judged windows, also where no axis is usable (the instrumented gains)
     windows: Windows | None = None
+    #: the second fold's split: fit on the part after it, judge on the part before
+    t_split2: float = math.nan
 
 
 def prepare_flight(log, vp: VehicleParams, heldout_fraction: float = HELDOUT_FRACTION, output_error: bool = True) -> Setup:
@@ -688,7 +694,8 @@ def prepare_flight(log, vp: VehicleParams, heldout_fraction: float = HELDOUT_FRA
     win = _judged_windows(data, vp) if output_error else None
     oe = _output_judge(data, vp, t_split, t_split2, win) if win is not None else None
     ex = excitation(data, vp, names, _blocks(data.t, data.valid, BLOCK_S), held_blocks)
-    return Setup(data, names, fit_mask, held_mask, float(t_split), float(valid_t[-1]), eq, oe, ex, win)
+    return Setup(data, names, fit_mask, held_mask, float(t_split), float(valid_t[-1]), eq, oe, ex, win,
+                 float(t_split2))
 
 
 def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTION, max_effects: int = MAX_EFFECTS,
@@ -837,9 +844,8 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
                                         _scatter(judge.residual(b, judge.held_mask), judge.held_mask))
                 f.other = _side(judge, f.vp, side_base[id(b)], vp)
         f.evidence = _evidence(f, names, base_held)
-    order = {"confirmed": 0, "likely": 1, "rejected": 2}
     rank = {lab: i for i, lab in enumerate(first_rank)}
-    ranked = sorted(last.values(), key=lambda f: (order[f.verdict],
+    ranked = sorted(last.values(), key=lambda f: (_GRADE_ORDER[f.verdict],
                                                   acc_labels.index(f.candidate.label) if f.accepted else 0,
                                                   -f.rel_improvement if f.verdict != "rejected"
                                                   else rank.get(f.candidate.label, 99)))
@@ -922,11 +928,10 @@ def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: 
     finding moves those axes the same way within x1.5, or held them at the model's value (then the
     instrument supplies them; ``held_at_nominal`` loses them); else the disagreement is returned
     and nothing changes.  Returns what happened, for the result's ``instrumented.verdict``."""
-    names = {"roll": ("ixx", 0), "pitch": ("iyy", 1)}
     params, ax = iv["params"], iv["axes"]
     agree = []
     for a in iv["flagged"]:
-        k, j = names[a]
+        k, j = IV_AXIS_PARAM[a]
         d_iv = params[k] / nominal_inertia[j] - 1.0
         d_f = entry["params"][k] / nominal_inertia[j] - 1.0
         held = k in (entry.get("held_at_nominal") or {})
@@ -987,17 +992,13 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
     allowed = ("roll", "pitch")
     if "inertia" in accepted:
         held = (entry or {}).get("held_at_nominal") or {}
-        allowed = tuple(a for a, k in (("roll", "ixx"), ("pitch", "iyy")) if k in held)
+        allowed = tuple(a for a, (k, _) in IV_AXIS_PARAM.items() if k in held)
         if not allowed or entry is None:
             return None, None
     elif any(name == "inertia" for name, _ in current.effects):
         return None, None
     d = S.data
-    t_split = S.t_split
-    valid_t = d.t[d.valid]
-    t_split2 = valid_t[0] + (valid_t[-1] - S.t_split)   # as prepare_flight's second fold
-    fold1 = (win.t_end < t_split, win.t >= t_split)
-    fold2 = (win.t >= t_split2, win.t_end < t_split2)
+    fold1, fold2 = _window_folds(win, S.t_split, S.t_split2)
 
     def build(ixx, iyy):
         izz = float(effective_params(current).inertia[2, 2])
@@ -1069,7 +1070,7 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
     # standard errors of the instrumented axes (from the fit part's gain: I/g, se_I = I se_g / g)
     params_se = {}
     for a in iv["flagged"]:
-        k = {"roll": "ixx", "pitch": "iyy"}[a]
+        k = IV_AXIS_PARAM[a][0]
         g1, s1 = ax[a]["gain_fold1"], ax[a]["se_fold1"]
         if np.isfinite(g1) and np.isfinite(s1) and g1 > 0:
             params_se[k] = float(params[k] * s1 / g1)
@@ -1093,8 +1094,7 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
            "alternatives": []}
     if entry is not None:
         effects_out.remove(entry)
-    order = {"confirmed": 0, "likely": 1, "rejected": 2}
-    k = next((i for i, e in enumerate(effects_out) if order[e["verdict"]] > 1
+    k = next((i for i, e in enumerate(effects_out) if _GRADE_ORDER[e["verdict"]] > 1
               or (e["verdict"] == "likely" and (e.get("cv_improvement") or 0) < new["cv_improvement"])), len(effects_out))
     effects_out.insert(k, new)
     return out, None

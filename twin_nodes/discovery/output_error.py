@@ -138,13 +138,20 @@ def simulate_windows(data: EquationData, win: Windows, vp: VehicleParams, step_s
     return W, V
 
 
+def _slope_weights(horizon: int, dt: float) -> np.ndarray:
+    """Weights over samples 1..H whose dot product with a series is its least-squares slope (with
+    intercept) per second."""
+    h = np.arange(1, horizon + 1)
+    return (h - h.mean()) / (np.sum((h - h.mean()) ** 2) * dt)
+
+
 def _slopes(data: EquationData, win: Windows, W: np.ndarray, V: np.ndarray, start: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Least-squares slopes over the horizon (with intercept) of measured and predicted changes:
     acceleration (body, m/s^2) and angular acceleration (rad/s^2), measured and model."""
     H = win.horizon
     h = np.arange(1, H + 1)
-    hc = (h - h.mean()) / (np.sum((h - h.mean()) ** 2) * data.dt)
+    hc = _slope_weights(H, data.dt)
     idx = start[None, :] + h[:, None]
     Rt = frames.quat_to_rotmat(data.q[start])
     # world -> body of the start attitude: v_b = R^T v_w
@@ -201,10 +208,8 @@ def setpoint_slopes(data: EquationData, win: Windows) -> np.ndarray | None:
     """(K, 3) the rate setpoint's least-squares slope over each window, FLU (None: not logged)."""
     if data.w_sp is None:
         return None
-    H = win.horizon
-    h = np.arange(1, H + 1)
-    hc = (h - h.mean()) / (np.sum((h - h.mean()) ** 2) * data.dt)
-    return np.einsum("h,hkc->kc", hc, data.w_sp[win.start[None, :] + h[:, None]])
+    h = np.arange(1, win.horizon + 1)
+    return np.einsum("h,hkc->kc", _slope_weights(win.horizon, data.dt), data.w_sp[win.start[None, :] + h[:, None]])
 
 
 #: an instrumented gain is reported as a mismatch when it is this far from 1 and ``AUTHORITY_MIN_SE``
@@ -253,6 +258,8 @@ def projected_error(meas: np.ndarray, pred: np.ndarray, z: np.ndarray) -> float:
     return abs(float(np.mean(zc * (e - e.mean())))) / sz if sz > 0 else math.nan
 
 
+#: the rotational axes the instrument estimates an inertia on: axis -> (parameter, index in the diagonal)
+IV_AXIS_PARAM = {"roll": ("ixx", 0), "pitch": ("iyy", 1)}
 #: an instrumented inertia is held back when the yaw axis reads this much off the model the same
 #: way (beyond 3 standard errors): the motors (a lag or a delay, thrust or moment per command)
 #: act on every axis, an inertia change of roll or pitch leaves yaw alone (PX4 SIH SIH_T_TAU 0.09 at 50 Hz: yaw 0.89 +- 0.01;
@@ -320,7 +327,7 @@ def instrumented_inertia(data: EquationData, win: Windows, vp: VehicleParams, fo
     new = inertia.copy()
     for a in flagged:
         d = axes[a]
-        j = d["index"] - 3
+        j = IV_AXIS_PARAM[a][1]
         new[j] = inertia[j] / d["gain_fold1"] if np.isfinite(d["gain_fold1"]) and d["gain_fold1"] > 0 else math.nan
     out["params"] = {"ixx": float(new[0]), "iyy": float(new[1]), "izz": float(inertia[2])}
     if not np.all(np.isfinite(new)):
@@ -388,5 +395,5 @@ def output_error(data: EquationData, win: Windows, vp: VehicleParams, nominal: V
 
 __all__ = ["AUTHORITY_MIN_CHANGE", "AUTHORITY_MIN_R", "AUTHORITY_MIN_SE", "AXES", "HORIZON_S", "IV_GAIN_RANGE",
            "MIN_AXIS_R2", "MOTOR_YAW_SLOW", "Windows", "authority_mismatch", "axis_errors", "instrumented_gains",
-           "instrumented_inertia", "IV_MIN_R_ESTIMATE", "judge_axes", "projected_error",
+           "instrumented_inertia", "IV_AXIS_PARAM", "IV_MIN_R_ESTIMATE", "judge_axes", "projected_error",
            "make_windows", "output_error", "setpoint_slopes", "simulate_windows"]
