@@ -42,13 +42,21 @@ class Candidate:
     unphysical: Callable[[np.ndarray], str | None] = lambda theta: None
     #: effect parameters this fit could not see, held at their nominal value: name -> why
     held: dict = field(default_factory=dict)
+    #: effect parameters that are not fitted on their own but equal a fitted one: name -> that one
+    #: (the symmetric motor lag: tau_down = tau_up)
+    tied: dict = field(default_factory=dict)
 
     def params_dict(self, theta: np.ndarray) -> dict[str, float]:
         out = {k: float(v) for k, v in self.fixed.items()}
         out.update({k: float(v) for k, v in zip(self.param_names, theta)})
+        out.update({k: out[v] for k, v in self.tied.items()})
         # present them in the effect's declared order
         order = EFFECTS[self.name].param_names
         return {k: out[k] for k in order if k in out}
+
+
+#: the label of the one-time-constant motor lag (tau_down = tau_up)
+SYMMETRIC_LAG = "motor_time_constant(tau_up = tau_down)"
 
 
 def _rel(a: float, b: float) -> float:
@@ -70,19 +78,21 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
     existing = {name for name, _ in vp.effects}
     out: list[Candidate] = []
 
-    def add(name, pnames, x0, lo, hi, floor, fixed=None, label="", unphysical=None):
+    def add(name, pnames, x0, lo, hi, floor, fixed=None, label="", unphysical=None, tied=None):
         if name in existing:
             return  # already modelled: refitting it is the user's nominal, not missing physics
         fixed = dict(fixed or {})
+        tied = dict(tied or {})
 
-        def build(theta, name=name, pnames=pnames, fixed=fixed):
+        def build(theta, name=name, pnames=pnames, fixed=fixed, tied=tied):
             params = dict(fixed)
             params.update({k: float(v) for k, v in zip(pnames, theta)})
+            params.update({k: params[v] for k, v in tied.items()})
             return vp.with_effect(name, **params)
 
         out.append(Candidate(name, tuple(pnames), np.asarray(x0, float), np.asarray(lo, float),
                              np.asarray(hi, float), build, fixed, floor, label or name,
-                             unphysical or (lambda theta: None)))
+                             unphysical or (lambda theta: None), tied=tied))
 
     m0 = nominal.mass_kg
     lift_kg = n * r.thrust_at_full_command_n / nominal.gravity_m_s2  # the rotors must still lift it
@@ -98,6 +108,11 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
     # lower bound: half the motor logging interval (a shorter lag cannot be told from none on this log,
     # and the output error's 0.01 s RK4 steps stay stable above 0.0036 s)
     tau_lo = min(max(0.002, 0.5 * dt_log), tu, td)
+    # the motor lag in two forms: one time constant both ways (as many parameters as a delay,
+    # so the two compete on their cut alone) and separate up/down constants; discovery keeps the
+    # up/down form only where it beats the symmetric one on held-out blocks (discover._one_variant)
+    add("motor_time_constant", ["tau_up"], [0.5 * (tu + td)], [tau_lo], [max(5 * max(tu, td), 0.3)],
+        lambda th: max(abs(th[0] - tu), abs(th[0] - td)) > dt_log, label=SYMMETRIC_LAG, tied={"tau_down": "tau_up"})
     add("motor_time_constant", ["tau_up", "tau_down"], [tu, td], [tau_lo, tau_lo],
         [max(5 * tu, 0.3), max(5 * td, 0.3)], lambda th: max(abs(th[0] - tu), abs(th[1] - td)) > dt_log)
     add("actuator_delay", ["delay"], [0.0], [0.0], [0.3], lambda th: th[0] > dt_log)

@@ -299,7 +299,7 @@ def instrumented_inertia(data: EquationData, win: Windows, vp: VehicleParams, fo
     inertia = np.diag(effective_params(vp).inertia).astype(float)
     axes = {}
     for i in (3, 4):
-        if win.usable[i] or AXES[i] not in axes_allowed:
+        if AXES[i] not in axes_allowed:
             continue
         m, p, zz = meas[:, i], pred[:, i], z[:, i - 3]
         _, g, se, r = instrumented_gains(m, p, zz)

@@ -33,6 +33,7 @@ from twin_nodes.discovery.kernels import kernels
 from twin_nodes.vehicle.geometry import allocation_matrix
 from twin_nodes.base.errors import LogError
 from twin_nodes.logs import time_sync
+from twin_nodes.vehicle import px4_params
 from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.core import I_MODE, I_N, I_TDN, I_TUP, I_WCMD, I_WMAX, I_WMIN, NX_BODY
 from twin_nodes.physics.model import Multirotor
@@ -120,10 +121,16 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     # the IMU and the body rates are often logged faster than this grid (PX4: sensor_combined every
     # 8 ms, 4 ms at high rate): average every sample into its grid step rather than pick one, which
     # keeps all of the sensor noise (PX4 SIH's accelerometer: 1.7 m/s^2 in y, gyro 0.14 rad/s in x)
+    # PX4's logged signals come late against what the airframe did (the gyro low-pass, the IMU's
+    # integration interval, the command held for a rate-loop step): each is re-timed by what the
+    # log's own parameters say (px4_params.sensor_timing), else a fit would take PX4's sensor
+    # latency for the motors' (on no-effect PX4 SIH flights: a 6-9 ms delay, tau_up 0.063 for 0.05)
+    timing = px4_params.sensor_timing(log.params)
+    late = {"specific_force_flu": timing.imu_average_s,
+            rates_name: timing.gyro_filter_s if rates_name == "body_rates_flu" else timing.imu_average_s}
     for name in ("specific_force_flu", rates_name):
         s = log.require(name)
-        if len(s.t_s) > 1 and float(np.median(np.diff(s.t_s))) < 0.75 * dt:
-            d[name] = time_sync.bin_mean_to(s.t_s, s.values, t)
+        d[name] = time_sync.sensor_to_grid(s.t_s, s.values, t, late[name], s.interp)
     # and low-pass the grid (the 2 Hz residual filter comes later)
     f = _lowpass(_fill_nan(d["specific_force_flu"]), rate_hz, min(10.0, 0.4 * rate_hz))
     # the body rates likewise: what the airframe does lies below 10 Hz (rotor lag, inertia), the rest
@@ -138,12 +145,13 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     # commands on a fine grid: linear between logged samples, NaN (stopped) kept
     ms = log.require("motors")
     t_fine = lo + np.arange(n * oversample) * (dt / oversample)
+    t_cmd = t_fine - timing.command_hold_s   # the command acting at t_fine was logged this much earlier
     u_fine = np.empty((len(t_fine), ms.values.shape[1]))
     for i in range(ms.values.shape[1]):
         col = ms.values[:, i]
         fin = np.isfinite(col)
-        u_fine[:, i] = np.interp(t_fine, ms.t_s[fin], col[fin]) if fin.sum() >= 2 else np.nan
-        stopped = np.interp(t_fine, ms.t_s, (~fin).astype(float)) > 0.5
+        u_fine[:, i] = np.interp(t_cmd, ms.t_s[fin], col[fin]) if fin.sum() >= 2 else np.nan
+        stopped = np.interp(t_cmd, ms.t_s, (~fin).astype(float)) > 0.5
         u_fine[stopped, i] = np.nan
     motor_dt = float(np.median(np.diff(ms.t_s))) if len(ms.t_s) > 1 else dt
     p = d["position_enu"]
@@ -162,7 +170,8 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     armed = np.isfinite(u_grid).all(1)
     data = EquationData(path=log.path, t=t, valid=finite & armed, p=p, v=d["velocity_enu"], q=d["attitude_q"],
                         w=w, alpha=alpha, f=f, u_fine=u_fine, up=oversample, battery_v=batt, height=height,
-                        motor_dt_s=motor_dt, info={"airborne": (t0, t1), "ground_enu_z": ground})
+                        motor_dt_s=motor_dt, info={"airborne": (t0, t1), "ground_enu_z": ground,
+                                                             "timing": timing.describe()})
     # exclude ground contact: low, slow, and the model's thrust well below the weight
     model = Multirotor(vp)
     S = model_rotor_states(model, data)

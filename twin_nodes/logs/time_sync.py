@@ -224,6 +224,25 @@ def bin_mean_to(t_src: np.ndarray, values: np.ndarray, t_dst: np.ndarray) -> np.
     return out[:, 0] if squeeze else out
 
 
+def sensor_to_grid(t_src: np.ndarray, values: np.ndarray, t_dst: np.ndarray, late_s: float = 0.0,
+                   kind: str = "linear") -> np.ndarray:
+    """A sensor signal on the uniform grid ``t_dst``, re-timed to when it happened.
+
+    ``late_s``: how much later than the event the signal is stamped (a filter's group delay,
+    half an averaging interval: :func:`twin_nodes.vehicle.px4_params.sensor_timing`), so sample
+    ``i`` is taken to describe ``t_src[i] - late_s``.  A source sampled faster than the grid is
+    averaged into it (:func:`bin_mean_to`), a slower one interpolated (:func:`interp_to`)."""
+    t = np.asarray(t_src, dtype=float)
+    td = np.asarray(t_dst, dtype=float)
+    if len(t) > 1 and td.size > 1 and float(np.median(np.diff(t))) < 0.75 * float(np.median(np.diff(td))):
+        if late_s:
+            # what happened at each sample's own time (the signal ``late_s`` later), then averaged:
+            # moving the stamps instead would shift which samples fall in a step by whole samples
+            values = interp_to(t, values, t + float(late_s), kind=kind)
+        return bin_mean_to(t, values, td)
+    return interp_to(t - float(late_s), values, td, kind=kind)
+
+
 def _quat_interp(q0: np.ndarray, q1: np.ndarray, w: np.ndarray, kind: str) -> np.ndarray:
     q0 = quat_normalize(q0)
     q1 = quat_normalize(q1)

@@ -253,3 +253,46 @@ def rate_gains_physical(px4: RateGainsPx4, x_flu: np.ndarray, y_flu: np.ndarray,
         "yawrate_p_1_s": px4.yaw_p * a_yaw,
         "yawrate_i_1_s2": px4.yaw_i * a_yaw,
     }
+
+
+@dataclass(frozen=True)
+class SensorTiming:
+    """How late PX4's logged signals are against what the airframe did, from the log's parameters.
+
+    ``gyro_filter_s``: ``vehicle_angular_velocity`` is the gyro through PX4's 2nd-order Butterworth
+    low-pass at ``IMU_GYRO_CUTOFF``; below the cut-off it delays by its group delay, sqrt(2)/(2 pi fc)
+    (5.6 ms at PX4's default 40 Hz).  ``imu_average_s``: ``sensor_combined`` is the IMU integrated over
+    one ``IMU_INTEG_RATE`` interval and stamped at its end, i.e. the interval's mean, half an interval
+    late.  ``command_hold_s``: the logged motor command is held until the next rate-loop step
+    (PX4 runs it on every filtered gyro sample, at most ``IMU_GYRO_RATEMAX``): against commands
+    interpolated between samples that is half a step later.  A parameter the log does not carry
+    counts zero (not a PX4 log: our own and RotorPy logs have unfiltered rates and exact commands)."""
+
+    gyro_filter_s: float = 0.0
+    imu_average_s: float = 0.0
+    command_hold_s: float = 0.0
+    sources: tuple[str, ...] = ()
+
+    def describe(self) -> str:
+        if not self.sources:
+            return "no PX4 sensor-timing parameters in the log: signals taken at their stamps"
+        return ("signals re-timed to what the airframe did: " + "; ".join(self.sources))
+
+
+def sensor_timing(params: Mapping[str, float]) -> SensorTiming:
+    """The :class:`SensorTiming` of a PX4 log from its parameters (all zero when it has none)."""
+    src = []
+    fc = float(params.get("IMU_GYRO_CUTOFF", 0.0) or 0.0)
+    gyro = math.sqrt(2.0) / (2.0 * math.pi * fc) if fc > 0 else 0.0
+    if gyro:
+        src.append(f"body rates {gyro * 1e3:.1f} ms earlier (IMU_GYRO_CUTOFF {fc:g} Hz low-pass group delay)")
+    integ = float(params.get("IMU_INTEG_RATE", 0.0) or 0.0)
+    avg = 0.5 / integ if integ > 0 else 0.0
+    if avg:
+        src.append(f"sensor_combined {avg * 1e3:.1f} ms earlier (half an IMU_INTEG_RATE {integ:g} Hz interval)")
+    ratemax = float(params.get("IMU_GYRO_RATEMAX", 0.0) or 0.0)
+    hold = 0.5 / ratemax if ratemax > 0 else 0.0
+    if hold:
+        src.append(f"motor commands {hold * 1e3:.2f} ms later (held for one IMU_GYRO_RATEMAX {ratemax:g} Hz "
+                   "rate-loop step)")
+    return SensorTiming(gyro, avg, hold, tuple(src))
