@@ -46,7 +46,7 @@ from twin_nodes.discovery.candidates import Candidate, build_candidates
 from twin_nodes.discovery.locate import excitation, locate, locate_output, regimes  # noqa: F401  (regimes: re-exported)
 from twin_nodes.discovery.output_error import (AXES, HORIZON_S, IV_AXIS_PARAM, IV_GAIN_RANGE, JUDGED, MIN_AXIS_R2, STRIDE_S, Windows,
                                                authority_mismatch, instrumented_inertia, judge_axes, make_windows,
-                                               output_error)
+                                               output_error, projected_view)
 from twin_nodes.discovery.residuals import (LOWPASS_HZ, EquationData, channel_names, modes, prepare,
                                             residual_channels)
 from twin_nodes.discovery.plans import RATE_LOOP_LOG_S
@@ -70,6 +70,8 @@ MAX_EFFECTS = 3
 #: alternative the flight cannot tell apart (mass/thrust, delay/lag...)
 ALT_FRACTION = 0.8
 #: effects that act through the dynamics: judged on the output error as well
+#: effects that act on every rotational axis through the motors
+MOTOR_DYNAMICS = ("motor_time_constant", "actuator_delay")
 OUTPUT_ERROR_EFFECTS = ("yaw_moment", "motor_time_constant", "actuator_delay", "inertia")
 #: the output-error axes each parameter needs (AXES order: force_x, force_y, force_z, roll, pitch, yaw)
 _PARAM_AXES = {"ixx": (3,), "iyy": (4,), "izz": (5,), "km": (5,)}
@@ -889,6 +891,15 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
                                                   -f.rel_improvement if f.verdict != "rejected"
                                                   else rank.get(f.candidate.label, 99)))
     effects_out = [_effect_json(f, names, base_held) for f in ranked]
+    if S.windows is not None:
+        # a motor lag or delay acts on every rotational axis: its held-out cut there in the
+        # instrument-projected error too, which the 50 Hz aliasing does not bound (reported only)
+        held_w = _window_folds(S.windows, S.t_split, S.t_split2)[0][1]
+        for f, e in zip(ranked, effects_out):
+            if e["verdict"] in ("confirmed", "likely") and f.candidate.name in MOTOR_DYNAMICS:
+                view = projected_view(data, S.windows, f.base_vp or vp, f.vp, held_w)
+                if view is not None:
+                    e.setdefault("residuals", {})["instrumented"] = view
     def guard(vp_new: VehicleParams) -> str | None:
         """The closed-loop twin's held-out throttle RMSE must not get worse (as ``_closed_loop_guard``)."""
         if not (closed_loop_metrics and closed):

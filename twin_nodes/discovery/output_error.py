@@ -275,6 +275,43 @@ IV_GAIN_RANGE = (0.2, 5.0)
 IV_MIN_R_ESTIMATE = 0.5
 
 
+def projected_view(data: EquationData, win: Windows, before: VehicleParams, after: VehicleParams,
+                   held: np.ndarray) -> dict | None:
+    """A finding's held-out cut on the rotational axes in the instrument-projected error
+    (:func:`projected_error`), each axis with a strong instrument (``win.iv_r`` >=
+    ``IV_MIN_R_ESTIMATE``): the part of the output error the rate setpoint explains, where the
+    aliasing of 50 Hz motor commands drops out.  ``None`` without a rate setpoint or a strong axis.
+
+    A motor lag or delay acts on every rotational axis; on a 50 Hz log its plain held-out RMS cut is
+    bounded by the aliasing noise no model explains (PX4 SIH T_TAU 0.12 s: 29-31 % in yaw), its
+    projected cut is not (82-93 % on roll, pitch and yaw; a wrong lag on a no-effect flight makes the
+    projected error 1.3-13x larger while the plain RMS of roll and pitch falls)."""
+    z = setpoint_slopes(data, win)
+    rows = np.asarray(held, bool)
+    if z is None or rows.sum() < 10:
+        return None
+    axes = [i for i in (3, 4, 5) if np.isfinite(win.iv_r[i]) and win.iv_r[i] >= IV_MIN_R_ESTIMATE]
+    if not axes:
+        return None
+    m0, p0 = axis_errors(data, win, before, rows)
+    m1, p1 = axis_errors(data, win, after, rows)
+    zz = z[rows]
+    per = {}
+    for i in axes:
+        b = projected_error(m0[:, i], p0[:, i], zz[:, i - 3])
+        a = projected_error(m1[:, i], p1[:, i], zz[:, i - 3])
+        if np.isfinite(a) and np.isfinite(b) and b > 0:
+            per[AXES[i]] = {"before": round(b, 5), "after": round(a, 5), "cut": round(1.0 - a / b, 4),
+                            "instrument_r": round(float(win.iv_r[i]), 3)}
+    if not per:
+        return None
+    main = max(per, key=lambda a: per[a]["before"])
+    return {"residual": "instrumented", "heldout_channel": main, "heldout_before": per[main]["before"],
+            "heldout_after": per[main]["after"], "heldout_improvement": per[main]["cut"], "axes": per,
+            "heldout_units": "RMS of the output error projected on the rate setpoint's change (rad/s^2), "
+                             "held-out windows; reported, not graded"}
+
+
 def instrumented_inertia(data: EquationData, win: Windows, vp: VehicleParams, fold1: tuple[np.ndarray, np.ndarray],
                          fold2: tuple[np.ndarray, np.ndarray], build=None,
                          axes_allowed: tuple[str, ...] = ("roll", "pitch")) -> dict | None:
