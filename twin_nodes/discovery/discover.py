@@ -69,9 +69,9 @@ MAX_EFFECTS = 3
 #: a significant candidate with at least this fraction of the winner's cut is reported as an
 #: alternative the flight cannot tell apart (mass/thrust, delay/lag...)
 ALT_FRACTION = 0.8
-#: effects that act through the dynamics: judged on the output error as well
 #: effects that act on every rotational axis through the motors
 MOTOR_DYNAMICS = ("motor_time_constant", "actuator_delay")
+#: effects that act through the dynamics: judged on the output error as well
 OUTPUT_ERROR_EFFECTS = ("yaw_moment", "motor_time_constant", "actuator_delay", "inertia")
 #: the output-error axes each parameter needs (AXES order: force_x, force_y, force_z, roll, pitch, yaw)
 _PARAM_AXES = {"ixx": (3,), "iyy": (4,), "izz": (5,), "km": (5,)}
@@ -1017,7 +1017,7 @@ def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: 
 INSTRUMENTED_BLOCKS_MISSING = 30
 
 
-#: the roll/pitch inertia axes and where they sit in the inertia candidate
+#: the inertia candidate's roll and pitch parameters
 _RP_AXES = ("ixx", "iyy")
 
 

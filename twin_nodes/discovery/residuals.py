@@ -170,8 +170,8 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     armed = np.isfinite(u_grid).all(1)
     data = EquationData(path=log.path, t=t, valid=finite & armed, p=p, v=d["velocity_enu"], q=d["attitude_q"],
                         w=w, alpha=alpha, f=f, u_fine=u_fine, up=oversample, battery_v=batt, height=height,
-                        motor_dt_s=motor_dt, info={"airborne": (t0, t1), "ground_enu_z": ground,
-                                                             "timing": timing.describe()})
+                        motor_dt_s=motor_dt,
+                        info={"airborne": (t0, t1), "ground_enu_z": ground, "timing": timing.describe()})
     # exclude ground contact: low, slow, and the model's thrust well below the weight
     model = Multirotor(vp)
     S = model_rotor_states(model, data)
