@@ -109,8 +109,9 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
     # and the output error's 0.01 s RK4 steps stay stable above 0.0036 s)
     tau_lo = min(max(0.002, 0.5 * dt_log), tu, td)
     # the motor lag in two forms: one time constant both ways (as many parameters as a delay,
-    # so the two compete on their cut alone) and separate up/down constants; discovery keeps the
-    # up/down form only where it beats the symmetric one on held-out blocks (discover._one_variant)
+    # so the two compete on their cut alone) and separate up/down constants; discovery fits the
+    # up/down form only where the one-constant lag is accepted, and keeps it only where it beats
+    # that on held-out blocks (discover._one_variant)
     add("motor_time_constant", ["tau_up"], [0.5 * (tu + td)], [tau_lo], [max(5 * max(tu, td), 0.3)],
         lambda th: max(abs(th[0] - tu), abs(th[0] - td)) > dt_log, label=SYMMETRIC_LAG, tied={"tau_down": "tau_up"})
     add("motor_time_constant", ["tau_up", "tau_down"], [tu, td], [tau_lo, tau_lo],

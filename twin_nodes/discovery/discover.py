@@ -42,7 +42,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from twin_nodes.discovery import evaluate
-from twin_nodes.discovery.candidates import Candidate, build_candidates
+from twin_nodes.discovery.candidates import SYMMETRIC_LAG, Candidate, build_candidates
 from twin_nodes.discovery.locate import excitation, locate, locate_output, regimes  # noqa: F401  (regimes: re-exported)
 from twin_nodes.discovery.output_error import (AXES, HORIZON_S, IV_AXIS_PARAM, IV_GAIN_RANGE, JUDGED, MIN_AXIS_R2, STRIDE_S, Windows,
                                                authority_mismatch, instrumented_inertia, judge_axes, make_windows,
@@ -776,35 +776,45 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         # either residual) is not refitted: adding an effect does not make it explain the rest
         cands = [c for c in build_candidates(current, data) if c.label not in done
                  and (rounds == 1 or r1_gain.get(c.label, 1.0) >= PRUNE_GAIN)]
-        per_label: dict[str, list[Fit]] = {}
-        tasks: list[tuple[Candidate, Judge, np.ndarray]] = []
-        for c in cands:
-            tasks.append((c, eq, R0))
-            if oe is not None and c.name in OUTPUT_ERROR_EFFECTS and (rounds == 1 or oe_gain.get(c.label, 0) > 0.02):
-                co = _restrict_to_axes(c, oe.windows.usable, oe.windows.axis_r2)
-                if co is not None:
-                    tasks.append((co, oe, R0_oe))
-        if evaluate.workers() > 1:
-            _warm(tasks)
-        # the fits (each candidate, each fold) are independent: spread over processes, results in
-        # task order (evaluate.py)
-        jobs = [(i, k) for i, (_, judge, _) in enumerate(tasks) for k in range(len(judge.folds))]
-        done = evaluate.run_tasks(
-            lambda j, tasks=tasks, jobs=jobs: _fold_fit(tasks[jobs[j][0]][0], tasks[jobs[j][0]][1], vp,
-                                                        tasks[jobs[j][0]][2].shape, jobs[j][1]),
-            len(jobs), cost=[_task_cost(tasks[i][0], tasks[i][1]) for i, _ in jobs],
-            done=(lambda j, jobs=jobs: pbar.update(1) if jobs[j][1] == 0 else None) if pbar is not None else None)
-        for i, (c, judge, R0j) in enumerate(tasks):
-            fold_fits = [res for (ti, _), res in zip(jobs, done) if ti == i]
-            f = assess(c, judge, vp, R0j, fold_fits=fold_fits)
-            f.base_vp = current
-            per_label.setdefault(c.label, []).append(f)
-            if judge is oe and rounds == 1:
-                oe_gain[c.label] = f.rel_improvement
-        fits = [f for fl in per_label.values() for f in fl]
-        for f in fits:
-            f.accepted = (f.above_floor and not f.at_bound and f.unphysical is None and f.t_stat > T_CRIT
-                          and f.rel_improvement >= MIN_REL_IMPROVEMENT)
+        def fit_all(batch: list[Candidate], all_oe: bool = False) -> dict[str, list[Fit]]:
+            """Each candidate of ``batch`` fitted and assessed on its residuals (both folds each)."""
+            tasks: list[tuple[Candidate, Judge, np.ndarray]] = []
+            for c in batch:
+                tasks.append((c, eq, R0))
+                if oe is not None and c.name in OUTPUT_ERROR_EFFECTS and (
+                        all_oe or rounds == 1 or oe_gain.get(c.label, 0) > 0.02):
+                    co = _restrict_to_axes(c, oe.windows.usable, oe.windows.axis_r2)
+                    if co is not None:
+                        tasks.append((co, oe, R0_oe))
+            if evaluate.workers() > 1:
+                _warm(tasks)
+            # the fits (each candidate, each fold) are independent: spread over processes, results in
+            # task order (evaluate.py)
+            jobs = [(i, k) for i, (_, judge, _) in enumerate(tasks) for k in range(len(judge.folds))]
+            done = evaluate.run_tasks(
+                lambda j, tasks=tasks, jobs=jobs: _fold_fit(tasks[jobs[j][0]][0], tasks[jobs[j][0]][1], vp,
+                                                            tasks[jobs[j][0]][2].shape, jobs[j][1]),
+                len(jobs), cost=[_task_cost(tasks[i][0], tasks[i][1]) for i, _ in jobs],
+                done=(lambda j, jobs=jobs: pbar.update(1) if jobs[j][1] == 0 else None) if pbar is not None else None)
+            out: dict[str, list[Fit]] = {}
+            for i, (c, judge, R0j) in enumerate(tasks):
+                fold_fits = [res for (ti, _), res in zip(jobs, done) if ti == i]
+                f = assess(c, judge, vp, R0j, fold_fits=fold_fits)
+                f.base_vp = current
+                f.accepted = (f.above_floor and not f.at_bound and f.unphysical is None and f.t_stat > T_CRIT
+                              and f.rel_improvement >= MIN_REL_IMPROVEMENT)
+                out.setdefault(c.label, []).append(f)
+                if judge is oe and rounds == 1:
+                    oe_gain[c.label] = f.rel_improvement
+            return out
+
+        # the up/down motor lag is fitted only where the one-constant lag is found (it can only
+        # refine it; on the other flights it would cost the most expensive fit of the round)
+        richer = [c for c in cands if c.name == "motor_time_constant" and c.label != SYMMETRIC_LAG
+                  and any(d.label == SYMMETRIC_LAG for d in cands)]
+        per_label = fit_all([c for c in cands if c not in richer])
+        if richer and any(f.accepted for f in per_label.get(SYMMETRIC_LAG, [])):
+            per_label.update(fit_all(richer, all_oe=True))
         # one entry per candidate, one motor_efficiency entry (the best motor) and one motor lag
         # (symmetric or up/down: _one_variant)
         kept = []
