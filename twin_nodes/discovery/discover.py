@@ -869,8 +869,6 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     if closed_loop_metrics and accepted:
         # an effect must also make the closed-loop twin better on the held-out part, never worse
         accepted, current, closed = _closed_loop_guard(accepted, log, vp, data, fit_mask, t_split, S.t_end)
-    R_after = residual_channels(data, current, vp)
-    after_held = np.sqrt(np.mean(R_after[held_mask] ** 2, axis=0))
 
     # grades: confirmed (accepted and kept), likely, rejected (with why)
     acc_labels = [f.candidate.label for f in accepted]
@@ -920,16 +918,13 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
             return None
         return (f"makes the closed-loop twin worse on the held-out part (throttle RMSE "
                 f"{closed['after']['throttle_rmse']:.6f} -> {m['throttle_rmse']:.6f})")
-    refit = _equation_axes(S, ranked, effects_out, current, acc_labels, guard)
-    if refit is not None:
-        current = refit
-        R_after = residual_channels(data, current, vp)
-        after_held = np.sqrt(np.mean(R_after[held_mask] ** 2, axis=0))
+    # an inertia finding's roll/pitch axes, each on its own evidence, then the instrument on what is
+    # still held: either may change the refit vehicle
+    current = _equation_axes(S, ranked, effects_out, current, acc_labels, guard) or current
     instrumented, refit = _instrumented(S, current, acc_labels, effects_out, guard)
-    if refit is not None:
-        current = refit
-        R_after = residual_channels(data, current, vp)
-        after_held = np.sqrt(np.mean(R_after[held_mask] ** 2, axis=0))
+    current = refit or current
+    R_after = residual_channels(data, current, vp)
+    after_held = np.sqrt(np.mean(R_after[held_mask] ** 2, axis=0))
     likely = [e["name"] for e in effects_out if e["verdict"] == "likely"]
     result = {
         "log": str(log.path),
@@ -1028,7 +1023,7 @@ INSTRUMENTED_BLOCKS_MISSING = 30
 
 
 #: the inertia candidate's roll and pitch parameters
-_RP_AXES = ("ixx", "iyy")
+_RP_AXES = tuple(k for k, _ in IV_AXIS_PARAM.values())
 
 
 def _axis_tests(S: Setup, g: Fit) -> dict[str, tuple[float, int]]:
@@ -1078,7 +1073,7 @@ def _equation_axes(S: Setup, ranked: list[Fit], effects_out: list[dict], current
         nominal = dict(zip(g.candidate.param_names, g.candidate.x0))
         params = dict(e["params"])
         held = dict(e.get("held_at_nominal") or {})
-        why_held = (o.candidate.held if o is not None else {})
+        why_held = o.candidate.held if o is not None else {}
         note = {}
         for a in axes:
             t, n = tests.get(a, (0.0, 0))

@@ -282,15 +282,15 @@ class SensorTiming:
 def sensor_timing(params: Mapping[str, float]) -> SensorTiming:
     """The :class:`SensorTiming` of a PX4 log from its parameters (all zero when it has none)."""
     src = []
-    fc = float(params.get("IMU_GYRO_CUTOFF", 0.0) or 0.0)
+    fc = param(params, "IMU_GYRO_CUTOFF", 0.0)[0]
     gyro = math.sqrt(2.0) / (2.0 * math.pi * fc) if fc > 0 else 0.0
     if gyro:
         src.append(f"body rates {gyro * 1e3:.1f} ms earlier (IMU_GYRO_CUTOFF {fc:g} Hz low-pass group delay)")
-    integ = float(params.get("IMU_INTEG_RATE", 0.0) or 0.0)
+    integ = param(params, "IMU_INTEG_RATE", 0.0)[0]
     avg = 0.5 / integ if integ > 0 else 0.0
     if avg:
         src.append(f"sensor_combined {avg * 1e3:.1f} ms earlier (half an IMU_INTEG_RATE {integ:g} Hz interval)")
-    ratemax = float(params.get("IMU_GYRO_RATEMAX", 0.0) or 0.0)
+    ratemax = param(params, "IMU_GYRO_RATEMAX", 0.0)[0]
     hold = 0.5 / ratemax if ratemax > 0 else 0.0
     if hold:
         src.append(f"motor commands {hold * 1e3:.2f} ms later (held for one IMU_GYRO_RATEMAX {ratemax:g} Hz "
