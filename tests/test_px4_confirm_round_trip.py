@@ -184,8 +184,10 @@ def test_roll_arm_round_trip_replayed_from_out(tmp_path):
 
 def test_instrumented_roll_arm_round_trip_replayed_from_out(tmp_path):
     """SIH_L_ROLL 0.2 -> 0.16 m on grid flight g26 (yaw-square mission, 4 ms logs): roll's output error
-    is left out (r^2 0.797 < 0.8), the rate setpoint as instrument reads roll 0.73 +- 0.03 and yaw 1.00,
-    and ``inertia`` is ``likely`` on the instrumented residual (Ixx 0.0334 +- 0.0018 vs 0.03125).  Its plan
+    is left out (r^2 0.797 < 0.8), PX4's rate loop flown on the model reads roll x1.16 +- 0.03 of the
+    model's inertia and yaw x1.01, and ``inertia`` is ``likely`` on that residual (Ixx 0.0286 +- 0.0011
+    vs 0.03125; the rate setpoint as instrument of the commands, used before 2026-11-26, read 0.0334 +-
+    0.0018).  Its plan
     (15 rate doublets) flown with the same change (out/confirm_g26/c2) confirms it on the roll output
     error, the refit within 5 % of the truth; flown with no change (n2) it is dropped.  The first plan
     (6 doublets, c1) was too short: t 2.4 over 58 blocks, dropped.  Recorded 2026-11-25 (docs/discovery.md)."""
@@ -193,7 +195,7 @@ def test_instrumented_roll_arm_round_trip_replayed_from_out(tmp_path):
                                                  ("confirm_g26/c2/flight.ulg", "confirm_g26/n2/flight.ulg"), "g26")
     eff = next(e for e in res["effects"] if e["name"] == "inertia")
     assert res["likely"] == ["inertia"] and res["accepted"] == [], (res["likely"], res["accepted"])
-    assert eff["residual"] == "instrumented" and eff["heldout_channel"] == "roll", eff
+    assert eff["residual"] == "rate_loop" and eff["heldout_channel"] == "roll", eff
     assert abs(eff["params"]["ixx"] / 0.03125 - 1) < 0.10 and eff["params"]["iyy"] == 0.025, eff["params"]
     assert eff["heldout_improvement"] > 0.5 and 0 < eff["params_se"]["ixx"] < 0.003
     assert res["instrumented"]["axes"]["roll"]["flagged"] and abs(res["instrumented"]["yaw_gain"] - 1) < 0.02

@@ -63,7 +63,7 @@ def confirm(result: dict, followup_log, vp: VehicleParams) -> dict:
         # supplies: the follow-up judges it there
         # likewise an instrumented one (an axis the flight's output error could not fit): a follow-up
         # with the motors logged at the rate loop's rate makes the axis usable there
-        kind = ("output" if (e.get("excitation") or {}).get("corroborated") or e.get("residual") == "instrumented"
+        kind = ("output" if (e.get("excitation") or {}).get("corroborated") or e.get("residual") in ("instrumented", "rate_loop")
                 else e.get("residual", "equation"))
         judge = S.oe if kind == "output" and S.oe is not None else S.eq
         if judge.kind == "equation":

@@ -41,7 +41,7 @@ from typing import Callable
 import numpy as np
 from scipy.optimize import least_squares
 
-from twin_nodes.discovery import evaluate
+from twin_nodes.discovery import evaluate, rate_loop
 from twin_nodes.discovery.candidates import SYMMETRIC_LAG, Candidate, build_candidates
 from twin_nodes.discovery.locate import excitation, locate, locate_output, regimes  # noqa: F401  (regimes: re-exported)
 from twin_nodes.discovery.output_error import (AXES, HORIZON_S, IV_AXIS_PARAM, IV_GAIN_RANGE, JUDGED, MIN_AXIS_R2, STRIDE_S, Windows,
@@ -51,7 +51,7 @@ from twin_nodes.discovery.residuals import (LOWPASS_HZ, EquationData, channel_na
                                             residual_channels)
 from twin_nodes.discovery.plans import RATE_LOOP_LOG_S
 from twin_nodes.discovery.verdicts import LIKELY_MIN_CUT, corroboration, folds_agree, grade, likely_failures
-from twin_nodes.physics.effects import effective_params
+from twin_nodes.physics.effects import EFFECTS, effective_params
 from twin_nodes.vehicle.params import VehicleParams
 
 HELDOUT_FRACTION = 0.35
@@ -712,6 +712,8 @@ class Setup:
     windows: Windows | None = None
     #: the second fold's split: fit on the part after it, judge on the part before
     t_split2: float = math.nan
+    #: the log's own parameters (PX4's rate-loop gains and filters for :mod:`rate_loop`)
+    log_params: dict = field(default_factory=dict)
 
 
 def prepare_flight(log, vp: VehicleParams, heldout_fraction: float = HELDOUT_FRACTION, output_error: bool = True) -> Setup:
@@ -732,7 +734,7 @@ def prepare_flight(log, vp: VehicleParams, heldout_fraction: float = HELDOUT_FRA
     oe = _output_judge(data, vp, t_split, t_split2, win) if win is not None else None
     ex = excitation(data, vp, names, _blocks(data.t, data.valid, BLOCK_S), held_blocks)
     return Setup(data, names, fit_mask, held_mask, float(t_split), float(valid_t[-1]), eq, oe, ex, win,
-                 float(t_split2))
+                 float(t_split2), dict(getattr(log, "params", None) or {}))
 
 
 def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTION, max_effects: int = MAX_EFFECTS,
@@ -923,6 +925,10 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     current = _equation_axes(S, ranked, effects_out, current, acc_labels, guard) or current
     instrumented, refit = _instrumented(S, current, acc_labels, effects_out, guard)
     current = refit or current
+    # where the rate loop says the motors are slow, not an inertia: how slow
+    lag = (_rate_loop_lag(S, current, effects_out)
+           if instrumented is not None and instrumented.get("method") == "rate_loop" and instrumented["motor_signature"]
+           else None)
     R_after = residual_channels(data, current, vp)
     after_held = np.sqrt(np.mean(R_after[held_mask] ** 2, axis=0))
     likely = [e["name"] for e in effects_out if e["verdict"] == "likely"]
@@ -973,6 +979,8 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         result["authority"] = authority_mismatch(S.windows) if S.windows is not None else []
     if instrumented is not None:
         result["instrumented"] = instrumented
+    if lag is not None:
+        result["rate_loop_lag"] = lag
     if closed_loop_metrics:
         _closed_loop(result, log, vp, current, t_split, S.t_end, closed)
     _closed_loop_reset()
@@ -1007,12 +1015,20 @@ def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: 
             entry.setdefault("instrumented_params", {})[k] = params[k]
     if "held_at_nominal" in entry and not entry["held_at_nominal"]:
         entry.pop("held_at_nominal")
-    entry.setdefault("residuals", {})["instrumented"] = residual
-    entry["verdict_note"] = (entry.get("verdict_note", "") + "; the rate setpoint as instrument agrees ("
-                             + ", ".join(f"{a} gain {ax[a]['gain']:.2f} +- {ax[a]['se']:.2f}, {k} {params[k]:.4g}"
-                                         + (" supplied by it" if held else "") for a, k, held, _ in agree)
-                             + f"; held-out instrument-projected {residual['heldout_channel']} error cut "
-                               f"{100 * residual['heldout_improvement']:.0f} %)")
+    kind = residual.get("residual", "instrumented")
+    entry.setdefault("residuals", {})[kind] = residual
+    if kind == "rate_loop":
+        says = "PX4's rate loop flown on the model agrees ("
+        part = [f"{a} inertia x{ax[a]['scale']:.2f} +- {ax[a]['scale_se']:.2f}" for a, *_ in agree]
+        held_out = f"held-out {residual['heldout_channel']} body-rate error along the inertia's sensitivity cut "
+    else:
+        says = "the rate setpoint as instrument agrees ("
+        part = [f"{a} gain {ax[a]['gain']:.2f} +- {ax[a]['se']:.2f}" for a, *_ in agree]
+        held_out = f"held-out instrument-projected {residual['heldout_channel']} error cut "
+    entry["verdict_note"] = (entry.get("verdict_note", "") + "; " + says
+                             + ", ".join(f"{p_}, {k} {params[k]:.4g}" + (" supplied by it" if held else "")
+                                         for p_, (a, k, held, _) in zip(part, agree))
+                             + f"; {held_out}{100 * residual['heldout_improvement']:.0f} %)")
     return "corroborates the " + entry["verdict"] + " finding"
 
 
@@ -1157,12 +1173,29 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
     def build(ixx, iyy):
         izz = float(effective_params(current).inertia[2, 2])
         return current.with_effect("inertia", ixx=ixx, iyy=iyy, izz=izz)
-    iv = instrumented_inertia(d, win, current, fold1, fold2, build, allowed)
+    # a PX4 log: its own rate loop flown on the model, driven by the logged rate setpoint (no
+    # aliased motor commands in it); else the rate setpoint as instrument of the commands
+    iv = rate_loop.inertia(d, S.log_params, current, S.t_split, S.t_split2, allowed)
+    not_used = None
+    if iv is not None and iv.get("pinned"):
+        not_used = (f"PX4's rate loop on the model reads {', '.join(iv['pinned'])} at the edge of x0.5-x2 of the "
+                    "model's inertia: not this vehicle's rate loop, the rate setpoint as instrument instead")
+        iv = None
+    if iv is None:
+        iv = instrumented_inertia(d, win, current, fold1, fold2, build, allowed)
     if iv is None:
         return None, None
-    out = {"axes": {a: {k: (round(float(v), 4) if isinstance(v, float) else v) for k, v in ax.items() if k != "index"}
+    method = iv.get("method", "instrument")
+    out = {"method": method,
+           "axes": {a: {k: (round(float(v), 4) if isinstance(v, float) else v) for k, v in ax.items() if k != "index"}
                     for a, ax in iv["axes"].items()},
-           "yaw_gain": round(float(iv["yaw_gain"]), 4), "flagged": iv["flagged"], "verdict": "none"}
+           "yaw_gain": round(float(iv["yaw_gain"]), 4), "flagged": iv["flagged"], "verdict": "none",
+           "motor_signature": bool(iv.get("motor_signature"))}
+    if method == "rate_loop":
+        out.update(loop=iv["loop"], windows=iv["windows"], window_s=iv["window_s"],
+                   yaw_scale=round(float(iv["yaw_scale"]), 4))
+    if not_used:
+        out["rate_loop_not_used"] = not_used
     if not iv["flagged"]:
         return out, None
     why = []
@@ -1183,9 +1216,12 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
     m = ax[main]
     b0, b1 = m.get("heldout_before", math.nan), m.get("heldout_after", math.nan)
     cut = 1.0 - b1 / b0 if np.isfinite(b0) and np.isfinite(b1) and b0 > 0 else math.nan
+    rl = method == "rate_loop"
+    kind = "rate_loop" if rl else "instrumented"
+    what = (f"{main} body-rate error along its sensitivity to the inertia (PX4's rate loop flown on the model)" if rl
+            else f"instrument-projected {main} error")
     if not (cut >= LIKELY_MIN_CUT):
-        why.append(f"held-out cut of the instrument-projected {main} error {100 * cut:.0f} % < "
-                   f"{100 * LIKELY_MIN_CUT:.0f} %")
+        why.append(f"held-out cut of the {what} {100 * cut:.0f} % < {100 * LIKELY_MIN_CUT:.0f} %")
     params = iv.get("params")
     out.update(params=params, heldout_channel=main, heldout_improvement=round(float(cut), 4) if np.isfinite(cut) else None)
     if why or params is None:
@@ -1193,10 +1229,17 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
         out["why_not"] = why
         return out, None
     out["verdict"] = "likely"
-    note = ("likely (instrumented): the rate setpoint as instrument gives "
-            + ", ".join(f"{a} gain {ax[a]['gain']:.2f} +- {ax[a]['se']:.2f}" for a in iv["flagged"])
-            + f" (yaw {iv['yaw_gain']:.2f}: not the motors); held-out instrument-projected {main} error cut "
-              f"{100 * cut:.0f} %; " + _left_out_text(win, iv["flagged"], d.motor_dt_s))
+    if rl:
+        note = ("likely (rate loop): PX4's rate loop (the log's gains and filters) flown on the model from the logged "
+                "rate setpoint reads " + ", ".join(f"{a} inertia x{ax[a]['scale']:.2f} +- {ax[a]['scale_se']:.2f}"
+                                                   for a in iv["flagged"])
+                + f" (yaw x{iv['yaw_scale']:.2f}: not the motors); held-out {what} cut {100 * cut:.0f} %; "
+                + _left_out_text(win, iv["flagged"], d.motor_dt_s))
+    else:
+        note = ("likely (instrumented): the rate setpoint as instrument gives "
+                + ", ".join(f"{a} gain {ax[a]['gain']:.2f} +- {ax[a]['se']:.2f}" for a in iv["flagged"])
+                + f" (yaw {iv['yaw_gain']:.2f}: not the motors); held-out {what} cut "
+                  f"{100 * cut:.0f} %; " + _left_out_text(win, iv["flagged"], d.motor_dt_s))
     if entry is not None and entry.get("closed_loop"):
         # the inertia the flight's own residuals fitted was dropped by the closed-loop twin: the
         # instrument does not bring the effect back on its own
@@ -1204,7 +1247,7 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
         out["why_not"] = [f"the inertia fitted on this flight {entry['closed_loop']}"]
         return out, None
     prev = dict(entry) if entry is not None else {}
-    residual = {"residual": "instrumented", "heldout_channel": main, "heldout_before": round(float(b0), 5),
+    residual = {"residual": kind, "heldout_channel": main, "heldout_before": round(float(b0), 5),
                 "heldout_after": round(float(b1), 5), "heldout_improvement": round(float(cut), 4),
                 "heldout_t_stat": round(float(m.get("heldout_t", math.nan)), 2), "params": params,
                 "fold_gains": [round(float(ax[main]["gain_fold1"]), 4), round(float(ax[main]["gain_fold2"]), 4)]}
@@ -1231,20 +1274,22 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
     new = {"name": "inertia", "accepted": False, "verdict": "likely", "verdict_note": note, "params": params,
            "params_se": params_se,
            "evidence": (f"inertia ({', '.join(f'{k}={v:.4g}' for k, v in params.items())}) cuts the held-out "
-                        f"{main} error projected on the rate setpoint by {100 * cut:.0f} %: likely (instrumented)"),
-           "residual": "instrumented", "heldout_channel": main, "heldout_before": residual["heldout_before"],
+                        f"{what} by {100 * cut:.0f} %: likely ({'rate loop' if rl else 'instrumented'})"),
+           "residual": kind, "heldout_channel": main, "heldout_before": residual["heldout_before"],
            "heldout_after": residual["heldout_after"],
-           "heldout_units": (f"RMS of the output error in {main} projected on the rate setpoint's change (rad/s^2) "
-                             "on the held-out part"),
+           "heldout_units": ((f"{main} body-rate error along its sensitivity to the inertia, |sum <J, e>| / |J| "
+                              "(rad/s), held-out windows of PX4's rate loop flown on the model") if rl else
+                             (f"RMS of the output error in {main} projected on the rate setpoint's change (rad/s^2) "
+                              "on the held-out part")),
            "heldout_improvement": residual["heldout_improvement"], "heldout_t_stat": residual["heldout_t_stat"],
            "cv_improvement": residual["heldout_improvement"], "above_resolution_floor": True,
-           "excitation": {**(prev.get("excitation") or {}), "channel": main, "residual": "instrumented",
-                          "instrument_r": round(float(m["instrument_r"]), 3),
+           "excitation": {**(prev.get("excitation") or {}), "channel": main, "residual": kind,
+                          **({"windows": iv["windows"]} if rl else {"instrument_r": round(float(m["instrument_r"]), 3)}),
                           "plans": ["rate_doublets"], "blocks_missing": INSTRUMENTED_BLOCKS_MISSING,
                           "supplied_by": "roll and pitch rate doublets" + (
                               " with the motors logged every 4 ms (PX4: SDLOG_PROFILE's high-rate bit), where the "
                               "output error can fit the axis" if d.motor_dt_s > RATE_LOOP_LOG_S else "")},
-           "residuals": {**(prev.get("residuals") or {}), "instrumented": residual},
+           "residuals": {**(prev.get("residuals") or {}), kind: residual},
            "alternatives": []}
     if entry is not None:
         effects_out.remove(entry)
@@ -1252,6 +1297,102 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
               or (e["verdict"] == "likely" and (e.get("cv_improvement") or 0) < new["cv_improvement"])), len(effects_out))
     effects_out.insert(k, new)
     return out, None
+
+
+def _rate_loop_lag(S: Setup, current: VehicleParams, effects_out: list[dict]) -> dict | None:
+    """The motors' time constant read by PX4's rate loop flown on the model
+    (:func:`~twin_nodes.discovery.rate_loop.motor_lag`), where the rate loop said the motors, not an
+    inertia, are slow (every axis off the same way) and the model's lag and delay are its own.
+
+    It is ``likely`` when the lag is far from the model's on every axis alike, both folds move it the
+    same way by 2 standard errors, fold 1's lag cuts the held-out rate error along its sensitivity by
+    ``LIKELY_MIN_CUT``, lies inside the effect's physical range, and beats an extra delay on the
+    held-out windows; never ``confirmed`` (no residual of the flight's own shows it: PX4 SIH
+    SIH_T_TAU 0.09 s on a 50 Hz log, where lag and delay cut the output error 9-10 %).  The entry
+    replaces the flight's own ``motor_time_constant`` (kept as its residuals), re-sorted by grade.
+    Returns the numbers for the result (None: not looked at)."""
+    if any(name in MOTOR_DYNAMICS for name, _ in current.effects):
+        return None
+    r = rate_loop.motor_lag(S.data, S.log_params, current, S.t_split, S.t_split2)
+    if r is None:
+        return None
+    out = {k: (round(float(v), 5) if isinstance(v, float) else v) for k, v in r.items() if k not in ("loop", "heldout_sse")}
+    out["heldout_sse"] = {k: round(float(v), 2) for k, v in r["heldout_sse"].items()}
+    out["verdict"] = "none"
+    tau0, tau1 = r["model_tau"], r["tau_fold1"]
+    if not r["flagged"]:
+        out["why_not"] = [f"the lag {r['tau']:.3f} +- {r['se']:.3f} s is not far from the model's {tau0:.3f} s on "
+                          f"every axis alike (roll, pitch, yaw {', '.join(f'{v:.3f}' for v in r['axis_tau'].values())})"]
+        return out
+    why = []
+    sides = [(r[f"tau_fold{k}"] - tau0) / r[f"se_fold{k}"] for k in (1, 2)
+             if np.isfinite(r[f"tau_fold{k}"]) and np.isfinite(r[f"se_fold{k}"]) and r[f"se_fold{k}"] > 0]
+    if len(sides) < 2 or not all(abs(t) > 2.0 and np.sign(t) == np.sign(r["tau"] - tau0) for t in sides):
+        why.append("the two folds do not both move the lag the same way at 2 standard errors")
+    b0, b1 = r["heldout_before"], r["heldout_after"]
+    cut = 1.0 - b1 / b0 if np.isfinite(b0) and np.isfinite(b1) and b0 > 0 else math.nan
+    if not (cut >= LIKELY_MIN_CUT):
+        why.append(f"held-out cut of the body-rate error along the lag's sensitivity {100 * cut:.0f} % < "
+                   f"{100 * LIKELY_MIN_CUT:.0f} %")
+    lo, hi = EFFECTS["motor_time_constant"].ranges["tau_up"]
+    if not lo <= tau1 <= hi:
+        why.append(f"lag {tau1:.3f} s outside the physical range {lo:g}-{hi:g} s")
+    held = r["heldout_sse"]
+    if not held["lag"] < held["delay"]:
+        why.append(f"an extra {1e3 * r['delay_fold1']:.0f} ms delay fits the held-out windows as well "
+                   f"(sum of squares {held['delay']:.0f} vs the lag's {held['lag']:.0f})")
+    out["heldout_improvement"] = round(float(cut), 4) if np.isfinite(cut) else None
+    if why:
+        out["why_not"] = why
+        return out
+    out["verdict"] = "likely"
+    params = {"tau_up": float(tau1), "tau_down": float(tau1)}
+    # reported in the axis the lag moves most (as projected_view), the joint numbers beside it
+    per = r["heldout_axes"]
+    main = max(per, key=lambda a: per[a]["before"] if np.isfinite(per[a]["before"]) else -1.0)
+    residual = {"residual": "rate_loop", "heldout_channel": main, "heldout_before": round(float(per[main]["before"]), 5),
+                "heldout_after": round(float(per[main]["after"]), 5),
+                "heldout_improvement": round(float(per[main]["cut"]), 4),
+                "heldout_axes": {a: {k: round(float(v), 4) for k, v in x.items()} for a, x in per.items()},
+                "heldout_joint": {"before": round(float(b0), 5), "after": round(float(b1), 5),
+                                  "cut": round(float(cut), 4), "t": round(float(r["heldout_t"]), 2)},
+                "heldout_t_stat": round(float(r["heldout_t"]), 2), "params": params,
+                "fold_params": [round(float(r["tau_fold1"]), 5), round(float(r["tau_fold2"]), 5)]}
+    prev = next((e for e in effects_out if e["name"] == "motor_time_constant"), None)
+    if prev is not None and prev["verdict"] in ("confirmed", "likely"):
+        return out
+    axis_tau = ", ".join(f"{a} {v:.3f}" for a, v in r["axis_tau"].items())
+    note = (f"likely (rate loop): PX4's rate loop (the log's gains and filters) flown on the model from the logged "
+            f"rate setpoint reads the motors' lag {r['tau']:.3f} +- {r['se']:.3f} s for the model's {tau0:.3f} "
+            f"(each axis: {axis_tau} s); held-out body-rate error along the lag's sensitivity cut {100 * cut:.0f} % "
+            f"(roll, pitch, yaw together; {main} {100 * per[main]['cut']:.0f} %); "
+            f"an extra {1e3 * r['delay_fold1']:.0f} ms delay instead fits the held-out windows worse (sum of squares "
+            f"{held['delay']:.0f} vs {held['lag']:.0f}); confirm on a flight with the motors logged every 4 ms "
+            "(rate doublets), where the output error resolves it")
+    new = {"name": "motor_time_constant", "accepted": False, "verdict": "likely", "verdict_note": note,
+           "params": params, "params_se": {"tau_up": float(r["se_fold1"]), "tau_down": float(r["se_fold1"])},
+           "evidence": (f"motor_time_constant (tau {tau1:.4g} s) cuts the held-out body-rate error of PX4's rate loop "
+                        f"along its sensitivity by {100 * cut:.0f} %: likely (rate loop)"),
+           "residual": "rate_loop", "heldout_channel": main, "heldout_before": residual["heldout_before"],
+           "heldout_after": residual["heldout_after"],
+           "heldout_units": (f"{main} body-rate error (in units of its own RMS) along its sensitivity to the lag, "
+                             "|sum <J, e>| / |J|, held-out windows of PX4's rate loop flown on the model"),
+           "heldout_improvement": residual["heldout_improvement"], "heldout_t_stat": residual["heldout_t_stat"],
+           "cv_improvement": residual["heldout_improvement"], "above_resolution_floor": True,
+           "excitation": {**((prev or {}).get("excitation") or {}), "channel": main,
+                          "residual": "rate_loop", "windows": r["windows"], "plans": ["rate_doublets"],
+                          "blocks_missing": INSTRUMENTED_BLOCKS_MISSING,
+                          "supplied_by": "roll and pitch rate doublets with the motors logged every 4 ms (PX4: "
+                                         "SDLOG_PROFILE's high-rate bit), where the output error can fit the lag"},
+           "residuals": {**((prev or {}).get("residuals") or {}), "rate_loop": residual},
+           "alternatives": [{"name": "actuator_delay", "params": {"delay": float(r["delay_fold1"])},
+                             "heldout_sse": held["delay"], "note": "the rate loop's best extra delay"}]}
+    if prev is not None:
+        effects_out.remove(prev)
+    k = next((i for i, e in enumerate(effects_out) if _GRADE_ORDER[e["verdict"]] > 1
+              or (e["verdict"] == "likely" and (e.get("cv_improvement") or 0) < new["cv_improvement"])), len(effects_out))
+    effects_out.insert(k, new)
+    return out
 
 
 def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:

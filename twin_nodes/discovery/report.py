@@ -98,7 +98,7 @@ def summary_text(res: dict) -> str:
 
 #: the residual an effect was judged on, as the summary abbreviates it (IV: the output error
 #: projected on the rate setpoint, output_error.instrumented_inertia)
-_KIND = {"equation": "EE", "output": "OE", "instrumented": "IV"}
+_KIND = {"equation": "EE", "output": "OE", "instrumented": "IV", "rate_loop": "RL"}
 
 
 def _axes_text(res: dict) -> str:
