@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -178,3 +179,30 @@ def test_simulating_motor_time_constants_is_simulating_each_loop():
     for k, tau in enumerate(taus):
         one = rl.residuals(dataclasses.replace(loop, tau_s=float(tau)), 0, w, sp, dt, np.array([1.0]))[0]
         assert np.allclose(batched[k], one, atol=1e-9)
+
+
+def test_on_an_aliased_log_the_rate_loop_replaces_a_findings_roll_pitch_value_it_agrees_with_in_direction():
+    """PX4 SIH e12 (Ixx, Iyy x1.5, 50 Hz motors): the confirmed finding held Ixx at the model's value and
+    fitted Iyy 0.0419 to the aliased commands (+12 %); the rate loop reads 0.0351 and 0.0380.  Both axes
+    take the rate loop's value, the finding's own kept beside it; a finding that moved an axis the other
+    way is left alone."""
+    from twin_nodes.discovery.discover import attach_instrumented
+    nominal = np.array([0.025, 0.025, 0.03])
+    residual = {"residual": "rate_loop", "heldout_channel": "roll", "heldout_improvement": 0.81}
+    iv = {"flagged": ["roll", "pitch"], "params": {"ixx": 0.0351, "iyy": 0.0380, "izz": 0.0297},
+          "axes": {"roll": {"scale": 1.44, "scale_se": 0.05}, "pitch": {"scale": 1.53, "scale_se": 0.02}}}
+    entry = {"name": "inertia", "verdict": "confirmed", "verdict_note": "t=4.1",
+             "params": {"ixx": 0.025, "iyy": 0.0419, "izz": 0.0297}, "held_at_nominal": {"ixx": "roll left out"}}
+    assert attach_instrumented(entry, iv, residual, nominal, replace=True) == "corroborates the confirmed finding"
+    assert entry["params"] == {"ixx": 0.0351, "iyy": 0.0380, "izz": 0.0297}
+    assert entry["own_params"] == {"iyy": 0.0419} and "held_at_nominal" not in entry
+    assert entry["residuals"]["rate_loop"] is residual and "in place of the finding's 0.0419" in entry["verdict_note"]
+    # without replace (a 4 ms log) the fitted axis keeps its value: +68 % and +52 % agree within x1.5
+    entry = {"name": "inertia", "verdict": "confirmed", "params": {"ixx": 0.025, "iyy": 0.0419, "izz": 0.0297},
+             "held_at_nominal": {"ixx": "roll left out"}}
+    assert attach_instrumented(entry, iv, residual, nominal).startswith("corroborates")
+    assert entry["params"]["iyy"] == 0.0419 and entry["params"]["ixx"] == 0.0351
+    other = {"name": "inertia", "verdict": "confirmed", "params": {"ixx": 0.020, "iyy": 0.0419, "izz": 0.03}}
+    before = json.loads(json.dumps(other))
+    assert attach_instrumented(other, iv, residual, nominal, replace=True).startswith("disagrees")
+    assert other == before

@@ -923,7 +923,7 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     # an inertia finding's roll/pitch axes, each on its own evidence, then the instrument on what is
     # still held: either may change the refit vehicle
     current = _equation_axes(S, ranked, effects_out, current, acc_labels, guard) or current
-    instrumented, refit = _instrumented(S, current, acc_labels, effects_out, guard)
+    instrumented, refit = _instrumented(S, current, acc_labels, effects_out, guard, vp)
     current = refit or current
     # where the rate loop says the motors are slow, not an inertia: how slow
     lag = (_rate_loop_lag(S, current, effects_out)
@@ -990,13 +990,18 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     return result
 
 
-def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: np.ndarray) -> str:
-    """Attach the instrumented inertia (``iv``: :func:`instrumented_inertia`'s result with its
-    ``params``; ``residual``: its held-out numbers) to an ``inertia`` finding already made on the
-    flight's own residuals, as a third residual for the axes it flags.  It is attached where the
-    finding moves those axes the same way within x1.5, or held them at the model's value (then the
-    instrument supplies them; ``held_at_nominal`` loses them); else the disagreement is returned
-    and nothing changes.  Returns what happened, for the result's ``instrumented.verdict``."""
+def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: np.ndarray,
+                        replace: bool = False) -> str:
+    """Attach the instrumented inertia (``iv``: :func:`instrumented_inertia`'s or
+    :func:`~twin_nodes.discovery.rate_loop.inertia`'s result with its ``params``; ``residual``: its
+    held-out numbers) to an ``inertia`` finding already made on the flight's own residuals, as a
+    third residual for the axes it flags.  It is attached where the finding moves those axes the
+    same way within x1.5, or held them at the model's value (then the instrument supplies them;
+    ``held_at_nominal`` loses them); else the disagreement is returned and nothing changes.  With
+    ``replace`` (PX4's rate loop on a log whose motor commands are aliased, where the finding's own
+    roll/pitch fit is biased) the same direction is agreement enough, and the rate loop's value
+    replaces the finding's (kept in ``own_params``).  Returns what happened, for the result's
+    ``instrumented.verdict``."""
     params, ax = iv["params"], iv["axes"]
     agree = []
     for a in iv["flagged"]:
@@ -1004,14 +1009,16 @@ def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: 
         d_iv = params[k] / nominal_inertia[j] - 1.0
         d_f = entry["params"][k] / nominal_inertia[j] - 1.0
         held = k in (entry.get("held_at_nominal") or {})
-        ok = held or (d_iv * d_f > 0 and max(abs(d_iv), abs(d_f)) <= 1.5 * min(abs(d_iv), abs(d_f)))
+        ok = held or (d_iv * d_f > 0 and (replace or max(abs(d_iv), abs(d_f)) <= 1.5 * min(abs(d_iv), abs(d_f))))
         agree.append((a, k, held, ok))
     if not all(ok for *_, ok in agree):
         return "disagrees with the " + entry["verdict"] + " finding"
     for a, k, held, _ in agree:
-        if held:
+        if held or replace:
+            if not held:
+                entry.setdefault("own_params", {})[k] = entry["params"][k]
             entry["params"][k] = params[k]
-            entry["held_at_nominal"].pop(k, None)
+            entry.get("held_at_nominal", {}).pop(k, None)
             entry.setdefault("instrumented_params", {})[k] = params[k]
     if "held_at_nominal" in entry and not entry["held_at_nominal"]:
         entry.pop("held_at_nominal")
@@ -1025,8 +1032,15 @@ def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: 
         says = "the rate setpoint as instrument agrees ("
         part = [f"{a} gain {ax[a]['gain']:.2f} +- {ax[a]['se']:.2f}" for a, *_ in agree]
         held_out = f"held-out instrument-projected {residual['heldout_channel']} error cut "
+    def how(k, held):
+        if held:
+            return " supplied by it"
+        if replace:
+            return (f" in place of the finding's {entry['own_params'][k]:.4g} (fitted to motor commands logged "
+                    "slower than the rate loop runs)")
+        return ""
     entry["verdict_note"] = (entry.get("verdict_note", "") + "; " + says
-                             + ", ".join(f"{p_}, {k} {params[k]:.4g}" + (" supplied by it" if held else "")
+                             + ", ".join(f"{p_}, {k} {params[k]:.4g}" + how(k, held)
                                          for p_, (a, k, held, _) in zip(part, agree))
                              + f"; {held_out}{100 * residual['heldout_improvement']:.0f} %)")
     return "corroborates the " + entry["verdict"] + " finding"
@@ -1143,8 +1157,8 @@ def _left_out_text(win: Windows, axes: list[str], motor_dt_s: float) -> str:
 
 
 def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects_out: list[dict],
-                  guard: Callable[[VehicleParams], str | None] = lambda vp: None
-                  ) -> tuple[dict | None, VehicleParams | None]:
+                  guard: Callable[[VehicleParams], str | None] = lambda vp: None,
+                  nominal: VehicleParams | None = None) -> tuple[dict | None, VehicleParams | None]:
     """Roll/pitch inertia on the axes the output error leaves out, with the rate setpoint as
     instrument (:func:`~twin_nodes.discovery.output_error.instrumented_inertia`), on top of what
     was accepted.  On its own it can only be ``likely``: a single moment on an axis no fit can
@@ -1159,15 +1173,30 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
     if win is None:
         return None, None
     entry = next((e for e in effects_out if e["name"] == "inertia"), None)
+    d = S.data
+    aliased = d.motor_dt_s > RATE_LOOP_LOG_S
     allowed = ("roll", "pitch")
-    if "inertia" in accepted:
-        held = (entry or {}).get("held_at_nominal") or {}
-        allowed = tuple(a for a, (k, _) in IV_AXIS_PARAM.items() if k in held)
-        if not allowed or entry is None:
+    # the model the rate loop is flown on, and the inertia its readings are changes of
+    on, reference = current, np.diag(effective_params(current).inertia)
+    replace = False
+    if "inertia" in accepted or (entry is not None and entry["verdict"] == "likely"):
+        if entry is None:
             return None, None
+        if aliased and nominal is not None and rate_loop.rate_loop(S.log_params, current) is not None:
+            # the finding's roll/pitch were fitted to aliased motor commands (the output error's
+            # least squares is attenuated, the equation error's roll noisy): PX4's rate loop, which
+            # uses none, reads both axes against the model's own inertia and supplies what it flags
+            reference = np.diag(effective_params(nominal).inertia)
+            izz = float(effective_params(current).inertia[2, 2])
+            on = current.with_effect("inertia", ixx=float(reference[0]), iyy=float(reference[1]), izz=izz)
+            replace = True
+        elif "inertia" in accepted:
+            held = entry.get("held_at_nominal") or {}
+            allowed = tuple(a for a, (k, _) in IV_AXIS_PARAM.items() if k in held)
+            if not allowed:
+                return None, None
     elif any(name == "inertia" for name, _ in current.effects):
         return None, None
-    d = S.data
     fold1, fold2 = _window_folds(win, S.t_split, S.t_split2)
 
     def build(ixx, iyy):
@@ -1175,16 +1204,30 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
         return current.with_effect("inertia", ixx=ixx, iyy=iyy, izz=izz)
     # a PX4 log: its own rate loop flown on the model, driven by the logged rate setpoint (no
     # aliased motor commands in it); else the rate setpoint as instrument of the commands
-    iv = rate_loop.inertia(d, S.log_params, current, S.t_split, S.t_split2, allowed)
+    iv = rate_loop.inertia(d, S.log_params, on, S.t_split, S.t_split2, allowed)
     not_used = None
     if iv is not None and iv.get("pinned"):
         not_used = (f"PX4's rate loop on the model reads {', '.join(iv['pinned'])} at the edge of x0.5-x2 of the "
                     "model's inertia: not this vehicle's rate loop, the rate setpoint as instrument instead")
         iv = None
+    if iv is None and replace:
+        # back to the instrument, on the axes the finding held only (as without the rate loop)
+        replace, on, reference = False, current, np.diag(effective_params(current).inertia)
+        if "inertia" in accepted:
+            held = entry.get("held_at_nominal") or {}
+            allowed = tuple(a for a, (k, _) in IV_AXIS_PARAM.items() if k in held)
+            if not allowed:
+                return None, None
     if iv is None:
         iv = instrumented_inertia(d, win, current, fold1, fold2, build, allowed)
     if iv is None:
         return None, None
+    if replace and iv.get("params"):
+        # an axis the rate loop does not flag keeps the finding's value
+        cur = np.diag(effective_params(current).inertia)
+        for a, (k, j) in IV_AXIS_PARAM.items():
+            if a not in iv["flagged"]:
+                iv["params"][k] = float(cur[j])
     method = iv.get("method", "instrument")
     out = {"method": method,
            "axes": {a: {k: (round(float(v), 4) if isinstance(v, float) else v) for k, v in ax.items() if k != "index"}
@@ -1262,7 +1305,7 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
             if against:
                 out["verdict"] = f"not supplied to the confirmed finding: {against}"
                 return out, None
-        out["verdict"] = attach_instrumented(entry, iv, residual, np.diag(effective_params(current).inertia))
+        out["verdict"] = attach_instrumented(entry, iv, residual, reference, replace)
         return out, refit if out["verdict"].startswith("corroborates") else None
     # standard errors of the instrumented axes (from the fit part's gain: I/g, se_I = I se_g / g)
     params_se = {}
