@@ -954,6 +954,11 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
                           f"blocks of {OE_BLOCK_S:.1f} s), held-out RMS cut >= {int(100 * MIN_REL_IMPROVEMENT)} %",
             "likely": "not significant yet, but held-out cut >= 30 % in its channel, parameter well away from "
                       "nominal and physical, both folds agree, most active blocks improved",
+            **({"rate_loop": f"PX4's rate loop (the log's MC_*RATE_* gains, gyro/D-term/yaw-torque filters, rate-loop "
+                             f"hold) flown on the model from the logged rate setpoint in {rate_loop.WINDOW_S:g} s "
+                             "windows (integrator, motor and rate state free per window), compared on body rates: "
+                             "roll/pitch inertia, and the motors' lag where every axis reads slow"}
+               if instrumented is not None and instrumented.get("method") == "rate_loop" else {}),
         },
         "baseline": {"equation_error_heldout": {k: round(float(v), 5) for k, v in zip(names, base_held)}},
         "mismatch": mismatch,
