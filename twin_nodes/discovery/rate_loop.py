@@ -290,6 +290,21 @@ MOTOR_YAW_SE = 3.0
 INERTIA_AXES = {"roll": ("ixx", 0), "pitch": ("iyy", 1)}
 
 
+def _flight(data, params: Mapping[str, float], vp: VehicleParams, t_split: float, t_split2: float):
+    """The rate loop of a PX4 log on ``vp``, its windows' grid samples (K, n + 1), and the window
+    masks (all, fold 1 fit, fold 1 held out, fold 2 fit: a window belongs to a part when all of it
+    does); None without PX4's rate loop, a rate setpoint, or 20 windows."""
+    loop = rate_loop(params, vp)
+    if loop is None or data.w_sp is None:
+        return None
+    starts, n = make_windows(data.t, data.valid, data.w, data.w_sp, data.dt)
+    if starts.size < 20:
+        return None
+    idx = starts[:, None] + np.arange(n + 1)[None, :]
+    t0, t1 = data.t[starts], data.t[starts + n]
+    return loop, idx, (np.ones(starts.size, bool), t1 < t_split, t0 >= t_split, t0 >= t_split2)
+
+
 def inertia(data, params: Mapping[str, float], vp: VehicleParams, t_split: float, t_split2: float,
             axes_allowed: tuple[str, ...] = ("roll", "pitch")) -> dict | None:
     """Roll/pitch inertia from PX4's rate loop flown on the model ``vp`` (:func:`rate_loop`) and
@@ -300,19 +315,12 @@ def inertia(data, params: Mapping[str, float], vp: VehicleParams, t_split: float
     :func:`projected`).  Fold 1 fits the windows before ``t_split`` and holds out those after; fold
     2 fits those after ``t_split2`` (a window belongs to a part when all of it does).  ``None``
     when the log is not PX4's, has no rate setpoint, or too few windows."""
-    loop = rate_loop(params, vp)
-    if loop is None or data.w_sp is None:
+    setup = _flight(data, params, vp, t_split, t_split2)
+    if setup is None:
         return None
-    starts, n = make_windows(data.t, data.valid, data.w, data.w_sp, data.dt)
-    if starts.size < 20:
-        return None
-    idx = starts[:, None] + np.arange(n + 1)[None, :]
-    t0, t1 = data.t[starts], data.t[starts + n]
-    fit1, test1 = t1 < t_split, t0 >= t_split
-    fit2 = t0 >= t_split2
-    every = np.ones(starts.size, bool)
+    loop, idx, (every, fit1, test1, fit2) = setup
     I0 = np.diag(effective_params(vp).inertia).astype(float)
-    out = {"method": "rate_loop", "loop": loop.describe(), "windows": int(starts.size),
+    out = {"method": "rate_loop", "loop": loop.describe(), "windows": int(idx.shape[0]),
            "window_s": WINDOW_S, "axes": {}}
     for ax, name in enumerate(AXES):
         if name != "yaw" and name not in axes_allowed:
@@ -426,16 +434,10 @@ def motor_lag(data, params: Mapping[str, float], vp: VehicleParams, t_split: flo
     squares of the lag and of the best delay (``heldout_sse``), and ``flagged``: the lag is far from the
     model's (``MIN_TAU_CHANGE``, ``MIN_SE``) on every axis the same way (``AXIS_AGREE``).  ``None``
     when the log is not PX4's, has no rate setpoint, or too few windows."""
-    loop = rate_loop(params, vp)
-    if loop is None or data.w_sp is None:
+    setup = _flight(data, params, vp, t_split, t_split2)
+    if setup is None:
         return None
-    starts, n = make_windows(data.t, data.valid, data.w, data.w_sp, data.dt)
-    if starts.size < 20:
-        return None
-    idx = starts[:, None] + np.arange(n + 1)[None, :]
-    t0, t1 = data.t[starts], data.t[starts + n]
-    fit1, test1, fit2 = t1 < t_split, t0 >= t_split, t0 >= t_split2
-    every = np.ones(starts.size, bool)
+    loop, idx, (every, fit1, test1, fit2) = setup
     R, sse_ax = _stacked(loop, "tau_s", TAUS, data, idx)
     tau, se = fit_scale(R, TAUS, every)
     tau1, se1 = fit_scale(R, TAUS, fit1)
@@ -462,7 +464,7 @@ def motor_lag(data, params: Mapping[str, float], vp: VehicleParams, t_split: flo
     change = tau - loop.tau_s
     flagged = bool(np.isfinite(tau) and np.isfinite(se) and abs(change) > max(MIN_TAU_CHANGE * loop.tau_s, MIN_SE * se)
                    and all((x - loop.tau_s) * np.sign(change) >= AXIS_AGREE * abs(change) for x in axis_tau))
-    return {"method": "rate_loop", "loop": loop.describe(), "windows": int(starts.size), "model_tau": loop.tau_s,
+    return {"method": "rate_loop", "loop": loop.describe(), "windows": int(idx.shape[0]), "model_tau": loop.tau_s,
             "tau": tau, "se": se, "tau_fold1": tau1, "se_fold1": se1, "tau_fold2": tau2, "se_fold2": se2,
             "axis_tau": dict(zip(AXES, axis_tau)), "heldout_axes": per_axis, "heldout_before": b, "heldout_after": a,
             "heldout_t": abs(tb) if np.isfinite(tb) else math.nan, "heldout_t_after": abs(ta) if np.isfinite(ta) else math.nan,
