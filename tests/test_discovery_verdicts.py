@@ -119,6 +119,22 @@ def test_e04_motor_lag_is_likely_from_the_px4_rate_loop(sih_results):
 
 
 @pytest.mark.slow
+def test_the_report_shows_the_rate_loops_curves(sih_results, tmp_path):
+    """The report plots what the rate loop read: each axis's fit against its inertia scale and, on e04,
+    against the motors' time constant, every axis's lowest point at the lag found."""
+    from twin_nodes.discovery.report import write_report
+    res = sih_results("e04")
+    lag = res["rate_loop_lag"]["curve"]
+    for a in ("roll", "pitch", "yaw"):
+        best = lag["taus"][int(np.argmin(lag[a]))]
+        assert best == pytest.approx(0.09, rel=0.10), (a, best)
+        assert min(res["instrumented"]["curve"][a]) == 1.0 and max(res["instrumented"]["curve"][a]) > 1.1
+    write_report(tmp_path, res, res["_series"])
+    assert (tmp_path / "rate_loop.png").stat().st_size > 10_000
+    assert "<h2>PX4's rate loop flown on the model</h2>" in (tmp_path / "index.html").read_text()
+
+
+@pytest.mark.slow
 def test_e05_roll_pitch_inertia_is_likely_from_the_px4_rate_loop(sih_results):
     """What the 50 Hz motor log hides, PX4's own rate loop shows: roll and pitch are left out of the
     output error (the aliased commands), and the instrument of the commands flags pitch only, its

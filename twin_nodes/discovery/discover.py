@@ -1241,7 +1241,7 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
            "motor_signature": bool(iv.get("motor_signature"))}
     if method == "rate_loop":
         out.update(loop=iv["loop"], windows=iv["windows"], window_s=iv["window_s"],
-                   yaw_scale=round(float(iv["yaw_scale"]), 4))
+                   yaw_scale=round(float(iv["yaw_scale"]), 4), curve=iv["curve"])
     if not_used:
         out["rate_loop_not_used"] = not_used
     if not iv["flagged"]:

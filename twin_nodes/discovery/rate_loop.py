@@ -328,6 +328,7 @@ def inertia(data, params: Mapping[str, float], vp: VehicleParams, t_split: float
         R = residuals(loop, ax, data.w[idx, ax], data.w_sp[idx, ax], data.dt)
         s, se = fit_scale(R, SCALES, every)
         out.setdefault("r2", {})[name] = explained(R, data.w[idx, ax])
+        out.setdefault("curve", {"scales": [round(float(x), 4) for x in SCALES]})[name] = _relative_sse(R)
         if name == "yaw":
             out["yaw_gain"], out["yaw_se"] = _gain(s, se)
             out["yaw_scale"], out["yaw_scale_se"] = s, se
@@ -368,6 +369,12 @@ def inertia(data, params: Mapping[str, float], vp: VehicleParams, t_split: float
         new[j] = I0[j] * (1.0 / axes[a]["gain_fold1"]) if np.isfinite(axes[a]["gain_fold1"]) else math.nan
     out["params"] = {"ixx": float(new[0]), "iyy": float(new[1]), "izz": float(I0[2])}
     return out
+
+
+def _relative_sse(R: np.ndarray) -> list[float]:
+    """Sum of squares over all windows at each grid value, over its minimum (the curve a report plots)."""
+    sse = np.einsum("skn,skn->s", R, R)
+    return [round(float(x), 5) for x in sse / max(float(sse.min()), 1e-300)]
 
 
 def explained(R: np.ndarray, w: np.ndarray) -> float:
@@ -468,4 +475,6 @@ def motor_lag(data, params: Mapping[str, float], vp: VehicleParams, t_split: flo
             "tau": tau, "se": se, "tau_fold1": tau1, "se_fold1": se1, "tau_fold2": tau2, "se_fold2": se2,
             "axis_tau": dict(zip(AXES, axis_tau)), "heldout_axes": per_axis, "heldout_before": b, "heldout_after": a,
             "heldout_t": abs(tb) if np.isfinite(tb) else math.nan, "heldout_t_after": abs(ta) if np.isfinite(ta) else math.nan,
-            "delay_fold1": float(DELAYS[k1]), "heldout_sse": held, "flagged": flagged}
+            "delay_fold1": float(DELAYS[k1]), "heldout_sse": held, "flagged": flagged,
+            "curve": {"taus": [round(float(x), 5) for x in TAUS],
+                      **{a: [round(float(x), 5) for x in v / max(float(v.min()), 1e-300)] for a, v in zip(AXES, sse_ax)}}}

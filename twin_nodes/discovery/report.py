@@ -148,6 +148,8 @@ def write_report(folder, res: dict, series: dict) -> None:
     fig.savefig(out / "candidates.png", dpi=90)
     plt.close(fig)
 
+    rl = _rate_loop_plot(out, res, plt)
+
     def verdict(e):
         v = e.get("verdict") or ("confirmed" if e["accepted"] else "rejected")
         return f"<b>{v}</b>" if v != "rejected" else v
@@ -198,11 +200,53 @@ in units of the nominal model's typical error on it ({html.escape(_axes_text(res
 {html.escape(res['method']['acceptance'])}.</p>
 <img src="residuals.png" width="100%"><h2>Candidates</h2><img src="candidates.png">
 <table><tr><th>verdict</th><th>effect</th><th>parameters</th><th>held-out before</th><th>after</th><th>both residuals (held-out cut)</th><th>excitation</th><th>evidence</th></tr>{rows}</table>
+{rl}
 <h2>Excitation per channel</h2><p>Blocks (0.5 s) whose commanded signal in the channel is above 3x its noise floor, on the held-out parts and over the flight, and the manoeuvres they come from.</p>
 <table><tr><th>channel</th><th>held-out</th><th>flight</th><th>manoeuvres (held-out)</th></tr>{exrows}</table>
 <h2>Where the mismatch is</h2><table><tr><th>channel</th><th>residual</th><th>when</th><th>regime</th><th>severity (x noise; output error: x typical error)</th></tr>{mm}</table>
 </body></html>"""
     (out / "index.html").write_text(page)
+
+
+def _rate_loop_plot(out: Path, res: dict, plt) -> str:
+    """``rate_loop.png``: how well PX4's rate loop flown on the model fits the logged body rates against
+    each axis's inertia scale (and the motors' lag, where it was read), and the HTML that shows it; ''
+    when the rate loop was not flown (not a PX4 log)."""
+    ins = res.get("instrumented") or {}
+    lag = res.get("rate_loop_lag") or {}
+    curve, lcurve = ins.get("curve") if ins.get("method") == "rate_loop" else None, lag.get("curve")
+    if not curve:
+        return ""
+    n = 2 if lcurve else 1
+    fig, axes = plt.subplots(1, n, figsize=(5 * n, 3.4))
+    axes = np.atleast_1d(axes)
+    for a in ("roll", "pitch", "yaw"):
+        if a in curve:
+            axes[0].plot(curve["scales"], curve[a], label=a)
+    axes[0].axvline(1.0, color="k", lw=0.6, ls="--")
+    axes[0].set_xscale("log")
+    axes[0].set_xlabel("inertia / model's")
+    axes[0].set_ylabel("sum of squares / its minimum")
+    axes[0].set_ylim(0.99, 1.15)
+    axes[0].legend(fontsize=8)
+    axes[0].set_title("body rate, PX4's rate loop on the model", fontsize=9)
+    if lcurve:
+        for a in ("roll", "pitch", "yaw"):
+            axes[1].plot(lcurve["taus"], lcurve[a], label=a)
+        axes[1].axvline(lag["model_tau"], color="k", lw=0.6, ls="--")
+        axes[1].set_xscale("log")
+        axes[1].set_xlabel("motor time constant [s]")
+        axes[1].set_ylim(0.99, 1.15)
+        axes[1].legend(fontsize=8)
+        axes[1].set_title(f"the motors' lag: {lag['tau']:.3f} s (model {lag['model_tau']:.3f})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out / "rate_loop.png", dpi=90)
+    plt.close(fig)
+    return ("<h2>PX4's rate loop flown on the model</h2><p>The log's rate-loop gains and filters on the model, driven by "
+            "the logged rate setpoint (no motor command), compared with the logged body rates in "
+            f"{ins.get('window_s', 1)} s windows; each curve's minimum is what the flight reads, the dashed line the "
+            "model's value. " + html.escape("; ".join(str(x) for x in (ins.get("why_not") or []))) + "</p>"
+            '<img src="rate_loop.png">')
 
 
 __all__ = ["json_default", "summary_text", "write_report"]
