@@ -206,3 +206,20 @@ def test_on_an_aliased_log_the_rate_loop_replaces_a_findings_roll_pitch_value_it
     before = json.loads(json.dumps(other))
     assert attach_instrumented(other, iv, residual, nominal, replace=True).startswith("disagrees")
     assert other == before
+
+
+def test_the_thrust_slope_of_an_omega_squared_vehicle_is_the_derivative_at_hover():
+    """Búho Negro (T = kt omega^2, omega linear in the command): dT/du = 2 kt omega_h (omega_cmd_max - omega_min)
+    at the hover command, and the rate loop's roll authority follows from it through PX4's allocation."""
+    vp = shipped("buho_negro")
+    r = vp.rotors
+    omega_h = r.omega_min_rad_s + vp.hover_command * (r.omega_cmd_max_rad_s - r.omega_min_rad_s)
+    slope = 2 * r.kt_n_s2_rad2 * omega_h * (r.omega_cmd_max_rad_s - r.omega_min_rad_s)
+    assert rl._thrust_slope(vp) == pytest.approx(slope, rel=1e-9)
+    # numerically: the steady-state thrust map's derivative at hover
+    u, du = vp.hover_command, 1e-6
+    num = (r.thrust_from_state(r.reference_from_command(np.array(u + du)))
+           - r.thrust_from_state(r.reference_from_command(np.array(u - du)))) / (2 * du)
+    assert float(num) == pytest.approx(slope, rel=1e-5)
+    loop = rl.rate_loop(PX4_SIH, vp)
+    assert np.all(np.isfinite(loop.authority)) and np.all(loop.authority > 0)
