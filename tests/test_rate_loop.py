@@ -223,3 +223,10 @@ def test_the_thrust_slope_of_an_omega_squared_vehicle_is_the_derivative_at_hover
     assert float(num) == pytest.approx(slope, rel=1e-5)
     loop = rl.rate_loop(PX4_SIH, vp)
     assert np.all(np.isfinite(loop.authority)) and np.all(loop.authority > 0)
+
+
+def test_a_long_flight_goes_through_in_chunks_with_the_same_residuals(monkeypatch):
+    loop, sp, w, dt = _synthetic(1.1, K=50)
+    whole = rl.residuals(loop, 0, w, sp, dt)
+    monkeypatch.setattr(rl, "CHUNK", 16)
+    assert np.allclose(rl.residuals(loop, 0, w, sp, dt), whole, atol=1e-12)

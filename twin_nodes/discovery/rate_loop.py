@@ -49,6 +49,8 @@ STEP_S = 0.002
 SCALES = np.exp(np.linspace(math.log(0.5), math.log(2.0), 31))
 #: consecutive windows that share data (50 % overlap) are one cluster for standard errors
 CLUSTER = 3
+#: windows simulated at once (a 14-minute flight has ~1700)
+CHUNK = 400
 
 
 @dataclass(frozen=True)
@@ -214,7 +216,12 @@ def residuals(loop: RateLoop, axis: int, w: np.ndarray, sp: np.ndarray, dt: floa
               scales: np.ndarray = SCALES, taus: np.ndarray | None = None) -> np.ndarray:
     """(S, K, n) residual of the logged body rate ``w`` (K, n + 1) against the closed loop at
     each scale (or motor time constant, ``taus``), after the per-window nuisances (steady torque,
-    initial motor torque, initial rate) are fitted by least squares on the window's samples 1..n."""
+    initial motor torque, initial rate) are fitted by least squares on the window's samples 1..n.
+    Long flights go through in chunks of ``CHUNK`` windows (memory: the trajectories of every scale
+    and mode of a chunk, ~50 MB)."""
+    if len(w) > CHUNK:
+        return np.concatenate([residuals(loop, axis, w[k:k + CHUNK], sp[k:k + CHUNK], dt, scales, taus)
+                               for k in range(0, len(w), CHUNK)], axis=1)
     traj = simulate(loop, axis, sp, dt, scales, taus=taus)
     F, B = traj[:, 0, :, 1:], traj[:, 1:, :, 1:]                        # (S,K,n), (S,3,K,n)
     Y = w[None, :, 1:] - F
