@@ -210,16 +210,13 @@ def test_rate_loop_motor_lag_round_trip_on_the_shared_e04(tmp_path):
     """SIH_T_TAU 0.05 -> 0.09 s on the shared 50 Hz flight e04 (not ours): the flight's own residuals cut
     9-10 %, PX4's rate loop flown on the model reads 0.090 s on every axis, ``motor_time_constant`` is
     ``likely``.  Its plan (rate doublets, 4 ms logging advised) flown with the same change
-    (out/confirm_e04/c1) confirms it on the roll output error, the refit within 5 % of the truth; flown
-    with no change (n1) it is dropped, the refit back at the model's 0.05 s.  Recorded 2026-11-26
+    (c1) confirms it on the roll output error, the refit within 5 % of the truth; flown with no change
+    (n1) it is dropped, the refit back at the model's 0.05 s.  The follow-ups recorded 2026-11-26 in
+    out/confirm_e04 are replayed when there; else they are flown here from the plan this run writes
     (docs/discovery.md)."""
     from conftest import shared_log
     px4_sitl_binary()
     flight = shared_log("sitl_effects", "e04/flight.ulg")
-    followup, control = REPO / "out" / "confirm_e04" / "c1" / "flight.ulg", REPO / "out" / "confirm_e04" / "n1" / "flight.ulg"
-    missing = [str(p.relative_to(REPO)) for p in (followup, control) if not p.is_file()]
-    if missing:
-        pytest.skip(f"round-trip flights not flown here: {', '.join(missing)} (docs/discovery.md)")
     _rotortwin("discover", flight, "--params", PARAMS, "--plan-dir", tmp_path / "plans", "--json",
                tmp_path / "e04.json", "--no-closed-loop")
     res = json.loads((tmp_path / "e04.json").read_text())
@@ -229,6 +226,12 @@ def test_rate_loop_motor_lag_round_trip_on_the_shared_e04(tmp_path):
     assert abs(eff["params"]["tau_up"] / 0.09 - 1) < 0.05, eff["params"]
     plan = tmp_path / "plans" / "confirm_motor_time_constant.plan.yaml"
     assert plan.is_file() and "rate_doublets" in plan.read_text()
+    recorded = REPO / "out" / "confirm_e04"
+    followup, control = recorded / "c1" / "flight.ulg", recorded / "n1" / "flight.ulg"
+    if not (followup.is_file() and control.is_file()):
+        _fly(tmp_path, "--id", "c1", "--mission", str(plan), "--sih", "SIH_T_TAU=0.09", "--logging", "highrate")
+        _fly(tmp_path, "--id", "n1", "--mission", str(plan), "--logging", "highrate")
+        followup, control = tmp_path / "c1" / "flight.ulg", tmp_path / "n1" / "flight.ulg"
     # measured: t 21.0 over 332 blocks, 42 % cut in roll, refit tau 0.0865 / 0.0877; the control t -7.9,
     # refit 0.053 / 0.048
     c = _confirmation(flight, followup, tmp_path / "confirm.json", "motor_time_constant")

@@ -1179,60 +1179,51 @@ def _instrumented(S: Setup, current: VehicleParams, accepted: list[str], effects
         return None, None
     entry = next((e for e in effects_out if e["name"] == "inertia"), None)
     d = S.data
-    aliased = d.motor_dt_s > RATE_LOOP_LOG_S
-    allowed = ("roll", "pitch")
-    # the model the rate loop is flown on, and the inertia its readings are changes of
-    on, reference = current, np.diag(effective_params(current).inertia)
-    replace = False
-    if "inertia" in accepted or (entry is not None and entry["verdict"] == "likely"):
-        if entry is None:
-            return None, None
-        if aliased and nominal is not None and rate_loop.rate_loop(S.log_params, current) is not None:
-            # the finding's roll/pitch were fitted to aliased motor commands (the output error's
-            # least squares is attenuated, the equation error's roll noisy): PX4's rate loop, which
-            # uses none, reads both axes against the model's own inertia and supplies what it flags
-            reference = np.diag(effective_params(nominal).inertia)
-            izz = float(effective_params(current).inertia[2, 2])
-            on = current.with_effect("inertia", ixx=float(reference[0]), iyy=float(reference[1]), izz=izz)
-            replace = True
-        elif "inertia" in accepted:
-            held = entry.get("held_at_nominal") or {}
-            allowed = tuple(a for a, (k, _) in IV_AXIS_PARAM.items() if k in held)
-            if not allowed:
-                return None, None
-    elif any(name == "inertia" for name, _ in current.effects):
+    finding = "inertia" in accepted or (entry is not None and entry["verdict"] == "likely")
+    if (finding and entry is None) or (not finding and any(name == "inertia" for name, _ in current.effects)):
         return None, None
+    I_cur = np.diag(effective_params(current).inertia)
+    # a confirmed finding leaves the instrument the axes it held at the model's value
+    held = (entry or {}).get("held_at_nominal") or {}
+    allowed = (tuple(a for a, (k, _) in IV_AXIS_PARAM.items() if k in held) if "inertia" in accepted
+               else ("roll", "pitch"))
     fold1, fold2 = _window_folds(win, S.t_split, S.t_split2)
 
     def build(ixx, iyy):
-        izz = float(effective_params(current).inertia[2, 2])
-        return current.with_effect("inertia", ixx=ixx, iyy=iyy, izz=izz)
-    # a PX4 log: its own rate loop flown on the model, driven by the logged rate setpoint (no
-    # aliased motor commands in it); else the rate setpoint as instrument of the commands
-    iv = rate_loop.inertia(d, S.log_params, on, S.t_split, S.t_split2, allowed)
-    not_used = None
-    if iv is not None and iv.get("pinned"):
-        not_used = (f"PX4's rate loop on the model reads {', '.join(iv['pinned'])} at the edge of x0.5-x2 of the "
-                    "model's inertia: not this vehicle's rate loop, the rate setpoint as instrument instead")
-        iv = None
-    if iv is None and replace:
-        # back to the instrument, on the axes the finding held only (as without the rate loop)
-        replace, on, reference = False, current, np.diag(effective_params(current).inertia)
-        if "inertia" in accepted:
-            held = entry.get("held_at_nominal") or {}
-            allowed = tuple(a for a, (k, _) in IV_AXIS_PARAM.items() if k in held)
-            if not allowed:
-                return None, None
-    if iv is None:
-        iv = instrumented_inertia(d, win, current, fold1, fold2, build, allowed)
+        return current.with_effect("inertia", ixx=ixx, iyy=iyy, izz=float(I_cur[2]))
+
+    def flown(vp_on, axes):
+        """PX4's rate loop on ``vp_on`` (a PX4 log: no aliased motor commands in it), None where the
+        log has none or it reads an axis at the edge of its range (then the reason)."""
+        r = rate_loop.inertia(d, S.log_params, vp_on, S.t_split, S.t_split2, axes)
+        if r is not None and r.get("pinned"):
+            return None, (f"PX4's rate loop on the model reads {', '.join(r['pinned'])} at the edge of x0.5-x2 of "
+                          "the model's inertia: not this vehicle's rate loop, the rate setpoint as instrument instead")
+        return r, None
+    iv, not_used, reference, replace = None, None, I_cur, False
+    if finding and d.motor_dt_s > RATE_LOOP_LOG_S and nominal is not None:
+        # the finding's roll/pitch were fitted to aliased motor commands (the output error's least
+        # squares is attenuated, the equation error's roll noisy): PX4's rate loop, which uses none,
+        # reads both axes against the model's own inertia and supplies what it flags
+        I_nom = np.diag(effective_params(nominal).inertia)
+        iv, not_used = flown(current.with_effect("inertia", ixx=float(I_nom[0]), iyy=float(I_nom[1]),
+                                                 izz=float(I_cur[2])), ("roll", "pitch"))
+        replace = iv is not None
+        reference = I_nom if replace else I_cur
+    if not replace:
+        if not allowed:
+            return None, None
+        if not_used is None:
+            iv, not_used = flown(current, allowed)
+        if iv is None:
+            iv = instrumented_inertia(d, win, current, fold1, fold2, build, allowed)
     if iv is None:
         return None, None
     if replace and iv.get("params"):
         # an axis the rate loop does not flag keeps the finding's value
-        cur = np.diag(effective_params(current).inertia)
         for a, (k, j) in IV_AXIS_PARAM.items():
             if a not in iv["flagged"]:
-                iv["params"][k] = float(cur[j])
+                iv["params"][k] = float(I_cur[j])
     method = iv.get("method", "instrument")
     out = {"method": method,
            "axes": {a: {k: (round(float(v), 4) if isinstance(v, float) else v) for k, v in ax.items() if k != "index"}

@@ -27,6 +27,7 @@ Without those delays every axis read 0.85-0.95 on the no-effect flights.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Mapping
@@ -35,7 +36,8 @@ import numpy as np
 
 from twin_nodes.physics.effects import effective_params
 from twin_nodes.vehicle.params import VehicleParams
-from twin_nodes.vehicle.px4_params import RateGainsPx4, normalised_mix, param, sensor_timing
+from twin_nodes.discovery.output_error import IV_AXIS_PARAM
+from twin_nodes.vehicle.px4_params import RateGainsPx4, param, sensor_timing, torque_moments
 
 AXES = ("roll", "pitch", "yaw")
 #: window length and stride [s]: long enough for the rate loop to settle (closed-loop time
@@ -104,11 +106,10 @@ def rate_loop(params: Mapping[str, float], vp: VehicleParams) -> RateLoop | None
         ff.append(k * param(params, f"MC_{ax}RATE_FF", 0.0)[0])
     yaw_d = param(params, "MC_YAWRATE_K", 1.0)[0] * param(params, "MC_YAWRATE_D", 0.0)[0]
     r = e.rotors
-    x, y, dirs = np.array(r.x_flu_m), np.array(r.y_flu_m), np.array(r.direction, float)
     km_px4 = abs(param(params, "CA_ROTOR0_KM", 0.05)[0]) or 0.05
-    dT = _thrust_slope(e) * normalised_mix(x, y, dirs, km_px4)
+    moment = torque_moments(np.array(r.x_flu_m), np.array(r.y_flu_m), np.array(r.direction, float), km_px4,
+                            _thrust_slope(e), r.km_m)
     inertia = np.diag(e.inertia)
-    moment = np.array([y @ dT[:, 0], -x @ dT[:, 1], (-dirs * r.km_m) @ dT[:, 2]])
     damp = e.effect_dict.get("angular_damping", {}).get("k_nm_s_rad", 0.0)
     timing = sensor_timing(params)
     fd = param(params, "IMU_DGYRO_CUTOFF", 0.0)[0]
@@ -248,13 +249,18 @@ def fit_scale(R: np.ndarray, scales: np.ndarray, rows: np.ndarray) -> tuple[floa
         s_hat = float(math.exp(ls[i] + np.clip(off, -1, 1) * (ls[i + 1] - ls[i])))
     else:
         return float(scales[i]), math.nan                                # at the grid's edge
+    u, A, sd = _score(R, scales, i, idx, R[i, idx])
+    return s_hat, (sd / A if A > 0 else math.nan)
+
+
+def _score(R: np.ndarray, scales: np.ndarray, i: int, idx: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Per window ``<J_k, e_k>`` of the residual ``e`` with its sensitivity J at grid point ``i`` (central
+    difference), ``sum |J|^2``, and the clustered standard deviation of the windows' sum."""
     J = (R[i + 1, idx] - R[i - 1, idx]) / (scales[i + 1] - scales[i - 1])   # (k, n) d resid / d s
-    u = np.einsum("kn,kn->k", J, R[i, idx])
-    A = float(np.sum(J * J))
+    u = np.einsum("kn,kn->k", J, e)
     c = u.size // CLUSTER * CLUSTER
     U = np.add.reduceat(u[:c], np.arange(0, c, CLUSTER)) if c else u
-    se = float(math.sqrt(float(np.sum(U ** 2))) / A) if A > 0 else math.nan
-    return s_hat, se
+    return u, float(np.sum(J * J)), float(math.sqrt(float(np.sum(U ** 2))))
 
 
 def projected(R: np.ndarray, scales: np.ndarray, s: float, rows: np.ndarray) -> tuple[float, float]:
@@ -271,13 +277,7 @@ def projected(R: np.ndarray, scales: np.ndarray, s: float, rows: np.ndarray) -> 
     # the residual at s, linear between the grid points around it
     lo = i - 1 if x < ls[i] else i
     w = (x - ls[lo]) / (ls[lo + 1] - ls[lo])
-    e = (1 - w) * R[lo, idx] + w * R[lo + 1, idx]
-    J = (R[i + 1, idx] - R[i - 1, idx]) / (scales[i + 1] - scales[i - 1])
-    u = np.einsum("kn,kn->k", J, e)
-    A = float(np.sum(J * J))
-    c = u.size // CLUSTER * CLUSTER
-    U = np.add.reduceat(u[:c], np.arange(0, c, CLUSTER)) if c else u
-    sd = float(math.sqrt(float(np.sum(U ** 2))))
+    u, A, sd = _score(R, scales, i, idx, (1 - w) * R[lo, idx] + w * R[lo + 1, idx])
     return (abs(float(u.sum())) / math.sqrt(A) if A > 0 else math.nan,
             float(u.sum()) / sd if sd > 0 else math.nan)
 
@@ -293,8 +293,6 @@ MIN_SE = 4.0
 #: SIH SIH_T_TAU 0.09-0.12 s: yaw 1.08-1.17; the no-effect flights 0.99-1.05
 MOTOR_YAW_CHANGE = 0.03
 MOTOR_YAW_SE = 3.0
-#: the rotational axes an inertia is estimated on, and their diagonal index
-INERTIA_AXES = {"roll": ("ixx", 0), "pitch": ("iyy", 1)}
 
 
 def _flight(data, params: Mapping[str, float], vp: VehicleParams, t_split: float, t_split2: float):
@@ -334,7 +332,6 @@ def inertia(data, params: Mapping[str, float], vp: VehicleParams, t_split: float
             continue
         R = residuals(loop, ax, data.w[idx, ax], data.w_sp[idx, ax], data.dt)
         s, se = fit_scale(R, SCALES, every)
-        out.setdefault("r2", {})[name] = explained(R, data.w[idx, ax])
         out.setdefault("curve", {"scales": [round(float(x), 4) for x in SCALES]})[name] = _relative_sse(R)
         if name == "yaw":
             out["yaw_gain"], out["yaw_se"] = _gain(s, se)
@@ -372,7 +369,7 @@ def inertia(data, params: Mapping[str, float], vp: VehicleParams, t_split: float
     out["motor_signature"] = bool(same and np.isfinite(sey) and abs(sy - 1.0) > max(MOTOR_YAW_CHANGE, MOTOR_YAW_SE * sey))
     new = I0.copy()
     for a in flagged:
-        j = INERTIA_AXES[a][1]
+        j = IV_AXIS_PARAM[a][1]
         new[j] = I0[j] * (1.0 / axes[a]["gain_fold1"]) if np.isfinite(axes[a]["gain_fold1"]) else math.nan
     out["params"] = {"ixx": float(new[0]), "iyy": float(new[1]), "izz": float(I0[2])}
     return out
@@ -384,14 +381,6 @@ def _relative_sse(R: np.ndarray) -> list[float]:
     return [round(float(x), 5) for x in sse / max(float(sse.min()), 1e-300)]
 
 
-def explained(R: np.ndarray, w: np.ndarray) -> float:
-    """Fraction of the body rate's variation within the windows (samples 1..n about each window's
-    mean) the rate loop explains at its best scale: 1 - min SSE / SST."""
-    x = w[:, 1:] - w[:, 1:].mean(1, keepdims=True)
-    sst = float(np.sum(x * x))
-    return 1.0 - float(np.min(np.einsum("skn,skn->s", R, R))) / sst if sst > 0 else math.nan
-
-
 def _gain(s: float, se: float) -> tuple[float, float]:
     """Authority per command over the model's (1 / scale) and its standard error."""
     if not (np.isfinite(s) and s > 0):
@@ -399,7 +388,7 @@ def _gain(s: float, se: float) -> tuple[float, float]:
     return 1.0 / s, (se / (s * s) if np.isfinite(se) else math.nan)
 
 
-__all__ = ["AXES", "INERTIA_AXES", "MIN_CHANGE", "MIN_SE", "MOTOR_YAW_CHANGE", "MOTOR_YAW_SE", "RateLoop", "SCALES",
+__all__ = ["AXES", "MIN_CHANGE", "MIN_SE", "MOTOR_YAW_CHANGE", "MOTOR_YAW_SE", "RateLoop", "SCALES",
            "WINDOW_S", "fit_scale", "inertia", "make_windows", "projected", "rate_loop", "residuals", "simulate"]
 
 
@@ -420,8 +409,6 @@ def _stacked(loop: RateLoop, field: str, values: np.ndarray, data, idx: np.ndarr
     """(V, K, 3 n) residuals of the three axes side by side, each in units of its own residual's RMS
     at the model's value (the axes' gyro noise differs several-fold), for each value of the loop's
     ``field`` (``tau_s`` or ``command_delay_s`` added to the loop's); and the per-axis (3, V) SSE."""
-    import dataclasses
-
     per = []
     for ax in range(3):
         if field == "tau_s":

@@ -222,6 +222,18 @@ def normalised_mix(x_flu: np.ndarray, y_flu: np.ndarray, direction: np.ndarray, 
     return mix
 
 
+def torque_moments(x_flu: np.ndarray, y_flu: np.ndarray, direction: np.ndarray, km_m: float,
+                   thrust_slope_n: float, km_physical_m: float | None = None) -> np.ndarray:
+    """Roll, pitch and yaw moment [N m] of a unit roll, pitch and yaw torque setpoint: PX4's normalised
+    mix (:func:`normalised_mix`, with PX4's own torque ratio ``km_m``) moves the motor commands, times
+    the thrust slope dT/du [N] at hover, on the lever arms; the yaw moment with the vehicle's torque
+    ratio ``km_physical_m`` (default ``km_m``)."""
+    dT = thrust_slope_n * normalised_mix(x_flu, y_flu, direction, km_m)  # (N, 3) thrust per unit setpoint
+    km_phys = km_m if km_physical_m is None else km_physical_m
+    return np.array([float(np.asarray(y_flu) @ dT[:, 0]), float(-np.asarray(x_flu) @ dT[:, 1]),
+                     float((-np.asarray(direction, float) * km_phys) @ dT[:, 2])])
+
+
 def rate_gains_physical(px4: RateGainsPx4, x_flu: np.ndarray, y_flu: np.ndarray, direction: np.ndarray,
                         km_m: float, thrust_slope_n: float, inertia_kg_m2: tuple[float, float, float],
                         km_physical_m: float | None = None) -> dict[str, float]:
@@ -237,15 +249,8 @@ def rate_gains_physical(px4: RateGainsPx4, x_flu: np.ndarray, y_flu: np.ndarray,
     those motor changes make is the *vehicle's* ratio, ``km_physical_m`` (default ``km_m``): the
     twin's km, against which its Izz was identified.  Using PX4's 0.05 there for a twin with km
     0.02 made every from-log twin's yaw rate gain 2.5x PX4's."""
-    mix = normalised_mix(x_flu, y_flu, direction, km_m)
-    dT = thrust_slope_n * mix  # (N, 3) thrust change per unit torque setpoint
-    roll_moment = float(np.asarray(y_flu) @ dT[:, 0])
-    pitch_moment = float(-np.asarray(x_flu) @ dT[:, 1])
-    km_phys = km_m if km_physical_m is None else km_physical_m
-    yaw_moment = float((-np.asarray(direction, float) * km_phys) @ dT[:, 2])
-    a_roll = roll_moment / inertia_kg_m2[0]
-    a_pitch = pitch_moment / inertia_kg_m2[1]
-    a_yaw = yaw_moment / inertia_kg_m2[2]
+    a_roll, a_pitch, a_yaw = (torque_moments(x_flu, y_flu, direction, km_m, thrust_slope_n, km_physical_m)
+                              / np.asarray(inertia_kg_m2, float))
     return {
         "rate_p_1_s": 0.5 * (px4.roll_p * a_roll + px4.pitch_p * a_pitch),
         "rate_i_1_s2": 0.5 * (px4.roll_i * a_roll + px4.pitch_i * a_pitch),
