@@ -40,6 +40,7 @@ from twin_nodes.base.errors import LogError
 from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
                                            rotor_states_from_commands, thrust_regressor, translational_regression,
                                            world_to_body)
+from twin_nodes.identify.yaw_gain import applied_yaw_gain, yaw_gain_for_twin
 from twin_nodes.logs.ulog_io import FlightLog, read_ulog
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 from twin_nodes.vehicle.px4_params import (AIRFRAMES, RateGainsPx4, outer_loop_gains, param, rate_gains_physical,
@@ -354,6 +355,11 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     # --- the log's own controller
     hover_cmd = _hover_command(t_max * n, m, f_fac)
     gains, gsrc = outer_loop_gains(p, hover_cmd)
+    # the yaw attitude gain the firmware applied (a fork may not divide MC_YAW_P by MC_YAW_WEIGHT)
+    k_yaw, src["controller.yaw_p_1_s"] = yaw_gain_for_twin(applied_yaw_gain(log), gains["yaw_p_1_s"],
+                                                          gains["yaw_weight"])
+    if k_yaw is not None:
+        gains["yaw_p_1_s"] = k_yaw
     slope = t_max * (2 * f_fac * hover_cmd + (1 - f_fac))
     rate = rate_gains_physical(RateGainsPx4.from_params(p), np.array(layout.x_flu_m), np.array(layout.y_flu_m),
                                np.array(layout.direction), float(abs(p.get("CA_ROTOR0_KM", 0.05)) or 0.05),
@@ -487,7 +493,8 @@ def _hover_command(total_thrust_max_n: float, mass_kg: float, f: float, g: float
 #: the cache key of the code that builds a nominal, taken when it was imported (the source on disk may
 #: change under a running process, which must not file its results under the new code's key)
 _CODE_KEY = b"".join(inspect.getsource(sys.modules[name]).encode() for name in
-                     (__name__, "twin_nodes.identify.regression", "twin_nodes.vehicle.px4_params"))
+                     (__name__, "twin_nodes.identify.regression", "twin_nodes.identify.yaw_gain",
+                      "twin_nodes.vehicle.px4_params", "twin_nodes.logs.ulog_io"))
 
 #: PX4 airframes (SYS_AUTOSTART) with a shipped params file: (stem, what it is)
 SHIPPED_AIRFRAMES = {10040: "px4_sih_quadx", 1100: "px4_sih_quadx"}

@@ -107,17 +107,25 @@ def replay_streams(log: Any) -> tuple[list[Stream], list[str]]:
         missing("/real/setpoint", "trajectory_setpoint")
     else:
         t = spp.t_s
-        sp = np.full((len(t), 11), np.nan)
-        sp[:, 0:3] = spp.values
+        # a yaw setpoint logged faster than the trajectory (the 20 Hz attitude setpoint) is sent at its
+        # own times too: the position parts are held there (the twin carries them from their own sample)
+        ys = log.get("setpoint_yaw_enu")
+        t_all = t
+        if ys is not None and len(ys) and not np.array_equal(ys.t_s, t):
+            extra = ys.t_s[(ys.t_s > t[0]) & (ys.t_s <= t[-1])]
+            t_all = np.union1d(t, extra)
+        sp = np.full((len(t_all), 11), np.nan)
+        sp[:, 0:3] = spp.values if t_all is t else spp.at(t_all, kind="previous")
         for name, sl in (("setpoint_velocity_enu", slice(3, 6)), ("setpoint_accel_enu", slice(6, 9)),
                          ("setpoint_yaw_enu", slice(9, 10)), ("setpoint_yawspeed", slice(10, 11))):
             s = log.get(name)
             if s is not None and len(s):
-                v = s.values if np.array_equal(s.t_s, t) else s.at(t)
+                v = s.values if np.array_equal(s.t_s, t_all) else s.at(t_all)
                 sp[:, sl] = v[:, : sl.stop - sl.start]
-        out.append(Stream("/real/setpoint", t, {"sp": sp}, spp.source))
-        ok = np.all(np.isfinite(sp[:, 0:3]), axis=1)
-        out.append(Stream("/real/setpoint_pose", t[ok], {"p": sp[ok, 0:3], "yaw": sp[ok, 9]},
+        out.append(Stream("/real/setpoint", t_all, {"sp": sp}, spp.source))
+        pos_t = np.isin(t_all, t)
+        ok = np.all(np.isfinite(sp[:, 0:3]), axis=1) & pos_t
+        out.append(Stream("/real/setpoint_pose", t_all[ok], {"p": sp[ok, 0:3], "yaw": sp[ok, 9]},
                           spp.source + " (finite positions)"))
 
     parts = {n: log.get(n) for n in ("armed", "nav_state", "landed")}

@@ -99,7 +99,8 @@ LOG = logging.getLogger("rotortwin.logs")
 from twin_nodes.logs import time_sync
 from twin_nodes.base.errors import LogError
 
-__all__ = ["Series", "FlightLog", "SERIES_SPEC", "read_ulog", "list_topics", "ULOG_MAGIC", "TIME_JUMP_S"]
+__all__ = ["Series", "FlightLog", "SERIES_SPEC", "MANUAL_NAV_STATES", "read_ulog", "list_topics", "ULOG_MAGIC",
+           "TIME_JUMP_S"]
 
 ULOG_MAGIC = b"\x55\x4c\x6f\x67\x01\x12\x35"
 
@@ -149,6 +150,10 @@ SERIES_SPEC: dict[str, tuple[str, str, str]] = {
     "groundtruth_body_rates_flu": ("rad/s", "FLU", "linear"),
 }
 
+#: PX4 vehicle_status.nav_state values in which mc_pos_control does not run (MANUAL, ACRO, STAB): the
+#: attitude setpoint and collective thrust come from the pilot's sticks
+MANUAL_NAV_STATES = (0.0, 10.0, 15.0)
+
 #: topics read from the log (everything else is skipped by pyulog's filter)
 TOPICS = (
     "vehicle_local_position",
@@ -160,6 +165,7 @@ TOPICS = (
     "vehicle_thrust_setpoint",
     "vehicle_torque_setpoint",
     "vehicle_rates_setpoint",
+    "vehicle_attitude_setpoint",
     "battery_status",
     "sensor_combined",
     "trajectory_setpoint",
@@ -959,6 +965,36 @@ def _quat_series(name: str, tp: _Topic, source: str) -> Series | None:
     return _series(name, tp.t_s, q, f"{source}.q (FRD->NED)")
 
 
+def _yaw_from_attitude_setpoint(att: _Topic | None, ts: _Topic, out: dict[str, Series]) -> None:
+    """The yaw setpoint and its feed-forward from ``vehicle_attitude_setpoint`` where it is logged
+    faster than ``trajectory_setpoint`` (PX4's default logger: 20 Hz against 5 Hz).
+
+    In the position-controlled modes ``mc_pos_control`` passes the trajectory's yaw and yawspeed
+    through unchanged (``PositionControl::getAttitudeSetpoint``: ``yaw_body`` = the setpoint's yaw,
+    ``yaw_sp_move_rate`` = its yawspeed); the 5 Hz subsample of a 45 deg/s yaw ramp misses where
+    the ramp ends by up to 9 deg, so a twin carrying the last sample by its feed-forward turned past
+    the end and back.  Used only while the trajectory's own yaw is finite (elsewhere PX4 holds its
+    last yaw setpoint, or a manual mode makes the attitude setpoint from the sticks)."""
+    if att is None or not att.has("yaw_body", "yaw_sp_move_rate") or not ts.has("yaw") or len(att.t_us) < 2:
+        return
+    if len(att.t_us) <= 1.5 * len(ts.t_us):
+        return
+    t = att.t_s
+    j = np.searchsorted(ts.t_us, att.t_us, side="right") - 1
+    yaw_ts = ts.col("yaw")
+    controlled = (j >= 0) & np.isfinite(yaw_ts[np.clip(j, 0, None)])
+    yaw = np.where(controlled, frames.yaw_ned_to_enu(att.col("yaw_body")), np.nan)
+    rate = np.where(controlled, frames.yawspeed_ned_to_enu(att.col("yaw_sp_move_rate")), np.nan)
+    if not np.isfinite(yaw).any():
+        return
+    out["setpoint_yaw_enu"] = _series("setpoint_yaw_enu", t, yaw,
+                                      "vehicle_attitude_setpoint.yaw_body (NED heading) where "
+                                      "trajectory_setpoint.yaw is finite")
+    out["setpoint_yawspeed"] = _series("setpoint_yawspeed", t, rate,
+                                       "vehicle_attitude_setpoint.yaw_sp_move_rate (NED heading rate) where "
+                                       "trajectory_setpoint.yaw is finite")
+
+
 def _build_series(
     topics: dict[tuple[str, int], _Topic], params: dict[str, float], warnings: list[str],
 ) -> tuple[dict[str, Series], int]:
@@ -1089,6 +1125,7 @@ def _build_series(
             out["setpoint_yawspeed"] = _series("setpoint_yawspeed", t,
                                                frames.yawspeed_ned_to_enu(ts.col("yawspeed")),
                                                "trajectory_setpoint.yawspeed (NED heading rate)")
+        _yaw_from_attitude_setpoint(get("vehicle_attitude_setpoint"), ts, out)
     else:
         missing("trajectory_setpoint", "setpoint_*")
 

@@ -29,11 +29,10 @@ from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.model import Multirotor
 from twin_nodes.twin.sim import DelayLine
+from twin_nodes.logs.ulog_io import MANUAL_NAV_STATES
 
 MODES = ("closed", "open")
-#: PX4 vehicle_status.nav_state values in which mc_pos_control does not run (MANUAL, ACRO, STAB): the
-#: attitude setpoint and collective thrust come from the pilot's sticks
-MANUAL_NAV_STATES = (0.0, 10.0, 15.0)
+__all__ = ["MANUAL_NAV_STATES", "MODES", "TwinSample", "TwinRunner", "TwinRun", "run_twin_on_log", "log_inputs"]
 
 
 @dataclass
@@ -82,7 +81,10 @@ class TwinRunner:
         #: real-frame height of the twin's ground plane [m, ENU up]: the physics has its ground at
         #: z = 0, PX4's EKF origin is often not at ground level (a log may start at z = -3.8 m NED)
         self.ground_z = 0.0
+        #: when the current translational (sp[0:9]) and yaw (sp[9:11]) samples arrived: they are
+        #: carried on from there separately (a log may carry the yaw at 20 Hz, the position at 5 Hz)
         self.sp_t: float | None = None
+        self.yaw_t: float | None = None
         #: the current setpoint sample's (moving, velocity, half the acceleration, has a position or
         #: velocity target), made when first carried
         self._sp_rates: tuple | None = None
@@ -124,9 +126,12 @@ class TwinRunner:
             return
         sp = sp.copy()
         sp[2] -= self.ground_z
-        if not np.array_equal(sp, self.sp, equal_nan=True):
+        if not np.array_equal(sp[0:9], self.sp[0:9], equal_nan=True):
             self.sp_t = self.t  # a new setpoint sample: the trajectory is carried on from here
             self._sp_rates = None  # its velocity and acceleration terms, made when first carried
+        if not np.array_equal(sp[9:11], self.sp[9:11], equal_nan=True):
+            self.yaw_t = self.t  # a new yaw sample: carried by its feed-forward from here
+            self._sp_rates = None
         self.sp = sp
         self._sp_ground_z = self.ground_z
 
@@ -217,10 +222,11 @@ class TwinRunner:
         """The position setpoint carried along by the velocity and acceleration setpoints since the
         last setpoint sample: PX4's trajectory is smooth at the controller rate, its log (and the
         /real topic) a 5-25 Hz subsample of it; a held staircase makes the twin chase 1 m steps at
-        5 m/s.  The yaw likewise by its yaw-rate feed-forward (``sp[10]``).  Never carried more than 1 s
-        (a logging gap)."""
+        5 m/s.  The yaw likewise by its yaw-rate feed-forward (``sp[10]``), from its own sample time (the
+        reader takes it from the 20 Hz attitude setpoint where PX4 logs one).  Never carried more than
+        1 s (a logging gap)."""
         sp = self.sp
-        if self.sp_t is None or self.t is None:
+        if (self.sp_t is None and self.yaw_t is None) or self.t is None:
             return sp
         if self._sp_rates is None:
             # once per setpoint sample, not per control step (the sample is held for 10-50 steps)
@@ -231,13 +237,14 @@ class TwinRunner:
         moving, vel, half_acc, _, turning = self._sp_rates
         if not (moving or turning):
             return sp
-        dt = min(max(self.t - self.sp_t, 0.0), 1.0)
         out = sp.copy()
-        if moving:
+        if moving and self.sp_t is not None:
+            dt = min(max(self.t - self.sp_t, 0.0), 1.0)
             out[0:3] = sp[0:3] + vel * dt + half_acc * dt * dt
-        if turning:
+        if turning and self.yaw_t is not None:
             # the yaw setpoint carried by its yaw-rate feed-forward, as PX4's flight task integrates it
             # at the controller rate (held, it would lag the feed-forward and pull the yaw back)
+            dt = min(max(self.t - self.yaw_t, 0.0), 1.0)
             out[9] = (sp[9] + sp[10] * dt + np.pi) % (2.0 * np.pi) - np.pi
         return out
 
