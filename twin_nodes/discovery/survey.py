@@ -70,10 +70,11 @@ def markdown_table(rows: list[dict]) -> str:
         iv = b["interval_s"]
 
         def pair(key: str, scale: float, digits: int) -> str:
-            ok = "" if b[key] <= TARGETS[key] else " ✗"
+            # the mark goes on the value the twin ends with (after the refit): above the target
+            ok = "" if a[key] <= TARGETS[key] else " ✗"
             same = abs(a[key] - b[key]) < 10 ** -(digits + 1) / scale
             return (f"{b[key] * scale:.{digits}f}{ok}" if same else
-                    f"{b[key] * scale:.{digits}f} → {a[key] * scale:.{digits}f}")
+                    f"{b[key] * scale:.{digits}f} → {a[key] * scale:.{digits}f}{ok}")
 
         lines.append(f"| {r['flight']} | {iv[0]:.0f}-{iv[1]:.0f} | {pair('throttle_rmse', 100, 1)} "
                      f"| {pair('motor_p75_mean', 100, 1)} | {pair('xy_rmse_m', 1, 2)} | {pair('z_rmse_m', 1, 2)} "
