@@ -14,7 +14,9 @@ topic                         samples of                                 other s
 ``/real/motors``              ``actuator_motors`` / ``actuator_outputs``  -
 ``/real/throttle``            thrust setpoint / ``actuator_controls_0``   -
 ``/real/battery``             ``battery_status[0]``                      -
-``/real/setpoint``            ``trajectory_setpoint``                    -
+``/real/setpoint``            ``trajectory_setpoint``, and between its   the others held (previous)
+                              samples ``vehicle_attitude_setpoint``'s
+                              where it carries the yaw (20 Hz)
 ``/real/setpoint_pose``       ``trajectory_setpoint`` with a position    -
 ``/real/status``              changes of armed / nav_state / landed      zero-order hold of the others
 ``/real/esc_rpm``             ``esc_status`` (when logged)               -
