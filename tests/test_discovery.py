@@ -32,6 +32,7 @@ def test_nothing_accepted_on_px4_sih_with_exact_params(name):
     log = read_ulog(SHARED / "flightlogs" / "sitl" / name)
     res = discover(log, shipped("px4_sih_quadx"), closed_loop_metrics=False)
     assert res["accepted"] == [], res["effects"][:3]
+    assert res["events"] == [], res["events"]        # nothing transient the model leaves either
     # the free inertia fit lands near the true SIH inertia (errors-in-variables bias is absent)
     inertia = next(e for e in res["effects"] if e["name"] == "inertia")["params"]
     assert inertia["izz"] == pytest.approx(0.030, rel=0.15)

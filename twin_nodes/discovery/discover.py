@@ -43,7 +43,7 @@ from scipy.optimize import least_squares
 
 from twin_nodes.discovery import evaluate, rate_loop
 from twin_nodes.discovery.candidates import SYMMETRIC_LAG, Candidate, build_candidates
-from twin_nodes.discovery.locate import excitation, locate, locate_output, regimes  # noqa: F401  (regimes: re-exported)
+from twin_nodes.discovery.locate import events, excitation, locate, locate_output, regimes  # noqa: F401  (regimes: re-exported)
 from twin_nodes.discovery.output_error import (AXES, HORIZON_S, IV_AXIS_PARAM, IV_GAIN_RANGE, JUDGED, MIN_AXIS_R2, STRIDE_S, Windows,
                                                authority_mismatch, instrumented_inertia, judge_axes, make_windows,
                                                output_error, projected_view)
@@ -931,6 +931,8 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
            else None)
     R_after = residual_channels(data, current, vp)
     after_held = np.sqrt(np.mean(R_after[held_mask] ** 2, axis=0))
+    # what even the refitted model leaves: short events no steady effect is made for
+    transients = events(data, R_after, vp, names)
     likely = [e["name"] for e in effects_out if e["verdict"] == "likely"]
     result = {
         "log": str(log.path),
@@ -962,6 +964,7 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         },
         "baseline": {"equation_error_heldout": {k: round(float(v), 5) for k, v in zip(names, base_held)}},
         "mismatch": mismatch,
+        "events": transients,
         "excitation": S.excitation,
         "effects": effects_out,
         "accepted": [f.candidate.name for f in accepted],

@@ -8,6 +8,11 @@ differential from the collective) and ``force_x``/``force_y`` (horizontal force)
 channel's own noise floor, labelled by flight regime; :func:`locate_output`: output-error windows
 whose error in a mode exceeds 3x the nominal model's typical error there (``"residual": "output"``).
 
+*Events* (:func:`events`): short spans (>= ``EVENT_MIN_S``) where the equation error of the collective
+or a moment mode leaves ``EVENT_FACTOR`` x its own flight-long robust spread: a transient no steady
+candidate effect is made for (a vortex-ring descent, a motor that did not deliver, ground contact),
+reported with what the vehicle was doing, never fitted.
+
 *Excitation* (:func:`excitation`): what the flight gives a channel to be judged on, from the
 commands and the measured motion, not from any residual: per block of the block test, the RMS
 deviation of the channel's commanded signal from its trim (low-passed like the residual) against
@@ -29,6 +34,16 @@ from twin_nodes.physics.model import Multirotor
 from twin_nodes.vehicle.params import VehicleParams
 
 EXCITED_FACTOR = 3.0
+#: an event: the low-passed residual beyond this many robust standard deviations (1.4826 MAD of the
+#: valid samples, about its median) for at least EVENT_MIN_S, on the residual the refitted model leaves
+EVENT_FACTOR = 6.0
+EVENT_MIN_S = 0.2
+EVENT_CHANNELS = ("throttle", "roll", "pitch", "yaw")
+#: descending faster than this [m/s] with the thrust below the commands: the rotors in their own wake
+FAST_DESCENT_M_S = 2.0
+#: events lower than this above the take-off ground [m] are take-off and touchdown (spool-up, ground
+#: contact, the land detector's lag): not reported
+EVENT_MIN_HEIGHT_M = 1.0
 
 #: which manoeuvre supplies each channel (named in verdicts and in the confirmation plans)
 SUPPLY = {
@@ -150,6 +165,80 @@ def locate_output(data: EquationData, win, R: np.ndarray, vp: VehicleParams, fac
             out.append({"channel": ch, "residual": "output", "t_start": round(t0, 2), "t_end": round(t1, 2),
                         "regime": str(vals[np.argmax(counts)]) if counts.size else "", "severity": round(sev, 2)})
     return out
+
+
+def find_events(t: np.ndarray, valid: np.ndarray, channels: dict[str, np.ndarray],
+                factor: float = EVENT_FACTOR, min_s: float = EVENT_MIN_S) -> list[dict]:
+    """Spans where a channel leaves its own spread: per channel, runs of valid samples with
+    ``|x - median| > factor * 1.4826 MAD`` lasting at least ``min_s``; runs of several channels that
+    overlap merge into one event.  Each: ``t_start``, ``t_end`` and, per channel, the signed peak in
+    robust standard deviations and the mean value over the run."""
+    runs = []
+    for ch, x in channels.items():
+        v = valid & np.isfinite(x)
+        if v.sum() < 10:
+            continue
+        med = float(np.median(x[v]))
+        sig = 1.4826 * float(np.median(np.abs(x[v] - med)))
+        if sig <= 0:
+            continue
+        z = (x - med) / sig
+        out = v & (np.abs(z) > factor)
+        edges = np.diff(np.concatenate([[0], out.astype(np.int8), [0]]))
+        for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1):
+            if t[b] - t[a] >= min_s - 1e-9:
+                k = a + int(np.argmax(np.abs(z[a:b + 1])))
+                runs.append([float(t[a]), float(t[b]), {ch: {"peak_sigma": round(float(z[k]), 1),
+                                                             "mean": round(float(np.mean(x[a:b + 1])), 4)}}])
+    runs.sort(key=lambda r: r[0])
+    merged: list[list] = []
+    for r in runs:
+        if merged and r[0] <= merged[-1][1] + 1e-9:
+            merged[-1][1] = max(merged[-1][1], r[1])
+            merged[-1][2].update(r[2])
+        else:
+            merged.append(r)
+    return [{"t_start": round(a, 2), "t_end": round(b, 2), "channels": c} for a, b, c in merged]
+
+
+def events(data: EquationData, R: np.ndarray, vp: VehicleParams, names: list[str],
+           factor: float = EVENT_FACTOR, min_s: float = EVENT_MIN_S) -> list[dict]:
+    """:func:`find_events` on the collective and moment modes of the equation error ``R``, at least
+    ``EVENT_MIN_HEIGHT_M`` above the take-off ground, each with what the vehicle did then (regime, vertical and horizontal speed, height, motors at full or
+    zero output) and the physics it points to."""
+    ch = channel_signals(R, vp, names)
+    airborne = data.valid & (data.height >= EVENT_MIN_HEIGHT_M)
+    found = find_events(data.t, airborne, {k: ch[k] for k in EVENT_CHANNELS if k in ch}, factor, min_s)
+    if not found:
+        return []
+    lab = regimes(data)
+    u = data.u_fine[::data.up][: data.n]
+    for e in found:
+        sel = (data.t >= e["t_start"]) & (data.t <= e["t_end"])
+        vals, counts = np.unique(lab[sel], return_counts=True)
+        vz = data.v[sel, 2]
+        us = u[sel]
+        full = [i + 1 for i in range(us.shape[1]) if np.nanmax(us[:, i]) >= 0.99]
+        idle = [i + 1 for i in range(us.shape[1]) if np.nanmin(us[:, i]) <= 0.01]
+        thr = e["channels"].get("throttle")
+        e.update({"regime": str(vals[np.argmax(counts)]), "vz_m_s": [round(float(vz.min()), 2), round(float(vz.max()), 2)],
+                  "horizontal_speed_m_s": round(float(np.hypot(data.v[sel, 0], data.v[sel, 1]).max()), 2),
+                  "height_m": round(float(np.min(data.height[sel])), 2), "motors_at_full": full, "motors_at_zero": idle})
+        below = thr is not None and thr["mean"] < 0
+        at_full = f" with motor(s) {full} at full output" if full else ""
+        if thr is not None and below and vz.min() < -FAST_DESCENT_M_S:
+            what = (f"thrust below the commands while descending at up to {-vz.min():.1f} m/s: the rotors in their own "
+                    f"wake (vortex ring state); no candidate effect models it")
+        elif thr is not None and vz.min() < -FAST_DESCENT_M_S:
+            what = (f"thrust above the commands while descending at up to {-vz.min():.1f} m/s{at_full}: the inflow "
+                    f"from below raising the rotors' thrust, or a gust")
+        elif thr is not None:
+            what = (f"thrust {'below' if below else 'above'} the commands{at_full}: "
+                    + ("the thrust map near full output, or a motor that did not deliver" if full else "a gust or a transient"))
+        else:
+            what = f"a moment the commands do not explain{at_full}: a motor that did not deliver, a gust or a payload"
+        e["points_to"] = what
+    return found
 
 
 def command_channels(data: EquationData, vp: VehicleParams, names: list[str]) -> dict[str, np.ndarray]:

@@ -12,6 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
+from twin_nodes.discovery import locate
+
+
+def _event_channels(e: dict) -> str:
+    """``throttle -11σ, yaw +7σ``: an event's channels and their signed peaks."""
+    return ", ".join(f"{c} {v['peak_sigma']:+.0f}σ" for c, v in e["channels"].items())
 
 
 def _param_text(e: dict, name: str, value: float) -> str:
@@ -43,6 +49,14 @@ def summary_text(res: dict) -> str:
             kind = "OE" if m.get("residual") == "output" else "EE"
             lines.append(f"    {m['channel']:<9} {kind} {m['t_start']:7.1f}-{m['t_end']:7.1f} s  {m['regime']:<28} "
                          f"severity {m['severity']:.1f}x {'typical error' if kind == 'OE' else 'noise'}")
+    ev = res.get("events") or []
+    if ev:
+        lines.append(f"  short events the model does not explain (> {locate.EVENT_FACTOR:g} sigma of the flight's own "
+                     f"residual for >= {locate.EVENT_MIN_S:g} s; reported, not fitted):")
+        for e in ev[:6]:
+            lines.append(f"    {e['t_start']:7.2f}-{e['t_end']:7.2f} s  {_event_channels(e)}; vz {e['vz_m_s'][0]:+.1f}..{e['vz_m_s'][1]:+.1f} m/s"
+                         f"{'; motors at full ' + str(e['motors_at_full']) if e['motors_at_full'] else ''}")
+            lines.append(f"      -> {e['points_to']}")
     for a in res.get("authority") or []:
         lines.append(f"  mismatch located by the rate setpoint: {a['note']}")
     ex = res.get("excitation") or {}
@@ -185,6 +199,15 @@ def write_report(folder, res: dict, series: dict) -> None:
                      for ch, v in ex.items())
     mm = "".join(f"<tr><td>{m['channel']}</td><td>{m.get('residual', 'equation')}</td><td>{m['t_start']}–{m['t_end']} s"
                  f"</td><td>{html.escape(m['regime'])}</td><td>{m['severity']}</td></tr>" for m in res["mismatch"][:20])
+    evrows = "".join(
+        f"<tr><td>{e['t_start']}–{e['t_end']} s</td><td>{html.escape(_event_channels(e))}</td>"
+        f"<td>{e['vz_m_s'][0]:+.1f}..{e['vz_m_s'][1]:+.1f}</td><td>{e['height_m']}</td><td>{e['motors_at_full'] or ''}</td>"
+        f"<td>{html.escape(e['points_to'])}</td></tr>" for e in res.get("events") or [])
+    evsec = ("<h2>Short events the model does not explain</h2><p>Spans of at least "
+             f"{locate.EVENT_MIN_S:g} s where the collective or a moment mode of the residual leaves "
+             f"{locate.EVENT_FACTOR:g}x its own flight-long robust spread: reported with what the vehicle did, not fitted.</p>"
+             "<table><tr><th>when</th><th>channels (peak)</th><th>vz m/s</th><th>height m</th><th>motors at full</th>"
+             f"<th>points to</th></tr>{evrows}</table>") if evrows else ""
     head = (f"Confirmed: <b>{', '.join(res['accepted'])}</b>" if res["accepted"]
             else "Nothing confirmed: no candidate explains the held-out residual significantly.")
     if res.get("likely"):
@@ -204,6 +227,7 @@ in units of the nominal model's typical error on it ({html.escape(_axes_text(res
 <h2>Excitation per channel</h2><p>Blocks (0.5 s) whose commanded signal in the channel is above 3x its noise floor, on the held-out parts and over the flight, and the manoeuvres they come from.</p>
 <table><tr><th>channel</th><th>held-out</th><th>flight</th><th>manoeuvres (held-out)</th></tr>{exrows}</table>
 <h2>Where the mismatch is</h2><table><tr><th>channel</th><th>residual</th><th>when</th><th>regime</th><th>severity (x noise; output error: x typical error)</th></tr>{mm}</table>
+{evsec}
 </body></html>"""
     (out / "index.html").write_text(page)
 

@@ -1,0 +1,66 @@
+"""Short events the model does not explain: found against each channel's own robust spread, merged
+across channels, labelled with what the vehicle did; on a real flight, the vortex-ring descent."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import shared_log
+from twin_nodes.discovery.locate import EVENT_FACTOR, find_events
+
+
+def _noise(n: int, seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).normal(0.0, 0.01, n)
+
+
+def test_find_events_closed_form():
+    t = np.arange(0.0, 60.0, 0.02)
+    valid = np.ones(t.size, bool)
+    thr = _noise(t.size, 1)
+    yaw = _noise(t.size, 2)
+    thr[(t >= 20.0) & (t < 20.3)] -= 0.12            # 12 sigma for 0.3 s: an event
+    thr[(t >= 40.0) & (t < 40.1)] += 0.2             # 0.1 s: shorter than EVENT_MIN_S, not one
+    yaw[(t >= 20.2) & (t < 20.6)] += 0.10            # overlaps the thrust event: merged into it
+    ev = find_events(t, valid, {"throttle": thr, "yaw": yaw})
+    assert len(ev) == 1
+    e = ev[0]
+    assert e["t_start"] == pytest.approx(20.0, abs=0.03) and e["t_end"] == pytest.approx(20.58, abs=0.03)
+    assert e["channels"]["throttle"]["peak_sigma"] < -EVENT_FACTOR
+    assert e["channels"]["throttle"]["mean"] == pytest.approx(-0.12, abs=0.01)
+    assert e["channels"]["yaw"]["peak_sigma"] > EVENT_FACTOR
+    # samples outside `valid` (on the ground) are never an event
+    valid[(t >= 19.0) & (t < 21.0)] = False
+    assert find_events(t, valid, {"throttle": thr, "yaw": yaw}) == []
+
+
+def test_noise_alone_makes_no_event():
+    t = np.arange(0.0, 600.0, 0.02)
+    assert find_events(t, np.ones(t.size, bool), {"throttle": _noise(t.size, 3), "roll": _noise(t.size, 4)}) == []
+
+
+def test_climb35m_vortex_ring_descent_is_an_event():
+    """climb35m, 42.5-42.9 s: descending at 4.6-5.8 m/s, the body-z specific force 0.5-0.7 of what the
+    commands give, motor 3 at full (docs/real_logs.md)."""
+    from twin_nodes.discovery.discover import prepare_flight
+    from twin_nodes.discovery.locate import events
+    from twin_nodes.discovery.residuals import residual_channels
+    from twin_nodes.identify.nominal import params_for_log
+    from twin_nodes.logs.ulog_io import read_ulog
+    from twin_nodes.vehicle.params import load_params
+
+    path = shared_log("real", "real_quadx_v6c_climb35m.ulg")
+    vp = load_params(params_for_log(path)[0])
+    S = prepare_flight(read_ulog(path), vp, output_error=False)
+    ev = events(S.data, residual_channels(S.data, vp, vp), vp, S.names)
+    vrs = [e for e in ev if e["t_start"] < 42.7 < e["t_end"]]
+    assert len(vrs) == 1, ev
+    e = vrs[0]
+    assert e["channels"]["throttle"]["peak_sigma"] < -8 and e["channels"]["throttle"]["mean"] < -0.2
+    assert e["vz_m_s"][0] < -5.0 and 3 in e["motors_at_full"] and e["height_m"] > 25
+    assert "vortex ring" in e["points_to"]
+    assert all(x["height_m"] >= 1.0 for x in ev)
+    # pulling out of the earlier drop at the top of the climb (34.7-35.1 s): more thrust than commanded
+    out = [x for x in ev if x["t_start"] < 34.9 < x["t_end"]]
+    assert len(out) == 1 and out[0]["channels"]["throttle"]["mean"] > 0
+    assert out[0]["points_to"].startswith("thrust above the commands while descending")
