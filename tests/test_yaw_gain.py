@@ -115,3 +115,44 @@ def test_replay_sends_the_20_hz_yaw_with_the_held_position():
     held = np.flatnonzero(~fresh[1:] & np.isfinite(v[1:, 0])) + 1
     assert held.size > 100
     assert all(np.array_equal(v[i, 0:9], v[i - 1, 0:9], equal_nan=True) for i in held)
+
+
+@pytest.mark.parametrize("with_yaw_body", [True, False])
+def test_yaw_setpoint_from_yaw_body_or_q_d(tmp_path, with_yaw_body):
+    """PX4 up to 1.14 logs ``yaw_body``; later versions only ``q_d``: the yaw comes from either, where
+    the trajectory's yaw is finite, and the trajectory's own 25 Hz samples are used when the attitude
+    setpoint is not logged faster."""
+    from test_ulog_write import INFO, PARAMS, T0_US, _times, synthetic_flight
+
+    from twin_nodes.base import frames as F
+    from twin_nodes.logs.ulog_write import write_px4_ulog
+
+    data = synthetic_flight()
+    ts = data["trajectory_setpoint"]
+    s = (ts["timestamp"] - T0_US) * 1e-6
+    ts["yaw"] = np.where(s < 5.0, np.nan, F.wrap_pi(0.5 + 0.8 * s))
+    ts["yawspeed"] = np.full(s.size, 0.8)
+    ta = _times(100)
+    sa = (ta - T0_US) * 1e-6
+    yaw_ned = F.wrap_pi(0.5 + 0.8 * sa)
+    q = F.quat_from_euler(np.zeros(sa.size), np.zeros(sa.size), yaw_ned)
+    att = {"timestamp": ta, "yaw_sp_move_rate": np.full(sa.size, 0.8)}
+    att.update({f"q_d[{i}]": q[:, i] for i in range(4)})
+    if with_yaw_body:
+        att["yaw_body"] = yaw_ned
+    data["vehicle_attitude_setpoint"] = att
+    p = tmp_path / "att.ulg"
+    write_px4_ulog(p, data, params=PARAMS, info=INFO)
+    fl = read_ulog(p)
+    ys, yff = fl.require("setpoint_yaw_enu"), fl.require("setpoint_yawspeed")
+    assert ("yaw_body" if with_yaw_body else "q_d") in ys.source
+    assert len(ys) > 3 * len(fl.require("setpoint_position_enu"))
+    late = ys.t_s > 5.1
+    assert np.all(np.isnan(ys.values[ys.t_s < 4.9, 0]))                # the trajectory's yaw is NaN there
+    expect = F.yaw_ned_to_enu(F.wrap_pi(0.5 + 0.8 * ys.t_s[late]))
+    assert np.max(np.abs(F.wrap_pi(ys.values[late, 0] - expect))) < 1e-5
+    assert yff.values[late, 0] == pytest.approx(-0.8)
+
+    data["vehicle_attitude_setpoint"] = {k: v[::8] for k, v in att.items()}  # 12.5 Hz: slower than 25 Hz
+    write_px4_ulog(p, data, params=PARAMS, info=INFO)
+    assert read_ulog(p).require("setpoint_yaw_enu").source.startswith("trajectory_setpoint")

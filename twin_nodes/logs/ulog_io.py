@@ -975,7 +975,14 @@ def _yaw_from_attitude_setpoint(att: _Topic | None, ts: _Topic, out: dict[str, S
     the ramp ends by up to 9 deg, so a twin carrying the last sample by its feed-forward turned past
     the end and back.  Used only while the trajectory's own yaw is finite (elsewhere PX4 holds its
     last yaw setpoint, or a manual mode makes the attitude setpoint from the sticks)."""
-    if att is None or not att.has("yaw_body", "yaw_sp_move_rate") or not ts.has("yaw") or len(att.t_us) < 2:
+    if att is None or not att.has("yaw_sp_move_rate") or not ts.has("yaw") or len(att.t_us) < 2:
+        return
+    if att.has("yaw_body"):
+        yaw_ned, field = att.col("yaw_body"), "yaw_body"
+    elif att.has("q_d[0]", "q_d[1]", "q_d[2]", "q_d[3]"):  # PX4 >= 1.15 dropped yaw_body: the yaw of q_d
+        w, x, y, z = (att.col(f"q_d[{i}]") for i in range(4))
+        yaw_ned, field = np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)), "q_d (its yaw)"
+    else:
         return
     if len(att.t_us) <= 1.5 * len(ts.t_us):
         return
@@ -983,12 +990,12 @@ def _yaw_from_attitude_setpoint(att: _Topic | None, ts: _Topic, out: dict[str, S
     j = np.searchsorted(ts.t_us, att.t_us, side="right") - 1
     yaw_ts = ts.col("yaw")
     controlled = (j >= 0) & np.isfinite(yaw_ts[np.clip(j, 0, None)])
-    yaw = np.where(controlled, frames.yaw_ned_to_enu(att.col("yaw_body")), np.nan)
+    yaw = np.where(controlled, frames.yaw_ned_to_enu(yaw_ned), np.nan)
     rate = np.where(controlled, frames.yawspeed_ned_to_enu(att.col("yaw_sp_move_rate")), np.nan)
     if not np.isfinite(yaw).any():
         return
     out["setpoint_yaw_enu"] = _series("setpoint_yaw_enu", t, yaw,
-                                      "vehicle_attitude_setpoint.yaw_body (NED heading) where "
+                                      f"vehicle_attitude_setpoint.{field} (NED heading) where "
                                       "trajectory_setpoint.yaw is finite")
     out["setpoint_yawspeed"] = _series("setpoint_yawspeed", t, rate,
                                        "vehicle_attitude_setpoint.yaw_sp_move_rate (NED heading rate) where "
