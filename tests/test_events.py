@@ -34,6 +34,19 @@ def test_find_events_closed_form():
     assert find_events(t, valid, {"throttle": thr, "yaw": yaw}) == []
 
 
+def test_a_clean_log_s_small_departure_is_no_event():
+    """Many sigma of a tiny spread (a simulated log flown with the exact model) but under
+    EVENT_MIN_LEVEL of full output: not an event."""
+    from twin_nodes.discovery.locate import EVENT_MIN_LEVEL
+
+    t = np.arange(0.0, 60.0, 0.02)
+    yaw = np.random.default_rng(5).normal(0.0, 0.001, t.size)
+    yaw[(t >= 30.0) & (t < 30.4)] += 0.5 * EVENT_MIN_LEVEL   # 25 sigma, 2.5 % of full output
+    assert find_events(t, np.ones(t.size, bool), {"yaw": yaw}) == []
+    yaw[(t >= 30.0) & (t < 30.4)] += EVENT_MIN_LEVEL          # 7.5 %: an event
+    assert len(find_events(t, np.ones(t.size, bool), {"yaw": yaw})) == 1
+
+
 def test_noise_alone_makes_no_event():
     t = np.arange(0.0, 600.0, 0.02)
     assert find_events(t, np.ones(t.size, bool), {"throttle": _noise(t.size, 3), "roll": _noise(t.size, 4)}) == []

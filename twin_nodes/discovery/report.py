@@ -52,7 +52,8 @@ def summary_text(res: dict) -> str:
     ev = res.get("events") or []
     if ev:
         lines.append(f"  short events the model does not explain (> {locate.EVENT_FACTOR:g} sigma of the flight's own "
-                     f"residual for >= {locate.EVENT_MIN_S:g} s; reported, not fitted):")
+                     f"residual and >= {100 * locate.EVENT_MIN_LEVEL:g} % of full output for >= {locate.EVENT_MIN_S:g} s; "
+                     f"reported, not fitted):")
         for e in ev[:6]:
             lines.append(f"    {e['t_start']:7.2f}-{e['t_end']:7.2f} s  {_event_channels(e)}; vz {e['vz_m_s'][0]:+.1f}..{e['vz_m_s'][1]:+.1f} m/s"
                          f"{'; motors at full ' + str(e['motors_at_full']) if e['motors_at_full'] else ''}")
@@ -205,7 +206,8 @@ def write_report(folder, res: dict, series: dict) -> None:
         f"<td>{html.escape(e['points_to'])}</td></tr>" for e in res.get("events") or [])
     evsec = ("<h2>Short events the model does not explain</h2><p>Spans of at least "
              f"{locate.EVENT_MIN_S:g} s where the collective or a moment mode of the residual leaves "
-             f"{locate.EVENT_FACTOR:g}x its own flight-long robust spread: reported with what the vehicle did, not fitted.</p>"
+             f"{locate.EVENT_FACTOR:g}x its own flight-long robust spread by at least {100 * locate.EVENT_MIN_LEVEL:g} % of "
+             "full output: reported with what the vehicle did, not fitted.</p>"
              "<table><tr><th>when</th><th>channels (peak)</th><th>vz m/s</th><th>height m</th><th>motors at full</th>"
              f"<th>points to</th></tr>{evrows}</table>") if evrows else ""
     head = (f"Confirmed: <b>{', '.join(res['accepted'])}</b>" if res["accepted"]
