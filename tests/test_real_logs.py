@@ -17,6 +17,23 @@ from twin_nodes.discovery.survey import survey_flight
 pytestmark = pytest.mark.slow
 
 
+#: docs/real_logs.md's table, after discovery's refit (throttle RMSE, per-motor P75 mean, XY RMSE m,
+#: Z RMSE m on the held-out part); re-measured here within 3 % (or 0.002 / 0.01 m)
+TABLE = {
+    "real_cubeorange_takeoff_land": (0.0198, 0.0363, 0.036, 0.031),
+    "real_quadx_v6c_climb35m": (0.0422, 0.0743, 0.293, 1.637),
+    "real_quadx_v6c_mission_2hops": (0.0240, 0.0407, 0.372, 0.061),
+    "real_quadx_v6c_mission_noload": (0.0154, 0.0347, 0.291, 0.042),
+    "real_s500_rcac_mission1": (0.0266, 0.0495, 0.325, 0.463),
+    "real_s500_rcac_mission2": (0.0193, 0.0305, 0.459, 0.116),
+    "real_x500v2_mission_rtl": (0.0209, 0.0402, 0.211, 0.135),
+    "sitl_iris_takeoff_land": (0.0067, 0.0078, 0.033, 0.025),
+}
+#: the one flight above a target (docs/real_logs.md, "What is not met"): its real throttle's own content
+#: above 0.5 Hz is 3.3 % RMS on the held-out part, over the 3 % target; Z is made by a vortex-ring descent
+NOT_MET = {"real_quadx_v6c_climb35m": {"throttle_rmse", "motor_p75_mean", "z_rmse_m"}}
+
+
 @pytest.mark.parametrize("log", ulog_params("real"))
 def test_real_log_compare_and_discover_without_params(log, tmp_path, capsys):
     path = need_log(log)
@@ -38,6 +55,14 @@ def test_real_log_compare_and_discover_without_params(log, tmp_path, capsys):
         assert a == {k: b[k] for k in a}
     # the twin built from the log is a working twin, not a placeholder: beside the paper's 5.2 %
     assert b["throttle_rmse"] < 0.08 and b["xy_rmse_m"] < 1.0
+    # the documented table, and which targets it meets
+    from twin_nodes.discovery.survey import meets_targets
+
+    keys = ("throttle_rmse", "motor_p75_mean", "xy_rmse_m", "z_rmse_m")
+    for k, want, floor in zip(keys, TABLE[row["flight"]], (0.002, 0.002, 0.01, 0.01)):
+        assert a[k] == pytest.approx(want, rel=0.03, abs=floor), (k, a[k], want)
+    failed = {k for k, ok in meets_targets(a).items() if not ok}
+    assert failed == NOT_MET.get(row["flight"], set()), failed
 
 
 def test_twin_flies_px4_manual_modes_and_the_identified_wind():
