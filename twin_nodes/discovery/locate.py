@@ -175,8 +175,9 @@ def find_events(t: np.ndarray, valid: np.ndarray, channels: dict[str, np.ndarray
                 min_level: float = EVENT_MIN_LEVEL) -> list[dict]:
     """Spans where a channel leaves its own spread: per channel, runs of valid samples with
     ``|x - median| > factor * 1.4826 MAD`` lasting at least ``min_s`` whose mean departs from the
-    median by at least ``min_level``; runs of several channels that overlap merge into one event.  Each: ``t_start``, ``t_end`` and, per channel, the signed peak in
-    robust standard deviations and the mean value over the run."""
+    median by at least ``min_level``; runs of several channels that overlap merge into one event.
+    Each: ``t_start``, ``t_end`` and, per channel, the signed peak in robust standard deviations
+    (``peak_sigma``, about the median) and the mean value over the run (``mean``)."""
     runs = []
     for ch, x in channels.items():
         v = valid & np.isfinite(x)
@@ -199,7 +200,10 @@ def find_events(t: np.ndarray, valid: np.ndarray, channels: dict[str, np.ndarray
     for r in runs:
         if merged and r[0] <= merged[-1][1] + 1e-9:
             merged[-1][1] = max(merged[-1][1], r[1])
-            merged[-1][2].update(r[2])
+            for ch, v in r[2].items():  # a channel's second run in one event: keep its larger peak
+                old = merged[-1][2].get(ch)
+                if old is None or abs(v["peak_sigma"]) > abs(old["peak_sigma"]):
+                    merged[-1][2][ch] = v
         else:
             merged.append(r)
     return [{"t_start": round(a, 2), "t_end": round(b, 2), "channels": c} for a, b, c in merged]
@@ -208,8 +212,8 @@ def find_events(t: np.ndarray, valid: np.ndarray, channels: dict[str, np.ndarray
 def events(data: EquationData, R: np.ndarray, vp: VehicleParams, names: list[str],
            factor: float = EVENT_FACTOR, min_s: float = EVENT_MIN_S) -> list[dict]:
     """:func:`find_events` on the collective and moment modes of the equation error ``R``, at least
-    ``EVENT_MIN_HEIGHT_M`` above the take-off ground, each with what the vehicle did then (regime, vertical and horizontal speed, height, motors at full or
-    zero output) and the physics it points to."""
+    ``EVENT_MIN_HEIGHT_M`` above the take-off ground, each with what the vehicle did then (regime,
+    vertical and horizontal speed, height, motors at full or zero output) and the physics it points to."""
     ch = channel_signals(R, vp, names)
     airborne = data.valid & (data.height >= EVENT_MIN_HEIGHT_M)
     found = find_events(data.t, airborne, {k: ch[k] for k in EVENT_CHANNELS if k in ch}, factor, min_s)
@@ -225,10 +229,12 @@ def events(data: EquationData, R: np.ndarray, vp: VehicleParams, names: list[str
         full = [i + 1 for i in range(us.shape[1]) if np.nanmax(us[:, i]) >= 0.99]
         idle = [i + 1 for i in range(us.shape[1]) if np.nanmin(us[:, i]) <= 0.01]
         thr = e["channels"].get("throttle")
-        e.update({"regime": str(vals[np.argmax(counts)]), "vz_m_s": [round(float(vz.min()), 2), round(float(vz.max()), 2)],
+        e.update({"regime": str(vals[np.argmax(counts)]),
+                  "vz_m_s": [round(float(vz.min()), 2), round(float(vz.max()), 2)],
                   "horizontal_speed_m_s": round(float(np.hypot(data.v[sel, 0], data.v[sel, 1]).max()), 2),
-                  "height_m": round(float(np.min(data.height[sel])), 2), "motors_at_full": full, "motors_at_zero": idle})
-        below = thr is not None and thr["mean"] < 0
+                  "height_m": round(float(np.min(data.height[sel])), 2), "motors_at_full": full,
+                  "motors_at_zero": idle})
+        below = thr is not None and thr["peak_sigma"] < 0  # residual = measured - model: less thrust
         at_full = f" with motor(s) {full} at full output" if full else ""
         if thr is not None and below and vz.min() < -FAST_DESCENT_M_S:
             what = (f"thrust below the commands while descending at up to {-vz.min():.1f} m/s: the rotors in their own "
