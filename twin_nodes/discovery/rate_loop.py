@@ -388,10 +388,6 @@ def _gain(s: float, se: float) -> tuple[float, float]:
     return 1.0 / s, (se / (s * s) if np.isfinite(se) else math.nan)
 
 
-__all__ = ["AXES", "MIN_CHANGE", "MIN_SE", "MOTOR_YAW_CHANGE", "MOTOR_YAW_SE", "RateLoop", "SCALES",
-           "WINDOW_S", "fit_scale", "inertia", "make_windows", "projected", "rate_loop", "residuals", "simulate"]
-
-
 #: the motors' time constants every window is simulated at [s] (log-spaced), and the extra command
 #: delays the lag is compared with [s]
 TAUS = np.exp(np.linspace(math.log(0.01), math.log(0.4), 41))
@@ -405,10 +401,20 @@ MIN_TAU_CHANGE = 0.30
 AXIS_AGREE = 0.5
 
 
-def _stacked(loop: RateLoop, field: str, values: np.ndarray, data, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _axis_rms(loop: RateLoop, data, idx: np.ndarray) -> list[float]:
+    """Each axis's residual RMS with the model as it is (the units :func:`_stacked` puts them in)."""
+    out = []
+    for ax in range(3):
+        R0 = residuals(loop, ax, data.w[idx, ax], data.w_sp[idx, ax], data.dt, np.array([1.0]))[0]
+        out.append(float(np.sqrt(np.mean(R0 ** 2))) or 1.0)
+    return out
+
+
+def _stacked(loop: RateLoop, field: str, values: np.ndarray, data, idx: np.ndarray,
+             base: list[float]) -> tuple[np.ndarray, np.ndarray]:
     """(V, K, 3 n) residuals of the three axes side by side, each in units of its own residual's RMS
-    at the model's value (the axes' gyro noise differs several-fold), for each value of the loop's
-    ``field`` (``tau_s`` or ``command_delay_s`` added to the loop's); and the per-axis (3, V) SSE."""
+    at the model's value ``base`` (:func:`_axis_rms`: the axes' gyro noise differs several-fold), for
+    each value of the loop's ``field`` (``tau_s`` or ``command_delay_s``); and the per-axis (3, V) SSE."""
     per = []
     for ax in range(3):
         if field == "tau_s":
@@ -417,10 +423,6 @@ def _stacked(loop: RateLoop, field: str, values: np.ndarray, data, idx: np.ndarr
             R = np.stack([residuals(dataclasses.replace(loop, **{field: v}), ax, data.w[idx, ax], data.w_sp[idx, ax],
                                     data.dt, np.array([1.0]))[0] for v in values])
         per.append(R)
-    base = []
-    for ax in range(3):
-        R0 = residuals(loop, ax, data.w[idx, ax], data.w_sp[idx, ax], data.dt, np.array([1.0]))[0]
-        base.append(float(np.sqrt(np.mean(R0 ** 2))) or 1.0)
     sse = np.array([np.einsum("vkn,vkn->v", R, R) for R in per])
     return np.concatenate([R / b for R, b in zip(per, base)], axis=-1), sse
 
@@ -439,7 +441,8 @@ def motor_lag(data, params: Mapping[str, float], vp: VehicleParams, t_split: flo
     if setup is None:
         return None
     loop, idx, (every, fit1, test1, fit2) = setup
-    R, sse_ax = _stacked(loop, "tau_s", TAUS, data, idx)
+    base = _axis_rms(loop, data, idx)
+    R, sse_ax = _stacked(loop, "tau_s", TAUS, data, idx, base)
     tau, se = fit_scale(R, TAUS, every)
     tau1, se1 = fit_scale(R, TAUS, fit1)
     tau2, se2 = fit_scale(R, TAUS, fit2)
@@ -456,7 +459,7 @@ def motor_lag(data, params: Mapping[str, float], vp: VehicleParams, t_split: flo
         per_axis[name] = {"before": bk, "after": ak,
                           "cut": 1.0 - ak / bk if np.isfinite(ak) and np.isfinite(bk) and bk > 0 else math.nan}
     # the delay instead of the lag, judged the same way (held-out sum of squares at fold 1's value)
-    D, _ = _stacked(loop, "command_delay_s", loop.command_delay_s + DELAYS, data, idx)
+    D, _ = _stacked(loop, "command_delay_s", loop.command_delay_s + DELAYS, data, idx, base)
     k1 = int(np.argmin(np.einsum("vkn,vkn->v", D[:, fit1], D[:, fit1])))
     j1 = int(np.argmin(np.abs(np.log(TAUS) - math.log(tau1)))) if np.isfinite(tau1) else 0
     j0 = int(np.argmin(np.abs(np.log(TAUS) - math.log(loop.tau_s))))
@@ -472,3 +475,8 @@ def motor_lag(data, params: Mapping[str, float], vp: VehicleParams, t_split: flo
             "delay_fold1": float(DELAYS[k1]), "heldout_sse": held, "flagged": flagged,
             "curve": {"taus": [round(float(x), 5) for x in TAUS],
                       **{a: [round(float(x), 5) for x in v / max(float(v.min()), 1e-300)] for a, v in zip(AXES, sse_ax)}}}
+
+
+__all__ = ["AXES", "DELAYS", "MIN_CHANGE", "MIN_SE", "MIN_TAU_CHANGE", "MOTOR_YAW_CHANGE", "MOTOR_YAW_SE", "RateLoop",
+           "SCALES", "TAUS", "WINDOW_S", "fit_scale", "inertia", "make_windows", "motor_lag", "projected", "rate_loop",
+           "residuals", "simulate"]

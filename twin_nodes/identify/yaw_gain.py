@@ -19,11 +19,11 @@ Pure numpy on :class:`~twin_nodes.logs.ulog_io.FlightLog` series; no ROS.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from twin_nodes.base import frames
 from twin_nodes.logs.ulog_io import MANUAL_NAV_STATES
 
 #: the yaw setpoint must be logged at least this often [Hz]: a 5 Hz held sample of a 45 deg/s ramp
@@ -70,11 +70,6 @@ def fit_yaw_law(error_rad: np.ndarray, yawspeed: np.ndarray, rate_sp: np.ndarray
     return float(coef[0]), float(coef[1]), r2
 
 
-def _yaw_enu(q_wxyz: np.ndarray) -> np.ndarray:
-    w, x, y, z = q_wxyz.T
-    return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
 def applied_yaw_gain(log) -> YawGainFit | None:
     """The yaw attitude law the log's controller applied, or None where the log cannot show it
     (no rate setpoints, a yaw setpoint logged slower than :data:`MIN_SETPOINT_HZ`, too little yaw
@@ -100,7 +95,7 @@ def applied_yaw_gain(log) -> YawGainFit | None:
         return None
     yaw_sp = ys.at(t, kind="previous")[:, 0]
     ff = yff.at(t, kind="previous")[:, 0]
-    e = (yaw_sp - _yaw_enu(att.at(t)) + math.pi) % (2.0 * math.pi) - math.pi
+    e = frames.wrap_pi(yaw_sp - frames.euler_from_quat(att.at(t))[:, 2])
     r_sp = rs.at(t)[:, 2]
     ok = np.isfinite(e) & np.isfinite(ff) & np.isfinite(r_sp) & (np.abs(e) < MAX_ERROR_RAD)
     t, e, ff, r_sp = t[ok], e[ok], ff[ok], r_sp[ok]

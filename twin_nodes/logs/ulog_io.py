@@ -980,8 +980,7 @@ def _yaw_from_attitude_setpoint(att: _Topic | None, ts: _Topic, out: dict[str, S
     if att.has("yaw_body"):
         yaw_ned, field = att.col("yaw_body"), "yaw_body"
     elif att.has("q_d[0]", "q_d[1]", "q_d[2]", "q_d[3]"):  # PX4 >= 1.15 dropped yaw_body: the yaw of q_d
-        w, x, y, z = (att.col(f"q_d[{i}]") for i in range(4))
-        yaw_ned, field = np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)), "q_d (its yaw)"
+        yaw_ned, field = frames.euler_from_quat(att.arr("q_d", 4))[:, 2], "q_d (its yaw)"
     else:
         return
     if len(att.t_us) <= 1.5 * len(ts.t_us):
