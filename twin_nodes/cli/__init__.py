@@ -17,8 +17,25 @@ from twin_nodes import __version__
 from twin_nodes.base.errors import TwinError
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, whose errors are one stderr line, exit code 2:
+    ``rotortwin: error: --heldout: expected a number in (0, 1), got nan`` (a bad option value), or
+    ``rotortwin: error: params from-ulog: <what argparse says>`` (no usage block).
+    Subcommand parsers inherit the class (``add_subparsers`` uses the parent's type)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        from twin_nodes.base.errors import one_line
+
+        if message.startswith("argument "):
+            message = message[len("argument "):]
+        else:
+            cmd = self.prog.removeprefix("rotortwin").strip()
+            message = f"{cmd}: {message}" if cmd else message
+        self.exit(2, f"rotortwin: error: {one_line(message)}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="rotortwin",
         description="Physics twin of a multirotor: simulate, replay, compare, discover missing physics.",
     )

@@ -32,6 +32,7 @@ import os
 import sys
 import time
 
+from twin_nodes.cli.options import MOTORS, PWM_US, SECONDS, SPEED, finite_float, port, positive_int
 from twin_nodes.live.attach import add_foxglove_option, foxglove_beside
 from twin_nodes.mavlink.simlink import DEFAULT_HOST, DEFAULT_PORT, DEFAULT_STEP_S
 
@@ -44,29 +45,29 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     s = sub.add_parser("sim", help="be PX4 SITL's lockstep simulator (TCP server on 4560 + instance)")
     s.add_argument("--params", help="vehicle params YAML (default: shipped px4_sih_quadx)")
-    s.add_argument("--port", type=int, default=DEFAULT_PORT, help="TCP port 0..65535 (default 4560; 0 = any free)")
+    s.add_argument("--port", type=port(), default=DEFAULT_PORT, help="TCP port 0..65535 (default 4560; 0 = any free)")
     s.add_argument("--host", default=DEFAULT_HOST,
                    help="listen address (default 127.0.0.1, loopback only; 0.0.0.0 = every interface)")
-    s.add_argument("--step-ms", type=float, default=DEFAULT_STEP_S * 1e3,
+    s.add_argument("--step-ms", type=finite_float(0.01, 100.0, unit="ms"), default=DEFAULT_STEP_S * 1e3,
                    help="lockstep step in ms (default 4, what PX4 assumes)")
-    s.add_argument("--speed-factor", type=float,
-                   default=float(os.environ.get("PX4_SIM_SPEED_FACTOR", 1.0)),
+    s.add_argument("--speed-factor", type=SPEED,
+                   default=os.environ.get("PX4_SIM_SPEED_FACTOR", "1"),
                    help="pace in multiples of real time (default $PX4_SIM_SPEED_FACTOR or 1; 0 = unpaced)")
-    s.add_argument("--publish-every", type=int, default=1, help="ROS: publish every N steps (default 1)")
-    s.add_argument("--duration", type=float, help="stop after this much simulated time [s]")
+    s.add_argument("--publish-every", type=positive_int(100000), default=1, help="ROS: publish every N steps (default 1)")
+    s.add_argument("--duration", type=SECONDS, help="stop after this much simulated time [s]")
     _ros_args(s)
     s.set_defaults(func=_cmd_sim)
 
     t = sub.add_parser("telemetry", help="publish a real vehicle's MAVLink telemetry as /real/... topics")
     t.add_argument("--url", required=True, help="mavutil URL, e.g. udpin:0.0.0.0:14550, tcp:HOST:5760")
-    t.add_argument("--pwm-min", type=float, default=1000.0, help="PWM of command 0 [µs] (default 1000)")
-    t.add_argument("--pwm-max", type=float, default=2000.0, help="PWM of command 1 [µs] (default 2000)")
-    t.add_argument("--motors", type=int, default=4, help="number of motors (default 4)")
+    t.add_argument("--pwm-min", type=PWM_US, default=1000.0, help="PWM of command 0 [µs] (default 1000)")
+    t.add_argument("--pwm-max", type=PWM_US, default=2000.0, help="PWM of command 1 [µs] (default 2000)")
+    t.add_argument("--motors", type=MOTORS, default=4, help="number of motors (default 4)")
     t.add_argument("--motor-channels", default="", help="0-based output channels of Motor1..N, e.g. 4,5,6,7")
-    t.add_argument("--stale-after", type=float, default=3.0, help="mark the link stale after S s of silence")
+    t.add_argument("--stale-after", type=SECONDS, default=3.0, help="mark the link stale after S s of silence")
     t.add_argument("--no-request-streams", action="store_true",
                    help="don't ask the autopilot for streams (SET_MESSAGE_INTERVAL)")
-    t.add_argument("--duration", type=float, help="stop after S s of wall time (--no-ros)")
+    t.add_argument("--duration", type=SECONDS, help="stop after S s of wall time (--no-ros)")
     _ros_args(t)
     t.set_defaults(func=_cmd_telemetry)
 

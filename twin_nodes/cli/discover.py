@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from twin_nodes.base.io import atomic_write_text
+from twin_nodes.cli.options import WORKERS, finite_float, seed
 from twin_nodes.discovery.report import json_default, summary_text, write_report
 
 
@@ -20,7 +21,8 @@ def register(sub) -> None:
     p.add_argument("--json", dest="json_out", help="write the result here")
     p.add_argument("--report", help="write plots and index.html into this folder")
     p.add_argument("--out-params", help="write the refitted params YAML here (when something is accepted)")
-    p.add_argument("--heldout", type=float, default=0.35, help="fraction of the flight held out (default 0.35)")
+    p.add_argument("--heldout", type=finite_float(0.05, 0.95), default=0.35,
+                   help="fraction of the flight held out, 0.05..0.95 (default 0.35)")
     p.add_argument("--no-closed-loop", action="store_true", help="skip the closed-loop twin before/after metrics")
     p.add_argument("--plan-dir", help="write a confirmation mission plan per 'likely' effect into this folder")
     p.add_argument("--confirm", metavar="FOLLOWUP", help="re-judge each 'likely' effect of FLIGHT on this follow-up "
@@ -35,7 +37,7 @@ def register(sub) -> None:
     q.add_argument("--out", default="out/prove", help="folder for the results and tables (one subfolder per source)")
     q.add_argument("--vehicle", default="px4_sih_quadx", help="ours: shipped params name or a params YAML")
     q.add_argument("--size", choices=("full", "ci"), default="full")
-    q.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    q.add_argument("--workers", type=WORKERS, default=min(2, os.cpu_count() or 1))
     q.add_argument("--shared", help="px4sih: the shared folder (default ../shared beside the repository)")
     q.add_argument("--sih-dir", action="append", default=[], metavar="DIR",
                    help="px4sih: also these flights of our own (DIR/<name>/flight.ulg + truth.json, as "
@@ -48,7 +50,7 @@ def register(sub) -> None:
     s.add_argument("--params", default="params/px4_sih_quadx.yaml", help="vehicle params YAML")
     s.add_argument("--effect", default="none",
                    help="hidden effect, e.g. 'motor_efficiency:motor=3,efficiency=0.85' (default none)")
-    s.add_argument("--seed", type=int, default=1)
+    s.add_argument("--seed", type=seed(), default=1)
     s.add_argument("--plan", help="fly this mission plan (missions/*.plan.yaml format) instead of the built-in mission")
     s.add_argument("--out", required=True, help="output .ulg")
     s.set_defaults(func=_simulate)

@@ -18,6 +18,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from twin_nodes.cli.options import WORKERS, positive_int
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("fleet", help="fleet scale: discovery on Dask, flight catalog, trends report",
@@ -31,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         g = q.add_mutually_exclusive_group()
         g.add_argument("--params", help="one params YAML for every flight")
         g.add_argument("--params-map", help="YAML: vehicle id -> params file (others: built from the log)")
-        q.add_argument("--workers", type=int, default=2, help="embedded cluster worker processes (default 2)")
+        q.add_argument("--workers", type=WORKERS, default=2, help="embedded cluster worker processes (default 2)")
         q.add_argument("--no-closed-loop", action="store_true",
                        help="discover: skip the closed-loop Table-2 metrics (faster)")
         q.set_defaults(func=_cmd_run, mode=mode)
@@ -46,9 +48,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     q = sub.add_parser("simulate", help="write the simulated demo fleet (degrading motor, payload days, healthy)")
     q.add_argument("out")
     q.add_argument("--params", default="params/px4_sih_quadx.yaml")
-    q.add_argument("--vehicles", type=int, default=5)
-    q.add_argument("--flights", type=int, default=10, help="flights per vehicle")
-    q.add_argument("--workers", type=int, default=2)
+    q.add_argument("--vehicles", type=positive_int(1000), default=5)
+    q.add_argument("--flights", type=positive_int(10000), default=10, help="flights per vehicle")
+    q.add_argument("--workers", type=WORKERS, default=2)
     q.set_defaults(func=_cmd_simulate)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
 

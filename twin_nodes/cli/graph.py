@@ -36,6 +36,7 @@ import sys
 from pathlib import Path
 
 from twin_nodes.base.errors import TwinError
+from twin_nodes.cli.options import SPEED, WINDOW_S, domain_id
 from twin_nodes.live.attach import add_foxglove_option, foxglove_beside, free_domain
 from twin_nodes.graph import bag_dir, default_params_for, run_graph
 
@@ -105,16 +106,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     c.add_argument("--params", help="vehicle params YAML (default: from the log's SYS_AUTOSTART)")
     c.add_argument("--mode", choices=("closed", "open"), default="closed",
                    help="closed: our controller flies the setpoints; open: real motor commands, re-synced")
-    c.add_argument("--rate", type=float, default=0.0,
+    c.add_argument("--rate", type=SPEED, default=0.0,
                    help="replay speed: 0 = as fast as the nodes keep up (default), 1 = real time, 20 = 20x")
-    c.add_argument("--horizon", type=float, default=2.0, help="open loop: re-sync period [s] (default 2)")
-    c.add_argument("--window", type=float, default=5.0, help="rolling metrics window [s] (default 5)")
+    c.add_argument("--horizon", type=WINDOW_S, default=2.0, help="open loop: re-sync period [s] (default 2)")
+    c.add_argument("--window", type=WINDOW_S, default=5.0, help="rolling metrics window [s] (default 5)")
     c.add_argument("--json", help="write the whole-flight metrics here")
     c.add_argument("--mcap", help="record every topic into this bag directory (rosbag2 layout; a trailing "
                                   ".mcap is dropped: OUT.mcap -> OUT/OUT.mcap)")
     c.add_argument("--report", help="write PNG plots and index.html here")
     c.add_argument("--run-dir", help="node logs and pid files (default: REPORT/run or a temp dir)")
-    c.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID 0..232 (default: a free one of 1..101); "
+    c.add_argument("--domain-id", type=domain_id(), help="ROS_DOMAIN_ID 0..232 (default: a free one of 1..101); "
                                                  "refused while another rotortwin run holds it")
     c.add_argument("--offline", action="store_true", help="no ROS: the same metrics via compare_log")
     c.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -6,6 +6,7 @@ import argparse
 import sys
 from typing import Any
 
+from twin_nodes.cli.options import SECONDS, domain_id, integer
 from twin_nodes.graph.domains import check_domain_id
 from twin_nodes.graph.live import MonitorState, echo_topic, format_monitor, topic_types, watch_metrics
 from twin_nodes.live.attach import add_foxglove_option, foxglove_beside
@@ -66,9 +67,9 @@ def _topics_common() -> argparse.ArgumentParser:
     """--domain-id/--wait, accepted before or after the sub-command (SUPPRESS: a later parser's
     default never overwrites a value given earlier)."""
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--domain-id", type=int, default=argparse.SUPPRESS,
+    common.add_argument("--domain-id", type=domain_id(), default=argparse.SUPPRESS,
                         help="ROS_DOMAIN_ID of the graph (default: the environment's)")
-    common.add_argument("--wait", type=float, default=argparse.SUPPRESS,
+    common.add_argument("--wait", type=SECONDS, default=argparse.SUPPRESS,
                         help=f"discovery time [s] (default {TOPICS_WAIT_S:g})")
     return common
 
@@ -76,8 +77,8 @@ def _topics_common() -> argparse.ArgumentParser:
 def register(subparsers: argparse._SubParsersAction) -> None:
     m = subparsers.add_parser("monitor", help="live /twin_error/... metrics as a terminal table")
     m.add_argument("--once", action="store_true", help="print one table once the topics are seen, then exit")
-    m.add_argument("--duration", type=float, help="stop after S seconds")
-    m.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph (default: the environment's)")
+    m.add_argument("--duration", type=SECONDS, help="stop after S seconds")
+    m.add_argument("--domain-id", type=domain_id(), help="ROS_DOMAIN_ID of the graph (default: the environment's)")
     add_foxglove_option(m)
     m.set_defaults(func=_cmd_monitor)
 
@@ -87,6 +88,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ts.add_parser("list", help="topics and types on the network (or the documented ones)", parents=[common])
     e = ts.add_parser("echo", help="print the messages of one topic", parents=[common])
     e.add_argument("topic")
-    e.add_argument("--count", type=int, default=0, help="stop after N messages")
-    e.add_argument("--duration", type=float, help="stop after S seconds")
+    e.add_argument("--count", type=integer(0, 10**9), default=0, help="stop after N messages (0: no limit)")
+    e.add_argument("--duration", type=SECONDS, help="stop after S seconds")
     t.set_defaults(func=_cmd_topics)

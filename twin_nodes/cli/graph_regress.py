@@ -24,6 +24,7 @@ import argparse
 import json
 import sys
 
+from twin_nodes.cli.options import domain_id, positive_float
 from twin_nodes.graph.regress import check_tolerance, format_changes, regress_bag, regress_baseline
 
 
@@ -83,8 +84,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     r.add_argument("bag", help="baseline bag directory (or its .mcap) recorded by 'rotortwin compare --mcap'")
     r.add_argument("--params", help="vehicle params YAML (default: the ones recorded with the baseline)")
-    r.add_argument("--tolerance", default="0.05", help="relative tolerance, finite > 0 (default 0.05)")
-    r.add_argument("--abs-tolerance", default="1e-3",
+    r.add_argument("--tolerance", type=positive_float(1e6), default="0.05", help="relative tolerance, finite > 0 (default 0.05)")
+    r.add_argument("--abs-tolerance", type=positive_float(1e6), default="1e-3",
                    help="absolute tolerance in the metric's unit (m, or fraction 0..1), finite > 0 (default 1e-3)")
     r.add_argument("--offline", action="store_true", help="no ROS graph: the same twin and metrics code in-process")
     r.add_argument("--update", action="store_true", help="accept today's result: re-record the baseline")
@@ -92,6 +93,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="only check that the stored metrics recompute from the bag's own /real and /twin topics")
     r.add_argument("--only-moved", action="store_true", help="list only the metrics that moved beyond tolerance")
     r.add_argument("--json", help="write the comparison here (JSON)")
-    r.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID for the graph (default: a free one)")
+    r.add_argument("--domain-id", type=domain_id(), help="ROS_DOMAIN_ID for the graph (default: a free one)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=_cmd_regress)

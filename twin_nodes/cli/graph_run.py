@@ -6,6 +6,7 @@ import argparse
 from typing import Any
 
 from twin_nodes.base.errors import TwinError
+from twin_nodes.cli.options import MOTORS, SPEED, WINDOW_S
 from twin_nodes.graph import run_node
 
 
@@ -48,7 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     rp = subparsers.add_parser("replay", help="run the ULog replay node in the foreground")
     rp.add_argument("flight")
-    rp.add_argument("--rate", type=float, default=1.0, help="1 real time (default), 20 = 20x, 0 = flow-controlled")
+    rp.add_argument("--rate", type=SPEED, default=1.0, help="1 real time (default), 20 = 20x, 0 = flow-controlled")
     rp.add_argument("--wait-for", nargs="*", default=[], help="consumer node names to wait for")
     rp.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[])
     rp.set_defaults(func=_cmd_replay)
@@ -60,8 +61,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     tw.set_defaults(func=_cmd_twin)
 
     me = subparsers.add_parser("metrics", help="run the metrics node in the foreground")
-    me.add_argument("--window", type=float, default=5.0, help="rolling window [s]")
-    me.add_argument("--motors", type=int, default=4, help="number of motors")
+    me.add_argument("--window", type=WINDOW_S, default=5.0, help="rolling window [s]")
+    me.add_argument("--motors", type=MOTORS, default=4, help="number of motors")
     me.add_argument("--json", help="write the whole-flight metrics here at the end")
     ros_extra(me)
     me.set_defaults(func=_cmd_metrics)

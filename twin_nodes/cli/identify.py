@@ -43,6 +43,7 @@ from typing import Any, Callable
 import yaml
 
 from twin_nodes.base.errors import ParamsError
+from twin_nodes.cli.options import MASS_KG, RATE_HZ, SECONDS, finite_float, integer, nonneg_float, positive_float
 
 OUT_SUFFIXES = (".yaml", ".yml", ".json")
 #: the ``--pairs`` choices: every pair :func:`twin_nodes.identify.from_log.delay_inputs` can build
@@ -58,10 +59,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     m = sub.add_parser("motor", help="first-order motor model K/(tau s+1) (+delay) from command/rpm steps")
     m.add_argument("source", help="CSV with time_s,command,rpm columns, or a ULog with esc_status RPM")
-    m.add_argument("--rate-hz", type=float, default=30.0,
+    m.add_argument("--rate-hz", type=RATE_HZ, default=30.0,
                    help="rate of the ZOH difference equation (reference: 30 Hz PWM logging)")
     m.add_argument("--no-delay", action="store_true", help="do not fit a pure delay")
-    m.add_argument("--max-delay", type=float, default=0.5, help="largest delay to consider [s]")
+    m.add_argument("--max-delay", type=positive_float(10.0, "s"), default=0.5, help="largest delay to consider [s]")
     m.add_argument("--symmetric", action="store_true",
                    help="write the symmetric tau as both tau_up_s and tau_down_s")
     _common(m)
@@ -69,12 +70,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     h = sub.add_parser("hover", help="hover throttle from steady-hover segments; kt = m g / (N w^2) with RPM")
     h.add_argument("log", help="ULog")
-    h.add_argument("--mass-kg", type=float, help="vehicle mass (else from --params)")
-    h.add_argument("--min-duration", type=float, default=3.0, help="shortest hover segment [s]")
-    h.add_argument("--max-vz", type=float, default=0.3, help="largest vertical speed in hover [m/s]")
-    h.add_argument("--max-vxy", type=float, default=0.5, help="largest horizontal speed in hover [m/s]")
-    h.add_argument("--max-az", type=float, default=0.5, help="largest vertical acceleration [m/s^2]")
-    h.add_argument("--min-height", type=float, default=1.0, help="smallest height above the take-off point [m]")
+    h.add_argument("--mass-kg", type=MASS_KG, help="vehicle mass (else from --params)")
+    h.add_argument("--min-duration", type=SECONDS, default=3.0, help="shortest hover segment [s]")
+    h.add_argument("--max-vz", type=positive_float(100.0, "m/s"), default=0.3, help="largest vertical speed in hover [m/s]")
+    h.add_argument("--max-vxy", type=positive_float(100.0, "m/s"), default=0.5, help="largest horizontal speed in hover [m/s]")
+    h.add_argument("--max-az", type=positive_float(100.0, "m/s^2"), default=0.5, help="largest vertical acceleration [m/s^2]")
+    h.add_argument("--min-height", type=finite_float(-1000.0, 10000.0, unit="m"), default=1.0, help="smallest height above the take-off point [m]")
     _common(h)
     h.set_defaults(func=_handler(_hover))
 
@@ -83,25 +84,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     d.add_argument("--pairs", help=f"comma-separated subset of: {', '.join(DELAY_PAIRS)} (default: all available)")
     d.add_argument("--mode", choices=("level", "diff"), default="level",
                    help="correlate detrended levels or first differences")
-    d.add_argument("--highpass-s", type=float, default=1.0,
+    d.add_argument("--highpass-s", type=nonneg_float(3600.0, "s"), default=1.0,
                    help="remove a moving average this long from both series first (0: off; not for 'climb')")
-    d.add_argument("--boot", type=int, default=300, help="bootstrap replicates for the 95 %% interval")
+    d.add_argument("--boot", type=integer(0, 100000), default=300, help="bootstrap replicates for the 95 %% interval")
     _common(d)
     d.set_defaults(func=_handler(_delay))
 
     r = sub.add_parser("regress", help="equation-error least squares of translational and rotational dynamics")
     r.add_argument("log", help="ULog")
-    r.add_argument("--rate-hz", type=float, default=50.0, help="resampling rate [Hz]")
-    r.add_argument("--lowpass-hz", type=float,
+    r.add_argument("--rate-hz", type=RATE_HZ, default=50.0, help="resampling rate [Hz]")
+    r.add_argument("--lowpass-hz", type=RATE_HZ,
                    help="zero-phase low-pass applied to both sides (default: 2.5 Hz, at most 0.4 x the motor log rate)")
-    r.add_argument("--tau-s", type=float, default=0.05,
+    r.add_argument("--tau-s", type=positive_float(10.0, "s"), default=0.05,
                    help="motor time constant when no --params is given [s]")
-    r.add_argument("--trim-s", type=float, default=2.0,
+    r.add_argument("--trim-s", type=nonneg_float(3600.0, "s"), default=2.0,
                    help="drop this much after take-off and before touchdown (ground contact) [s]")
     r.add_argument("--accel-source", choices=("rates", "px4"), default="rates",
                    help="angular acceleration from differentiated body rates or PX4's xyz_derivative")
     r.add_argument("--intercept", action="store_true", help="add a constant term to every equation")
-    r.add_argument("--rcond", type=float, default=1e-3,
+    r.add_argument("--rcond", type=finite_float(0.0, 1.0, lo_open=True, hi_open=True), default=1e-3,
                    help="relative singular-value threshold below which a direction counts as unidentifiable")
     _common(r)
     r.set_defaults(func=_handler(_regress))
@@ -110,10 +111,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     n.add_argument("log", help="ULog")
     n.add_argument("--allow-armed", action="store_true",
                    help="if there is no landed+disarmed stretch, use landed+armed (motor vibration included)")
-    n.add_argument("--min-duration", type=float, default=3.0, help="shortest stationary stretch [s]")
-    n.add_argument("--gyro-std-max", type=float, default=0.02,
+    n.add_argument("--min-duration", type=SECONDS, default=3.0, help="shortest stationary stretch [s]")
+    n.add_argument("--gyro-std-max", type=positive_float(100.0, "rad/s"), default=0.02,
                    help="stationary: largest 1 s moving std of each gyro axis [rad/s]")
-    n.add_argument("--accel-std-max", type=float, default=0.15,
+    n.add_argument("--accel-std-max", type=positive_float(1000.0, "m/s^2"), default=0.15,
                    help="stationary: largest 1 s moving std of the accelerometer magnitude [m/s^2]")
     n.add_argument("--accel-reference", choices=("mean_direction", "level"), default="mean_direction",
                    help="what the accelerometer should read at rest (see twin_nodes.identify.noise)")

@@ -31,6 +31,7 @@ import sys
 from pathlib import Path
 
 from twin_nodes.base.errors import TwinError
+from twin_nodes.cli.options import PWM_US, SECONDS, WINDOW_S, domain_id, port
 
 
 def _params(args: argparse.Namespace) -> str:
@@ -140,11 +141,11 @@ def _cmd_layout(args: argparse.Namespace) -> int:
 def _link_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--params", help="vehicle params YAML (default: shipped px4_sih_quadx)")
     p.add_argument("--json", help="write the totals here")
-    p.add_argument("--window", type=float, default=5.0, help="rolling metrics window [s] (default 5)")
-    p.add_argument("--horizon", type=float, default=2.0, help="re-sync the twin every S s (default 2)")
-    p.add_argument("--stale-after", type=float, default=3.0, help="link lost after S s of silence (default 3)")
-    p.add_argument("--pwm-min", type=float, default=1000.0, help="PWM of motor command 0 [µs] (default 1000)")
-    p.add_argument("--pwm-max", type=float, default=2000.0, help="PWM of motor command 1 [µs] (default 2000)")
+    p.add_argument("--window", type=WINDOW_S, default=5.0, help="rolling metrics window [s] (default 5)")
+    p.add_argument("--horizon", type=WINDOW_S, default=2.0, help="re-sync the twin every S s (default 2)")
+    p.add_argument("--stale-after", type=SECONDS, default=3.0, help="link lost after S s of silence (default 3)")
+    p.add_argument("--pwm-min", type=PWM_US, default=1000.0, help="PWM of motor command 0 [µs] (default 1000)")
+    p.add_argument("--pwm-max", type=PWM_US, default=2000.0, help="PWM of motor command 1 [µs] (default 2000)")
     p.add_argument("--motor-channels", default="", help="0-based output channels of Motor1..N, e.g. 4,5,6,7")
     p.add_argument("--no-request-streams", action="store_true", help="don't ask the autopilot for streams")
 
@@ -156,17 +157,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--url", help="the vehicle's MAVLink URL (udpin:0.0.0.0:14550, tcp:HOST:5760, /dev/ttyACM0)")
     _link_args(p)
     p.add_argument("--mcap", help="record every topic into this bag directory")
-    p.add_argument("--foxglove", nargs="?", type=int, const=8765, default=None, metavar="PORT",
+    p.add_argument("--foxglove", nargs="?", type=port(), const=8765, default=None, metavar="PORT",
                    help="serve Foxglove on ws://127.0.0.1:PORT (default 8765)")
-    p.add_argument("--duration", type=float, help="stop after S s (default: Ctrl-C)")
-    p.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: a free one)")
+    p.add_argument("--duration", type=SECONDS, help="stop after S s (default: Ctrl-C)")
+    p.add_argument("--domain-id", type=domain_id(), help="ROS_DOMAIN_ID (default: a free one)")
     p.add_argument("--run-dir", help="node logs and pid files (default: a temp dir, removed)")
     p.set_defaults(func=_cmd_live)
     sub = p.add_subparsers(dest="live_command", metavar="foxglove|tlog|layout")
     f = sub.add_parser("foxglove", help="serve a running graph's topics to Foxglove (WebSocket)")
-    f.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765; 0 = any free)")
+    f.add_argument("--port", type=port(), default=8765, help="WebSocket port (default 8765; 0 = any free)")
     f.add_argument("--host", default="127.0.0.1", help="listen address (0.0.0.0: every interface, no auth)")
-    f.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID of the graph (default: the environment's)")
+    f.add_argument("--domain-id", type=domain_id(), help="ROS_DOMAIN_ID of the graph (default: the environment's)")
     f.add_argument("--mcap", help="also write everything served into this MCAP file")
     f.set_defaults(func=_cmd_foxglove)
     t = sub.add_parser("tlog", help="offline: the twin beside a recorded telemetry log (.tlog)")

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 
 from twin_nodes.base.errors import TwinError
+from twin_nodes.cli.options import SECONDS
 from twin_nodes.mavlink.mission import (
     DEFAULT_URL,
     load_plan,
@@ -46,19 +47,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     u = sub.add_parser("upload", help="upload a plan to the vehicle")
     u.add_argument("plan", help="plan YAML")
     u.add_argument("--url", default=DEFAULT_URL, help=f"MAVSDK connection URL (default {DEFAULT_URL})")
-    u.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the autopilot / home")
+    u.add_argument("--timeout", type=SECONDS, default=10.0, help="seconds to wait for the autopilot / home")
     u.set_defaults(func=_cmd_upload)
 
     s = sub.add_parser("start", help="arm and start the uploaded mission")
     s.add_argument("--url", default=DEFAULT_URL, help=f"MAVSDK connection URL (default {DEFAULT_URL})")
     s.add_argument("--no-arm", action="store_true", help="don't arm (the vehicle is armed already)")
-    s.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the autopilot")
+    s.add_argument("--timeout", type=SECONDS, default=10.0, help="seconds to wait for the autopilot")
     s.set_defaults(func=_cmd_start)
 
     w = sub.add_parser("wait", help="wait until the vehicle has armed and disarmed again (mission flown)")
     w.add_argument("--url", default=DEFAULT_URL, help=f"MAVSDK connection URL (default {DEFAULT_URL})")
-    w.add_argument("--arm-timeout", type=float, default=60.0, help="seconds to wait for arming (default 60)")
-    w.add_argument("--timeout", type=float, default=900.0, help="seconds to wait for disarming (default 900)")
+    w.add_argument("--arm-timeout", type=SECONDS, default=60.0, help="seconds to wait for arming (default 60)")
+    w.add_argument("--timeout", type=SECONDS, default=900.0, help="seconds to wait for disarming (default 900)")
     w.set_defaults(func=_cmd_wait)
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 
 from twin_nodes.vehicle.derive import derivation_header, derive, load_spec
 from twin_nodes.base.errors import ParamsError
+from twin_nodes.cli.options import MASS_KG, finite_float
 from twin_nodes.vehicle.export_px4 import px4_airframe_script, qgc_params_table, sdf_motor_plugins
 from twin_nodes.vehicle.params import VehicleParams, load_params, write_params
 
@@ -56,8 +57,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     f = sub.add_parser("from-ulog", help="build the params of the vehicle that flew a PX4 log, from the log itself")
     f.add_argument("ulog", help="PX4 flight log (.ulg)")
     f.add_argument("--out", required=True, help="write the params YAML here")
-    f.add_argument("--mass-kg", type=float, help="take-off mass [kg] (else the airframe's typical mass, stated)")
-    f.add_argument("--arm-m", type=float, help="centre-to-rotor distance [m] for logs whose layout is normalised")
+    f.add_argument("--mass-kg", type=MASS_KG, help="take-off mass [kg] (else the airframe's typical mass, stated)")
+    f.add_argument("--arm-m", type=finite_float(0.01, 100.0, unit="m"), help="centre-to-rotor distance [m] for logs whose layout is normalised")
     f.add_argument("--name", help="vehicle name in the file")
     f.set_defaults(func=_cmd_from_ulog)
 

@@ -35,7 +35,9 @@ DEFAULT_PORT = 8765
 
 
 def add_foxglove_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--foxglove", nargs="?", type=int, const=DEFAULT_PORT, default=None, metavar="PORT",
+    from twin_nodes.cli.options import port
+
+    parser.add_argument("--foxglove", nargs="?", type=port(), const=DEFAULT_PORT, default=None, metavar="PORT",
                         help=f"also serve the graph's topics to Foxglove on ws://127.0.0.1:PORT "
                              f"(default {DEFAULT_PORT}; layout: layouts/rotortwin.json)")
 
