@@ -41,9 +41,9 @@ def custom_mode(main: int, sub: int) -> int:
     return (main << 16) | (sub << 24)
 
 
-def decoded(msg):
-    """Encode and decode, as the message would arrive from the wire."""
-    buf = msg.pack(MAV)
+def decoded(msg, mav=MAV):
+    """Encode (as system ``mav``) and decode, as the message would arrive from the wire."""
+    buf = msg.pack(mav)
     rx = mavlink2.MAVLink(None)
     return rx.parse_buffer(buf)[0]
 
@@ -224,7 +224,10 @@ def replay():
         events.append((t, "bat", MAV.battery_status_encode(
             0, 0, 0, 32767, cells, int(bat["current_filtered_a"][i] * 100), -1, -1,
             int(round(bat["remaining"][i] * 100)))))
-    for t in np.arange(lpos["timestamp"][0], lpos["timestamp"][-1], 1_000_000):
+    # heartbeats from the first message on: data from before the vehicle's first heartbeat is not used
+    # (whose it is cannot be known: issue 28)
+    t_first = min(d["timestamp"][0] for d in (lpos, att, ao, bat))
+    for t in np.arange(t_first, lpos["timestamp"][-1], 1_000_000):
         j = max(np.searchsorted(vs["timestamp"], t, side="right") - 1, 0)
         armed = vs["arming_state"][j] == 2
         main, sub = NAV_TO_CUSTOM.get(int(vs["nav_state"][j]), (4, 3))
@@ -341,3 +344,145 @@ def test_replay_matches_ulog_replay_series(replay):
     ok = np.all(np.isfinite(theirs), axis=1)
     assert ok.sum() > 0.9 * len(ok)
     np.testing.assert_allclose(ours[ok], theirs[ok], atol=1e-4)
+
+
+# --------------------------------------------------------------------------- issue 28: nothing lost, whatever the input
+
+
+def _free_port() -> int:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def test_garbage_and_other_systems_never_keep_the_link_alive():
+    """Random UDP bytes (which pymavlink partly decodes as messages of unknown ids, whose checksum it
+    cannot check) and a second vehicle's valid MAVLink keep arriving after our vehicle went silent:
+    the link goes stale all the same, and what was ignored is counted.  (Before: the garbage alone
+    kept the link "ok", so the watchdog never fired.)"""
+    import random
+
+    port = _free_port()
+    client = TelemetryClient(f"udpin:127.0.0.1:{port}", TelemetryConfig(stale_after_s=0.5, request_streams=False))
+    client.start_thread()
+    deadline = time.monotonic() + 5.0
+    while not client.state.link_open and time.monotonic() < deadline:
+        time.sleep(0.01)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    other = mavlink2.MAVLink(None, srcSystem=2, srcComponent=1)
+    rng = random.Random(28)
+    try:
+        # garbage before anything: never a vehicle
+        for _ in range(50):
+            tx.sendto(bytes(rng.getrandbits(8) for _ in range(200)), ("127.0.0.1", port))
+            time.sleep(0.002)
+        time.sleep(0.3)
+        assert client.state.stale and client.state.system_id is None and client.state.messages_rx == 0
+        # our vehicle (system 1) speaks once, then only garbage and system 2 for 1.5 s
+        tx.sendto(MAV.heartbeat_encode(2, 12, 129, custom_mode(4, 4), 4).pack(MAV), ("127.0.0.1", port))
+        time.sleep(0.2)
+        assert not client.state.stale and client.state.system_id == 1
+        t_end = time.monotonic() + 1.5
+        k = 0
+        while time.monotonic() < t_end:
+            tx.sendto(bytes(rng.getrandbits(8) for _ in range(200)), ("127.0.0.1", port))
+            tx.sendto(other.heartbeat_encode(2, 12, 129, 0, 4).pack(other), ("127.0.0.1", port))
+            tx.sendto(other.local_position_ned_encode(k, 1, 2, 3, 0, 0, 0).pack(other), ("127.0.0.1", port))
+            k += 10
+            time.sleep(0.01)
+        time.sleep(0.2)
+        st = client.state
+        assert st.stale, "garbage or another system kept the link alive"
+        assert st.messages_rx == 1 and st.system_id == 1 and st.component_id == 1
+        assert st.bad_data > 50 and st.foreign > 100
+        assert np.all(np.isnan(st.position_enu))  # system 2's position was never taken
+    finally:
+        tx.close()
+        client.close()
+
+
+def test_expected_system_id_from_config():
+    """``TelemetryConfig(system_id=3)``: the first autopilot heartbeat of system 1 is not our vehicle."""
+    agg = TelemetryAggregator(TelemetryConfig(system_id=3))
+    assert agg.update(decoded(MAV.heartbeat_encode(2, 12, 129, custom_mode(4, 4), 4)), 0.0) == []
+    three = mavlink2.MAVLink(None, srcSystem=3, srcComponent=1)
+    assert agg.update(decoded(three.heartbeat_encode(2, 12, 1, custom_mode(4, 3), 4), three), 0.1)[0] == "link"
+    assert (agg.state.system_id, agg.state.component_id, agg.state.foreign, agg.state.messages_rx) == (3, 1, 1, 1)
+    # another component of system 3 (e.g. a gimbal sending its own attitude) is not the autopilot
+    gimbal = mavlink2.MAVLink(None, srcSystem=3, srcComponent=154)
+    assert agg.update(decoded(gimbal.attitude_quaternion_encode(0, 1, 0, 0, 0, 0, 0, 0), gimbal), 0.2) == []
+    assert agg.state.foreign == 2
+
+
+def _bound_aggregator() -> TelemetryAggregator:
+    agg = TelemetryAggregator(TelemetryConfig())
+    agg.update(decoded(MAV.heartbeat_encode(2, 12, 129, custom_mode(4, 4), 4)), 0.0)
+    agg.update(decoded(MAV.attitude_quaternion_encode(1000, 1, 0, 0, 0, 0, 0, 0)), 0.0)
+    agg.update(decoded(MAV.local_position_ned_encode(1000, 1, 2, -3, 0, 0, 0)), 0.0)
+    return agg
+
+
+@pytest.mark.parametrize("bad", [
+    MAV.local_position_ned_encode(1100, float("inf"), 0, -3, 0, 0, 0),
+    MAV.local_position_ned_encode(1100, 1e38, 0, -3, 0, 0, 0),
+    MAV.local_position_ned_encode(1100, 1, 2, float("nan"), 0, 0, 0),
+    MAV.local_position_ned_encode(1100, 2e6, 0, -3, 0, 0, 0),
+    MAV.local_position_ned_encode(1100, 1, 2, -3, 150.0, 0, 0),
+    MAV.attitude_quaternion_encode(1100, 0.9, 0.0, 0.0, 0.0, 0, 0, 0),
+    MAV.attitude_quaternion_encode(1100, float("nan"), 0.0, 0.0, 0.0, 0, 0, 0),
+    MAV.attitude_quaternion_encode(1100, 1.0, 0.0, 0.0, 0.0, float("inf"), 0, 0),
+    MAV.highres_imu_encode(1_100_000, 1e38, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
+    MAV.position_target_local_ned_encode(1100, 1, 0, float("inf"), 0, -5, 0, 0, 0, 0, 0, 0, 0, 0),
+], ids=["pos_inf", "pos_1e38", "pos_nan", "pos_2e6", "vel_150", "q_norm_0.9", "q_nan", "rate_inf", "imu_1e38",
+        "setpoint_inf"])
+def test_absurd_values_are_dropped_at_the_edge(bad, caplog):
+    """Non-finite or physically absurd telemetry is dropped (counted, one warning), never passed on:
+    the state keeps its last good values and nothing is announced."""
+    agg = _bound_aggregator()
+    before = (agg.state.position_enu.copy(), agg.state.q_enu_flu.copy(), agg.state.messages_rx)
+    with caplog.at_level("WARNING", logger="rotortwin.telemetry"):
+        assert agg.update(decoded(bad), 1.0) == []
+        assert agg.update(decoded(bad), 1.1) == []
+    st = agg.state
+    assert st.rejected == {bad.get_type(): 2} and st.n_rejected == 2
+    np.testing.assert_array_equal(st.position_enu, before[0])
+    np.testing.assert_array_equal(st.q_enu_flu, before[1])
+    assert st.messages_rx == before[2]
+    assert np.all(np.isnan(st.setpoint)) and np.all(np.isnan(st.imu_specific_force_flu))
+    assert len([r for r in caplog.records if "dropping" in r.getMessage()]) == 1  # one warning
+    # good values still pass
+    assert agg.update(decoded(MAV.local_position_ned_encode(1200, 1, 2, -3.5, 0, 0, -0.5)), 1.2) == ["odom"]
+
+
+def test_vehicle_restart_is_detected():
+    """A reboot (boot time going back), a new EKF origin and a local-position jump are each one
+    ``reset``; ordinary flight is not."""
+    agg = _bound_aggregator()
+    t = 1.0
+    for k in range(1, 50):  # 5 m/s East for 5 s: no reset
+        assert "reset" not in agg.update(decoded(MAV.local_position_ned_encode(1000 + 100 * k, 1, 2 + 0.5 * k, -3,
+                                                                               0, 5.0, 0)), t + 0.1 * k)
+    assert agg.state.resets == []
+    # PX4 restarted: boot time back to 3 s, the new origin where the vehicle is (60 m away)
+    kinds = agg.update(decoded(MAV.attitude_quaternion_encode(3000, 1, 0, 0, 0, 0, 0, 0)), 10.0)
+    assert "reset" in kinds and len(agg.state.resets) == 1 and "reboot" in agg.state.reset_reason
+    assert agg.update(decoded(MAV.local_position_ned_encode(3010, 0, 0, -0.1, 0, 0, 0)), 10.01) == ["odom"]
+    # a local-position reset: 60 m in 0.1 s while standing still
+    kinds = agg.update(decoded(MAV.local_position_ned_encode(3110, 60.0, 0, -0.1, 0, 0, 0)), 10.1)
+    assert kinds == ["reset", "odom"] and "position jump" in agg.state.reset_reason
+    # a new EKF origin
+    agg.update(decoded(MAV.gps_global_origin_encode(473977418, 85455939, 488000)), 10.2)
+    assert agg.update(decoded(MAV.gps_global_origin_encode(473977418, 85455939, 488000)), 10.3) == []
+    assert agg.update(decoded(MAV.gps_global_origin_encode(473980000, 85455939, 488000)), 10.4) == ["reset"]
+    assert [r["reason"].split()[0] for r in agg.state.resets] == ["reboot", "position", "new"]
+
+
+def test_vehicle_clean_shutdown_is_seen():
+    agg = _bound_aggregator()
+    assert not agg.state.vehicle_closed
+    agg.update(decoded(MAV.heartbeat_encode(2, 12, 1, custom_mode(4, 3), mavlink2.MAV_STATE_POWEROFF)), 2.0)
+    assert agg.state.vehicle_closed
+    agg.update(decoded(MAV.heartbeat_encode(2, 12, 1, custom_mode(4, 3), 4)), 3.0)
+    assert not agg.state.vehicle_closed

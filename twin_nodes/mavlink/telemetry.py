@@ -28,6 +28,20 @@ Motor commands follow the project convention (docs/ARCHITECTURE.md): 0..1 per
 motor in PX4 order, NaN = stopped.  ``u = (pwm - pwm_min) / (pwm_max - pwm_min)``
 clipped to [0, 1]; a PWM below ``pwm_min`` by more than 2 % of the range (PX4's
 900 µs disarmed value, 0 = unused) or a disarmed vehicle gives NaN.
+
+What counts (issue 28): only MAVLink that parsed with a good checksum (no ``BAD_DATA``, no
+message of an id the dialect does not know: pymavlink cannot check those) from *our* vehicle --
+``config.system_id`` when given, else the system and component of the first autopilot heartbeat
+-- refreshes the link.  Garbage (``bad_data``), other systems or components (``foreign``) and
+messages before the vehicle is known (``unbound``) are counted in :class:`TelemetryState` and
+never used.  Physically absurd values (non-finite, a quaternion that is not unit, a position
+beyond :data:`MAX_POSITION_M`, a speed above :data:`MAX_SPEED_M_S`, ...) are dropped at the edge
+(``rejected``, one warning per message type), never published.
+
+Vehicle restarts (kind ``reset``; :attr:`TelemetryState.resets`): the vehicle's boot time going
+backwards (a reboot), a new ``GPS_GLOBAL_ORIGIN`` (EKF origin reset), or a position jump that
+its velocity cannot explain (a local-position reset).  A heartbeat with ``system_status``
+``MAV_STATE_POWEROFF`` is the vehicle's own clean shutdown (:attr:`TelemetryState.vehicle_closed`).
 """
 
 from __future__ import annotations
@@ -58,6 +72,18 @@ MAV_AUTOPILOT_PX4 = mavlink2.MAV_AUTOPILOT_PX4  # 12
 MAV_AUTOPILOT_INVALID = mavlink2.MAV_AUTOPILOT_INVALID  # 8
 SAFETY_ARMED = mavlink2.MAV_MODE_FLAG_SAFETY_ARMED  # 128
 UINT16_MAX = 65535
+MAV_STATE_POWEROFF = mavlink2.MAV_STATE_POWEROFF  # 7
+
+#: what is physically plausible for a multirotor's telemetry; beyond it a message is dropped
+MAX_POSITION_M = 1e6          # local position, any axis [m]
+MAX_SPEED_M_S = 100.0         # velocity, any axis [m/s]
+MAX_RATE_RAD_S = 50.0         # body rates [rad/s] (PX4's gyros saturate at 2000 deg/s = 35 rad/s)
+MAX_ACCEL_M_S2 = 1000.0       # specific force [m/s^2]
+QUAT_NORM_TOL = 0.01          # |‖q‖ - 1|
+#: restart detection: boot time going back by more than this is a reboot [s]
+REBOOT_BACKWARDS_S = 1.0
+#: a local-position step larger than this plus twice what the velocity explains is a reset [m]
+POSITION_JUMP_M = 5.0
 
 #: streams requested from the autopilot with SET_MESSAGE_INTERVAL (message id -> Hz)
 STREAM_RATES_HZ: dict[int, float] = {
@@ -334,6 +360,20 @@ class TelemetryState:
     messages_rx: int = 0
     stale: bool = True
     link_open: bool = False
+    # what was not used (issue 28): garbage, other systems/components, before the vehicle was
+    # known, physically absurd values (per message type)
+    bad_data: int = 0
+    foreign: int = 0
+    unbound: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    # vehicle restarts: {"rx_s": receive time, "reason": ..., "t_boot_s": ...}; the last one's reason
+    resets: list[dict[str, Any]] = field(default_factory=list)
+    reset_reason: str = ""
+    vehicle_closed: bool = False             # the vehicle announced its shutdown (MAV_STATE_POWEROFF)
+
+    @property
+    def n_rejected(self) -> int:
+        return int(sum(self.rejected.values()))
 
     @property
     def setpoint_has_position(self) -> bool:
@@ -370,25 +410,85 @@ class TelemetryAggregator:
         self._aos_wall_s = -np.inf
         self._thrust_wall_s = -np.inf
         self._battery_status_seen = False
+        self._warned: set[str] = set()
+        self._t_boot_s = -np.inf          # the newest vehicle boot time seen [s]
+        self._origin: tuple | None = None  # the last GPS_GLOBAL_ORIGIN
+        self._last_pos: tuple[float, np.ndarray, np.ndarray] | None = None  # (t_boot_s, p, v) ENU
+
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            log.warning(text)
+
+    def _accept(self, msg: Any, mtype: str) -> bool:
+        """Is this a good message from our vehicle?  Counts what is not (bad_data, foreign, unbound)
+        and binds the vehicle with its first autopilot heartbeat."""
+        st = self.state
+        if mtype == "BAD_DATA" or mtype.startswith("UNKNOWN"):
+            # garbage, a bad checksum, or an id the dialect does not know (its checksum cannot be
+            # checked): never a sign of life
+            st.bad_data += 1
+            self._warn_once("bad_data", "telemetry: ignoring data that is not valid MAVLink (bad checksum or "
+                                        "unknown message); counted in bad_data")
+            return False
+        src, comp = msg.get_srcSystem(), msg.get_srcComponent()
+        if mtype == "HEARTBEAT" and st.component_id is None and msg.autopilot != MAV_AUTOPILOT_INVALID \
+                and (st.system_id is None or src == st.system_id):
+            st.system_id = src  # our vehicle: the first autopilot heartbeat (or the configured system's)
+            st.component_id = comp
+            log.info("telemetry: vehicle is system %d component %d", src, comp)
+        if st.system_id is None:
+            st.unbound += 1  # no autopilot heartbeat yet: whose data this is is unknown
+            return False
+        if src != st.system_id or (st.component_id is not None and comp != st.component_id):
+            st.foreign += 1
+            self._warn_once(f"foreign{src}.{comp}", f"telemetry: ignoring system {src} component {comp} (the "
+                                                   f"vehicle is system {st.system_id} component {st.component_id})")
+            return False
+        return True
+
+    def _reject(self, mtype: str, why: str) -> list[str]:
+        st = self.state
+        st.rejected[mtype] = st.rejected.get(mtype, 0) + 1
+        self._warn_once(f"reject{mtype}", f"telemetry: dropping {mtype} with {why} (counted in rejected; "
+                                          f"further ones are dropped quietly)")
+        return []
+
+    def _restart(self, kinds: list[str], now: float, reason: str, t_boot_s: float) -> None:
+        st = self.state
+        st.resets.append({"rx_s": float(now), "reason": reason, "t_boot_s": float(t_boot_s)})
+        st.reset_reason = reason
+        log.warning("telemetry: vehicle restart (%s): the twin re-syncs", reason)
+        self._last_pos = None
+        self._servo_ports.clear()
+        if "reset" not in kinds:
+            kinds.append("reset")
+
+    def _boot_time(self, t_boot_s: float, kinds: list[str], now: float) -> None:
+        """A reboot shows as the vehicle's boot time going backwards."""
+        if t_boot_s < self._t_boot_s - REBOOT_BACKWARDS_S:
+            self._t_boot_s = t_boot_s
+            self._restart(kinds, now, f"reboot (boot time went back to {t_boot_s:.1f} s)", t_boot_s)
+        else:
+            self._t_boot_s = max(self._t_boot_s, t_boot_s)
 
     def update(self, msg: Any, now_s: float | None = None) -> list[str]:
         now = time.monotonic() if now_s is None else float(now_s)
         st = self.state
         mtype = msg.get_type()
-        if mtype == "BAD_DATA":
+        if mtype == "HEARTBEAT" and msg.autopilot == MAV_AUTOPILOT_INVALID \
+                and msg.get_srcSystem() != st.system_id:
+            st.foreign += 1  # a GCS or companion computer: another system, never a sign of our vehicle
             return []
-        src = msg.get_srcSystem()
+        if not self._accept(msg, mtype):
+            return []
+        if mtype == "HEARTBEAT" and msg.autopilot == MAV_AUTOPILOT_INVALID:
+            return []  # a companion computer of our own system
+        bad = _implausible(msg, mtype)
+        if bad:
+            return self._reject(mtype, bad)
         if mtype == "HEARTBEAT":
-            if msg.autopilot == MAV_AUTOPILOT_INVALID:  # a GCS or companion: not our vehicle
-                return []
-            if st.system_id is None:
-                st.system_id = src
-            if src != st.system_id:
-                return []
-            st.component_id = msg.get_srcComponent()
             st.autopilot = msg.autopilot
-        elif st.system_id is not None and src != st.system_id:
-            return []
         st.messages_rx += 1
         st.last_rx_wall_s = now
         kinds: list[str] = []
@@ -404,6 +504,10 @@ class TelemetryAggregator:
             if first or armed != st.armed or mode != st.mode or not _same(nav, st.nav_state):
                 st.armed, st.mode, st.nav_state = armed, mode, nav
                 kinds.append("status")
+            closed = int(msg.system_status) == MAV_STATE_POWEROFF
+            if closed and not st.vehicle_closed:
+                log.info("telemetry: the vehicle announced its shutdown (MAV_STATE_POWEROFF)")
+            st.vehicle_closed = closed
             kinds.append("heartbeat")
         elif mtype == "EXTENDED_SYS_STATE":
             landed = landed_from_extended_sys_state(msg)
@@ -414,11 +518,31 @@ class TelemetryAggregator:
             st.t_imu_s, st.imu_specific_force_flu, st.imu_gyro_flu = parse_highres_imu(msg)
             kinds.append("imu")
         elif mtype == "LOCAL_POSITION_NED":
-            st.t_position_s, st.position_enu, st.velocity_enu = parse_local_position_ned(msg)
+            t_b, p, v = parse_local_position_ned(msg)
+            self._boot_time(t_b, kinds, now)
+            prev = self._last_pos
+            if prev is not None and "reset" not in kinds:
+                dt = max(t_b - prev[0], 0.0)
+                explained = 2.0 * max(float(np.max(np.abs(prev[2]))), float(np.max(np.abs(v)))) * dt
+                jump = float(np.linalg.norm(p - prev[1]))
+                if jump > POSITION_JUMP_M + explained:
+                    self._restart(kinds, now, f"position jump of {jump:.1f} m in {dt:.2f} s (local position reset)",
+                                  t_b)
+            self._last_pos = (t_b, p, v)
+            st.t_position_s, st.position_enu, st.velocity_enu = t_b, p, v
             if st.has_odometry:
                 kinds.append("odom")
+        elif mtype == "GPS_GLOBAL_ORIGIN":
+            origin = (int(msg.latitude), int(msg.longitude), int(msg.altitude))
+            if self._origin is not None and origin != self._origin:
+                self._restart(kinds, now, "new EKF origin (GPS_GLOBAL_ORIGIN)", st.t_position_s)
+            self._origin = origin
+        elif mtype == "SYSTEM_TIME":
+            self._boot_time(msg.time_boot_ms * 1e-3, kinds, now)
         elif mtype == "ATTITUDE_QUATERNION":
-            st.t_attitude_s, st.q_enu_flu, st.rates_flu = parse_attitude_quaternion(msg)
+            t_b, q, w = parse_attitude_quaternion(msg)
+            self._boot_time(t_b, kinds, now)
+            st.t_attitude_s, st.q_enu_flu, st.rates_flu = t_b, q, w
             if st.has_odometry:
                 kinds.append("odom")
         elif mtype == "ACTUATOR_OUTPUT_STATUS":
@@ -474,6 +598,41 @@ class TelemetryAggregator:
 
 def _same(a: float, b: float) -> bool:
     return (np.isnan(a) and np.isnan(b)) or a == b
+
+
+def _bounded(values: Sequence[float], limit: float) -> bool:
+    a = np.asarray(values, dtype=float)
+    return bool(np.all(np.isfinite(a)) and np.all(np.abs(a) <= limit))
+
+
+def _implausible(msg: Any, mtype: str) -> str:
+    """Why a message of our vehicle cannot be true ("" when it can): non-finite numbers, a
+    quaternion that is not unit, a position, speed, rate or acceleration no multirotor has."""
+    if mtype == "LOCAL_POSITION_NED":
+        if not _bounded([msg.x, msg.y, msg.z], MAX_POSITION_M):
+            return f"a non-finite or absurd position ({msg.x:g}, {msg.y:g}, {msg.z:g}) m"
+        if not _bounded([msg.vx, msg.vy, msg.vz], MAX_SPEED_M_S):
+            return f"a non-finite or absurd velocity ({msg.vx:g}, {msg.vy:g}, {msg.vz:g}) m/s"
+    elif mtype == "ATTITUDE_QUATERNION":
+        q = np.array([msg.q1, msg.q2, msg.q3, msg.q4], dtype=float)
+        if not np.all(np.isfinite(q)) or abs(float(np.linalg.norm(q)) - 1.0) > QUAT_NORM_TOL:
+            return f"a quaternion that is not unit (norm {float(np.linalg.norm(q)):g})"
+        if not _bounded([msg.rollspeed, msg.pitchspeed, msg.yawspeed], MAX_RATE_RAD_S):
+            return "non-finite or absurd body rates"
+    elif mtype == "HIGHRES_IMU":
+        if not _bounded([msg.xacc, msg.yacc, msg.zacc], MAX_ACCEL_M_S2) or \
+                not _bounded([msg.xgyro, msg.ygyro, msg.zgyro], MAX_RATE_RAD_S):
+            return "non-finite or absurd accelerations or rates"
+    elif mtype == "POSITION_TARGET_LOCAL_NED":
+        for names, limit in ((("x", "y", "z"), MAX_POSITION_M), (("vx", "vy", "vz"), MAX_SPEED_M_S),
+                             (("afx", "afy", "afz"), MAX_ACCEL_M_S2)):
+            a = np.array([float(getattr(msg, n)) for n in names])
+            if np.any(np.isinf(a)) or np.any(np.abs(a[np.isfinite(a)]) > limit):  # NaN = not controlled
+                return f"an absurd setpoint ({', '.join(f'{x:g}' for x in a)})"
+    elif mtype == "ATTITUDE_TARGET":
+        if np.isinf(msg.thrust) or (np.isfinite(msg.thrust) and abs(msg.thrust) > 1.5):
+            return f"an absurd thrust {msg.thrust:g}"
+    return ""
 
 
 # --------------------------------------------------------------------------- the link
@@ -533,8 +692,29 @@ class TelemetryClient:
                                                 dialect="common", **kwargs)
         self._opened_wall_s = time.monotonic()
         self._streams_requested = False
+        if self.device.startswith(("udpin:", "udpout:", "udp:", "udpbcast:")):
+            self._frame_datagrams()
         self.state.link_open = True
         log.info("telemetry link open: %s", self.device)
+
+    def _frame_datagrams(self) -> None:
+        """UDP: a MAVLink packet never spans two datagrams, so whatever the parser still holds when a
+        new datagram arrives is the truncated tail of garbage (counted in ``bad_data``).  Without
+        this a garbage header claiming 280 bytes swallowed the vehicle's next valid packets."""
+        conn = self._conn
+        mav = conn.mav
+        raw_recv = conn.recv
+
+        def recv(n: int | None = None) -> Any:
+            data = raw_recv() if n is None else raw_recv(n)
+            if data and mav.buf_len() > 0:
+                mav.buf = bytearray()
+                mav.buf_index = 0
+                mav.expected_length = mavlink2.HEADER_LEN_V1 + 2
+                self.state.bad_data += 1
+            return data
+
+        conn.recv = recv
 
     def _close_conn(self) -> None:
         if self._conn is not None:
