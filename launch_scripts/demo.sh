@@ -9,10 +9,11 @@ PARAMS=${2:-params/px4_sih_quadx.yaml}
 OUT=${3:-out/demo}
 BIN=${BIN:-.venv/bin}
 mkdir -p "$OUT"
+# --force: a second `make demo` replaces the demo's own outputs (rotortwin refuses to replace files without it)
 echo "== twin vs flight through the node graph (replay -> twin -> metrics -> recorder)"
 "$BIN/rotortwin" compare "$FLIGHT" --params "$PARAMS" --mode closed \
-    --json "$OUT/compare.json" --mcap "$OUT/graph" --report "$OUT/compare_report"
+    --json "$OUT/compare.json" --mcap "$OUT/graph" --report "$OUT/compare_report" --force
 echo "== missing-physics discovery"
 "$BIN/rotortwin" discover "$FLIGHT" --params "$PARAMS" --json "$OUT/discover.json" \
-    --report "$OUT/discover_report" --out-params "$OUT/refitted_params.yaml"
+    --report "$OUT/discover_report" --out-params "$OUT/refitted_params.yaml" --force
 echo "== outputs in $OUT"

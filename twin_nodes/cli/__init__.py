@@ -91,12 +91,23 @@ def _main(argv: list[str] | None) -> int:
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 2
+    from twin_nodes.cli.paths import run_guarded
+
     try:
-        return int(args.func(args) or 0)
+        return run_guarded(args.func, args)
     except TwinError as exc:
         print(f"rotortwin: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except OSError as exc:  # a file the command reads or writes: one line, never a traceback
+        from twin_nodes.base.errors import one_line
+
+        where = exc.filename or exc.filename2 or "<file>"
+        print(f"rotortwin: error: {one_line(where)}: <file>: {one_line(exc.strerror or exc)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as exc:
+        if str(exc) in ("SIGTERM", "SIGHUP"):
+            print(f"rotortwin: stopped by {exc}", file=sys.stderr)
+            return 143 if str(exc) == "SIGTERM" else 129
         print("rotortwin: interrupted", file=sys.stderr)
         return 130
 

@@ -32,6 +32,7 @@ import os
 import sys
 import time
 
+from twin_nodes.cli.paths import declare
 from twin_nodes.cli.options import MOTORS, PWM_US, SECONDS, SPEED, finite_float, port, positive_int
 from twin_nodes.live.attach import add_foxglove_option, foxglove_beside
 from twin_nodes.mavlink.simlink import DEFAULT_HOST, DEFAULT_PORT, DEFAULT_STEP_S
@@ -44,7 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
     s = sub.add_parser("sim", help="be PX4 SITL's lockstep simulator (TCP server on 4560 + instance)")
-    s.add_argument("--params", help="vehicle params YAML (default: shipped px4_sih_quadx)")
+    declare(s).input("--params", help="vehicle params YAML (default: shipped px4_sih_quadx)")
     s.add_argument("--port", type=port(), default=DEFAULT_PORT, help="TCP port 0..65535 (default 4560; 0 = any free)")
     s.add_argument("--host", default=DEFAULT_HOST,
                    help="listen address (default 127.0.0.1, loopback only; 0.0.0.0 = every interface)")

@@ -22,20 +22,20 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
+from twin_nodes.cli.paths import declare
 from twin_nodes.cli.options import domain_id, positive_float
 from twin_nodes.graph.regress import check_tolerance, format_changes, regress_bag, regress_baseline
 
 
 def _cmd_regress(args: argparse.Namespace) -> int:
     from twin_nodes.base.io import atomic_write_text
-    from twin_nodes.graph.outputs import check_outputs
     from twin_nodes.twin.metrics import table2, to_jsonable
 
     rel = check_tolerance(args.tolerance, "--tolerance")
     abs_ = check_tolerance(args.abs_tolerance, "--abs-tolerance")
-    check_outputs([args.bag, args.params], files={"--json": args.json})
     if args.self_check:
         stored, fresh, problems = regress_bag(args.bag, rel, abs_)
         print(table2(fresh, title=f"Recomputed from {args.bag}"))
@@ -82,8 +82,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r = subparsers.add_parser("regress", help="fly a baseline recording with today's twin; exit 1 if a metric "
                                               "got worse", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-    r.add_argument("bag", help="baseline bag directory (or its .mcap) recorded by 'rotortwin compare --mcap'")
-    r.add_argument("--params", help="vehicle params YAML (default: the ones recorded with the baseline)")
+    io = declare(r)
+    io.input("bag", also=lambda v: [os.path.dirname(os.path.abspath(v))] if v.endswith(".mcap") else [],
+             help="baseline bag directory (or its .mcap) recorded by 'rotortwin compare --mcap'")
+    io.input("--params", help="vehicle params YAML (default: the ones recorded with the baseline)")
     r.add_argument("--tolerance", type=positive_float(1e6), default="0.05", help="relative tolerance, finite > 0 (default 0.05)")
     r.add_argument("--abs-tolerance", type=positive_float(1e6), default="1e-3",
                    help="absolute tolerance in the metric's unit (m, or fraction 0..1), finite > 0 (default 1e-3)")
@@ -92,7 +94,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("--self-check", action="store_true",
                    help="only check that the stored metrics recompute from the bag's own /real and /twin topics")
     r.add_argument("--only-moved", action="store_true", help="list only the metrics that moved beyond tolerance")
-    r.add_argument("--json", help="write the comparison here (JSON)")
+    io.output("--json", help="write the comparison here (JSON)")
     r.add_argument("--domain-id", type=domain_id(), help="ROS_DOMAIN_ID for the graph (default: a free one)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=_cmd_regress)

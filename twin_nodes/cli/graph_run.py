@@ -6,6 +6,8 @@ import argparse
 from typing import Any
 
 from twin_nodes.base.errors import TwinError
+from twin_nodes.base.outputs import shown
+from twin_nodes.cli.paths import declare
 from twin_nodes.cli.options import MOTORS, SPEED, WINDOW_S
 from twin_nodes.graph import run_node
 
@@ -33,12 +35,23 @@ def _cmd_record(args: argparse.Namespace) -> int:
             raise TwinError("record recover: expected the bag directory or .mcap to recover")
         from twin_nodes.logs.recording import recover
         rep = recover(args.bag, args.recover_out)
-        print(f"recovered {rep.n_messages} messages into {rep.out_dir}"
+        print(f"recovered {rep.n_messages} messages into {shown(rep.out_dir)}"
               + ("" if rep.complete else f" (the source was cut short: {rep.error or 'no footer'})"))
         for t, c in sorted(rep.counts.items()):
             print(f"  {t:<34} {c}")
         return 0
     return run_node("recorder", {"out": args.out, "use_sim_time": not args.wall_time}, args.ros_args)
+
+
+def _recovered_dir(args: argparse.Namespace) -> str | None:
+    """``record recover``'s default output: ``BAG_recovered`` (a file's: ``<stem>_recovered`` beside it)."""
+    if not args.bag:
+        return None
+    from pathlib import Path
+
+    p = Path(args.bag)
+    base = p.with_suffix("") if p.is_file() else p
+    return str(base.parent / f"{base.name}_recovered")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -48,14 +61,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        help="further ROS arguments, passed after the node's own")
 
     rp = subparsers.add_parser("replay", help="run the ULog replay node in the foreground")
-    rp.add_argument("flight")
+    declare(rp).input("flight", help="PX4 ULog (.ulg)")
     rp.add_argument("--rate", type=SPEED, default=1.0, help="1 real time (default), 20 = 20x, 0 = flow-controlled")
     rp.add_argument("--wait-for", nargs="*", default=[], help="consumer node names to wait for")
     rp.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[])
     rp.set_defaults(func=_cmd_replay)
 
     tw = subparsers.add_parser("twin", help="run the twin node in the foreground")
-    tw.add_argument("--params", required=True, help="vehicle params YAML")
+    declare(tw).input("--params", required=True, help="vehicle params YAML")
     tw.add_argument("--mode", choices=("closed", "open"), default="closed")
     ros_extra(tw)
     tw.set_defaults(func=_cmd_twin)
@@ -63,14 +76,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     me = subparsers.add_parser("metrics", help="run the metrics node in the foreground")
     me.add_argument("--window", type=WINDOW_S, default=5.0, help="rolling window [s]")
     me.add_argument("--motors", type=MOTORS, default=4, help="number of motors")
-    me.add_argument("--json", help="write the whole-flight metrics here at the end")
+    # written by the node itself when it is stopped (SIGINT): checked here, not staged
+    declare(me).output("--json", staged=False, help="write the whole-flight metrics here at the end")
     ros_extra(me)
     me.set_defaults(func=_cmd_metrics)
 
     rc = subparsers.add_parser("record", help="record every graph topic to MCAP, or 'record recover BAG'",
                                description="rotortwin record OUT_BAG   |   rotortwin record recover BAG [--out DIR]")
-    rc.add_argument("out", help="bag directory to create, or 'recover'")
-    rc.add_argument("bag", nargs="?", help="with 'recover': the cut-short bag directory or .mcap")
-    rc.add_argument("--out", dest="recover_out", help="with 'recover': output directory (default BAG_recovered)")
+    io = declare(rc)
+    recovering = lambda a: a.out == "recover"  # noqa: E731
+    # a live recording is not staged: what it recorded must survive a kill (record recover)
+    io.output("out", kind="dir", staged=False, skip=recovering, help="bag directory to create, or 'recover'")
+    io.input("bag", nargs="?", help="with 'recover': the cut-short bag directory or .mcap")
+    io.output("--out", dest="recover_out", kind="dir", skip=lambda a: not recovering(a), fallback=_recovered_dir,
+              help="with 'recover': output directory (default BAG_recovered)")
     ros_extra(rc)
     rc.set_defaults(func=_cmd_record)

@@ -43,6 +43,8 @@ from typing import Any, Callable
 import yaml
 
 from twin_nodes.base.errors import ParamsError
+from twin_nodes.base.outputs import shown
+from twin_nodes.cli.paths import declare
 from twin_nodes.cli.options import MASS_KG, RATE_HZ, SECONDS, finite_float, integer, nonneg_float, positive_float
 
 OUT_SUFFIXES = (".yaml", ".yml", ".json")
@@ -58,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
     m = sub.add_parser("motor", help="first-order motor model K/(tau s+1) (+delay) from command/rpm steps")
-    m.add_argument("source", help="CSV with time_s,command,rpm columns, or a ULog with esc_status RPM")
+    declare(m).input("source", help="CSV with time_s,command,rpm columns, or a ULog with esc_status RPM")
     m.add_argument("--rate-hz", type=RATE_HZ, default=30.0,
                    help="rate of the ZOH difference equation (reference: 30 Hz PWM logging)")
     m.add_argument("--no-delay", action="store_true", help="do not fit a pure delay")
@@ -69,7 +71,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.set_defaults(func=_handler(_motor))
 
     h = sub.add_parser("hover", help="hover throttle from steady-hover segments; kt = m g / (N w^2) with RPM")
-    h.add_argument("log", help="ULog")
+    declare(h).input("log", help="ULog")
     h.add_argument("--mass-kg", type=MASS_KG, help="vehicle mass (else from --params)")
     h.add_argument("--min-duration", type=SECONDS, default=3.0, help="shortest hover segment [s]")
     h.add_argument("--max-vz", type=positive_float(100.0, "m/s"), default=0.3, help="largest vertical speed in hover [m/s]")
@@ -80,7 +82,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     h.set_defaults(func=_handler(_hover))
 
     d = sub.add_parser("delay", help="command -> response delays by cross-correlation")
-    d.add_argument("log", help="ULog")
+    declare(d).input("log", help="ULog")
     d.add_argument("--pairs", help=f"comma-separated subset of: {', '.join(DELAY_PAIRS)} (default: all available)")
     d.add_argument("--mode", choices=("level", "diff"), default="level",
                    help="correlate detrended levels or first differences")
@@ -91,7 +93,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     d.set_defaults(func=_handler(_delay))
 
     r = sub.add_parser("regress", help="equation-error least squares of translational and rotational dynamics")
-    r.add_argument("log", help="ULog")
+    declare(r).input("log", help="ULog")
     r.add_argument("--rate-hz", type=RATE_HZ, default=50.0, help="resampling rate [Hz]")
     r.add_argument("--lowpass-hz", type=RATE_HZ,
                    help="zero-phase low-pass applied to both sides (default: 2.5 Hz, at most 0.4 x the motor log rate)")
@@ -108,7 +110,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r.set_defaults(func=_handler(_regress))
 
     n = sub.add_parser("noise", help="IMU bias, white noise and Allan deviation from the pre-arm ground segment")
-    n.add_argument("log", help="ULog")
+    declare(n).input("log", help="ULog")
     n.add_argument("--allow-armed", action="store_true",
                    help="if there is no landed+disarmed stretch, use landed+armed (motor vibration included)")
     n.add_argument("--min-duration", type=SECONDS, default=3.0, help="shortest stationary stretch [s]")
@@ -123,9 +125,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--params", help="vehicle params YAML (mass, rotor geometry, command map)")
-    p.add_argument("--out", help="write the result here (.yaml/.yml or .json)")
-    p.add_argument("--plot", help="write a PNG figure here")
+    io = declare(p)
+    io.input("--params", help="vehicle params YAML (mass, rotor geometry, command map)")
+    io.output("--out", help="write the result here (.yaml/.yml or .json)")
+    io.output("--plot", help="write a PNG figure here")
 
 
 def _handler(compute: Callable[[argparse.Namespace, Any], Any]) -> Callable[[argparse.Namespace], int]:
@@ -191,13 +194,9 @@ def _check_out_paths(args: argparse.Namespace) -> None:
         suf = Path(args.out).suffix.lower()
         if suf not in OUT_SUFFIXES:
             raise ParamsError(args.out, "--out", f"expected a file name ending in {', '.join(OUT_SUFFIXES)}, got {suf or 'no suffix'!r}")
-        if not Path(args.out).resolve().parent.is_dir():
-            raise ParamsError(args.out, "--out", "expected an existing directory to write into")
     if args.plot:
         if Path(args.plot).suffix.lower() != ".png":
             raise ParamsError(args.plot, "--plot", "expected a .png file name")
-        if not Path(args.plot).resolve().parent.is_dir():
-            raise ParamsError(args.plot, "--plot", "expected an existing directory to write into")
 
 
 def _document(block: dict, report: dict, args: argparse.Namespace, vp: Any) -> str:
@@ -217,13 +216,13 @@ def _command_line(args: argparse.Namespace) -> str:
     """The command line that reproduces this run (rebuilt from the parsed arguments)."""
     parts = ["rotortwin", "identify", args.identify_command]
     for k, v in vars(args).items():
-        if k in ("func", "command", "identify_command") or v is None or v is False:
+        if k in ("func", "command", "identify_command") or k.startswith("_") or v is None or v is False:
             continue
         if k in ("source", "log"):
             parts.insert(3, shlex.quote(str(v)))
             continue
         flag = "--" + k.replace("_", "-")
-        parts.append(flag if v is True else f"{flag} {shlex.quote(str(v))}")
+        parts.append(flag if v is True else f"{flag} {shlex.quote(shown(v))}")
     return " ".join(parts)
 
 
@@ -246,5 +245,3 @@ def _finish(args: argparse.Namespace, text: str, plot: Callable[[str], None]) ->
         raise
     for tmp, final in written:
         os.replace(tmp, final)
-    for _, final in written:
-        print(f"wrote {final}")

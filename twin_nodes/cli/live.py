@@ -31,6 +31,14 @@ import sys
 from pathlib import Path
 
 from twin_nodes.base.errors import TwinError
+from twin_nodes.base.outputs import shown
+from twin_nodes.cli.paths import declare
+
+
+def _bag_dir(value: str):
+    from twin_nodes.graph import bag_dir
+
+    return bag_dir(value)
 from twin_nodes.cli.options import PWM_US, SECONDS, WINDOW_S, domain_id, port
 
 
@@ -134,13 +142,14 @@ def _cmd_tlog(args: argparse.Namespace) -> int:
 def _cmd_layout(args: argparse.Namespace) -> int:
     from twin_nodes.live.layout import LAYOUT_PATH, write_layout
 
-    print(write_layout(Path(args.out)) if args.out else LAYOUT_PATH)
+    print(shown(write_layout(Path(args.out))) if args.out else LAYOUT_PATH)
     return 0
 
 
 def _link_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--params", help="vehicle params YAML (default: shipped px4_sih_quadx)")
-    p.add_argument("--json", help="write the totals here")
+    io = declare(p)
+    io.input("--params", help="vehicle params YAML (default: shipped px4_sih_quadx)")
+    io.output("--json", help="write the totals here")
     p.add_argument("--window", type=WINDOW_S, default=5.0, help="rolling metrics window [s] (default 5)")
     p.add_argument("--horizon", type=WINDOW_S, default=2.0, help="re-sync the twin every S s (default 2)")
     p.add_argument("--stale-after", type=SECONDS, default=3.0, help="link lost after S s of silence (default 3)")
@@ -156,24 +165,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               description=__doc__, formatter_class=raw)
     p.add_argument("--url", help="the vehicle's MAVLink URL (udpin:0.0.0.0:14550, tcp:HOST:5760, /dev/ttyACM0)")
     _link_args(p)
-    p.add_argument("--mcap", help="record every topic into this bag directory")
+    # a live recording is not staged: what it recorded must survive a kill (record recover)
+    declare(p).output("--mcap", kind="dir", staged=False, path=lambda v: str(_bag_dir(v)),
+                      help="record every topic into this bag directory")
     p.add_argument("--foxglove", nargs="?", type=port(), const=8765, default=None, metavar="PORT",
                    help="serve Foxglove on ws://127.0.0.1:PORT (default 8765)")
     p.add_argument("--duration", type=SECONDS, help="stop after S s (default: Ctrl-C)")
     p.add_argument("--domain-id", type=domain_id(), help="ROS_DOMAIN_ID (default: a free one)")
-    p.add_argument("--run-dir", help="node logs and pid files (default: a temp dir, removed)")
+    declare(p).output("--run-dir", kind="update", help="node logs and pid files (default: a temp dir, removed)")
     p.set_defaults(func=_cmd_live)
     sub = p.add_subparsers(dest="live_command", metavar="foxglove|tlog|layout")
     f = sub.add_parser("foxglove", help="serve a running graph's topics to Foxglove (WebSocket)")
     f.add_argument("--port", type=port(), default=8765, help="WebSocket port (default 8765; 0 = any free)")
     f.add_argument("--host", default="127.0.0.1", help="listen address (0.0.0.0: every interface, no auth)")
     f.add_argument("--domain-id", type=domain_id(), help="ROS_DOMAIN_ID of the graph (default: the environment's)")
-    f.add_argument("--mcap", help="also write everything served into this MCAP file")
+    declare(f).output("--mcap", staged=False, help="also write everything served into this MCAP file")
     f.set_defaults(func=_cmd_foxglove)
     t = sub.add_parser("tlog", help="offline: the twin beside a recorded telemetry log (.tlog)")
-    t.add_argument("tlog", help="MAVLink telemetry log (QGroundControl .tlog)")
+    declare(t).input("tlog", help="MAVLink telemetry log (QGroundControl .tlog)")
     _link_args(t)
     t.set_defaults(func=_cmd_tlog)
     lay = sub.add_parser("layout", help="print (or write) the Foxglove layout file")
-    lay.add_argument("--out", help="write the layout here")
+    declare(lay).output("--out", help="write the layout here")
     lay.set_defaults(func=_cmd_layout)

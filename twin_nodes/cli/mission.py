@@ -22,6 +22,7 @@ import argparse
 
 from twin_nodes.base.errors import TwinError
 from twin_nodes.cli.options import SECONDS
+from twin_nodes.cli.paths import declare
 from twin_nodes.mavlink.mission import (
     DEFAULT_URL,
     load_plan,
@@ -40,12 +41,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
     c = sub.add_parser("check", help="validate a plan and print its items as MAVSDK would upload them")
-    c.add_argument("plan", help="plan YAML (e.g. missions/triangle.plan.yaml)")
+    declare(c).input("plan", help="plan YAML (e.g. missions/triangle.plan.yaml)")
     c.add_argument("--home", help="LAT,LON for the printout (default: the plan's home, else the SIH origin)")
     c.set_defaults(func=_cmd_check)
 
     u = sub.add_parser("upload", help="upload a plan to the vehicle")
-    u.add_argument("plan", help="plan YAML")
+    declare(u).input("plan", help="plan YAML")
     u.add_argument("--url", default=DEFAULT_URL, help=f"MAVSDK connection URL (default {DEFAULT_URL})")
     u.add_argument("--timeout", type=SECONDS, default=10.0, help="seconds to wait for the autopilot / home")
     u.set_defaults(func=_cmd_upload)

@@ -23,9 +23,9 @@ written, so a bad input leaves no file behind and overwrites nothing.
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
+from twin_nodes.cli.paths import declare
 from twin_nodes.vehicle.derive import derivation_header, derive, load_spec
 from twin_nodes.base.errors import ParamsError
 from twin_nodes.cli.options import MASS_KG, finite_float
@@ -40,23 +40,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
     d = sub.add_parser("derive", help="run the parameter pipeline on a derivation spec")
-    d.add_argument("spec", help="derivation spec YAML (e.g. params/derive_buho_negro.yaml)")
-    d.add_argument("--out", help="write the derived params YAML here")
+    io = declare(d)
+    io.input("spec", help="derivation spec YAML (e.g. params/derive_buho_negro.yaml)")
+    io.output("--out", help="write the derived params YAML here")
     _export_args(d)
     d.set_defaults(func=_cmd_derive)
 
     c = sub.add_parser("check", help="validate a params file and print hover speed, command and T/W")
-    c.add_argument("params", help="params YAML")
+    declare(c).input("params", help="params YAML")
     c.set_defaults(func=_cmd_check)
 
     e = sub.add_parser("export", help="write Gazebo SDF motor plugins and PX4 parameters for a params file")
-    e.add_argument("params", help="params YAML")
+    declare(e).input("params", help="params YAML")
     _export_args(e)
     e.set_defaults(func=_cmd_export)
 
     f = sub.add_parser("from-ulog", help="build the params of the vehicle that flew a PX4 log, from the log itself")
-    f.add_argument("ulog", help="PX4 flight log (.ulg)")
-    f.add_argument("--out", required=True, help="write the params YAML here")
+    io = declare(f)
+    io.input("ulog", help="PX4 flight log (.ulg)")
+    io.output("--out", required=True, help="write the params YAML here")
     f.add_argument("--mass-kg", type=MASS_KG, help="take-off mass [kg] (else the airframe's typical mass, stated)")
     f.add_argument("--arm-m", type=finite_float(0.01, 100.0, unit="m"), help="centre-to-rotor distance [m] for logs whose layout is normalised")
     f.add_argument("--name", help="vehicle name in the file")
@@ -64,9 +66,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _export_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--sdf", help="write MulticopterMotorModel <plugin> blocks here")
-    p.add_argument("--px4", help="write a QGroundControl .params table here")
-    p.add_argument("--airframe", help="write PX4 airframe 'param set-default' lines here")
+    io = declare(p)
+    io.output("--sdf", help="write MulticopterMotorModel <plugin> blocks here")
+    io.output("--px4", help="write a QGroundControl .params table here")
+    io.output("--airframe", help="write PX4 airframe 'param set-default' lines here")
 
 
 def _summary(vp: VehicleParams) -> str:
@@ -98,26 +101,6 @@ def _exports(vp: VehicleParams, args: argparse.Namespace) -> list[tuple[str, str
     return out
 
 
-def _check_targets(paths: list[str], inputs: list[str] = ()) -> None:
-    """Fail before writing anything if any output cannot be written or would replace an input."""
-    seen: set[str] = {os.path.realpath(i) for i in inputs}
-    for path in paths:
-        if os.path.realpath(path) in {os.path.realpath(i) for i in inputs}:
-            raise ParamsError(path, "<output>", "is also an input; choose another output path")
-        real = os.path.realpath(path)
-        if real in seen:
-            raise ParamsError(path, "<output>", "the same output file is named twice")
-        seen.add(real)
-        p = Path(path)
-        if p.is_dir():
-            raise ParamsError(path, "<output>", "is a directory, expected a file path")
-        parent = p.parent if str(p.parent) else Path(".")
-        if not parent.is_dir():
-            raise ParamsError(path, "<output>", f"directory {str(parent)!r} does not exist")
-        if not os.access(parent, os.W_OK):
-            raise ParamsError(path, "<output>", f"directory {str(parent)!r} is not writable")
-
-
 def _write_text(path: str, text: str) -> None:
     tmp = Path(path + ".tmp")
     try:
@@ -132,8 +115,6 @@ def _cmd_derive(args: argparse.Namespace) -> int:
     spec = load_spec(args.spec)
     d = derive(spec, args.spec)
     exports = _exports(d.params, args)
-    targets = ([args.out] if args.out else []) + [p for p, _ in exports]
-    _check_targets(targets, [args.spec])
     print(d.table())
     print()
     print(_summary(d.params))
@@ -144,10 +125,8 @@ def _cmd_derive(args: argparse.Namespace) -> int:
             write_params(d.params, args.out, header)
         except OSError as exc:
             raise ParamsError(args.out, "<output>", f"cannot write ({exc.strerror or exc})") from None
-        print(f"wrote {args.out}")
     for path, text in exports:
         _write_text(path, text)
-        print(f"wrote {path}")
     return 0
 
 
@@ -162,10 +141,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
     exports = _exports(vp, args)
     if not exports:
         raise ParamsError(args.params, "<arguments>", "nothing to export: give --sdf, --px4 and/or --airframe")
-    _check_targets([p for p, _ in exports], [args.params])
     for path, text in exports:
         _write_text(path, text)
-        print(f"wrote {path}")
     return 0
 
 
@@ -180,7 +157,6 @@ def _cmd_from_ulog(args: argparse.Namespace) -> int:
 
     _positive(args.mass_kg, "--mass-kg")
     _positive(args.arm_m, "--arm-m")
-    _check_targets([args.out], [args.ulog])
     nom = nominal_from_log(read_ulog(args.ulog), mass_kg=args.mass_kg, arm_m=args.arm_m, name=args.name)
     print(nom.header())
     print()
@@ -189,5 +165,4 @@ def _cmd_from_ulog(args: argparse.Namespace) -> int:
         write_params(nom.params, args.out, nom.header())
     except OSError as exc:
         raise ParamsError(args.out, "<output>", f"cannot write ({exc.strerror or exc})") from None
-    print(f"wrote {args.out}")
     return 0

@@ -2,7 +2,8 @@
 
 ``run_graph`` (orchestrator: leased ROS domain, nodes that die with it, no files left by
 failures), ``regress_baseline`` (``rotortwin regress``: a baseline flown again by today's twin),
-``lease_domain`` (domains), ``check_outputs`` (outputs checked before a run).
+``lease_domain`` (domains).  Output paths are checked by the one guard of every command
+(``twin_nodes.base.outputs``, called by the CLI).
 
 May import: base, vehicle, logs, twin, identify, nodes, msgs_py.
 """
@@ -20,9 +21,8 @@ from twin_nodes.graph.orchestrator import (  # noqa: F401
     run_node,
 )
 from twin_nodes.graph.domains import lease_domain  # noqa: F401
-from twin_nodes.graph.outputs import check_outputs  # noqa: F401
 from twin_nodes.graph.regress import regress_bag, regress_baseline  # noqa: F401
 
-__all__ = ["NODE_MODULES", "Graph", "GraphResult", "bag_dir", "default_params_for", "check_outputs",
+__all__ = ["NODE_MODULES", "Graph", "GraphResult", "bag_dir", "default_params_for",
            "lease_domain", "load_aligned", "node_command", "regress_bag", "regress_baseline", "ros_env",
            "run_graph", "run_node"]
