@@ -19,7 +19,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-__all__ = ["compare_telemetry", "read_tlog"]
+__all__ = ["compare_telemetry", "read_tlog", "watched"]
 
 NS = 1_000_000_000
 
@@ -46,13 +46,20 @@ def read_tlog(path: str | Path) -> list[tuple[float, Any]]:
 def compare_telemetry(messages: Iterable[tuple[float, Any]], vp: Any, *, config: Any = None, mode: str = "open",
                       horizon_s: float = 2.0, window_s: float = 5.0, airborne_only: bool = True,
                       publish_rate_hz: float = 50.0, reorder_lag_s: float = 0.5, rate_hz: float = 50.0,
-                      flush: bool = True) -> dict[str, Any]:
+                      flush: bool = True, source: str = "", rolling: list | None = None) -> dict[str, Any]:
     """Whole-run metrics of the twin beside a telemetry stream ``[(t_s, mavlink message), ...]``,
     computed as the live graph computes them (``flush``: also apply the last ``reorder_lag_s`` of
-    inputs at the end, as the live twin node does when it is stopped)."""
+    inputs at the end, as the live twin node does when it is stopped).
+
+    A vehicle restart in the stream (:class:`~twin_nodes.mavlink.telemetry.TelemetryAggregator`'s
+    ``reset``) starts the twin afresh and restarts the rolling window, as live.  The result also says
+    what was watched: ``source`` (e.g. the tlog's path) in ``log``, the vehicle's system id, the
+    stream's start/end time, the resets and the link losses (silences longer than the config's
+    ``stale_after_s``).  ``rolling``: a list that gets ``(t_ns, {channel: {stat: value}})`` of the
+    rolling window as the metrics node publishes it."""
     from twin_nodes.logs import conversions as cv
     from twin_nodes.mavlink.telemetry import TelemetryAggregator, TelemetryConfig
-    from twin_nodes.nodes.engine import MetricsEngine, TwinEngine, as_float32
+    from twin_nodes.nodes.engine import RESET_TOPIC, MetricsEngine, TwinEngine, as_float32, reset_msg
 
     cfg = config or TelemetryConfig(n_motors=vp.rotors.count)
     agg = TelemetryAggregator(cfg)
@@ -68,13 +75,26 @@ def compare_telemetry(messages: Iterable[tuple[float, Any]], vp: Any, *, config:
         for t, s in twin.pop(flush=flush_):
             # what the metrics node reads back: odom in float64, throttle and motors through Float32
             met.add_twin(t, s.x[0:3].copy(), float(np.float32(s.throttle)), as_float32(s.motors))
+        out = met.evaluate()
+        if rolling is not None:
+            rolling.extend(out)
 
+    t_first = t_last = None
+    losses: list[dict[str, float]] = []
     for t_s, msg in messages:
+        t_first = t_s if t_first is None else t_first
+        if agg.check_stale(t_s) and agg.state.system_id is not None:  # the silence before this message
+            last = agg.state.last_rx_wall_s
+            losses.append({"start_s": float(last), "length_s": float(t_s - last)})
         kinds = agg.update(msg, now_s=t_s)
+        t_last = t_s
         if not kinds:
             continue
         st = agg.state
         t = int(round(t_s * NS))
+        if "reset" in kinds:  # just before the message that showed it (the bridge does the same)
+            twin_in(t - 1, RESET_TOPIC, reset_msg(t - 1, st.reset_reason, len(st.resets)))
+            met.reset(t - 1, st.reset_reason)
         if "odom" in kinds:
             m = cv.odom_msg(t, st.position_enu, st.q_enu_flu, st.velocity_body_flu(), st.rates_flu)
             twin_in(t, "/real/odom", m)
@@ -95,5 +115,21 @@ def compare_telemetry(messages: Iterable[tuple[float, Any]], vp: Any, *, config:
             met.add_real("/real/status", t, m)
         drain()
     drain(flush)
-    met.evaluate(final=True)
-    return met.totals(0, mode, rate_hz, source="telemetry").metrics
+    out = met.evaluate(final=True)
+    if rolling is not None:
+        rolling.extend(out)
+    m = met.totals(0, mode, rate_hz, source="telemetry").metrics
+    st = agg.state
+    m.update(watched(source or "telemetry stream", st, t_first, t_last, losses))
+    m["source"] = "rotortwin live tlog (telemetry log -> twin -> metrics, offline)"
+    return m
+
+
+def watched(what: str, st: Any, t_start: float | None, t_end: float | None, losses: list) -> dict[str, Any]:
+    """What a live run or a telemetry log watched (``live.json``'s header, issue 28)."""
+    return {"log": what, "system_id": st.system_id, "component_id": st.component_id,
+            "start_s": t_start, "end_s": t_end, "messages": st.messages_rx,
+            "ignored": {"bad_data": st.bad_data, "foreign": st.foreign, "before_heartbeat": st.unbound,
+                        "rejected": dict(st.rejected)},
+            "resets": [{"t_s": r["rx_s"], "reason": r["reason"]} for r in st.resets],
+            "link_losses": losses}

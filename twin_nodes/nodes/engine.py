@@ -28,8 +28,8 @@ import numpy as np
 from twin_nodes.logs import conversions as cv
 
 __all__ = ["NS", "Timeline", "ReorderBuffer", "TwinEngine", "Track", "final_streams", "TWIN_INPUTS",
-           "as_float32", "CONFIG_TOPIC", "twin_config",
-           "MetricsEngine"]
+           "as_float32", "CONFIG_TOPIC", "twin_config", "RESET_TOPIC", "METRICS_RESET_TOPIC", "reset_msg",
+           "reset_fields", "MetricsEngine"]
 
 NS = 1_000_000_000
 #: the twin's inputs
@@ -40,6 +40,28 @@ LIVE_PACED = ("/real/odom", "/real/motors")
 LIVE_STALE_S = 1.0
 #: latched JSON published by the twin node: the params file (path, text, sha256) and its settings
 CONFIG_TOPIC = "/twin/config"
+#: a vehicle restart (issue 28), published by the PX4 bridge: std_msgs/String, JSON
+#: ``{"t_ns": the bridge's time of the restart, "reason": ..., "count": n}``.  The twin starts afresh
+#: from the next real state; the metrics restart their rolling window and never compare across it
+RESET_TOPIC = "/real/reset"
+#: the metrics' note of each restart of their rolling window: std_msgs/String, JSON
+#: ``{"t_s": time, "reason": ..., "count": n}`` (latched, the last one)
+METRICS_RESET_TOPIC = "/twin_error/reset"
+
+
+def reset_msg(t_ns: int, reason: str, count: int) -> Any:
+    """The ``/real/reset`` message."""
+    import json
+
+    return cv.string_msg(json.dumps({"t_ns": int(t_ns), "reason": str(reason), "count": int(count)}))
+
+
+def reset_fields(msg: Any) -> tuple[int, str]:
+    """``(t_ns, reason)`` of a ``/real/reset`` message."""
+    import json
+
+    d = json.loads(msg.data)
+    return int(d["t_ns"]), str(d.get("reason", ""))
 
 
 class Timeline:
@@ -134,6 +156,7 @@ class TwinEngine:
         self.t0_ns: int | None = None
         self.next_pub_ns: int | None = None
         self.n_out = 0
+        self.resets = 0  # vehicle restarts applied (RESET_TOPIC)
         self.newest: dict[str, tuple[int, float]] = {}  # advance_live: topic -> (newest time, received at)
 
     def push(self, t_ns: int, topic: str, msg: Any) -> None:
@@ -184,6 +207,9 @@ class TwinEngine:
             v = cv.battery_arrays(msg)[1]
             if np.isfinite(v):
                 r.battery(v)
+        elif topic == RESET_TOPIC:
+            r.restart()  # the samples up to here are out; the next real state starts the twin afresh
+            self.resets += 1
         return out
 
     def _decimate(self, samples: list) -> list[tuple[int, Any]]:
@@ -220,6 +246,10 @@ class Track:
     def __init__(self) -> None:
         self.t: list[int] = []
         self.v: list[Any] = []
+        self.breaks: list[int] = []  # vehicle restarts: never interpolated across
+
+    def add_break(self, t: int) -> None:
+        bisect.insort(self.breaks, int(t))
 
     def add(self, t: int, v: Any) -> None:
         if self.t and t <= self.t[-1]:
@@ -240,6 +270,10 @@ class Track:
         if i == len(self.t):
             return self.v[-1] if self.t[-1] == t else None
         t0, t1 = self.t[i - 1], self.t[i]
+        if self.breaks:
+            j = bisect.bisect_right(self.breaks, t0)
+            if j < len(self.breaks) and self.breaks[j] <= t1:
+                return None  # a vehicle restart between the two samples
         w = (t - t0) / (t1 - t0)
         return self.v[i - 1] + (self.v[i] - self.v[i - 1]) * w
 
@@ -275,6 +309,20 @@ class MetricsEngine:
         self.twin: list[tuple[int, Any, float, Any]] = []
         self.k_eval = 0
         self.next_pub_ns: int | None = None
+        self.window_s = float(window_s)
+        self.pending_resets: list[tuple[int, str]] = []  # vehicle restarts not yet reached by evaluate
+        self.resets: list[dict[str, Any]] = []           # applied: {"t_ns", "t_s", "reason", "count"}
+
+    def reset(self, t_ns: int, reason: str) -> None:
+        """The vehicle restarted at ``t_ns``: the real signals are never interpolated across it, twin
+        samples up to it are compared with the real data before it only, and the rolling window
+        restarts (empty) with the first twin sample after it (:attr:`resets` notes when and why)."""
+        for k in ("p", "throttle", "motors"):
+            self.real[k].add_break(t_ns)
+        if self.k_eval and self.twin[self.k_eval - 1][0] > t_ns:
+            self._restart_window(int(t_ns), str(reason))  # heard late: restart the window now
+        else:
+            bisect.insort(self.pending_resets, (int(t_ns), str(reason)))
 
     def add_real(self, topic: str, t: int, msg: Any) -> None:
         if topic == "/real/odom":
@@ -310,6 +358,8 @@ class MetricsEngine:
             if t > real_until and not final:
                 break
             self.k_eval += 1
+            while self.pending_resets and t > self.pending_resets[0][0]:
+                self._restart_window(*self.pending_resets.pop(0))
             ok = (not self.airborne_only) or self.airborne(t)
             rp = real["p"].at(t)
             errs = {ch: math.nan for ch in self.channels}
@@ -331,6 +381,13 @@ class MetricsEngine:
                 out.append((t, {ch: r.stats() for ch, r in self.rolling.items()}))
         return out
 
+    def _restart_window(self, t_ns: int, reason: str) -> None:
+        from twin_nodes.twin.metrics import RollingStats
+
+        self.rolling = {ch: RollingStats(self.window_s) for ch in self.channels}
+        self.next_pub_ns = None  # publish the fresh window with its first sample
+        self.resets.append({"t_ns": int(t_ns), "t_s": t_ns / NS, "reason": reason, "count": len(self.resets) + 1})
+
     def totals(self, start_ns: int, mode: str, rate_hz: float = 50.0, source: str = "topics") -> Any:
         from twin_nodes.twin.compare import metrics_from_streams
 
@@ -345,8 +402,14 @@ def final_streams(real: dict[str, Track], twin: list[tuple[int, Any, float, Any]
     ``(t_ns, p (3,), throttle, motors (N,))``; times in s from ``start_ns``."""
 
     def arr(track: Track, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        t = (np.asarray(track.t, dtype=np.int64) - start_ns) / NS
-        v = np.asarray(track.v, float)
+        tt, vv = list(track.t), list(track.v)
+        for b in track.breaks:  # a vehicle restart: a NaN sample, so nothing is interpolated across it
+            i = bisect.bisect_left(tt, b)
+            if 0 < i < len(tt):
+                tt.insert(i, b)
+                vv.insert(i, np.full(np.shape(vv[0]), np.nan) if k is not None else float("nan"))
+        t = (np.asarray(tt, dtype=np.int64) - start_ns) / NS
+        v = np.asarray(vv, float)
         return t, (v if k is None else v.reshape(len(t), k))
 
     r: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -354,6 +417,16 @@ def final_streams(real: dict[str, Track], twin: list[tuple[int, Any, float, Any]
                          ("status", "status", 3)):
         if real[key].t:
             r[name] = arr(real[key], k)
+    breaks = real["p"].breaks if "p" in real else []
+    if breaks and twin:  # nor the twin across a restart (the twin starts afresh after it)
+        tts = [s[0] for s in twin]
+        twin = list(twin)
+        for b in reversed(breaks):
+            i = bisect.bisect_right(tts, b)
+            if 0 < i < len(tts):
+                n = len(twin[0][3])
+                twin.insert(i, (b + 1, np.full(3, np.nan), float("nan"), np.full(n, np.nan)))
+                tts.insert(i, b + 1)
     tw = {"t": (np.array([s[0] for s in twin], dtype=np.int64) - start_ns) / NS,
           "p": np.array([s[1] for s in twin]).reshape(-1, 3), "throttle": np.array([s[2] for s in twin]),
           "motors": np.array([s[3] for s in twin]).reshape(-1, n_motors)}

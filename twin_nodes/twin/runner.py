@@ -156,6 +156,11 @@ class TwinRunner:
     def battery(self, volts: float) -> None:
         self.ext[0] = volts
 
+    def restart(self) -> None:
+        """The real vehicle restarted (new EKF origin, reboot): no twin output until the next real
+        state, which starts the twin afresh from it (the old state is never carried across)."""
+        self._initialised = False
+
     # ---------------------------------------------------------------- stepping
     def _start(self, t: float) -> None:
         rx = self.real_x
