@@ -180,7 +180,9 @@ def _cmd_telemetry(args: argparse.Namespace) -> int:
             b = s.battery
             print(f"{'STALE' if s.stale else 'ok   '} sys={s.system_id} {'armed' if s.armed else 'disarmed'} "
                   f"{s.mode:14s} p_enu={_fmt(s.position_enu)} motors={_fmt(s.motors)} "
-                  f"thr={s.throttle:.3f} V={b.voltage_v if b else float('nan'):.2f} msgs={s.messages_rx}",
+                  f"thr={s.throttle:.3f} V={b.voltage_v if b else float('nan'):.2f} msgs={s.messages_rx} "
+                  f"ignored: bad={s.bad_data} foreign={s.foreign} early={s.unbound} rejected={s.n_rejected} "
+                  f"resets={len(s.resets)}{' (vehicle shut down)' if s.vehicle_closed else ''}",
                   flush=True)
     except KeyboardInterrupt:
         pass

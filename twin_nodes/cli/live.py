@@ -134,7 +134,7 @@ def _cmd_tlog(args: argparse.Namespace) -> int:
         raise TwinError(f"{args.tlog}: no MAVLink messages (expected a MAVLink telemetry log, e.g. a .tlog)")
     vp = load_params(_params(args))
     m = compare_telemetry(msgs, vp, config=_telemetry_config(args, vp.rotors.count), horizon_s=args.horizon,
-                          window_s=args.window)
+                          window_s=args.window, source=str(args.tlog))  # live.json says what it watched
     _print_totals(m, args.json, f"Twin vs telemetry log (Table 2 layout): {Path(args.tlog).name}")
     return 0
 

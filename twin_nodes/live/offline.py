@@ -131,5 +131,5 @@ def watched(what: str, st: Any, t_start: float | None, t_end: float | None, loss
             "start_s": t_start, "end_s": t_end, "messages": st.messages_rx,
             "ignored": {"bad_data": st.bad_data, "foreign": st.foreign, "before_heartbeat": st.unbound,
                         "rejected": dict(st.rejected)},
-            "resets": [{"t_s": r["rx_s"], "reason": r["reason"]} for r in st.resets],
+            "resets": [{"t_s": r.get("t_s", r["rx_s"]), "reason": r["reason"]} for r in st.resets],
             "link_losses": losses}

@@ -28,9 +28,16 @@ processes keep running through an outage; the link flag goes up after ``stale_af
 silence and down with the first message after it.  Measured recovery of the error topics after a
 5 s outage: see ``tests/test_live_shadow.py`` and docs/px4_sitl.md.
 
-Stopping (``stop`` event, ``duration_s``, Ctrl-C or SIGTERM): the bridge first (no more inputs),
-then the twin, then the metrics (which publish and write the totals of the data seen), then the
-recorder (which takes the final topics), the link watchdog and the Foxglove server.
+Stopping (``stop`` event, ``duration_s``, Ctrl-C or SIGTERM): the bridge and the link watchdog
+first (no more inputs; the bridge announces its clean stop, so neither the watchdog nor the totals
+count the end as a link loss -- issue 28), then the twin, then the metrics (which publish and
+write the totals of the data seen), then the recorder (which takes the final topics) and the
+Foxglove server.
+
+Vehicle restarts (issue 28): the bridge publishes ``/real/reset``; the twin starts afresh from the
+next real state and the metrics restart their rolling window (``/twin_error/reset`` notes when and
+why).  The totals (:attr:`LiveResult.metrics`, ``live.json``) say what was watched: the URL, the
+vehicle's system id, start and end, the resets and the link losses (:func:`watched_header`).
 """
 
 from __future__ import annotations
@@ -51,7 +58,7 @@ from typing import Any, Callable
 from twin_nodes.base.errors import TwinError
 from twin_nodes.graph.orchestrator import Graph, _die_with_parent, node_command, ros_env
 
-__all__ = ["LiveConfig", "LiveResult", "run_live", "module_command"]
+__all__ = ["LiveConfig", "LiveResult", "run_live", "module_command", "watched_header"]
 
 
 @dataclass
@@ -71,6 +78,7 @@ class LiveConfig:
     pwm_max_us: float = 2000.0
     motor_channels: str = ""
     request_streams: bool = True
+    system_id: int | None = None   # the vehicle's MAVLink system id (None: the first autopilot heartbeat's)
 
 
 @dataclass
@@ -83,6 +91,18 @@ class LiveResult:
     foxglove_url: str | None
     exit_codes: dict[str, int] = field(default_factory=dict)
     wall_s: float = 0.0
+
+
+def watched_header(url: str, bridge: dict[str, Any], link: dict[str, Any]) -> dict[str, Any]:
+    """What a live run watched, for its totals (``live.json``): the URL, the vehicle's system id, the
+    first and last message's time (Unix s), what was ignored, the vehicle restarts and the link
+    losses (the watchdog's outages; a clean end is listed under ``ends``, not as a loss)."""
+    return {"log": url, "source": "rotortwin live (vehicle telemetry -> twin -> metrics nodes)",
+            "system_id": bridge.get("system_id"), "component_id": bridge.get("component_id"),
+            "start_s": bridge.get("start_s"), "end_s": bridge.get("end_s"), "messages": bridge.get("messages"),
+            "ignored": bridge.get("ignored", {}), "resets": bridge.get("resets", []),
+            "link_losses": link.get("outages", []), "ends": link.get("ends", []),
+            "vehicle_closed": bridge.get("vehicle_closed", False)}
 
 
 def module_command(module: str, args: list[str], params: dict[str, Any]) -> list[str]:
@@ -143,6 +163,7 @@ def run_live(cfg: LiveConfig, *, domain_id: int | None = None, run_dir: str | os
     # the classic executor: header-less inputs timed by their DDS source timestamp (common.source_stamps)
     g = _LiveGraph(rd, {**ros_env(lease.domain_id), "ROTORTWIN_EXECUTOR": "single"})
     json_path, link_path, aligned_path = rd / "final_metrics.json", rd / "link.json", rd / "aligned.npz"
+    bridge_path = rd / "bridge.json"
     stop = stop or threading.Event()
     old = {}
     if threading.current_thread() is threading.main_thread():
@@ -165,13 +186,14 @@ def run_live(cfg: LiveConfig, *, domain_id: int | None = None, run_dir: str | os
                                            {"stale_after_s": cfg.stale_after_s, "summary_out": str(link_path)}))
         g.start("metrics", {"window_s": cfg.window_s, "n_motors": n_motors, "mode": "open",
                             "airborne_only": cfg.airborne_only, "json_out": str(json_path),
-                            "aligned_out": str(aligned_path)})
+                            "aligned_out": str(aligned_path), "source": cfg.url})
         g.start("twin", {"params_file": str(cfg.params_file), "mode": "open", "horizon_s": cfg.horizon_s,
                          "diagnostics_period_s": 1.0})
         g.start_cmd("bridge", module_command("twin_nodes.nodes.px4_bridge", ["telemetry"], {
             "url": cfg.url, "pwm_min_us": float(cfg.pwm_min_us), "pwm_max_us": float(cfg.pwm_max_us),
             "n_motors": n_motors, "motor_channels": cfg.motor_channels, "stale_after_s": float(cfg.stale_after_s),
-            "request_streams": bool(cfg.request_streams)}))
+            "request_streams": bool(cfg.request_streams), "system_id": int(cfg.system_id or 0),
+            "summary_out": str(bridge_path)}))
         if on_start is not None:
             on_start({"domain_id": lease.domain_id, "run_dir": str(rd), "foxglove_url": url})
         t_end = time.monotonic() + duration_s if duration_s else float("inf")
@@ -186,7 +208,8 @@ def run_live(cfg: LiveConfig, *, domain_id: int | None = None, run_dir: str | os
             pass
     finally:
         # inputs first, then the consumers in the order that keeps the totals and the bag complete
-        for group in (["bridge"], ["twin"], ["metrics"], ["recorder", "link", "foxglove"]):
+        # the watchdog with the bridge: a normal stop is not a link loss (issue 28)
+        for group in (["bridge", "link"], ["twin"], ["metrics"], ["recorder", "foxglove"]):
             names = [n for n in group if n in g.procs]
             if names:
                 codes.update(g.stop(names, timeout_s=30.0))
@@ -195,6 +218,9 @@ def run_live(cfg: LiveConfig, *, domain_id: int | None = None, run_dir: str | os
         lease.release()
     metrics = json.loads(json_path.read_text()) if json_path.exists() else None
     link = json.loads(link_path.read_text()) if link_path.exists() else {"outages": []}
+    bridge = json.loads(bridge_path.read_text()) if bridge_path.exists() else {}
+    if metrics is not None:
+        metrics.update(watched_header(cfg.url, bridge, link))
     res = LiveResult(metrics=metrics, outages=link.get("outages", []), run_dir=rd, domain_id=lease.domain_id,
                      bag_path=Path(cfg.bag) if cfg.bag else None, foxglove_url=url, exit_codes=codes,
                      wall_s=time.monotonic() - t_wall)

@@ -31,7 +31,7 @@ import numpy as np
 from msgs_py.topics import METRIC_STATS, TOPICS, metric_topic, msg_class
 from twin_nodes.logs import conversions as cv
 from twin_nodes.nodes.common import NS, GraphNode, declare, reliable_qos, run_node
-from twin_nodes.nodes.engine import MetricsEngine
+from twin_nodes.nodes.engine import METRICS_RESET_TOPIC, RESET_TOPIC, MetricsEngine, reset_fields
 from twin_nodes.twin.metrics import table2, to_jsonable
 
 REAL_INPUTS = ("/real/odom", "/real/throttle", "/real/motors", "/real/status")
@@ -50,6 +50,8 @@ class MetricsNode(GraphNode):
         self.json_out = declare(self, "json_out", "", "write the whole-flight metrics here (JSON)")
         self.aligned_out = declare(self, "aligned_out", "", "write the aligned series here (.npz) for reports")
         self.twin_timeout_s = float(declare(self, "twin_timeout_s", 20.0, "wait this long for /twin/done"))
+        self.source_label = str(declare(self, "source", "", "what the real data is (live: the vehicle's URL) for "
+                                                           "the totals' 'log' (default: the replayed log)"))
         self.engine = MetricsEngine(self.n_motors, self.window_s, self.pub_period_ns, self.airborne_only)
         self.channels = self.engine.channels
         self.real = self.engine.real
@@ -74,6 +76,10 @@ class MetricsNode(GraphNode):
             self.create_subscription(msg_class(TOPICS[topic].type), topic, self._make_cb(topic), q)
         self.create_subscription(msg_class("std_msgs/msg/UInt64"), "/twin/done", self._on_twin_done,
                                  reliable_qos(depth=1, latched=True))
+        # vehicle restarts (issue 28): the rolling window restarts, with a note on /twin_error/reset
+        self.create_subscription(msg_class("std_msgs/msg/String"), RESET_TOPIC, self._on_reset, q)
+        self.reset_pub = self.create_publisher(msg_class("std_msgs/msg/String"), METRICS_RESET_TOPIC, latched)
+        self._resets_noted = 0
 
     # ------------------------------------------------------------------ inputs
     def _make_cb(self, topic: str):
@@ -92,6 +98,21 @@ class MetricsNode(GraphNode):
         if TOPICS[topic].stamped:
             return lambda msg: handle(msg, cv.stamp_to_ns(msg.header.stamp))
         return self.header_less_callback(topic, handle)
+
+    def _on_reset(self, msg: Any) -> None:
+        t, reason = reset_fields(msg)
+        self.n_callbacks += 1
+        self.engine.reset(t, reason)
+        self._note_resets()
+
+    def _note_resets(self) -> None:
+        """``/twin_error/reset`` for every restart of the rolling window: when and why."""
+        while self._resets_noted < len(self.engine.resets):
+            r = self.engine.resets[self._resets_noted]
+            self._resets_noted += 1
+            self.reset_pub.publish(cv.string_msg(json.dumps({"t_s": r["t_s"], "reason": r["reason"],
+                                                             "count": r["count"]})))
+            self.get_logger().warning(f"rolling window restarted at {r['t_s']:.3f} s: {r['reason']}")
 
     def _on_twin_done(self, msg: Any) -> None:
         self.twin_done = int(msg.data)
@@ -115,7 +136,9 @@ class MetricsNode(GraphNode):
     # ------------------------------------------------------------------ rolling metrics
     def _evaluate(self, final: bool = False) -> None:
         for t, stats in self.engine.evaluate(final):
+            self._note_resets()  # before the first window after a restart
             self._publish_rolling(t, stats)
+        self._note_resets()
 
     def _publish_rolling(self, t: int, stats: dict[str, dict[str, float]]) -> None:
         f64 = msg_class("std_msgs/msg/Float64")
@@ -163,8 +186,10 @@ class MetricsNode(GraphNode):
             self._write(self.final)
             return
         m = res.metrics
-        m["log"] = self.plan.get("ulog", "") if self.plan else ""
-        m["source"] = "rotortwin graph (replay -> twin -> metrics nodes)"
+        m["log"] = self.plan.get("ulog", "") if self.plan else self.source_label
+        m["source"] = ("rotortwin graph (replay -> twin -> metrics nodes)" if self.plan else
+                       "rotortwin live (vehicle telemetry -> twin -> metrics nodes)")
+        m["resets"] = [{"t_s": r["t_s"], "reason": r["reason"]} for r in self.engine.resets]
         m["received"] = {**self.received, "/twin/*": len(tw)}
         self.final = m
         text = table2(m, title=f"Twin vs real (Table 2 layout): {m['log']}")

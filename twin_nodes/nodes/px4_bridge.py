@@ -26,7 +26,15 @@ timestamp: this node's clock when it published them).  The link state goes to ``
 subscriptions matched by ``/real/odom`` and ``/real/motors``) once a second and on change.
 Parameters: ``url``, ``pwm_min_us`` (1000), ``pwm_max_us`` (2000), ``n_motors`` (4),
 ``motor_channels`` ("" or e.g. "4,5,6,7", 0-based), ``stale_after_s`` (3.0),
-``request_streams`` (true).
+``request_streams`` (true), ``system_id`` (0: the first autopilot heartbeat's), ``summary_out``
+("": a JSON file written on stop with what was watched).
+
+Issue 28: only valid MAVLink from the vehicle counts; what was ignored (``bad_data``, ``foreign``,
+``before_heartbeat``, ``rejected``) is in the link diagnostic.  A vehicle restart is published on
+``/real/reset`` (:data:`twin_nodes.nodes.engine.RESET_TOPIC`, JSON with the time and the reason)
+just before the first message after it.  On a normal stop the link diagnostic says
+``shutdown: true`` (a clean stop, not a link loss), and ``vehicle_closed: true`` while the vehicle
+announces its own shutdown (``MAV_STATE_POWEROFF``).
 
 Both run through :func:`twin_nodes.nodes.common.run_node` (SIGINT/SIGTERM stop them cleanly).
 """
@@ -45,6 +53,7 @@ from twin_nodes.logs import conversions as cv
 from twin_nodes.mavlink.simlink import DEFAULT_HOST, DEFAULT_PORT, DEFAULT_STEP_S, SimLinkServer, StepInfo
 from twin_nodes.mavlink.telemetry import TelemetryClient, TelemetryConfig, TelemetryState
 from twin_nodes.nodes.common import GraphNode, declare, reliable_qos, run_node
+from twin_nodes.nodes.engine import RESET_TOPIC, reset_msg
 
 SIM_OUTPUTS = ("/twin/odom", "/twin/motors", "/twin/throttle", "/twin/imu")
 REAL_OUTPUTS = ("/real/odom", "/real/imu", "/real/motors", "/real/throttle", "/real/battery", "/real/setpoint",
@@ -117,12 +126,21 @@ class TelemetryBridgeNode(GraphNode):
             motor_channels=tuple(int(c) for c in chans.split(",")) if chans.strip() else None,
             stale_after_s=float(declare(self, "stale_after_s", 3.0, "link stale after this much silence [s]")),
             request_streams=bool(declare(self, "request_streams", True, "ask the autopilot for the streams")),
+            system_id=int(declare(self, "system_id", 0, "the vehicle's MAVLink system id (0: the first "
+                                                        "autopilot heartbeat's)")) or None,
         )
+        self.url = str(url)
+        self.summary_out = str(declare(self, "summary_out", "", "write what was watched here (JSON) on stop"))
+        self.t_start_unix = time.time()
         self.step_period_s = 0.2  # step(): the once-a-second link diagnostic (rate-limited inside)
         self._last_step = -1e9
         q = reliable_qos()
         self.pub = {t: self.create_publisher(msg_class(TOPICS[t].type), t, q) for t in REAL_OUTPUTS}
         self.pub_diag = self.create_publisher(msg_class("diagnostic_msgs/msg/DiagnosticArray"), "/diagnostics", 10)
+        self.pub_reset = self.create_publisher(msg_class("std_msgs/msg/String"), RESET_TOPIC, q)
+        self.t_first_rx_unix: float | None = None
+        self.t_last_rx_unix: float | None = None
+        self.shutting_down = False
         self.client = TelemetryClient(url, cfg, on_update=self._on_update)
         self.client.start_thread()
         self.get_logger().info(f"telemetry from {self.client.device}")
@@ -134,6 +152,13 @@ class TelemetryBridgeNode(GraphNode):
         # runs in the client's thread
         t = self._now_ns()
         p = self.pub
+        self.t_last_rx_unix = t / NS
+        if self.t_first_rx_unix is None:
+            self.t_first_rx_unix = t / NS
+        if "reset" in kinds:  # before the message that showed it: the twin starts afresh from that one
+            self.pub_reset.publish(reset_msg(t - 1, st.reset_reason, len(st.resets)))
+            st.resets[-1]["t_s"] = (t - 1) / NS
+            self.get_logger().warning(f"vehicle restart: {st.reset_reason}")
         if "odom" in kinds:
             p["/real/odom"].publish(cv.odom_msg(t, st.position_enu, st.q_enu_flu, st.velocity_body_flu(),
                                                 st.rates_flu))
@@ -166,10 +191,16 @@ class TelemetryBridgeNode(GraphNode):
         s = status_cls()
         s.name = "px4_bridge/link"
         s.hardware_id = f"mavlink system {st.system_id}" if st.system_id is not None else "mavlink"
-        s.level = status_cls.STALE if st.stale else status_cls.OK
-        s.message = f"{'armed' if st.armed else 'disarmed'} {st.mode} (link {'stale' if st.stale else 'ok'})"
+        s.level = status_cls.STALE if st.stale and not self.shutting_down else status_cls.OK
+        s.message = ("bridge stopped (clean shutdown)" if self.shutting_down else
+                     f"{'armed' if st.armed else 'disarmed'} {st.mode} (link {'stale' if st.stale else 'ok'})")
         s.values = [kv(key="stale", value=str(st.stale).lower()), kv(key="mode", value=st.mode),
-                    kv(key="armed", value=str(st.armed).lower()), kv(key="messages", value=str(st.messages_rx))]
+                    kv(key="armed", value=str(st.armed).lower()), kv(key="messages", value=str(st.messages_rx)),
+                    kv(key="shutdown", value=str(self.shutting_down).lower()),
+                    kv(key="vehicle_closed", value=str(st.vehicle_closed).lower()),
+                    kv(key="bad_data", value=str(st.bad_data)), kv(key="foreign", value=str(st.foreign)),
+                    kv(key="before_heartbeat", value=str(st.unbound)), kv(key="rejected", value=str(st.n_rejected)),
+                    kv(key="resets", value=str(len(st.resets)))]
         # who listens: the subscriptions matched by /real/odom and /real/motors (a live graph is
         # ready for a vehicle's first message once its twin, metrics and watchdog are counted here)
         s.values += [kv(key=f"{t.split('/')[-1]}_subscribers", value=str(self.pub[t].get_subscription_count()))
@@ -193,6 +224,30 @@ class TelemetryBridgeNode(GraphNode):
 
     def close(self, interrupted: bool = False) -> None:
         self.client.close()
+        # a clean stop: say so before going quiet, so that a link watchdog does not call it a loss
+        self.shutting_down = True
+        try:
+            self._publish_link(self.client.state, self._now_ns())
+            self.pub_diag.wait_for_all_acked(_duration(2.0))
+        except Exception as exc:  # the context may already be going down
+            self.get_logger().warning(f"could not announce the shutdown: {exc}")
+        if self.summary_out:
+            import json
+
+            from twin_nodes.base.io import atomic_write_text
+            from twin_nodes.live.offline import watched
+
+            st = self.client.state
+            w = watched(self.url, st, self.t_first_rx_unix, self.t_last_rx_unix, [])
+            w.update(url=self.url, bridge_start_s=self.t_start_unix, bridge_end_s=time.time(),
+                     vehicle_closed=st.vehicle_closed)
+            atomic_write_text(self.summary_out, json.dumps(w, indent=1))
+
+
+def _duration(s: float) -> Any:
+    from rclpy.duration import Duration
+
+    return Duration(seconds=s)
 
 
 def main(argv: list[str] | None = None) -> int:

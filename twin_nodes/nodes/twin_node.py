@@ -33,7 +33,7 @@ from typing import Any
 from msgs_py.topics import TOPICS, msg_class
 from twin_nodes.logs import conversions as cv
 from twin_nodes.nodes.common import GraphNode, declare, reliable_qos, run_node
-from twin_nodes.nodes.engine import CONFIG_TOPIC, TWIN_INPUTS, TwinEngine, twin_config
+from twin_nodes.nodes.engine import CONFIG_TOPIC, RESET_TOPIC, TWIN_INPUTS, TwinEngine, reset_fields, twin_config
 
 INPUTS = TWIN_INPUTS
 OUTPUTS = ("/twin/odom", "/twin/motors", "/twin/throttle", "/twin/imu")
@@ -69,6 +69,9 @@ class TwinNode(GraphNode):
         config_pub.publish(cv.string_msg(json.dumps(twin_config(pfile, self.vp, mode, horizon, rate, lag))))
         for topic in INPUTS:
             self.create_subscription(msg_class(TOPICS[topic].type), topic, self._make_cb(topic), q)
+        # a vehicle restart (issue 28): applied in time order; the twin starts afresh from the next
+        # real state (the message carries its own time, the bridge's clock)
+        self.create_subscription(msg_class("std_msgs/msg/String"), RESET_TOPIC, self._on_reset, q)
         self.done_sent = False
         self._diag_pub = None
         self._last_diag = -1e9
@@ -91,6 +94,12 @@ class TwinNode(GraphNode):
         if TOPICS[topic].stamped:
             return lambda msg: handle(msg, cv.stamp_to_ns(msg.header.stamp))
         return self.header_less_callback(topic, handle)
+
+    def _on_reset(self, msg: Any) -> None:
+        t, reason = reset_fields(msg)
+        self.n_callbacks += 1
+        self.engine.push(t, RESET_TOPIC, msg)
+        self.get_logger().warning(f"vehicle restart ({reason}): the twin starts afresh from the next real state")
 
     def on_clock(self, t_ns: int) -> None:
         self.engine.advance(t_ns)
