@@ -2,8 +2,8 @@
 # Fly PX4 SITL against the rotortwin simulator link (lockstep HIL over TCP 4560 + instance).
 #
 #   launch_scripts/px4_sitl_twin.sh [--px4 DIR] [--params P.yaml] [--instance N] [--speed-factor F]
-#                                   [--mission PLAN.yaml] [--repeat K] [--live] [--foxglove [PORT]]
-#                                   [--out DIR] [--exit-when-done] [--no-ros]
+#                                   [--px4-speed-factor G] [--mission PLAN.yaml] [--repeat K] [--live]
+#                                   [--foxglove [PORT]] [--out DIR] [--exit-when-done] [--no-ros]
 #
 # 1. starts `rotortwin bridge sim` (the TCP server PX4's simulator_mavlink connects to);
 # 2. with --px4 DIR (a PX4-Autopilot checkout built with `make px4_sitl_default`), starts
@@ -13,6 +13,11 @@
 #    control rate instead of 10 Hz, for control-rate comparison) and SDLOG_MODE 0 (a log per
 #    flight, arm to disarm; SITL's rcS default 1 logs only from boot to the first disarm); any
 #    PX4_PARAM_<NAME>=value in the environment is set too. Without --px4, start PX4 yourself;
+#    --speed-factor F paces the simulator (0 = unpaced, as fast as PX4 answers). PX4 gets
+#    PX4_SIM_SPEED_FACTOR=G (--px4-speed-factor; default F, or 20 when F is 0): PX4's rcS scales
+#    its link-loss timeouts by it and saves them (COM_DL_LOSS_T = 10 G, COM_RC_LOSS_T and
+#    COM_OF_LOSS_T = 0.5 G, COM_OBC_LOSS_T = 5 G), so 0 would set them to 0 ("connection to ground
+#    station lost" many times a second) -- it is never passed (docs/px4_sitl.md);
 # 3. with --mission, waits for PX4 on UDP 14540+N (MAVSDK), uploads the plan, starts it and waits
 #    until the vehicle has landed and disarmed; --repeat K flies it K times in a row (nothing
 #    restarted: the upload sets the current item back to 0);
@@ -31,6 +36,7 @@ PX4_DIR=""
 PARAMS=""
 INSTANCE=0
 SPEED="${PX4_SIM_SPEED_FACTOR:-1}"
+PX4_SPEED=""
 MISSION=""
 REPEAT=1
 LIVE=0
@@ -39,7 +45,7 @@ OUT="${ROTORTWIN_PX4_OUT:-/tmp/rotortwin_px4_sitl}"
 EXIT_WHEN_DONE=0
 ROS_FLAG=""
 
-usage() { sed -n '2,25p' "$0" | sed 's/^# \{0,1\}//'; exit "${1:-0}"; }
+usage() { sed -n '2,30p' "$0" | sed 's/^# \{0,1\}//'; exit "${1:-0}"; }
 
 while [ $# -gt 0 ]; do
     case "$1" in
@@ -47,6 +53,7 @@ while [ $# -gt 0 ]; do
         --params) PARAMS="$2"; shift 2 ;;
         --instance) INSTANCE="$2"; shift 2 ;;
         --speed-factor) SPEED="$2"; shift 2 ;;
+        --px4-speed-factor) PX4_SPEED="$2"; shift 2 ;;
         --mission) MISSION="$2"; shift 2 ;;
         --repeat) REPEAT="$2"; shift 2 ;;
         --live) LIVE=1; shift ;;
@@ -59,6 +66,20 @@ while [ $# -gt 0 ]; do
         *) echo "px4_sitl_twin.sh: unknown argument $1" >&2; usage 2 ;;
     esac
 done
+
+is_number() { [[ "$1" =~ ^[0-9]+([.][0-9]+)?$|^[.][0-9]+$ ]]; }
+is_positive() { is_number "$1" && awk -v x="$1" 'BEGIN { exit !(x > 0) }'; }
+if ! is_number "$SPEED"; then
+    echo "px4_sitl_twin.sh: --speed-factor: expected a number >= 0 (0 = unpaced), got '$SPEED'" >&2; exit 2
+fi
+# what PX4 is told: its rcS multiplies (and saves) its link-loss timeouts by PX4_SIM_SPEED_FACTOR,
+# so never 0; unpaced lockstep ran 1-13x real time here (docs/px4_sitl.md §5): 20 covers it
+if [ -z "$PX4_SPEED" ]; then
+    if is_positive "$SPEED"; then PX4_SPEED="$SPEED"; else PX4_SPEED=20; fi
+fi
+if ! is_positive "$PX4_SPEED"; then
+    echo "px4_sitl_twin.sh: --px4-speed-factor: expected a number > 0, got '$PX4_SPEED'" >&2; exit 2
+fi
 
 mkdir -p "$OUT"
 SIM_PORT=$((4560 + INSTANCE))
@@ -100,10 +121,11 @@ if [ -n "$PX4_DIR" ]; then
         exit 1
     fi
     echo "[px4_sitl_twin] PX4 SITL instance $INSTANCE, airframe 10016 none_iris, simulator TCP $SIM_PORT," \
+         "PX4_SIM_SPEED_FACTOR $PX4_SPEED (link-loss timeouts x $PX4_SPEED)," \
          "SDLOG_PROFILE ${PX4_PARAM_SDLOG_PROFILE:-17} (log $OUT/px4.log)"
     (
         cd "$PX4_DIR"
-        PX4_SYS_AUTOSTART=10016 PX4_SIM_MODEL=none_iris PX4_SIM_SPEED_FACTOR="$SPEED" \
+        PX4_SYS_AUTOSTART=10016 PX4_SIM_MODEL=none_iris PX4_SIM_SPEED_FACTOR="$PX4_SPEED" \
             PX4_PARAM_SDLOG_PROFILE="${PX4_PARAM_SDLOG_PROFILE:-17}" \
             PX4_PARAM_SDLOG_MODE="${PX4_PARAM_SDLOG_MODE:-0}" \
             exec "$PX4_BIN" -i "$INSTANCE" -d
