@@ -126,3 +126,34 @@ def _odom(t, p):
     from twin_nodes.logs import conversions as cv
 
     return cv.odom_msg(t, p, [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+
+
+def test_live_tlog_json_says_what_it_watched(tmp_path):
+    """``rotortwin live tlog --json``: the totals name the log, the vehicle, the span, the restart and
+    the link losses (before: ``"source": "... replay ..."``, ``"log": ""``)."""
+    if not LOG.exists():
+        missing_shared(LOG.name)
+    import json
+    import struct
+
+    from twin_nodes.cli import main
+
+    stream = restarted_stream(20.0)
+    t0 = 1.7e9
+    tlog = tmp_path / "restart.tlog"
+    with open(tlog, "wb") as fh:
+        for t, data in stream:
+            if 15.0 <= t < 19.0:  # and a 4 s silence: a link loss
+                continue
+            fh.write(struct.pack(">Q", int(round((t0 + t) * 1e6))) + data)
+    out = tmp_path / "live.json"
+    assert main(["live", "tlog", str(tlog), "--params", str(PARAMS), "--pwm-min", "1100", "--pwm-max", "1900",
+                 "--motor-channels", "16,17,18,19", "--no-request-streams", "--window", "3", "--json", str(out)]) == 0
+    m = json.loads(out.read_text())
+    assert m["log"] == str(tlog) and "replay" not in m["source"], (m["log"], m["source"])
+    assert m["system_id"] == 1 and m["component_id"] == 1
+    assert m["start_s"] == pytest.approx(t0, abs=0.01) and m["end_s"] == pytest.approx(t0 + stream[-1][0], abs=0.01)
+    assert [r["reason"].split()[0] for r in m["resets"]] == ["reboot"]
+    assert m["resets"][0]["t_s"] == pytest.approx(t0 + T_RESTART + GAP_S, abs=0.05)
+    assert len(m["link_losses"]) == 1 and m["link_losses"][0]["length_s"] == pytest.approx(4.0, abs=0.1)
+    assert m["ignored"]["bad_data"] == 0 and m["messages"] > 500
