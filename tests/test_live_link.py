@@ -157,3 +157,26 @@ def test_live_vehicle_restart_and_clean_shutdown(tmp_path):
     assert m["log"] == live.cfg.url and m["system_id"] == 1 and m["vehicle_closed"] is True
     assert m["start_s"] == pytest.approx(live.t0_unix, abs=1.0) and m["end_s"] > m["start_s"] + 15.0
     assert "replay" not in m["source"]
+
+
+@pytest.mark.ros
+def test_live_normal_stop_is_not_a_link_loss(tmp_path):
+    """``live`` stopped normally while the vehicle still streams, with a 1 s stale limit: no outage,
+    the link flag never rises.  Before: the watchdog was stopped last, after the twin and the metrics,
+    and called the silence after the bridge's stop a link loss "at the end"."""
+    if not LOG.exists():
+        missing_shared(LOG.name)
+    pytest.importorskip("rclpy")
+    from test_live_shadow import _Live, _messages
+
+    stream, _ = _messages(6.0)
+    with _Live(tmp_path, ("/twin_error/link_lost",), stale_after_s=1.0) as live:
+        t0 = live.play(stream)
+    res = live.result
+    assert live.error is None and res is not None, live.error
+    assert all(c == 0 for c in res.exit_codes.values()), (res.exit_codes, live.logs())
+    flags = [(w - t0, v) for w, v in live.got["/twin_error/link_lost"]]
+    link = json.loads((live.run_dir / "link.json").read_text()) if (live.run_dir / "link.json").exists() else None
+    print("outages", res.outages, "flags", flags[-3:], "link.json", link)
+    assert res.outages == [] and res.metrics["link_losses"] == [], (res.outages, live.logs())
+    assert not [v for t, v in flags if v == 1.0 and t > 0.5], flags

@@ -128,9 +128,10 @@ def _free_udp_port() -> int:
 class _Live:
     """run_live in a thread; a probe node on its domain (readiness, topic capture)."""
 
-    def __init__(self, tmp_path: Path, topics: tuple[str, ...] = ()):
+    def __init__(self, tmp_path: Path, topics: tuple[str, ...] = (), **cfg: object):
         self.tmp_path = tmp_path
         self.topics = topics
+        self.cfg_extra = cfg  # more LiveConfig fields (e.g. stale_after_s)
         self.discovery_retries: list[dict] = []  # the matched counts of graphs that never came up
 
     def _run(self) -> None:
@@ -164,7 +165,8 @@ class _Live:
         from twin_nodes.live.shadow import LiveConfig
 
         self.port = _free_udp_port()
-        self.cfg = LiveConfig(url=f"udpin:127.0.0.1:{self.port}", params_file=str(PARAMS), window_s=3.0, **LINK)
+        self.cfg = LiveConfig(url=f"udpin:127.0.0.1:{self.port}", params_file=str(PARAMS), window_s=3.0,
+                              **{**LINK, **self.cfg_extra})
         self.run_dir = self.tmp_path / ("run" if attempt == 0 else f"run{attempt}")
         self.stop = threading.Event()
         self.started = threading.Event()
