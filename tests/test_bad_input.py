@@ -74,6 +74,8 @@ UNUSABLE = {
     "file named true": "true",
     "file named 12345": "12345",
     "ULog with corrupt definitions": "format_bomb.ulg",
+    "YAML with a duplicate key": "duplicate_key.yaml",
+    "omega_max 1e-300": "tiny_omega.yaml",
 }
 RECOVERABLE = {
     "truncated ULog": "truncated.ulg",
@@ -99,6 +101,9 @@ def corpus(tmp_path_factory) -> Path:
     (d / "true").write_text("true\n")
     (d / "12345").write_text("12345\n")
     (d / "format_bomb.ulg").write_bytes(_format_bomb(good))
+    sih = Path(PARAMS).read_text()
+    (d / "duplicate_key.yaml").write_text(sih.replace("      km_m: 0.02\n", "      km_m: 0.02\n      km_m: 0.03\n"))
+    (d / "tiny_omega.yaml").write_text(sih.replace("omega_max_rad_s: 1000.0", "omega_max_rad_s: 1.0e-300"))
     (d / "truncated.ulg").write_bytes(C.truncated(good))
     (d / "gap_2e40.ulg").write_bytes(C.with_gap(good, 2**40))
     (d / "gap_2e62.ulg").write_bytes(C.with_gap(good, 2**62))

@@ -166,7 +166,9 @@ BAD = [
     ("unknown key", _mutate_unknown, "vehicle.masss_kg", "unknown key"),
     # issue 12: values that passed validation and then overflowed or hung the simulator
     ("thrust 1e308", _set("rotors", "kt_n_s2_rad2", 1e308), "rotors.kt_n_s2_rad2",
-     "expected a thrust at full command kt*omega_cmd_max^2 <= 1e+06 N per rotor, got inf N"),
+     "expected 1e-12..1e+06 N s^2/rad^2, got 1e+308"),
+    ("thrust at full command 1e8", _set("rotors", "kt_n_s2_rad2", 500.0), "rotors.kt_n_s2_rad2",
+     "expected a thrust at full command kt*omega_cmd_max^2 of 0.0001..1e+06 N per rotor, got 1.07023e+08 N"),
     ("inertia 1e308", _set("vehicle", "ixx_kg_m2", 1e308), "vehicle.ixx_kg_m2",
      "inertia tensor must be positive definite"),
     ("inertia too large for mass and size", _set("vehicle", "izz_kg_m2", 100.0), "vehicle.izz_kg_m2",
@@ -277,7 +279,8 @@ def test_cli_bad_params_file_writes_nothing(tmp_path, capsys, what, mutate, key,
     sdf = tmp_path / "out.sdf"
     sdf.write_text("keep me")  # an existing output must not be overwritten
     px4 = tmp_path / "out.params"
-    assert main(["params", "export", str(bad), "--sdf", str(sdf), "--px4", str(px4)]) != 0
+    # --force: the existing output may be replaced, so only the bad params file stops the run
+    assert main(["params", "export", str(bad), "--sdf", str(sdf), "--px4", str(px4), "--force"]) != 0
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"rotortwin: error: {bad}: {key}: {expected}")
     assert "\n" not in err
@@ -293,7 +296,7 @@ def test_cli_bad_spec_writes_nothing(tmp_path, capsys):
     out = tmp_path / "p.yaml"
     out.write_text("keep me")
     sdf = tmp_path / "p.sdf"
-    assert main(["params", "derive", str(bad), "--out", str(out), "--sdf", str(sdf)]) != 0
+    assert main(["params", "derive", str(bad), "--out", str(out), "--sdf", str(sdf), "--force"]) != 0
     err = capsys.readouterr().err
     assert f"{bad}: torque.km_m: expected >= 0" in err
     assert out.read_text() == "keep me" and not sdf.exists()
@@ -301,10 +304,11 @@ def test_cli_bad_spec_writes_nothing(tmp_path, capsys):
 
 def test_cli_bad_output_dir_writes_nothing(tmp_path, capsys):
     out = tmp_path / "p.yaml"
+    (tmp_path / "a_file").write_text("")
     rc = main(["params", "derive", str(PARAMS / "derive_buho_negro.yaml"), "--out", str(out),
-               "--sdf", str(tmp_path / "missing" / "m.sdf")])
+               "--sdf", str(tmp_path / "a_file" / "m.sdf")])
     assert rc != 0
-    assert "does not exist" in capsys.readouterr().err
+    assert "is a file" in capsys.readouterr().err
     assert not out.exists()
 
 
@@ -315,3 +319,215 @@ def test_cli_entry_point_exit_code(tmp_path):
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"rotortwin: error: {bad}: line ")
+
+
+# --------------------------------------------------------------------------- issue 28: every value range-checked
+
+SIH = PARAMS / "px4_sih_quadx.yaml"
+
+
+def _sih_doc() -> dict:
+    return yaml.safe_load(SIH.read_text())
+
+
+def _on_line(d):
+    """Every rotor on the x axis: no moment arm about x (roll)."""
+    _params(d)["rotors"]["y_flu_m"] = [0.0, 0.0, 0.0, 0.0]
+
+
+def _at_centre(d):
+    r = _params(d)["rotors"]
+    r["x_flu_m"], r["y_flu_m"] = [0.0] * 4, [0.0] * 4
+
+
+#: (case, which file, mutation, key, message); each of these loaded before issue 28, or crashed
+RANGES = [
+    ("omega_max 1e-300 (thrust_factor: ZeroDivisionError)", "sih", _set("rotors", "omega_max_rad_s", 1e-300),
+     "rotors.omega_max_rad_s", "expected 1..100000 rad/s, got 1e-300"),
+    ("omega_cmd_max 1e-300", "sih", _set("rotors", "omega_cmd_max_rad_s", 1e-300),
+     "rotors.omega_cmd_max_rad_s", "expected 1..100000 rad/s, got 1e-300"),
+    ("omega_cmd_max 1e-300 (omega_squared)", "buho", _set("rotors", "omega_cmd_max_rad_s", 1e-300),
+     "rotors.omega_cmd_max_rad_s", "expected 1..100000 rad/s, got 1e-300"),
+    ("thrust_max 1e-300", "sih", _set("rotors", "thrust_max_n", 1e-300),
+     "rotors.thrust_max_n", "expected 0.0001..1e+06 N, got 1e-300"),
+    ("kt 1e-300", "buho", _set("rotors", "kt_n_s2_rad2", 1e-300),
+     "rotors.kt_n_s2_rad2", "expected 1e-12..1e+06 N s^2/rad^2, got 1e-300"),
+    ("kt given 1e-300 (thrust_factor)", "sih", _set("rotors", "kt_n_s2_rad2", 1e-300),
+     "rotors.kt_n_s2_rad2", "expected 1e-12..1e+06 N s^2/rad^2 (default thrust_max_n / omega_max_rad_s^2), "
+                            "got 1e-300"),
+    ("km 1e-300", "buho", _set("rotors", "km_m", 1e-300), "rotors.km_m", "expected 0.0001..1 m, got 1e-300"),
+    ("km 0 (no yaw authority)", "sih", _set("rotors", "km_m", 0.0), "rotors.km_m", "expected 0.0001..1 m, got 0"),
+    ("all rotors at the centre", "buho", _at_centre, "rotors.x_flu_m",
+     "expected rotor positions that span roll and pitch (an RMS spread about their centroid of at least "
+     "0.001 m along every horizontal axis: a moment arm about both), got 0 m"),
+    ("all rotors on one line", "sih", _on_line, "rotors.x_flu_m",
+     "expected rotor positions that span roll and pitch"),
+    ("controller rate 1e-300 Hz", "sih", lambda d: _params(d).update(controller={"rate_hz": 1e-300}),
+     "controller.rate_hz", "expected 1..10000 Hz, got 1e-300"),
+    ("controller tilt 120 deg", "sih", lambda d: _params(d).update(controller={"tilt_max_deg": 120.0}),
+     "controller.tilt_max_deg", "expected > 0 and <= 89 deg, got 120.0"),
+    ("controller gain -1", "buho", lambda d: _params(d).update(controller={"rate_p_1_s": -1.0}),
+     "controller.rate_p_1_s", "expected 0..100000, got -1.0"),
+    ("controller thr_min >= thr_max", "sih", lambda d: _params(d).update(controller={"thr_min": 0.5, "thr_max": 0.4}),
+     "controller.thr_min", "expected < thr_max (0.4), got 0.5"),
+]
+
+
+@pytest.mark.parametrize("what,base,mutate,key,expected", RANGES, ids=[r[0] for r in RANGES])
+def test_params_value_out_of_range(tmp_path, what, base, mutate, key, expected):
+    doc = _sih_doc() if base == "sih" else _buho_doc()
+    mutate(doc)
+    path = _write(tmp_path, doc)
+    with pytest.raises(ParamsError, match=re.escape(f"{path}: {key}: {expected}")) as info:
+        load_params(path)
+    assert "\n" not in str(info.value)
+
+
+def test_in_memory_edits_are_range_checked():
+    """``VehicleParams.replace*`` re-validates: the same ranges hold for edited params."""
+    vp = load_params(SIH)
+    for change, key in (({"omega_max_rad_s": 1e-300}, "rotors.omega_max_rad_s"),
+                        ({"kt_n_s2_rad2": 1e-300}, "rotors.kt_n_s2_rad2"),
+                        ({"y_flu_m": (0.0, 0.0, 0.0, 0.0)}, "rotors.x_flu_m")):
+        with pytest.raises(ParamsError, match=re.escape(f": {key}: expected")):
+            vp.replace_rotors(**change)
+    with pytest.raises(ParamsError, match=re.escape(": controller.rate_hz: expected 1..10000 Hz")):
+        vp.replace(controller={"rate_hz": 0.5})
+
+
+@pytest.mark.parametrize("argv", [
+    ["params", "check", "{P}"],
+    ["simulate", "--params", "{P}", "--out", "{O}/s.ulg"],
+    ["discover", "{O}/missing.ulg", "--params", "{P}", "--json", "{O}/r.json", "--no-closed-loop"],
+], ids=["params check", "simulate", "discover"])
+def test_cli_omega_max_1e300_is_one_line(tmp_path, capsys, monkeypatch, argv):
+    """``omega_max_rad_s: 1e-300`` raised ZeroDivisionError in every command (issue 28)."""
+    doc = _sih_doc()
+    _params(doc)["rotors"]["omega_max_rad_s"] = 1e-300
+    bad = _write(tmp_path, doc)
+    out = tmp_path / "out"
+    out.mkdir()
+    monkeypatch.chdir(out)
+    rc = main([a.replace("{P}", str(bad)).replace("{O}", str(out)) for a in argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2
+    assert err == [f"rotortwin: error: {bad}: rotors.omega_max_rad_s: expected 1..100000 rad/s, got 1e-300"]
+    assert list(out.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- duplicate keys
+
+
+def test_duplicate_key_in_params_file_is_refused(tmp_path):
+    text = SIH.read_text()
+    assert text.count("      km_m: 0.02\n") == 1
+    bad = _write(tmp_path, text.replace("      km_m: 0.02\n", "      km_m: 0.02\n      km_m: 0.03\n"))
+    line = text.splitlines().index("      km_m: 0.02") + 2
+    with pytest.raises(ParamsError, match=re.escape(f"{bad}: km_m: duplicate key at line {line} "
+                                                    f"(first at line {line - 1})")):
+        load_params(bad)
+
+
+def test_duplicate_key_cli_one_line(tmp_path, capsys):
+    text = SIH.read_text().replace("    vehicle:\n", "    vehicle:\n      mass_kg: 9.0\n", 1)
+    bad = _write(tmp_path, text)
+    assert main(["params", "check", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"rotortwin: error: {bad}: mass_kg: duplicate key at line "), err
+
+
+def test_duplicate_key_in_spec_and_plan_is_refused(tmp_path):
+    from twin_nodes.mavlink.mission import load_plan
+
+    spec = (PARAMS / "derive_buho_negro.yaml").read_text()
+    assert "\n  km_m: 0.0238\n" in spec
+    bad = _write(tmp_path, spec.replace("\n  km_m: 0.0238\n", "\n  km_m: 0.0238\n  km_m: 0.0\n"), "spec.yaml")
+    with pytest.raises(ParamsError, match=re.escape(f"{bad}: km_m: duplicate key at line ")):
+        derive_file(bad)
+    plans = sorted((PARAMS.parent / "missions").glob("*.plan.yaml"))
+    assert plans
+    text = plans[0].read_text()
+    top = next(ln for ln in text.splitlines() if ln and ln[0].isalpha() and ":" in ln)
+    bad = _write(tmp_path, text + "\n" + top + "\n", "plan.yaml")
+    with pytest.raises(ParamsError, match=re.escape(f"{bad}: {top.split(':')[0]}: duplicate key at line ")):
+        load_plan(bad)
+
+
+def test_yaml_merge_keys_may_still_override():
+    """YAML's merge key (``<<: *base``) is not a duplicate: the mapping's own key wins, as specified."""
+    from twin_nodes.base.yamlio import safe_load
+
+    assert safe_load("base: &b {a: 1, b: 2}\nx:\n  <<: *b\n  a: 3\n")["x"] == {"a": 3, "b": 2}
+    with pytest.raises(Exception, match="duplicate key 'a'"):
+        safe_load("x: {a: 1, a: 2}\n")
+
+
+def test_no_plain_yaml_load_of_user_files():
+    """Every YAML file is read through twin_nodes.base.yamlio (duplicate keys refused)."""
+    root = PARAMS.parent / "twin_nodes"
+    offenders = [f"{p.relative_to(root)}:{i}" for p in root.rglob("*.py") if p.name != "yamlio.py"
+                 for i, line in enumerate(p.read_text().splitlines(), 1)
+                 if re.search(r"yaml\.(safe_load|load|full_load|unsafe_load)\(", line)]
+    assert offenders == []
+
+
+# --------------------------------------------------------------------------- a log's PX4 parameters
+
+_QUAD = [(0.2, 0.2), (-0.2, -0.2), (0.2, -0.2), (-0.2, 0.2)]
+
+
+def _ca(**changes) -> dict:
+    p = {"CA_ROTOR_COUNT": 4}
+    for i, (x, y) in enumerate(_QUAD):
+        p[f"CA_ROTOR{i}_PX"], p[f"CA_ROTOR{i}_PY"] = x, y
+    p.update(changes)
+    return p
+
+
+@pytest.mark.parametrize("changes,key,expected", [
+    ({"CA_ROTOR0_PX": float("inf")}, "CA_ROTOR0_PX", "expected a finite number -100..100 m, got inf"),
+    ({"CA_ROTOR2_PY": float("nan")}, "CA_ROTOR2_PY", "expected a finite number -100..100 m, got nan"),
+    ({"CA_ROTOR1_PZ": 1e30}, "CA_ROTOR1_PZ", "expected a finite number -100..100 m, got 1e+30"),
+    ({"CA_ROTOR_COUNT": -4}, "CA_ROTOR_COUNT", "expected an integer 0..32, got -4"),
+    ({"CA_ROTOR_COUNT": 2.5}, "CA_ROTOR_COUNT", "expected an integer 0..32, got 2.5"),
+    ({"CA_ROTOR_COUNT": 1e9}, "CA_ROTOR_COUNT", "expected an integer 0..32, got 1e+09"),
+    ({"SYS_AUTOSTART": float("nan")}, "SYS_AUTOSTART", "expected an integer 0..99999999, got nan"),
+    ({"CA_ROTOR3_KM": float("inf")}, "CA_ROTOR3_KM", "expected a finite number -1..1, got inf"),
+    ({f"CA_ROTOR{i}_PY": 0.0 for i in range(4)}, "CA_ROTOR0_PX", "expected rotor positions CA_ROTOR0..3_PX/PY "
+                                                                 "that span roll and pitch"),
+])
+def test_log_rotor_parameters_range_checked(changes, key, expected):
+    from twin_nodes.vehicle.px4_params import rotor_layout
+
+    assert rotor_layout(_ca(), "f.ulg").x_flu_m == (0.2, -0.2, 0.2, -0.2)
+    with pytest.raises(ParamsError, match=re.escape(f"f.ulg: {key}: {expected}")):
+        rotor_layout(_ca(**changes), "f.ulg")
+
+
+def test_log_sensor_timing_rates_range_checked():
+    from twin_nodes.vehicle.px4_params import sensor_timing
+
+    assert sensor_timing({"IMU_GYRO_CUTOFF": 40.0}).gyro_filter_s == pytest.approx(2 ** 0.5 / (2 * np.pi * 40))
+    assert sensor_timing({"IMU_GYRO_CUTOFF": 0.0}).gyro_filter_s == 0.0
+    with pytest.raises(ParamsError, match=re.escape("f.ulg: IMU_GYRO_CUTOFF: expected 0 (off) or 1..100000 Hz, "
+                                                    "got 1e-300")):
+        sensor_timing({"IMU_GYRO_CUTOFF": 1e-300}, "f.ulg")
+
+
+@pytest.mark.parametrize("changes,line", [
+    ({"CA_ROTOR0_PX": float("inf")}, "CA_ROTOR0_PX: expected a finite number -100..100 m, got inf"),
+    ({"CA_ROTOR_COUNT": -4}, "CA_ROTOR_COUNT: expected an integer 0..32, got -4"),
+], ids=["CA_ROTOR0_PX inf", "CA_ROTOR_COUNT -4"])
+def test_cli_from_ulog_bad_log_parameters(tmp_path, capsys, changes, line):
+    """``params from-ulog`` on a log whose CA_* parameters are unusable (a traceback or silently accepted
+    before issue 28): one line naming the log and the parameter, nothing written."""
+    import ulog_cases as C
+    from twin_nodes.logs.ulog_write import write_px4_ulog
+
+    log = write_px4_ulog(tmp_path / "f.ulg", C.small_topics(20.0, 50.0), {"MPC_THR_HOVER": 0.5, **_ca(**changes)},
+                         {"ver_sw": "test"}, start_us=C.T0_US)
+    out = tmp_path / "p.yaml"
+    assert main(["params", "from-ulog", str(log), "--out", str(out), "--mass-kg", "1.0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert [ln for ln in err if not ln.startswith("rotortwin: warning:")] == [f"rotortwin: error: {log}: {line}"]
+    assert not out.exists()

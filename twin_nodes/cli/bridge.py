@@ -76,7 +76,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _ros_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-ros", action="store_true", help="run without ROS (print status lines)")
     p.add_argument("-v", "--verbose", action="store_true", help="log the link's events")
-    add_foxglove_option(p)
+    add_foxglove_option(p, port_type=port())
 
 
 def _ros_available() -> bool:

@@ -36,7 +36,7 @@ import sys
 from pathlib import Path
 
 from twin_nodes.base.errors import TwinError
-from twin_nodes.cli.options import SPEED, WINDOW_S, domain_id
+from twin_nodes.cli.options import SPEED, WINDOW_S, domain_id, port
 from twin_nodes.live.attach import add_foxglove_option, foxglove_beside, free_domain
 from twin_nodes.graph import bag_dir, default_params_for, run_graph
 
@@ -119,5 +119,5 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                                  "refused while another rotortwin run holds it")
     c.add_argument("--offline", action="store_true", help="no ROS: the same metrics via compare_log")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_foxglove_option(c)
+    add_foxglove_option(c, port_type=port())
     c.set_defaults(func=_cmd_compare)

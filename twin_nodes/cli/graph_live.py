@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import Any
 
-from twin_nodes.cli.options import SECONDS, domain_id, integer
+from twin_nodes.cli.options import SECONDS, domain_id, integer, port
 from twin_nodes.graph.domains import check_domain_id
 from twin_nodes.graph.live import MonitorState, echo_topic, format_monitor, topic_types, watch_metrics
 from twin_nodes.live.attach import add_foxglove_option, foxglove_beside
@@ -79,7 +79,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--once", action="store_true", help="print one table once the topics are seen, then exit")
     m.add_argument("--duration", type=SECONDS, help="stop after S seconds")
     m.add_argument("--domain-id", type=domain_id(), help="ROS_DOMAIN_ID of the graph (default: the environment's)")
-    add_foxglove_option(m)
+    add_foxglove_option(m, port_type=port())
     m.set_defaults(func=_cmd_monitor)
 
     common = _topics_common()

@@ -46,13 +46,10 @@ def load_params_map(path: str | None) -> dict[str, str] | None:
     """``vehicle id -> params file`` from a YAML mapping (relative files are relative to it)."""
     if not path:
         return None
-    import yaml
+    from twin_nodes.base.yamlio import read_yaml_file  # one-line errors, duplicate keys refused
 
     p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise TwinError(f"{path}: <file>: expected a YAML mapping vehicle id -> params file ({exc})") from None
+    data = read_yaml_file(p, "YAML mapping vehicle id -> params file")
     if not isinstance(data, dict) or not all(isinstance(v, str) for v in data.values()):
         raise TwinError(f"{path}: <root>: expected a mapping vehicle id -> params file path")
     out = {}

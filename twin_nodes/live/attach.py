@@ -25,7 +25,7 @@ import sys
 import tempfile
 import threading
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 from twin_nodes.base.errors import TwinError
 
@@ -34,10 +34,9 @@ __all__ = ["add_foxglove_option", "foxglove_beside", "free_domain", "DEFAULT_POR
 DEFAULT_PORT = 8765
 
 
-def add_foxglove_option(parser: argparse.ArgumentParser) -> None:
-    from twin_nodes.cli.options import port
-
-    parser.add_argument("--foxglove", nargs="?", type=port(), const=DEFAULT_PORT, default=None, metavar="PORT",
+def add_foxglove_option(parser: argparse.ArgumentParser, port_type: Any = int) -> None:
+    """``--foxglove [PORT]``; the CLI passes ``port_type=twin_nodes.cli.options.port()`` (range-checked)."""
+    parser.add_argument("--foxglove", nargs="?", type=port_type, const=DEFAULT_PORT, default=None, metavar="PORT",
                         help=f"also serve the graph's topics to Foxglove on ws://127.0.0.1:PORT "
                              f"(default {DEFAULT_PORT}; layout: layouts/rotortwin.json)")
 

@@ -66,11 +66,10 @@ def vehicle_from_config(config: Mapping[str, Any]) -> VehicleOutline | None:
     if not isinstance(text, str):
         return None
     try:
-        import yaml
-
+        from twin_nodes.base.yamlio import safe_load
         from twin_nodes.vehicle.params import from_ros_dict
 
-        return VehicleOutline.from_params(from_ros_dict(yaml.safe_load(text), str(config.get("params_file", ""))))
+        return VehicleOutline.from_params(from_ros_dict(safe_load(text), str(config.get("params_file", ""))))
     except Exception:  # a config we cannot read gives the default outline
         return None
 

@@ -184,7 +184,7 @@ def plan_from_mapping(doc: Any, path: str = "<memory>") -> MissionPlanFile:
 
 def load_plan(path: str | Path) -> MissionPlanFile:
     """Read and validate a plan file."""
-    from twin_nodes.vehicle.params import read_yaml_file  # regular UTF-8 file, size-limited, one-line errors
+    from twin_nodes.base.yamlio import read_yaml_file  # regular UTF-8 file, size-limited, one-line errors
 
     p = str(path)
     doc = read_yaml_file(p, "mission plan YAML file")

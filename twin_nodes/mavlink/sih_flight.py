@@ -47,7 +47,7 @@ ULOG_MAGIC = b"ULog\x01\x12\x35"
 
 def load_manifest(path: str | Path = MANIFEST) -> dict:
     """The SIH manifest, checked for what flying needs (one-line errors naming file and field)."""
-    from twin_nodes.vehicle.params import read_yaml_file
+    from twin_nodes.base.yamlio import read_yaml_file
 
     p = str(path)
     doc = read_yaml_file(p, "SIH flights manifest")

@@ -74,7 +74,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from twin_nodes.base.errors import ParamsError
-from twin_nodes.vehicle.params import GRAVITY_DEFAULT, VehicleParams, _Reader, from_ros_dict, read_yaml_file
+from twin_nodes.base.yamlio import read_yaml_file
+from twin_nodes.vehicle.params import GRAVITY_DEFAULT, VehicleParams, _Reader, from_ros_dict
 
 RPM_TO_RAD_S = 2.0 * math.pi / 60.0
 INCH_M = 0.0254

@@ -25,21 +25,24 @@ Physical ranges (:data:`LIMITS`; anything outside is a typo or a corrupt file,
 and some values would hang or overflow the simulator): mass 1e-3..1e4 kg;
 principal inertia positive with a radius of gyration sqrt(I/m) of 1 mm up to
 max(1 m, 3 x the farthest rotor's distance); rotor positions within 100 m of the
-centre of mass; 1..32 rotors; thrust per rotor at full command up to 1e6 N; km
-0..1 m; rotor speeds up to 1e5 rad/s; time constants 0..10 s; gravity
-0.1..100 m/s^2; ``simulation.dt_s`` 1e-5..0.1 s; every number (also in
-``controller`` and ``sensors``) finite; effect parameters finite and in their
-effect's range (:attr:`twin_nodes.physics.effects.Effect.ranges`), motor
-indices within the rotor count.  A params file must be a regular UTF-8 file of
-at most 1 MB.
+centre of mass, spanning roll and pitch (the RMS spread of the rotors about their
+centroid along the weakest horizontal axis at least 1 mm: a layout with no moment arm
+about some axis cannot be flown); 1..32 rotors; thrust per rotor at full command
+1e-4..1e6 N (``thrust_max_n`` too); kt 1e-12..1e6 N s^2/rad^2; km 1e-4..1 m; rotor
+speeds up to 1e5 rad/s, the top speeds (``omega_cmd_max_rad_s``, ``omega_max_rad_s``)
+at least 1 rad/s; time constants 0..10 s; gravity 0.1..100 m/s^2;
+``simulation.dt_s`` 1e-5..0.1 s; the ``controller`` gains in
+:data:`CONTROLLER_LIMITS`; every number (also in ``sensors``) finite; effect
+parameters finite and in their effect's range
+(:attr:`twin_nodes.physics.effects.Effect.ranges`), motor indices within the rotor
+count.  A params file must be a regular UTF-8 file of at most 1 MB, without
+duplicate keys (:mod:`twin_nodes.base.yamlio`).
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
-import os
-import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -48,6 +51,8 @@ import numpy as np
 import yaml
 
 from twin_nodes.base.errors import ParamsError
+from twin_nodes.base.yamlio import MAX_FILE_BYTES, read_yaml_file
+from twin_nodes.base.yamlio import safe_load as _safe_load  # noqa: F401 - the one YAML loader, re-exported
 from twin_nodes.physics.effects import EFFECTS
 
 THRUST_MODELS = ("omega_squared", "thrust_factor")
@@ -61,16 +66,40 @@ LIMITS = {
     "position_m": 100.0,           # |rotor position| upper bound
     "rotors": (1, 32),
     "thrust_max_n": 1e6,           # per rotor, at full command
-    "km_m": (0.0, 1.0),
+    "thrust_min_n": 1e-4,          # per rotor, at full command (and thrust_max_n)
+    "kt_n_s2_rad2": (1e-12, 1e6),
+    "km_m": (1e-4, 1.0),
     "omega_rad_s": 1e5,
+    "omega_top_min_rad_s": 1.0,    # omega_cmd_max / omega_max lower bound (they divide)
+    "span_m": 1e-3,                # rotor positions' RMS spread along the weakest horizontal axis
     "tau_s": (0.0, 10.0),
     "gravity_m_s2": (0.1, 100.0),
     "dt_s": (1e-5, 0.1),
 }
-#: largest YAML file read [bytes] (params, derivation specs, mission plans) and most
-#: values in a params file's free-form blocks (controller, sensors)
-MAX_FILE_BYTES = 1_000_000
+#: most values in a params file's free-form blocks (controller, sensors); the largest YAML file
+#: read is twin_nodes.base.yamlio.MAX_FILE_BYTES
 MAX_VALUES = 10_000
+
+#: ``controller:`` gains (twin_nodes.twin.control.ControllerGains) -> (lo, hi, lo excluded, unit):
+#: PX4's own parameter ranges, widened (the twin's rate gains are physical, so they scale with the
+#: vehicle); a key not listed here is checked by ControllerGains.from_params
+_GAIN = (0.0, 1e5, False, "")
+CONTROLLER_LIMITS: dict[str, tuple[float, float, bool, str]] = {
+    "rate_hz": (1.0, 10000.0, False, "Hz"),
+    **{k: _GAIN for k in ("xy_p_1_s", "z_p_1_s", "xy_vel_p_1_s", "xy_vel_i_1_s2", "xy_vel_d", "z_vel_p_1_s",
+                          "z_vel_i_1_s2", "z_vel_d", "roll_p_1_s", "pitch_p_1_s", "yaw_p_1_s", "rate_p_1_s",
+                          "rate_i_1_s2", "rate_d", "yawrate_p_1_s", "yawrate_i_1_s2", "rate_i_max_rad_s2",
+                          "vel_i_max_m_s2")},
+    "xy_vel_max_m_s": (0.0, 1000.0, False, "m/s"),
+    "z_vel_max_up_m_s": (0.0, 1000.0, False, "m/s"),
+    "z_vel_max_dn_m_s": (0.0, 1000.0, False, "m/s"),
+    "tilt_max_deg": (0.0, 89.0, True, "deg"),
+    "thr_min": (0.0, 1.0, False, "of full thrust"),
+    "thr_max": (0.0, 1.0, True, "of full thrust"),
+    "yaw_weight": (0.0, 1.0, False, ""),
+    "rollrate_max_deg_s": (0.0, 36000.0, True, "deg/s"),
+    "yawrate_max_deg_s": (0.0, 36000.0, True, "deg/s"),
+}
 
 
 @dataclass(frozen=True)
@@ -414,6 +443,34 @@ def _check_effect(path: str, name: str, params: Mapping[str, Any], n_rotors: int
         raise ParamsError(path, f"effects.{name}.{bad[0]}", bad[1])
 
 
+def _check_controller(path: str, controller: Mapping[str, Any]) -> None:
+    """The ``controller:`` gains of :data:`CONTROLLER_LIMITS` in their ranges, thr_min < thr_max."""
+    for k, v in controller.items():
+        lim = CONTROLLER_LIMITS.get(str(k))
+        if lim is None:
+            continue  # unknown keys: ControllerGains.from_params names the known ones
+        lo, hi, lo_open, unit = lim
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ParamsError(path, f"controller.{k}", f"expected a number, got {_short(v)}")
+        f = _finite(v)
+        if f is None or not ((f > lo if lo_open else f >= lo) and f <= hi):
+            want = f"> {lo:g} and <= {hi:g}" if lo_open else f"{lo:g}..{hi:g}"
+            raise ParamsError(path, f"controller.{k}", f"expected {want}{' ' + unit if unit else ''}, got {_short(v)}")
+    lo_thr, hi_thr = controller.get("thr_min", 0.12), controller.get("thr_max", 1.0)
+    if not lo_thr < hi_thr:
+        raise ParamsError(path, "controller.thr_min", f"expected < thr_max ({hi_thr:g}), got {lo_thr:g}")
+
+
+def rotor_span_m(x_flu_m: Any, y_flu_m: Any) -> float:
+    """RMS spread [m] of the rotor positions about their centroid along the weakest horizontal axis:
+    0 when every rotor sits on one point or one line (no moment arm about some axis)."""
+    xy = np.column_stack([np.asarray(x_flu_m, float), np.asarray(y_flu_m, float)])
+    if len(xy) < 2 or not np.all(np.isfinite(xy)):
+        return 0.0
+    xy = xy - xy.mean(axis=0)
+    return float(np.linalg.svd(xy, compute_uv=False)[-1] / np.sqrt(len(xy)))
+
+
 def _unwrap_ros(path: str, doc: Any) -> Mapping[str, Any]:
     """Find the ``ros__parameters`` mapping (``/**`` or a node name as the key)."""
     if not isinstance(doc, Mapping):
@@ -472,28 +529,31 @@ def from_ros_dict(data: Mapping[str, Any], path: str = "<memory>") -> VehiclePar
     tau_up = r.rng("tau_up_s", *LIMITS["tau_s"], "s")
     tau_down = r.rng("tau_down_s", *LIMITS["tau_s"], "s")
     km = r.rng("km_m", *LIMITS["km_m"], "m")
-    w_hi = LIMITS["omega_rad_s"]
+    w_hi, w_top = LIMITS["omega_rad_s"], LIMITS["omega_top_min_rad_s"]
+    kt_lo, kt_hi = LIMITS["kt_n_s2_rad2"]
+    t_lo, t_hi = LIMITS["thrust_min_n"], LIMITS["thrust_max_n"]
     if model == "omega_squared":
-        kt = r.num("kt_n_s2_rad2", gt=0.0)
+        kt = r.rng("kt_n_s2_rad2", kt_lo, kt_hi, "N s^2/rad^2")
         wmin = r.rng("omega_min_rad_s", 0.0, w_hi, "rad/s")
-        wcmd = r.rng("omega_cmd_max_rad_s", 0.0, w_hi, "rad/s", lo_open=True)
-        wmax = r.rng("omega_max_rad_s", 0.0, w_hi, "rad/s", wcmd, lo_open=True)
+        wcmd = r.rng("omega_cmd_max_rad_s", w_top, w_hi, "rad/s")
+        wmax = r.rng("omega_max_rad_s", w_top, w_hi, "rad/s", wcmd)
         if not wmin < wcmd:
             raise r.err("omega_min_rad_s", f"expected omega_min_rad_s < omega_cmd_max_rad_s, got {wmin:g} >= {wcmd:g}")
         if not wcmd <= wmax:
             raise r.err("omega_cmd_max_rad_s", f"expected <= omega_max_rad_s ({wmax:g}), got {wcmd:g}")
         tmax = kt * wcmd * wcmd
-        if not tmax <= LIMITS["thrust_max_n"]:
-            raise r.err("kt_n_s2_rad2", f"expected a thrust at full command kt*omega_cmd_max^2 <= "
-                                        f"{LIMITS['thrust_max_n']:g} N per rotor, got {tmax:.6g} N")
+        if not t_lo <= tmax <= t_hi:
+            raise r.err("kt_n_s2_rad2", f"expected a thrust at full command kt*omega_cmd_max^2 of "
+                                        f"{t_lo:g}..{t_hi:g} N per rotor, got {tmax:.6g} N")
         fac = r.num("thr_mdl_fac", 0.0, ge=0.0, le=1.0)
     else:
-        tmax = r.rng("thrust_max_n", 0.0, LIMITS["thrust_max_n"], "N", lo_open=True)
+        tmax = r.rng("thrust_max_n", t_lo, t_hi, "N")
         fac = r.num("thr_mdl_fac", 0.0, ge=0.0, le=1.0)
-        wmax = r.rng("omega_max_rad_s", 0.0, w_hi, "rad/s", 1000.0, lo_open=True)
-        wcmd = r.rng("omega_cmd_max_rad_s", 0.0, w_hi, "rad/s", wmax, lo_open=True)
+        wmax = r.rng("omega_max_rad_s", w_top, w_hi, "rad/s", 1000.0)
+        wcmd = r.rng("omega_cmd_max_rad_s", w_top, w_hi, "rad/s", wmax)
         wmin = r.rng("omega_min_rad_s", 0.0, w_hi, "rad/s", 0.0)
-        kt = r.num("kt_n_s2_rad2", tmax / (wmax * wmax), gt=0.0)
+        kt = r.rng("kt_n_s2_rad2", kt_lo, kt_hi, "N s^2/rad^2 (default thrust_max_n / omega_max_rad_s^2)",
+                   tmax / (wmax * wmax))
 
     rotors = RotorParams(
         x_flu_m=tuple(xs), y_flu_m=tuple(ys), z_flu_m=tuple(zs),
@@ -513,6 +573,7 @@ def from_ros_dict(data: Mapping[str, Any], path: str = "<memory>") -> VehiclePar
         blocks[name] = dict(top.sub(name, required=False).data)
         _check_tree(path, name, blocks[name], budget)
     controller, sensors = blocks["controller"], blocks["sensors"]
+    _check_controller(path, controller)
     vp = VehicleParams(
         name=v.text("name", "vehicle"), mass_kg=mass,
         inertia_kg_m2=tuple(tuple(float(e) for e in row) for row in inertia),
@@ -576,6 +637,12 @@ def validate(p: VehicleParams) -> None:
     if not far <= LIMITS["position_m"]:
         raise ParamsError(path, "rotors.x_flu_m", f"expected rotor positions within {LIMITS['position_m']:g} m "
                                                   f"of the centre of mass, got one at {far:.6g} m")
+    span = rotor_span_m(r.x_flu_m, r.y_flu_m)
+    if not span >= LIMITS["span_m"]:
+        raise ParamsError(path, "rotors.x_flu_m",
+                          f"expected rotor positions that span roll and pitch (an RMS spread about their centroid "
+                          f"of at least {LIMITS['span_m']:g} m along every horizontal axis: a moment arm about "
+                          f"both), got {span:.3g} m")
     g_lo = LIMITS["gyration_min_m"]
     g_hi = max(LIMITS["gyration_max_floor_m"], 3.0 * far)
     for i, k in enumerate(("ixx_kg_m2", "iyy_kg_m2", "izz_kg_m2")):
@@ -595,75 +662,35 @@ def validate(p: VehicleParams) -> None:
     if not _in(r.km_m, k_lo, k_hi):
         raise ParamsError(path, "rotors.km_m", f"expected {k_lo:g}..{k_hi:g} m, got {r.km_m:g}")
     for k in ("omega_min_rad_s", "omega_cmd_max_rad_s", "omega_max_rad_s"):
-        if not _in(getattr(r, k), 0.0, LIMITS["omega_rad_s"]):
-            raise ParamsError(path, f"rotors.{k}", f"expected 0..{LIMITS['omega_rad_s']:g} rad/s, got {getattr(r, k):g}")
-    if not (_in(r.kt_n_s2_rad2, 0.0, np.inf) and r.kt_n_s2_rad2 > 0):
-        raise ParamsError(path, "rotors.kt_n_s2_rad2", f"expected a finite number > 0, got {r.kt_n_s2_rad2:g}")
+        w_lo = 0.0 if k == "omega_min_rad_s" else LIMITS["omega_top_min_rad_s"]
+        if not _in(getattr(r, k), w_lo, LIMITS["omega_rad_s"]):
+            raise ParamsError(path, f"rotors.{k}", f"expected {w_lo:g}..{LIMITS['omega_rad_s']:g} rad/s, "
+                                                   f"got {getattr(r, k):g}")
+    kt_lo, kt_hi = LIMITS["kt_n_s2_rad2"]
+    if not _in(r.kt_n_s2_rad2, kt_lo, kt_hi):
+        raise ParamsError(path, "rotors.kt_n_s2_rad2", f"expected {kt_lo:g}..{kt_hi:g} N s^2/rad^2, "
+                                                       f"got {r.kt_n_s2_rad2:g}")
     if not _in(r.thr_mdl_fac, 0.0, 1.0):
         raise ParamsError(path, "rotors.thr_mdl_fac", f"expected 0..1, got {r.thr_mdl_fac:g}")
-    if not (_in(r.thrust_at_full_command_n, 0.0, LIMITS["thrust_max_n"])
-            and _in(r.thrust_max_n, 0.0, LIMITS["thrust_max_n"]) and r.thrust_max_n > 0):
+    t_lo, t_hi = LIMITS["thrust_min_n"], LIMITS["thrust_max_n"]
+    with np.errstate(over="ignore", invalid="ignore"):
+        t_full = r.thrust_at_full_command_n
+    if not (_in(t_full, t_lo, t_hi) and _in(r.thrust_max_n, t_lo, t_hi)):
         raise ParamsError(path, "rotors.thrust_max_n",
-                          f"expected a thrust at full command of 0..{LIMITS['thrust_max_n']:g} N per rotor, "
-                          f"got {r.thrust_at_full_command_n:g} N")
+                          f"expected a thrust at full command of {t_lo:g}..{t_hi:g} N per rotor, "
+                          f"got {t_full:g} N (thrust_max_n {r.thrust_max_n:g})")
     d_lo, d_hi = LIMITS["dt_s"]
     if not _in(p.dt_s, d_lo, d_hi):
         raise ParamsError(path, "simulation.dt_s", f"expected {d_lo:g}..{d_hi:g} s, got {p.dt_s:g}")
     for name, params in p.effects:
         _check_effect(path, name, dict(params), r.count)
+    _check_controller(path, p.controller or {})
     if r.thrust_model == "omega_squared" and not r.omega_min_rad_s < r.omega_cmd_max_rad_s <= r.omega_max_rad_s:
         raise ParamsError(path, "rotors.omega_min_rad_s", "expected omega_min < omega_cmd_max <= omega_max")
     if p.hover_thrust_per_rotor_n >= r.thrust_at_full_command_n:
         raise ParamsError(path, "rotors.kt_n_s2_rad2",
                           f"rotors cannot lift the vehicle: {r.count} x {r.thrust_at_full_command_n:.3g} N "
                           f"at full command < weight {p.mass_kg * p.gravity_m_s2:.3g} N")
-
-
-def _safe_load(text: str) -> Any:
-    """``yaml.safe_load`` semantics; libyaml's parser (10x faster) unless the text could nest
-    deeper than it handles safely (its C recursion crashes the process near 50 000 levels):
-    nesting needs one of ``[{-?:`` per level, so more than 5000 of them use the Python parser,
-    which raises RecursionError instead."""
-    loader = getattr(yaml, "CSafeLoader", None)
-    if loader is None or sum(text.count(c) for c in "[{-?:") > 5000:
-        loader = yaml.SafeLoader
-    return yaml.load(text, Loader=loader)  # noqa: S506 - a safe loader
-
-
-def read_yaml_file(path: str | Path, what: str = "YAML file") -> Any:
-    """The YAML document in ``path`` (``yaml.safe_load``), or a one-line ParamsError
-    (``<file>: <file>|line N: ...``) when the path is missing, not a regular file, larger
-    than MAX_FILE_BYTES, unreadable, not UTF-8, or not YAML.  Used for every YAML input
-    (params files, derivation specs, mission plans)."""
-    path = str(path)
-    try:
-        st = os.stat(path)
-        if not stat.S_ISREG(st.st_mode):
-            kind = "a directory" if stat.S_ISDIR(st.st_mode) else "not a regular file"
-            raise ParamsError(path, "<file>", f"expected a {what}, got {kind}")
-        if st.st_size > MAX_FILE_BYTES:
-            raise ParamsError(path, "<file>", f"expected a {what} of at most {MAX_FILE_BYTES} bytes, "
-                                              f"got {st.st_size}")
-        with open(path, "rb") as fh:
-            raw = fh.read(MAX_FILE_BYTES + 1)
-    except FileNotFoundError:
-        raise ParamsError(path, "<file>", "file not found") from None
-    except OSError as exc:
-        raise ParamsError(path, "<file>", f"expected a readable {what} ({exc.strerror or exc})") from None
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ParamsError(path, "<file>", f"expected UTF-8 text, got byte 0x{raw[exc.start]:02x} at offset "
-                                          f"{exc.start}") from None
-    try:
-        return _safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}" if mark is not None else "<yaml>"
-        problem = " ".join(str(getattr(exc, "problem", None) or exc).split())[:120]
-        raise ParamsError(path, where, f"not valid YAML ({problem})") from None
-    except RecursionError:
-        raise ParamsError(path, "<yaml>", "not valid YAML (nested too deeply)") from None
 
 
 def load_params(path: str | Path) -> VehicleParams:
@@ -686,7 +713,7 @@ def write_params(p: VehicleParams, path: str | Path, header: str = "") -> None:
     """Validate, then write atomically (a failed write never leaves a half file)."""
     validate(p)
     text = dump_params(p, header)
-    from_ros_dict(_unwrap_ros(str(path), yaml.safe_load(text)), str(path))  # round-trip check
+    from_ros_dict(_unwrap_ros(str(path), _safe_load(text)), str(path))  # round-trip check
     tmp = Path(str(path) + ".tmp")
     tmp.write_text(text, encoding="utf-8")
     tmp.replace(path)

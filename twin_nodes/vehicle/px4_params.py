@@ -73,19 +73,73 @@ def _quad_x(arm_m: float) -> tuple[np.ndarray, np.ndarray]:
     return np.array([a, -a, a, -a]), np.array([a, -a, -a, a])
 
 
+def _shown(v: object) -> str:
+    """A parameter value for a message: ``-4``, ``2.5``, ``inf``, ``1e+30``."""
+    try:
+        return f"{float(v):g}"  # type: ignore[arg-type]
+    except (TypeError, ValueError, OverflowError):
+        return repr(v)[:40]
+
+
+def int_param(params: Mapping[str, float], name: str, path: str, lo: int, hi: int) -> int:
+    """An integer PX4 parameter in ``lo..hi`` (absent or None: 0), else a one-line ParamsError."""
+    v = params.get(name)
+    if v is None:
+        return 0
+    try:
+        f = float(v)
+        ok = math.isfinite(f) and f.is_integer() and lo <= f <= hi
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise ParamsError(path, name, f"expected an integer {lo}..{hi}, got {_shown(v)}")
+    return int(f)
+
+
+def real_param(params: Mapping[str, float], name: str, path: str, default: float, lo: float, hi: float,
+               unit: str) -> float:
+    """A real PX4 parameter in ``lo..hi`` [unit] (absent: ``default``), else a one-line ParamsError."""
+    v = params.get(name)
+    if v is None:
+        return float(default)
+    try:
+        f = float(v)
+        ok = math.isfinite(f) and lo <= f <= hi
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise ParamsError(path, name, f"expected a finite number {lo:g}..{hi:g}{' ' + unit if unit else ''}, "
+                                      f"got {_shown(v)}")
+    return f
+
+
+#: rotor position parameters CA_ROTORn_PX/PY/PZ [m]: within twin_nodes.vehicle.params.LIMITS["position_m"]
+POSITION_M = 100.0
+#: most rotors (twin_nodes.vehicle.params.LIMITS["rotors"]; PX4 has CA_ROTOR0..11)
+MAX_ROTORS = 32
+
+
 def rotor_layout(params: Mapping[str, float], path: str = "<log>", arm_m: float | None = None) -> RotorLayout:
     """The rotor layout from a log's parameters (see the module docstring).
 
     ``arm_m`` [m] scales a normalised layout (or gives an unknown airframe's arm).
-    Raises :class:`ParamsError` naming the missing parameter when nothing fits."""
-    autostart = int(params.get("SYS_AUTOSTART", 0) or 0)
+    Raises :class:`ParamsError` naming the missing or out-of-range parameter when nothing fits:
+    ``CA_ROTOR_COUNT`` an integer 0..32, each ``CA_ROTORn_PX/PY/PZ`` finite and within 100 m,
+    ``CA_ROTORn_KM`` finite in -1..1, and the positions spanning roll and pitch."""
+    from twin_nodes.vehicle.params import LIMITS, rotor_span_m
+
+    autostart = int_param(params, "SYS_AUTOSTART", path, 0, 99_999_999)
     airframe = AIRFRAMES.get(autostart)
-    n = int(params.get("CA_ROTOR_COUNT", 0) or 0)
+    n = int_param(params, "CA_ROTOR_COUNT", path, 0, MAX_ROTORS)
+    if arm_m is not None and not (math.isfinite(arm_m) and 0.0 < arm_m <= POSITION_M):
+        raise ParamsError(path, "--arm-m", f"expected a finite arm length in (0, {POSITION_M:g}] m, got {arm_m!r}")
     if n > 0:
-        px = np.array([float(params.get(f"CA_ROTOR{i}_PX", 0.0)) for i in range(n)])
-        py = np.array([float(params.get(f"CA_ROTOR{i}_PY", 0.0)) for i in range(n)])
-        pz = np.array([float(params.get(f"CA_ROTOR{i}_PZ", 0.0)) for i in range(n)])
-        km = np.array([float(params.get(f"CA_ROTOR{i}_KM", 0.05)) for i in range(n)])
+        def pos(i: int, axis: str) -> float:
+            return real_param(params, f"CA_ROTOR{i}_P{axis}", path, 0.0, -POSITION_M, POSITION_M, "m")
+        px = np.array([pos(i, "X") for i in range(n)])
+        py = np.array([pos(i, "Y") for i in range(n)])
+        pz = np.array([pos(i, "Z") for i in range(n)])
+        km = np.array([real_param(params, f"CA_ROTOR{i}_KM", path, 0.05, -1.0, 1.0, "") for i in range(n)])
         source = f"log parameters CA_ROTOR0..{n - 1}_PX/PY/PZ/KM"
         radius = np.hypot(px, py)
         if not np.all(radius > 1e-6):
@@ -102,6 +156,12 @@ def rotor_layout(params: Mapping[str, float], path: str = "<log>", arm_m: float 
             px, py, pz = px * scale, py * scale, pz * scale
             source += (f", normalised +-1 layout scaled to a {target:.3f} m arm "
                        f"({'--arm-m' if arm_m is not None else airframe.source})")
+        span = rotor_span_m(px, py)
+        if not span >= LIMITS["span_m"]:
+            raise ParamsError(path, "CA_ROTOR0_PX",
+                              f"expected rotor positions CA_ROTOR0..{n - 1}_PX/PY that span roll and pitch (an RMS "
+                              f"spread of at least {LIMITS['span_m']:g} m along every horizontal axis), got "
+                              f"{span:.3g} m; supply a params file with --params")
         direction = np.where(km >= 0.0, 1, -1)
     else:
         if airframe is None:
@@ -284,9 +344,19 @@ class SensorTiming:
         return ("signals re-timed to what the airframe did: " + "; ".join(self.sources))
 
 
-def sensor_timing(params: Mapping[str, float]) -> SensorTiming:
-    """The :class:`SensorTiming` of a PX4 log from its parameters (all zero when it has none)."""
+#: the sensor-timing rates [Hz] (0: off); a rate below 1 Hz would re-time signals by seconds to ages
+TIMING_RATE_HZ = (1.0, 100_000.0)
+
+
+def sensor_timing(params: Mapping[str, float], path: str = "<log parameters>") -> SensorTiming:
+    """The :class:`SensorTiming` of a PX4 log from its parameters (all zero when it has none).
+    Each rate must be 0 (off) or in :data:`TIMING_RATE_HZ`, else a one-line ParamsError."""
     src = []
+    lo, hi = TIMING_RATE_HZ
+    for name in ("IMU_GYRO_CUTOFF", "IMU_INTEG_RATE", "IMU_GYRO_RATEMAX"):
+        v = param(params, name, 0.0)[0]
+        if v != 0.0 and not lo <= v <= hi:
+            raise ParamsError(path, name, f"expected 0 (off) or {lo:g}..{hi:g} Hz, got {v:g}")
     fc = param(params, "IMU_GYRO_CUTOFF", 0.0)[0]
     gyro = math.sqrt(2.0) / (2.0 * math.pi * fc) if fc > 0 else 0.0
     if gyro:
