@@ -5,9 +5,12 @@ Every command of ``rotortwin --help`` that reads a file is run (in-process, thro
 input must give exit code 2, exactly one stderr line ``rotortwin: error: <file>: ...``
 naming the file, no traceback, no new file in the output folder (the working
 directory) and no change next to the input.  Damaged but readable flight logs
-(truncated, a 2**40 / 2**62 µs clock jump, time going backwards) are cut and reported
-by the loader (see ``tests/test_ulog_io.py``), so on those a command may also succeed
-(exit 0); either way it runs under a memory limit (address space + 3 GiB) and a time
+(truncated, a 2**40 / 2**62 µs clock jump, time going backwards, duplicate stamps going
+backwards, a stretch of +-inf positions) are cut and reported by the loader (see
+``tests/test_ulog_io.py``), so on those a command may also succeed (exit 0, with a warning);
+logs that load but are no usable flight or carry values far out of range (``UNFLYABLE``:
+motors x1000, all-zero quaternions, 1 sample, cut at 0.1 %, 2 s, never airborne, no GPS)
+must give exit 2 and one line from every command that reads a flight (issue 28); either way it runs under a memory limit (address space + 3 GiB) and a time
 limit, which the old loader broke (``compare --offline`` on a 2**40 µs gap asked for
 24 GB).
 
@@ -82,8 +85,24 @@ RECOVERABLE = {
     "ULog with a 2^40 us gap": "gap_2e40.ulg",
     "ULog with a 2^62 us gap": "gap_2e62.ulg",
     "ULog with backwards time": "backwards.ulg",
+    "ULog with duplicate stamps going backwards": "repeated_stamps.ulg",
+    "ULog with +-inf positions (2 s)": "inf_positions.ulg",
 }
-CASES = {**UNUSABLE, **RECOVERABLE}
+#: ULogs that load but are no usable flight or carry values far out of range (issue 28): every command
+#: that reads a flight refuses them in one line saying which (exit 2)
+UNFLYABLE = {
+    "ULog with motor outputs x1000": "motors_x1000.ulg",
+    "ULog with all-zero quaternions": "zero_quaternions.ulg",
+    "ULog with 1 sample per topic": "one_sample.ulg",
+    "ULog cut at 0.1 %": "cut_0.1pct.ulg",
+    "ULog of 2 s": "short_2s.ulg",
+    "ULog never airborne": "never_airborne.ulg",
+    "ULog without GPS (no horizontal velocity)": "no_horizontal_velocity.ulg",
+}
+#: methods that use the ground only (the pre-arm stretch; command/RPM steps): a bench log is their input
+GROUND_ONLY = {"identify noise", "identify motor"}
+NO_FLIGHT_NEEDED = {"ULog never airborne", "ULog without GPS (no horizontal velocity)"}
+CASES = {**UNUSABLE, **RECOVERABLE, **UNFLYABLE}
 
 
 @pytest.fixture(scope="module")
@@ -108,6 +127,16 @@ def corpus(tmp_path_factory) -> Path:
     (d / "gap_2e40.ulg").write_bytes(C.with_gap(good, 2**40))
     (d / "gap_2e62.ulg").write_bytes(C.with_gap(good, 2**62))
     (d / "backwards.ulg").write_bytes(C.with_backwards(good, 5_000_000))
+    (d / "repeated_stamps.ulg").write_bytes(C.with_repeated_stamps(good))
+    C.edited_flight(d / "inf_positions.ulg", C.inf_positions)
+    C.edited_flight(d / "motors_x1000.ulg", C.motors_x1000)
+    C.edited_flight(d / "zero_quaternions.ulg", C.zero_quaternions)
+    C.edited_flight(d / "one_sample.ulg", C.one_sample)
+    (d / "cut_0.1pct.ulg").write_bytes(C.truncated(good, 0.001))
+    C.small_flight(d / "short_2s.ulg", dur_s=2.0)
+    C.edited_flight(d / "never_airborne.ulg", C.never_airborne)
+    C.edited_flight(d / "no_horizontal_velocity.ulg", C.no_horizontal_velocity)
+    C.edited_flight(d / "nomotors.ulg", lambda t: t.pop("actuator_motors"))
     return d
 
 
@@ -229,8 +258,12 @@ def test_bad_input(corpus, tmp_path, monkeypatch, cmd, case):
     assert _tree(corpus) == before, "files changed next to the input"
     assert all(w.startswith(f"rotortwin: warning: {f}: ") for w in warned), warned
     assert len(set(warned)) == len(warned), "a warning shown twice"
+    if recoverable and case in ("ULog with duplicate stamps going backwards", "ULog with +-inf positions (2 s)"):
+        assert warned, "a repaired log must say what was repaired"
     if recoverable and rc == 0:
         return  # loaded with warnings (see test_ulog_io): a result is allowed
+    if case in NO_FLIGHT_NEEDED and slot == "ulog" and cmd in GROUND_ONLY and rc == 0:
+        return  # a ground-only method on a log that never flew (or flew without GPS): its input
     assert rc == 2, (rc, stderr[-2000:])
     assert len(lines) == 1 and lines[0].startswith(f"rotortwin: error: {f}: "), stderr
     assert left == [], left
@@ -288,6 +321,13 @@ def _write_doc(corpus):
         "<expected>`, no traceback, and no file written.  Damaged but readable ULogs (truncated, a clock jump, "
         "time going backwards) are repaired by the loader, which keeps the longest consistent part and says "
         "so in `FlightLog.warnings` (table at the end); a command may then finish (exit 0) on what is left.  "
+        "Every value read from a log is checked where it enters (issue 28): +-inf and values out of their physical "
+        "range (motor outputs beyond +-1.5, positions beyond 1e6 m, speeds beyond 200 m/s, non-unit or zero "
+        "quaternions) are dropped with a warning, or, when more than half of a series is bad, refused in one line "
+        "naming the PX4 field.  A log that loads but is no usable flight (too short, never airborne, without GPS "
+        "or horizontal velocity) is refused in one line saying which by every command that needs a flight "
+        "(`twin_nodes.logs.flyable.check_flyable`); the ground-only `identify noise` and `identify motor` take "
+        "bench logs.  "
         "Every run is limited to the process's address space + 3 GiB and "
         f"{TIME_LIMIT_S} s.",
         "",
@@ -335,3 +375,43 @@ def test_data_loss_warnings_are_shown_once_per_command(corpus, tmp_path, monkeyp
     f = corpus / RECOVERABLE["ULog with backwards time"]
     rc, out, err = run_cli(["params", "from-ulog", str(f), "--out", str(tmp_path / "q.yaml"), "--mass-kg", "1.0"])
     assert any("backwards" in ln for ln in err.splitlines() if ln.startswith(f"rotortwin: warning: {f}: ")), err
+
+
+# --------------------------------------------------------------------------- graph mode = offline (issue 28)
+
+GRAPH_CASES = {**{k: UNFLYABLE[k] for k in UNFLYABLE}, "ULog without motor outputs": "nomotors.ulg",
+               "ULog with duplicate stamps going backwards": "repeated_stamps.ulg",
+               "ULog with +-inf positions (2 s)": "inf_positions.ulg"}
+
+
+@pytest.mark.parametrize("case", list(GRAPH_CASES))
+def test_graph_compare_loads_and_refuses_like_offline(corpus, tmp_path, monkeypatch, case):
+    """``rotortwin compare F.ulg`` (the ROS graph) loads and checks the flight in its own process
+    before any node starts: the loader's warnings and a refusal (exit code, the one line) are the
+    offline ones (it used to drop the warnings, exit 0 on a log without motors and trace back on a
+    1-sample log).  The nodes are stubbed: reaching them means the flight was accepted."""
+    import twin_nodes.cli.graph as G
+    from twin_nodes.base.errors import TwinError
+
+    class _Started(TwinError):
+        pass
+
+    def started(*a, **k):
+        raise _Started("graph started")
+
+    monkeypatch.setattr(G, "run_graph", started)
+    monkeypatch.chdir(tmp_path)
+    f = str(corpus / GRAPH_CASES[case])
+    argv = ["compare", f, "--params", PARAMS, "--quiet"]
+    rc_g, _, err_g = run_cli(argv)
+    rc_o, _, err_o = run_cli(argv[:1] + ["--offline"] + argv[1:])
+    assert not isinstance(rc_g, BaseException) and "Traceback" not in err_g, (rc_g, err_g)
+    warn_g = [ln for ln in err_g.splitlines() if ln.startswith("rotortwin: warning: ")]
+    warn_o = [ln for ln in err_o.splitlines() if ln.startswith("rotortwin: warning: ")]
+    assert warn_g == warn_o
+    if rc_o == 0:  # accepted offline: the graph was started, after the same warnings
+        assert warn_o and rc_g == 2 and err_g.strip().endswith("graph started"), err_g
+        return
+    err_line = [ln for ln in err_o.splitlines() if ln.startswith("rotortwin: error: ")]
+    assert rc_o == 2 and len(err_line) == 1 and err_line[0].startswith(f"rotortwin: error: {f}: "), err_o
+    assert rc_g == 2 and err_g.strip().splitlines()[-1] == err_line[0], err_g

@@ -223,3 +223,21 @@ def test_yaw_rate_gain_uses_the_vehicles_km_and_pxs_mix():
     assert twin["yawrate_p_1_s"] == pytest.approx(same["yawrate_p_1_s"] * 0.02 / 0.05, rel=1e-9)
     assert twin["yawrate_i_1_s2"] == pytest.approx(same["yawrate_i_1_s2"] * 0.4, rel=1e-9)
     assert twin["rate_p_1_s"] == same["rate_p_1_s"] and twin["rate_d"] == same["rate_d"]
+
+
+def test_a_log_that_is_no_flight_is_refused_in_one_line(tmp_path):
+    """nominal_from_log checks the flight first (issue 28): a log without GPS (the fleet's 21 Jun log_59 and
+    log_65 ended in ``ValueError: need more samples than coefficients``) or that never left the ground
+    names which, in one LogError line."""
+    import ulog_cases as C
+    from twin_nodes.base.errors import LogError
+
+    for edit, msg in ((C.no_horizontal_velocity, r"xy_valid,v_xy_valid: without GPS \(no horizontal position or "
+                                                 r"velocity\)"),
+                      (C.never_airborne, r"vehicle_land_detected\.landed: never airborne")):
+        quad_x = {f"CA_ROTOR{i}_{k}": v for i, (x, y, km) in enumerate(
+            ((0.15, 0.15, 0.05), (-0.15, -0.15, 0.05), (0.15, -0.15, -0.05), (-0.15, 0.15, -0.05)))
+            for k, v in (("PX", x), ("PY", y), ("KM", km))}
+        p = C.edited_flight(tmp_path / f"{edit.__name__}.ulg", edit, params=quad_x)
+        with pytest.raises(LogError, match=msg):
+            nominal_from_log(read_ulog(p), mass_kg=1.5)

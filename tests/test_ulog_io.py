@@ -279,9 +279,13 @@ def test_duplicate_timestamps_keep_last(tmp_path):
     p = write_px4_ulog(tmp_path / "d.ulg", {"vehicle_local_position": {
         "timestamp": t, "x": np.array([0.0, 1.0, 2.0, 3.0]), "y": np.zeros(4), "z": np.zeros(4)}},
         {}, {})
-    pos = read_ulog(p).require("position_enu")
+    fl = read_ulog(p)
+    pos = fl.require("position_enu")
     assert pos.t_s.tolist() == pytest.approx([0.0, 0.1, 0.2])
     assert pos.values[:, 1].tolist() == [0.0, 2.0, 3.0]  # NED x -> ENU y
+    # said, not silent (issue 28)
+    assert fl.data_warnings() == ["vehicle_local_position[0]: 1 duplicate stamp(s) of 4 (the same time as the "
+                                  "sample before): kept the last of each"]
 
 
 # --------------------------------------------------------------------------- time_sync
@@ -572,3 +576,64 @@ def test_data_warnings_are_the_damage_reports(tmp_path, small):
     dw = fl.data_warnings()
     assert dw[0].startswith("file truncated") and any(w.startswith("log: time jump") for w in dw)
     assert all(w in fl.warnings for w in dw) and not any(w.startswith("no ") for w in dw)
+
+
+# --------------------------------------------------------------------------- issue 28: every value checked where it enters
+
+
+def test_repeated_stamps_keep_the_same_stretch_in_every_topic(tmp_path, small):
+    """The clock steps back onto stamps it already used (every stamp of the second half repeats one of
+    the first): each topic keeps the part logged first, so all topics describe the same stretch of
+    flight, and says so.  The old longest-run rule spliced each topic at a point of its own (equal
+    runs), mixing climb and landing: motors P75 36.7 % instead of 4 %."""
+    data, good = small
+    fl = read_ulog(_write(tmp_path, UC.with_repeated_stamps(data)))
+    back = [w for w in fl.data_warnings() if "timestamps go backwards" in w]
+    assert any(w.startswith("vehicle_local_position[0]: timestamps go backwards 1 time(s)") and
+               "duplicate stamps of kept samples" in w for w in back), fl.warnings
+    for name in ("position_enu", "attitude_q", "motors", "body_rates_flu", "throttle"):
+        s, ref = fl.require(name), good.require(name)
+        assert 0.4 * len(ref) < len(s) < 0.6 * len(ref), name
+        # the first half as logged (a few samples stamped past its end may follow, the longest run; so
+        # may the on-change disarm state, stamped 9 s, which makes the motors NaN from there)
+        k = int(np.searchsorted(ref.t_s, 8.9))
+        np.testing.assert_array_equal(s.t_s[:k], ref.t_s[:k], err_msg=name)
+        np.testing.assert_array_equal(s.values[:k], ref.values[:k], err_msg=name)
+        assert np.all(np.diff(s.t_s) > 0) and len(s) - k <= 60, name
+
+
+def test_inf_positions_are_dropped_with_a_warning(tmp_path):
+    """+-inf positions for 2 s: those samples are dropped and said (they gave Z RMSE 5.7e36 m)."""
+    fl = read_ulog(UC.edited_flight(tmp_path / "inf.ulg", UC.inf_positions))
+    pos = fl.require("position_enu")
+    assert np.all(np.isfinite(pos.values)) and len(pos) == 900
+    w = [w for w in fl.data_warnings() if w.startswith("position_enu (vehicle_local_position.x,y,z): dropped 100 "
+                                                       "of 1000 samples, 100 not finite (+-inf), at t = 9.00..10.98 s")]
+    assert len(w) == 1, fl.warnings
+
+
+def test_out_of_range_values_are_refused_or_repaired(tmp_path):
+    """Motor outputs x1000 (P75 56 358 %) and all-zero quaternions are refused in one line naming the
+    file, the PX4 field and what was expected; a few such samples are dropped with a warning."""
+    p = UC.edited_flight(tmp_path / "m.ulg", UC.motors_x1000)
+    with pytest.raises(LogError, match=r"m\.ulg: actuator_motors\.control\[0\.\.3\]: expected normalised motor "
+                                       r"outputs in \[-1, 1\] \(NaN = stopped\); 900 of 1000 samples are not"):
+        read_ulog(p)
+    p = UC.edited_flight(tmp_path / "q.ulg", UC.zero_quaternions)
+    with pytest.raises(LogError, match=r"q\.ulg: vehicle_attitude\.q: expected unit quaternions .*all zero"):
+        read_ulog(p)
+
+    def some(topics):
+        c = topics["actuator_motors"]["control"]
+        c[100:110] *= 1000.0
+        topics["vehicle_attitude"]["q"][200:205] = 0.0
+        topics["vehicle_local_position"]["vx"][300:303] = 1e4
+
+    fl = read_ulog(UC.edited_flight(tmp_path / "s.ulg", some))
+    assert len(fl.require("motors")) == 990 and np.nanmax(fl.require("motors").values) < 1.0
+    assert len(fl.require("attitude_q")) == 995 and len(fl.require("velocity_enu")) == 997
+    dw = fl.data_warnings()
+    assert any(w.startswith("motors (actuator_motors.control[0..3]): dropped 10 of 1000 samples, 10 out of range")
+               for w in dw), dw
+    assert any(w.startswith("attitude_q (vehicle_attitude.q): dropped 5 of 1000 samples") for w in dw), dw
+    assert any(w.startswith("velocity_enu (vehicle_local_position.vx,vy,vz): dropped 3 of 1000") for w in dw), dw

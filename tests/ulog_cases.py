@@ -149,3 +149,75 @@ def truncated(data: bytes, keep_fraction: float = 0.7) -> bytes:
     recs = [r for r in records(data) if r[1] == "D"]
     off, _, p, n = recs[int(len(recs) * keep_fraction)]
     return data[: p + max(1, n // 2)]
+
+
+# --------------------------------------------------------------------------- value and flyability cases
+# (issue 28): every value read from a log is checked where it enters; flights a command cannot use are
+# refused in one line saying why
+
+
+def with_repeated_stamps(data: bytes, at_fraction: float = 0.5) -> bytes:
+    """The clock steps back at ``at_fraction`` of the file onto stamps it already used: every record
+    after the cut repeats a stamp of the part before it (duplicate stamps going backwards)."""
+    offs = timestamp_offsets(data)
+    cut = int(len(offs) * at_fraction)
+    t_cut = struct.unpack_from("<Q", data, offs[cut][1])[0]
+    return with_backwards(data, t_cut - T0_US, at_fraction)
+
+
+def edited_flight(path: str | Path, edit: Callable[[dict], None], dur_s: float = 20.0,
+                  params: dict | None = None) -> Path:
+    """:func:`small_flight` with its topics changed by ``edit(topics)`` (in place) before writing;
+    ``params`` are added to its PX4 parameters."""
+    topics = small_topics(dur_s)
+    edit(topics)
+    return write_px4_ulog(path, topics, {"CA_ROTOR_COUNT": 4, "MPC_THR_HOVER": 0.5, **(params or {})},
+                          {"ver_sw": "ulog_cases"}, start_us=T0_US)
+
+
+def _seconds(topic: dict) -> np.ndarray:
+    return (topic["timestamp"].astype(np.int64) - T0_US) * 1e-6
+
+
+def inf_positions(topics: dict) -> None:
+    """+-inf in every position component for 2 s of the flight (10 %)."""
+    lp = topics["vehicle_local_position"]
+    s = _seconds(lp)
+    bad = (s >= 9.0) & (s < 11.0)
+    sign = np.where(np.arange(bad.sum()) % 2, 1.0, -1.0)
+    for k in ("x", "y", "z"):
+        lp[k] = lp[k].astype(float).copy()
+        lp[k][bad] = sign * np.inf
+
+
+def motors_x1000(topics: dict) -> None:
+    """Motor outputs 1000 times their normalised value (a unit or scaling error)."""
+    topics["actuator_motors"]["control"] = topics["actuator_motors"]["control"] * 1000.0
+
+
+def zero_quaternions(topics: dict) -> None:
+    """Every attitude quaternion all zero."""
+    topics["vehicle_attitude"]["q"] = np.zeros_like(topics["vehicle_attitude"]["q"])
+
+
+def one_sample(topics: dict) -> None:
+    """Every topic cut to its first sample."""
+    for name, tp in topics.items():
+        topics[name] = {k: v[:1] for k, v in tp.items()}
+
+
+def never_airborne(topics: dict) -> None:
+    """Armed on the ground (a bench or arm/disarm test): landed throughout, no height change."""
+    lp = topics["vehicle_local_position"]
+    lp["z"] = np.zeros_like(lp["z"])
+    lp["vz"] = np.zeros_like(lp["vz"])
+    topics["vehicle_land_detected"]["landed"] = np.ones_like(topics["vehicle_land_detected"]["landed"])
+    ts = topics["trajectory_setpoint"]
+    ts["position"] = np.zeros_like(ts["position"])
+
+
+def no_horizontal_velocity(topics: dict) -> None:
+    """No GPS: the EKF's horizontal position and velocity invalid all flight (xy_valid/v_xy_valid false)."""
+    lp = topics["vehicle_local_position"]
+    lp["xy_valid"] = np.zeros_like(lp["xy_valid"])
+    lp["v_xy_valid"] = np.zeros_like(lp["v_xy_valid"])

@@ -66,7 +66,8 @@ def _discover(args) -> int:
     if note:
         print(f"rotortwin: {note}", file=sys.stderr)
     vp = load_params(params_file)
-    log = read_ulog(args.flight)
+    from twin_nodes.logs.flyable import read_flight  # too short, never airborne, no GPS: one line
+    log = read_flight(args.flight)
     res = discover(log, vp, heldout_fraction=args.heldout, progress=sys.stderr.isatty(),
                    closed_loop_metrics=not args.no_closed_loop)
     series = res.pop("_series")

@@ -52,22 +52,27 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         check_domain_id(args.domain_id)
     check_outputs([args.flight, args.params], files={"--json": args.json}, dirs={"--report": args.report},
                   new_dirs={"--mcap": str(bag_dir(args.mcap)) if args.mcap else None})
+    from twin_nodes.twin.compare import load_flight
+
+    # the flight loaded and checked here, in this process, for both modes: the loader's warnings are
+    # printed and an unusable flight is refused (one line, exit 2) before any node starts
+    log = load_flight(args.flight)
     params_file = default_params_for(args.flight, args.params)
     report_dir = Path(args.report) if args.report else None
     if args.offline:
         from twin_nodes.twin.compare import compare_log
         from twin_nodes.vehicle.params import load_params
-        from twin_nodes.logs.ulog_io import read_ulog
 
         if args.mcap:
             raise TwinError("--mcap needs the ROS graph; drop --offline")
         if args.foxglove is not None:
             raise TwinError("--foxglove needs the ROS graph; drop --offline")
-        res = compare_log(read_ulog(args.flight), load_params(params_file), mode=args.mode, horizon_s=args.horizon,
+        res = compare_log(log, load_params(params_file), mode=args.mode, horizon_s=args.horizon,
                           progress=True)
         metrics, aligned = res.metrics, res.aligned
         metrics["source"] = "offline (twin_nodes.twin.compare.compare_log)"
     else:
+        del log  # the replay node loads it again in its own process
         bag = bag_dir(args.mcap) if args.mcap else None
         run_dir = Path(args.run_dir) if args.run_dir else (report_dir / "run" if report_dir else None)
         domain = args.domain_id if (args.domain_id is not None or args.foxglove is None) else free_domain()

@@ -32,6 +32,7 @@ from twin_nodes.identify import step_response as sr
 from twin_nodes.identify.delay import estimate_delay
 from twin_nodes.identify.results import (DelayResult, HoverFlight, HoverResult, MotorFit, MotorResult, NoiseResult,
                                          RegressionData, RegressionResult, check_merged)
+from twin_nodes.logs.flyable import check_flyable
 from twin_nodes.logs.ulog_io import FlightLog
 from twin_nodes.vehicle.params import VehicleParams
 
@@ -168,6 +169,8 @@ def identify_motor(source: str, log: FlightLog | None, *, rate_hz: float = 30.0,
     """
     notes: list[str] = []
     datasets: list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+    if log is not None:
+        check_flyable(log, airborne=False, horizontal=False)  # a bench test is fine, a 1-sample log is not
     if log is None:
         t, u, rpm = sr.read_step_csv(source)
         datasets.append(("csv", t, u, t, rpm))
@@ -225,6 +228,7 @@ def hover_flight(log: FlightLog, *, source: str | None = None, min_duration_s: f
     ``source`` names the log in messages and the report (default ``log.path``).
     """
     source = log.path if source is None else source
+    check_flyable(log)
     names = ["velocity_enu", "throttle", "position_enu"]
     opt = [n for n in ("attitude_q", "motors", "esc_rpm", "hover_thrust") if log.get(n) is not None]
     for n in names:
@@ -301,6 +305,7 @@ def identify_delays(log: FlightLog, vp: VehicleParams | None, *, source: str | N
     :func:`.delay.estimate_delay`.  ``source`` names the log in messages and the report (default ``log.path``).
     """
     source = log.path if source is None else source
+    check_flyable(log)
     notes: list[str] = []
     geometry: rg.RotorGeometry | None
     try:
@@ -371,6 +376,7 @@ def identify_regression(log: FlightLog, vp: VehicleParams | None, *, source: str
     ``source`` names the log in messages and the report (default ``log.path``).
     """
     source = log.path if source is None else source
+    check_flyable(log)
     geometry, note = rotor_geometry(log, vp)
     notes = [note] if note else []
     mot = log.require("motors")
@@ -501,6 +507,7 @@ def identify_noise(log: FlightLog, vp: VehicleParams | None, *, source: str | No
     messages and the report (default ``log.path``).
     """
     source = log.path if source is None else source
+    check_flyable(log, airborne=False, horizontal=False)  # the landed pre-arm stretch: no flight needed
     notes: list[str] = []
     gy = log.require("gyro_flu")
     sf = log.require("specific_force_flu")

@@ -41,7 +41,8 @@ from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
                                            rotor_states_from_commands, thrust_regressor, translational_regression,
                                            world_to_body)
 from twin_nodes.identify.yaw_gain import applied_yaw_gain, yaw_gain_for_twin
-from twin_nodes.logs.ulog_io import FlightLog, read_ulog
+from twin_nodes.logs.flyable import check_flyable, read_flight
+from twin_nodes.logs.ulog_io import FlightLog
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 from twin_nodes.vehicle.px4_params import (AIRFRAMES, RateGainsPx4, outer_loop_gains, param, rate_gains_physical,
                                            rotor_layout)
@@ -128,7 +129,9 @@ def _per_segment(fn, t: np.ndarray, x: np.ndarray, segs: list[slice]) -> np.ndar
 
 def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: float | None = None,
                      name: str | None = None, cutoff_hz: float = 2.5) -> Nominal:
-    """Build the nominal params of the vehicle that flew ``log`` (see the module docstring)."""
+    """Build the nominal params of the vehicle that flew ``log`` (see the module docstring).  A log that
+    is no usable flight (too short, never airborne, without GPS or horizontal velocity) is refused in one
+    line (:func:`twin_nodes.logs.flyable.check_flyable`)."""
     p = log.params
     src: dict[str, str] = {}
     layout = rotor_layout(p, log.path, arm_m)
@@ -136,6 +139,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     if log.n_motors != n:
         raise LogError(log.path, "actuator_motors",
                        f"{n} rotors in the parameters, {log.n_motors} motor outputs in the log")
+    check_flyable(log)
     src["rotors.x_flu_m/y_flu_m/z_flu_m, direction"] = layout.source
     m, src["vehicle.mass_kg"] = _mass(log, mass_kg)
     f_fac, src["rotors.thr_mdl_fac"] = param(p, "THR_MDL_FAC", 0.0)
@@ -526,7 +530,7 @@ def params_for_log(ulog: str | os.PathLike[str], explicit: str | os.PathLike[str
     h.update(_CODE_KEY)
     out = cache_dir() / "nominal" / f"{Path(ulog).stem}-{h.hexdigest()[:12]}.yaml"
     if not out.is_file():
-        nom = nominal_from_log(read_ulog(ulog))
+        nom = nominal_from_log(read_flight(ulog))
         out.parent.mkdir(mode=0o700, exist_ok=True)
         write_params(nom.params, out, nom.header())
     return out, (f"params: none given and no shipped file for SYS_AUTOSTART {autostart}: flying the nominal built "

@@ -25,8 +25,10 @@ Cleaning rules (see /work/shared/flightlogs/*/MANIFEST.md):
 - Time going backwards (clock resets, GPS time jumps): within each topic the
   samples are kept in file order, and where a timestamp is earlier than one
   before it the longest run of samples that is in time order is kept (the
-  longest non-decreasing subsequence in file order); the others are dropped with
-  one warning line per topic.  More than one sample before the log start, or one
+  longest strictly increasing subsequence in file order, of those the one that
+  keeps the earliest logged samples, so a clock that steps back onto stamps it
+  already used leaves every topic the same stretch of flight); the others are
+  dropped with one warning line per topic, which counts the duplicate stamps.  More than one sample before the log start, or one
   more than 2 s before it, is also reported (the clock went backwards).
 - Time jumps forward: a stretch of more than :data:`TIME_JUMP_S` (30 s) with no
   sample of any loaded topic (or between the header's start time and the first
@@ -46,7 +48,16 @@ Cleaning rules (see /work/shared/flightlogs/*/MANIFEST.md):
 - A definitions section whose formats expand beyond a ULog message's 65535
   bytes (or contain themselves) is refused before pyulog expands it.
 - ``duration_s`` is the last sample time over all series.
-- Duplicate times keep the last sample.
+- Duplicate times (a sample stamped like the one before it) keep the last
+  sample, with a warning (not for the on-change state topics).
+- Every value is checked where it enters (:func:`_check_values`): rows with
+  +-inf, values out of their physical range (:data:`VALUE_LIMITS`: positions
+  beyond 1e6 m, speeds beyond 200 m/s, normalised commands beyond +-1.5, ...)
+  or quaternions that are not unit (all zero) are dropped with one warning per
+  series; a series more than half bad is refused (:class:`LogError` naming the
+  PX4 topic/field and what was expected).  NaN is left alone (unknown/stopped).
+  Whether the log is a usable flight at all (too short, never airborne, no GPS)
+  is :func:`twin_nodes.logs.flyable.check_flyable`'s question.
 - ``vehicle_local_position`` samples with ``xy_valid``/``z_valid``/
   ``v_xy_valid``/``v_z_valid`` false are NaN in the matching components.
 - EKF reset counters that change during the log and pyulog corruption flags are
@@ -231,7 +242,8 @@ class FlightLog:
         """The warnings that mean data was dropped, cut or is missing (a truncated or corrupt
         file, clock jumps, time going backwards, logging pauses, stray samples): the ones a
         command should show its user, unlike notes such as a topic this PX4 does not log."""
-        keys = ("file truncated", "file corruption", "timestamps go backwards",
+        keys = ("file truncated", "file corruption", "timestamps go backwards", "duplicate stamp",
+                "not finite", "out of range",
                 "stamped before the log start", "far after the log end", "without samples")
         return [w for w in self.warnings if w.startswith("log: ") or any(k in w for k in keys)]
 
@@ -534,26 +546,36 @@ def _rel_us(t_raw: np.ndarray, start_us: int) -> np.ndarray:
 
 
 def _longest_in_order(v: np.ndarray) -> np.ndarray:
-    """Indices of a longest non-decreasing subsequence of ``v`` (ascending)."""
-    tails: list[int] = []      # smallest last value of a run of each length
-    tails_at: list[int] = []   # index of that value
-    prev = [-1] * v.size
-    for i, x in enumerate(v.tolist()):
-        j = bisect.bisect_right(tails, x)
-        if j:
-            prev[i] = tails_at[j - 1]
+    """Indices of a longest strictly increasing subsequence of ``v`` (ascending), the one that keeps
+    the earliest samples (lexicographically smallest indices).
+
+    Strict, so a sample repeating an earlier stamp is never kept beside it; earliest first, so
+    when the clock steps back onto stamps it already used (a clock reset replaying the same times,
+    many equally long runs) every topic keeps the same part of the flight, the part logged first,
+    and no topic splices two stretches of the flight at a point of its own."""
+    vals = v.tolist()
+    n = len(vals)
+    run_from = [0] * n  # length of the longest strictly increasing run starting at i
+    tails: list[int] = []  # over -v, scanned backwards: smallest last value of a run of each length
+    for i in range(n - 1, -1, -1):
+        x = -vals[i]
+        j = bisect.bisect_left(tails, x)
+        run_from[i] = j + 1
         if j == len(tails):
             tails.append(x)
-            tails_at.append(i)
         else:
             tails[j] = x
-            tails_at[j] = i
-    out = []
-    k = tails_at[-1] if tails_at else -1
-    while k >= 0:
-        out.append(k)
-        k = prev[k]
-    return np.array(out[::-1], dtype=np.int64)
+    need = len(tails)
+    out: list[int] = []
+    last = None
+    for i in range(n):
+        if need == 0:
+            break
+        if run_from[i] == need and (last is None or vals[i] > last):
+            out.append(i)
+            last = vals[i]
+            need -= 1
+    return np.array(out, dtype=np.int64)
 
 
 def _clean_times(name: str, t_raw: np.ndarray, start_us: int,
@@ -577,13 +599,25 @@ def _clean_times(name: str, t_raw: np.ndarray, start_us: int,
     idx = idx[~pre]
     r = rel[idx]
     if r.size > 1:
+        # a sample stamped like the one before it: the last of each such run is kept
+        last_of_run = np.append(r[1:] != r[:-1], True)
+        n_dup = int(r.size - last_of_run.sum())
+        if n_dup and name not in _STATE_TOPICS:
+            notes.append(f"{n_dup} duplicate stamp(s) of {r.size} (the same time as the sample before): "
+                         "kept the last of each")
+        idx, r = idx[last_of_run], r[last_of_run]
+    if r.size > 1:
         step = np.diff(r)
         if np.any(step < 0):
             keep = _longest_in_order(r)
             k = int(np.argmin(step))
+            dropped = np.setdiff1d(np.arange(r.size), keep)
+            repeats = int(np.isin(r[dropped], r[keep]).sum())
             notes.append(f"timestamps go backwards {int((step < 0).sum())} time(s) in file order "
                          f"(largest step {step[k] * 1e-6:.6g} s, at t = {r[k] * 1e-6:.6g} s): kept the "
-                         f"longest run in time order, dropped {r.size - keep.size} of {r.size} samples")
+                         f"longest run in time order (the earliest logged), dropped {r.size - keep.size} of "
+                         f"{r.size} samples"
+                         + (f" ({repeats} of them duplicate stamps of kept samples)" if repeats else ""))
             idx, r = idx[keep], r[keep]
     if state_at_start is not None:
         idx = np.concatenate([[state_at_start], idx])
@@ -961,7 +995,14 @@ def _lpos_series(tp: _Topic, prefix: str, out: dict[str, Series], warnings: list
 def _quat_series(name: str, tp: _Topic, source: str) -> Series | None:
     if not tp.has("q[0]", "q[1]", "q[2]", "q[3]"):
         return None
-    q = frames.quat_make_continuous(frames.q_ned_frd_to_enu_flu(tp.arr("q", 4)))
+    raw = tp.arr("q", 4)
+    q = frames.quat_make_continuous(frames.q_ned_frd_to_enu_flu(raw))
+    with np.errstate(invalid="ignore", over="ignore"):
+        norm = np.linalg.norm(np.where(np.isinf(raw), 0.0, raw), axis=1)
+    # the conversion normalises: a row that is no unit quaternion (all zero, +-inf, a corrupt scale)
+    # keeps its raw values so that _check_values sees it and drops or refuses it
+    off = np.any(np.isinf(raw), axis=1) | (np.isfinite(norm) & (np.abs(norm - 1.0) > _QUAT_NORM_TOL))
+    q[off] = raw[off]
     return _series(name, tp.t_s, q, f"{source}.q (FRD->NED)")
 
 
@@ -1197,6 +1238,75 @@ def _build_series(
     return out, n_motors
 
 
+#: series -> largest physical magnitude of any component (what enters beyond it is corrupt): positions
+#: within ~1e6 m of the EKF origin, speeds ~200 m/s, normalised commands within +-1 (1.5 with margin), rates
+#: of a gyro's range, specific force of an IMU's
+VALUE_LIMITS: dict[str, tuple[float, str]] = {
+    "position_enu": (1e6, "positions within 1e6 m of the EKF origin"),
+    "groundtruth_position_enu": (1e6, "positions within 1e6 m of the origin"),
+    "setpoint_position_enu": (1e6, "positions within 1e6 m of the EKF origin"),
+    "velocity_enu": (200.0, "speeds up to 200 m/s per axis"),
+    "groundtruth_velocity_enu": (200.0, "speeds up to 200 m/s per axis"),
+    "setpoint_velocity_enu": (200.0, "speeds up to 200 m/s per axis"),
+    "motors": (1.5, "normalised motor outputs in [-1, 1] (NaN = stopped)"),
+    "throttle": (1.5, "a normalised collective thrust in [-1, 1]"),
+    "body_rates_flu": (100.0, "body rates up to 100 rad/s"),
+    "groundtruth_body_rates_flu": (100.0, "body rates up to 100 rad/s"),
+    "gyro_flu": (100.0, "gyro rates up to 100 rad/s"),
+    "specific_force_flu": (2000.0, "specific force up to 2000 m/s^2"),
+}
+#: quaternion series: rows whose norm is this far from 1 (or zero) are corrupt
+_QUAT_SERIES = ("attitude_q", "groundtruth_attitude_q")
+_QUAT_NORM_TOL = 0.1
+#: more than this fraction of a series' samples corrupt: the series is refused, not repaired
+_MAX_BAD_FRACTION = 0.5
+
+
+def _check_values(path: str, series: dict[str, Series], warnings: list[str]) -> None:
+    """Every value read from the log checked where it enters: rows with +-inf, out of their physical
+    range (:data:`VALUE_LIMITS`) or non-unit/zero quaternions are dropped with one warning per series;
+    when more than half of a series is bad it is refused (:class:`LogError` naming the file, the PX4
+    topic/field and what was expected).  NaN is left alone: it means unknown/stopped in PX4 logs."""
+    for name, s in list(series.items()):
+        n = len(s)
+        if n == 0:
+            continue
+        v = s.values
+        field_ = s.source.split(" (")[0]
+        with np.errstate(invalid="ignore", over="ignore"):
+            inf = np.any(np.isinf(v), axis=1)
+            if name in _QUAT_SERIES:
+                norm = np.linalg.norm(np.where(np.isinf(v), 0.0, v), axis=1)
+                out = ~inf & np.isfinite(norm) & (np.abs(norm - 1.0) > _QUAT_NORM_TOL)
+                expected = "unit quaternions [w, x, y, z] (norm 1)"
+                worst = (f"norms {np.nanmin(norm[out]):.3g}..{np.nanmax(norm[out]):.3g}"
+                         + (", all zero" if np.all(norm[out] == 0) else "")) if out.any() else ""
+            elif name in VALUE_LIMITS:
+                lim, expected = VALUE_LIMITS[name]
+                mag = np.where(np.isfinite(v), np.abs(v), 0.0)
+                out = ~inf & np.any(mag > lim, axis=1)
+                worst = f"up to {float(mag[out].max()):.4g}" if out.any() else ""
+            else:
+                out = np.zeros(n, bool)
+                expected, worst = "finite values", ""
+        bad = inf | out
+        n_bad = int(bad.sum())
+        if n_bad == 0:
+            continue
+        what = []
+        if inf.any():
+            what.append(f"{int(inf.sum())} not finite (+-inf)")
+        if out.any():
+            what.append(f"{int(out.sum())} out of range ({worst})")
+        if n_bad > _MAX_BAD_FRACTION * n or n - n_bad < 2:
+            raise LogError(path, field_, f"expected {expected}; {n_bad} of {n} samples are not: "
+                                         + ", ".join(what))
+        t = s.t_s[bad]
+        warnings.append(f"{name} ({field_}): dropped {n_bad} of {n} samples, " + ", ".join(what)
+                        + f", at t = {t[0]:.2f}..{t[-1]:.2f} s (expected {expected})")
+        series[name] = Series(s.t_s[~bad], v[~bad], s.units, s.frame, s.source, s.interp)
+
+
 def read_ulog(path: str | os.PathLike[str]) -> FlightLog:
     """Load a PX4 ULog as a :class:`FlightLog` in ROS frames (see module docstring).
 
@@ -1224,6 +1334,7 @@ def read_ulog(path: str | os.PathLike[str]) -> FlightLog:
                        f"expected at least one sample after the log start (a PX4 flight log); {found}")
     params = _ulog_params(ulog)
     series, n_motors = _build_series(topics, params, warnings)
+    _check_values(str(p), series, warnings)
     info = {str(k): (v if isinstance(v, str) else str(v)) for k, v in ulog.msg_info_dict.items()}
     try:
         rel = ulog.get_version_info_str()

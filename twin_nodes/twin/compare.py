@@ -34,7 +34,7 @@ from twin_nodes.logs import time_sync
 from twin_nodes.twin.metrics import Aligned, flight_metrics
 from twin_nodes.twin.runner import TwinRun, run_twin_on_log
 
-__all__ = ["align", "compare_log", "CompareResult", "OPEN_LOOP_NOTE", "DEFAULT_RATE_HZ", "mask_from_intervals",
+__all__ = ["align", "compare_log", "load_flight", "CompareResult", "OPEN_LOOP_NOTE", "DEFAULT_RATE_HZ", "mask_from_intervals",
            "streams_to_log_and_run", "metrics_from_streams"]
 
 #: default comparison grid [Hz] (the Table-2 numbers are computed on it)
@@ -42,6 +42,24 @@ DEFAULT_RATE_HZ = 50.0
 OPEN_LOOP_NOTE = ("open loop: XY/Z errors are re-synced prediction errors (re-sync every horizon_s); the twin's "
                   "motor commands are the real ones by construction (held at the twin rate, so motor errors "
                   "only show resampling), its throttle is the mean real motor command")
+
+
+#: the series the twin flies beside (``runner.log_inputs``): a log without one of them is refused
+TWIN_INPUTS = ("position_enu", "velocity_enu", "attitude_q", "body_rates_flu", "motors")
+
+
+def load_flight(path: Any) -> Any:
+    """The flight to compare, loaded and checked once, the same way for the offline and the graph
+    mode (the graph's parent process calls it before starting any node, so its loader warnings and
+    its refusals are the offline ones): :func:`twin_nodes.logs.flyable.read_flight` (value checks,
+    time repairs, too short / never airborne / without GPS or horizontal velocity) and every series
+    the twin needs (:data:`TWIN_INPUTS`), else a one-line :class:`~twin_nodes.base.errors.LogError`."""
+    from twin_nodes.logs.flyable import read_flight
+
+    log = read_flight(path)
+    for name in TWIN_INPUTS:
+        log.require(name)
+    return log
 
 
 @dataclass

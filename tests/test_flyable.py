@@ -1,0 +1,87 @@
+"""A log that loads but is no usable flight is refused in one line saying which (issue 28).
+
+``twin_nodes.logs.flyable.check_flyable`` is the one place: too short, never airborne (bench and
+arm/disarm tests), without GPS / horizontal velocity.  Every command that loads a flight goes through
+it (``compare`` offline and graph, ``discover``, ``params from-ulog``, ``identify``); the real fleet's
+21 Jun log_59 and log_65 (no GPS) used to end ``params from-ulog`` with ``ValueError: need more samples
+than coefficients``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from pathlib import Path
+
+import pytest
+from conftest import shared_log
+
+import ulog_cases as C
+from twin_nodes.base.errors import LogError
+from twin_nodes.cli import main
+from twin_nodes.logs.flyable import check_flyable, read_flight
+from twin_nodes.logs.ulog_io import read_ulog
+
+ROOT = Path(__file__).resolve().parents[1]
+PARAMS = str(ROOT / "params" / "px4_sih_quadx.yaml")
+NO_GPS = ("DritterFlugtag/log_59_2023-6-21-08-28-14.ulg", "DritterFlugtag/log_65_2023-6-21-08-36-08.ulg")
+
+
+def run(argv: list[str]) -> tuple[object, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            rc: object = main(argv)
+        except SystemExit as exc:
+            rc = exc.code
+    return rc, out.getvalue(), err.getvalue()
+
+
+def test_each_kind_is_named(tmp_path):
+    good = C.small_flight(tmp_path / "good.ulg")
+    assert read_flight(good).path == str(good)
+    cases = {
+        "never_airborne": (C.never_airborne, r"vehicle_land_detected\.landed: never airborne: expected a flight, "
+                                             r"the land detector says landed throughout"),
+        "no_gps": (C.no_horizontal_velocity, r"vehicle_local_position\.xy_valid,v_xy_valid: without GPS \(no "
+                                             r"horizontal position or velocity\): expected both in flight, valid "
+                                             r"in 0 % / 0 % of the 1\d\.\d s airborne"),
+        "one": (C.one_sample, r"vehicle_local_position: too short: expected at least 5 s of flight, the log has 1 "
+                              r"position sample\(s\) over 0\.00 s"),
+    }
+    for name, (edit, msg) in cases.items():
+        p = C.edited_flight(tmp_path / f"{name}.ulg", edit)
+        with pytest.raises(LogError, match=rf"^{p}: {msg}"):
+            read_flight(p)
+
+    def no_hvel(topics):
+        topics["vehicle_local_position"]["v_xy_valid"][:] = False
+
+    p = C.edited_flight(tmp_path / "no_hvel.ulg", no_hvel)
+    with pytest.raises(LogError, match=r"vx,vy \(v_xy_valid\): without horizontal velocity: expected it in flight"):
+        read_flight(p)
+    short = C.small_flight(tmp_path / "short.ulg", dur_s=2.0)
+    with pytest.raises(LogError, match=r"too short: .* 100 position sample\(s\) over 1\.98 s"):
+        read_flight(short)
+    # ground-only methods ask for less: a bench log is their input, a 2 s log still is not
+    assert check_flyable(read_ulog(tmp_path / "never_airborne.ulg"), airborne=False, horizontal=False)
+    with pytest.raises(LogError, match="too short"):
+        check_flyable(read_ulog(short), airborne=False, horizontal=False)
+
+
+@pytest.mark.parametrize("name", NO_GPS, ids=["log_59", "log_65"])
+def test_fleet_logs_without_gps_are_one_line_in_every_command(tmp_path, monkeypatch, name):
+    f = str(shared_log("fleet_quadx_v6c", name))
+    monkeypatch.chdir(tmp_path)
+    for argv in (["params", "from-ulog", f, "--out", "p.yaml"],
+                 ["compare", "--offline", f, "--quiet"],
+                 ["compare", "--offline", f, "--params", PARAMS, "--quiet"],
+                 ["discover", f, "--params", PARAMS, "--json", "r.json", "--no-closed-loop"],
+                 ["identify", "regress", f, "--out", "r.yaml"],
+                 ["identify", "hover", f, "--out", "h.yaml"]):
+        rc, _, err = run(argv)
+        lines = [ln for ln in err.splitlines() if not ln.startswith("rotortwin: warning: ")]
+        assert rc == 2 and len(lines) == 1, (argv, err)
+        assert lines[0].startswith(f"rotortwin: error: {f}: vehicle_local_position.xy_valid,v_xy_valid: without "
+                                   "GPS (no horizontal position or velocity)"), (argv, lines)
+        assert list(tmp_path.iterdir()) == [], argv

@@ -1,0 +1,105 @@
+"""Is this log a flight a command can use?  One check, shared by every command that loads a flight.
+
+:func:`check_flyable` refuses, with one :class:`~twin_nodes.base.errors.LogError` line saying which,
+the logs that load but are no usable flight:
+
+- **too short**: fewer than 2 position samples, or less than :data:`MIN_LOG_S` of them (a log cut
+  right after its start, a 1-sample log), or airborne for less than :data:`MIN_AIRBORNE_S` in all;
+- **never airborne**: no airborne interval (land detector, else arming state, else height; see
+  :meth:`FlightLog.airborne_intervals`): bench and arm/disarm tests;
+- **without GPS** / **without horizontal velocity**: the EKF's horizontal position and/or velocity
+  (``vehicle_local_position.xy_valid`` / ``v_xy_valid``) invalid in more than
+  ``1 - MIN_HORIZONTAL_FRACTION`` of the airborne samples (the fleet's 21 Jun log_59 and log_65:
+  no GPS, ``v_xy_valid`` false all flight).  The twin flies the horizontal setpoints against the real
+  horizontal state, and the identification fits horizontal forces: neither exists without it.
+
+:func:`read_flight` is :func:`~twin_nodes.logs.ulog_io.read_ulog` followed by this check: what
+``compare`` (offline and graph), ``discover``, ``params from-ulog`` and ``identify`` call.  The
+ground-only methods (``identify noise``: the pre-arm segment; ``identify motor``: command/RPM steps,
+a bench test is fine) ask only for ``airborne=False, horizontal=False`` (the length check stays).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from twin_nodes.base.errors import LogError
+from twin_nodes.logs.ulog_io import FlightLog, read_ulog
+
+__all__ = ["check_flyable", "read_flight", "MIN_LOG_S", "MIN_AIRBORNE_S", "MIN_HORIZONTAL_FRACTION"]
+
+#: a log whose position samples span less than this [s] is too short for any command
+MIN_LOG_S = 5.0
+#: airborne for less than this [s] in all: too short a flight
+MIN_AIRBORNE_S = 2.0
+#: horizontal position/velocity finite in less than this fraction of the airborne samples: refused
+MIN_HORIZONTAL_FRACTION = 0.25
+
+
+def _airborne_source(log: FlightLog) -> tuple[str, str]:
+    if log.get("landed") is not None and len(log.get("landed")):
+        return "vehicle_land_detected.landed", "the land detector says landed throughout"
+    if log.get("armed") is not None and len(log.get("armed")):
+        return "vehicle_status.arming_state", "never armed"
+    return "vehicle_local_position.z", "never more than 1 m above its lowest point"
+
+
+def _finite_fraction(log: FlightLog, name: str, cols: slice, intervals: list[tuple[float, float]]) -> float:
+    s = log.get(name)
+    if s is None or len(s) == 0:
+        return 0.0
+    inside = np.zeros(len(s), bool)
+    for a, b in intervals:
+        inside |= (s.t_s >= a) & (s.t_s <= b)
+    if not inside.any():
+        inside[:] = True
+    return float(np.mean(np.all(np.isfinite(s.values[inside][:, cols]), axis=1)))
+
+
+def check_flyable(log: FlightLog, *, airborne: bool = True, horizontal: bool = True) -> FlightLog:
+    """``log`` if it is a usable flight, else a one-line :class:`LogError` saying which kind it is not
+    (too short, never airborne, without GPS, without horizontal velocity; see the module docstring).
+    ``airborne=False`` / ``horizontal=False`` skip those checks for ground-only methods."""
+    path = log.path
+    pos = log.get("position_enu")
+    n = len(pos) if pos is not None else 0
+    span = float(pos.t_s[-1] - pos.t_s[0]) if n >= 2 else 0.0
+    if n < 2 or span < MIN_LOG_S:
+        raise LogError(path, "vehicle_local_position",
+                       f"too short: expected at least {MIN_LOG_S:g} s of flight, the log has {n} position "
+                       f"sample(s) over {span:.2f} s")
+    if not airborne:
+        return log
+    iv = log.airborne_intervals()
+    if not iv:
+        field, why = _airborne_source(log)
+        raise LogError(path, field, f"never airborne: expected a flight, {why} (a bench or arm/disarm test?)")
+    air = sum(b - a for a, b in iv)
+    if air < MIN_AIRBORNE_S:
+        raise LogError(path, _airborne_source(log)[0],
+                       f"too short: expected at least {MIN_AIRBORNE_S:g} s airborne, the flight was airborne "
+                       f"for {air:.2f} s")
+    if not horizontal:
+        return log
+    p_ok = _finite_fraction(log, "position_enu", slice(0, 2), iv)
+    v_ok = _finite_fraction(log, "velocity_enu", slice(0, 2), iv)
+    if p_ok < MIN_HORIZONTAL_FRACTION and v_ok < MIN_HORIZONTAL_FRACTION:
+        raise LogError(path, "vehicle_local_position.xy_valid,v_xy_valid",
+                       f"without GPS (no horizontal position or velocity): expected both in flight, valid in "
+                       f"{100 * p_ok:.0f} % / {100 * v_ok:.0f} % of the {air:.1f} s airborne")
+    if v_ok < MIN_HORIZONTAL_FRACTION:
+        raise LogError(path, "vehicle_local_position.vx,vy (v_xy_valid)",
+                       f"without horizontal velocity: expected it in flight, valid in {100 * v_ok:.0f} % of the "
+                       f"{air:.1f} s airborne (no GPS?)")
+    if p_ok < MIN_HORIZONTAL_FRACTION:
+        raise LogError(path, "vehicle_local_position.x,y (xy_valid)",
+                       f"without horizontal position: expected it in flight, valid in {100 * p_ok:.0f} % of the "
+                       f"{air:.1f} s airborne (no GPS?)")
+    return log
+
+
+def read_flight(path: str | os.PathLike[str], *, airborne: bool = True, horizontal: bool = True) -> FlightLog:
+    """:func:`~twin_nodes.logs.ulog_io.read_ulog` then :func:`check_flyable`."""
+    return check_flyable(read_ulog(path), airborne=airborne, horizontal=horizontal)
