@@ -235,9 +235,6 @@ def test_a_log_that_is_no_flight_is_refused_in_one_line(tmp_path):
     for edit, msg in ((C.no_horizontal_velocity, r"xy_valid,v_xy_valid: without GPS \(no horizontal position or "
                                                  r"velocity\)"),
                       (C.never_airborne, r"vehicle_land_detected\.landed: never airborne")):
-        quad_x = {f"CA_ROTOR{i}_{k}": v for i, (x, y, km) in enumerate(
-            ((0.15, 0.15, 0.05), (-0.15, -0.15, 0.05), (0.15, -0.15, -0.05), (-0.15, 0.15, -0.05)))
-            for k, v in (("PX", x), ("PY", y), ("KM", km))}
-        p = C.edited_flight(tmp_path / f"{edit.__name__}.ulg", edit, params=quad_x)
+        p = C.edited_flight(tmp_path / f"{edit.__name__}.ulg", edit)  # with the quad X rotor positions
         with pytest.raises(LogError, match=msg):
             nominal_from_log(read_ulog(p), mass_kg=1.5)

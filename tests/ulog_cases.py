@@ -165,13 +165,21 @@ def with_repeated_stamps(data: bytes, at_fraction: float = 0.5) -> bytes:
     return with_backwards(data, t_cut - T0_US, at_fraction)
 
 
-def edited_flight(path: str | Path, edit: Callable[[dict], None], dur_s: float = 20.0,
+#: PX4's generic quad X rotor positions and spins (CA_ROTORn_PX/PY/KM), so that ``params from-ulog`` gets past
+#: the airframe to the flight itself
+QUAD_X_PARAMS = {f"CA_ROTOR{i}_{k}": v for i, (x, y, km) in enumerate(
+    ((0.15, 0.15, 0.05), (-0.15, -0.15, 0.05), (0.15, -0.15, -0.05), (-0.15, 0.15, -0.05)))
+    for k, v in (("PX", x), ("PY", y), ("KM", km))}
+
+
+def edited_flight(path: str | Path, edit: Callable[[dict], None] | None = None, dur_s: float = 20.0,
                   params: dict | None = None) -> Path:
-    """:func:`small_flight` with its topics changed by ``edit(topics)`` (in place) before writing;
-    ``params`` are added to its PX4 parameters."""
+    """:func:`small_flight` with its topics changed by ``edit(topics)`` (in place) before writing, and
+    the generic quad X rotor positions (:data:`QUAD_X_PARAMS`) and ``params`` added to its parameters."""
     topics = small_topics(dur_s)
-    edit(topics)
-    return write_px4_ulog(path, topics, {"CA_ROTOR_COUNT": 4, "MPC_THR_HOVER": 0.5, **(params or {})},
+    if edit is not None:
+        edit(topics)
+    return write_px4_ulog(path, topics, {"CA_ROTOR_COUNT": 4, "MPC_THR_HOVER": 0.5, **QUAD_X_PARAMS, **(params or {})},
                           {"ver_sw": "ulog_cases"}, start_us=T0_US)
 
 
