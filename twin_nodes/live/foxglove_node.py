@@ -70,6 +70,9 @@ VIZ_CHANNELS = ("/viz/transforms", "/viz/scene", "/viz/errors", "/viz/motors", "
 JSON_SCHEMAS = {"/viz/errors": ERRORS_SCHEMA, "/viz/motors": MOTORS_SCHEMA, "/viz/status": STATUS_SCHEMA}
 #: not latched, but sent on change only: a new subscriber gets the last one
 STICKY = ("/real/status", "/twin_error/link_lost")
+#: event topics (a vehicle restart, issue 28): advertised with their first message only, so that every
+#: advertised channel carries data (most runs have none)
+ON_FIRST = ("/real/reset", "/twin_error/reset")
 #: forwarded topics the node also reads (deserialised) for the derived channels
 DECODED = ("/real/odom", "/twin/odom", "/real/motors", "/twin/motors", "/real/status", "/real/setpoint_pose",
            "/twin_error/diagnostics", "/twin_error/link_lost", "/twin_error/final_json", "/twin/config",
@@ -108,6 +111,7 @@ class FoxgloveNode(GraphNode):
         # the JSON channels are advertised with their first record: a bridge alone has no errors to show
         self.ch_json: dict[str, Any] = {}
         self.channels: dict[str, Any] = {}
+        self._channel_args: dict[str, tuple[Any, dict[str, str]]] = {}  # topic -> (schema, metadata)
         self.subs: dict[str, Any] = {}
         self.skipped: set[str] = set()
         self.sticky: set[str] = set(STICKY)
@@ -182,8 +186,10 @@ class FoxgloveNode(GraphNode):
                 self.get_logger().warning(f"{topic} ({types[0]}): not served: {exc}")
                 self.skipped.add(topic)
                 continue
-            self.channels[topic] = foxglove.Channel(topic, schema=schema, message_encoding="cdr",
-                                                    metadata={"ros_type": types[0], "reliable": str(reliable).lower()})
+            meta = {"ros_type": types[0], "reliable": str(reliable).lower()}
+            self.channels[topic] = None if topic in ON_FIRST else \
+                foxglove.Channel(topic, schema=schema, message_encoding="cdr", metadata=meta)
+            self._channel_args[topic] = (schema, meta)
             self.counts[topic] = 0
             self.subs[topic] = self.create_subscription(cls, topic, self._make_cb(topic, cls), qos, raw=True)
 
@@ -195,7 +201,6 @@ class FoxgloveNode(GraphNode):
         except Exception:
             first = ""
         stamped = first in ("std_msgs/Header", "builtin_interfaces/Time")
-        ch = self.channels[topic]
         decode = topic in DECODED
         sticky = topic in self.sticky
 
@@ -211,6 +216,13 @@ class FoxgloveNode(GraphNode):
                 if now - self._last_fwd.get(topic, -1e9) < self.min_gap_s:
                     return
                 self._last_fwd[topic] = now
+            ch = self.channels[topic]
+            if ch is None:  # an ON_FIRST topic: advertised now
+                import foxglove
+
+                schema, meta = self._channel_args[topic]
+                ch = self.channels[topic] = foxglove.Channel(topic, schema=schema, message_encoding="cdr",
+                                                             metadata=meta)
             ch.log(data, log_time=t)
         return cb
 

@@ -78,7 +78,7 @@ class MetricsNode(GraphNode):
                                  reliable_qos(depth=1, latched=True))
         # vehicle restarts (issue 28): the rolling window restarts, with a note on /twin_error/reset
         self.create_subscription(msg_class("std_msgs/msg/String"), RESET_TOPIC, self._on_reset, q)
-        self.reset_pub = self.create_publisher(msg_class("std_msgs/msg/String"), METRICS_RESET_TOPIC, latched)
+        self.reset_pub = None  # made with the first restart (latched): a run without one has no such topic
         self._resets_noted = 0
 
     # ------------------------------------------------------------------ inputs
@@ -110,6 +110,9 @@ class MetricsNode(GraphNode):
         while self._resets_noted < len(self.engine.resets):
             r = self.engine.resets[self._resets_noted]
             self._resets_noted += 1
+            if self.reset_pub is None:
+                self.reset_pub = self.create_publisher(msg_class("std_msgs/msg/String"), METRICS_RESET_TOPIC,
+                                                       reliable_qos(depth=10, latched=True))
             self.reset_pub.publish(cv.string_msg(json.dumps({"t_s": r["t_s"], "reason": r["reason"],
                                                              "count": r["count"]})))
             self.get_logger().warning(f"rolling window restarted at {r['t_s']:.3f} s: {r['reason']}")
