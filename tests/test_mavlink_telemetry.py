@@ -486,3 +486,11 @@ def test_vehicle_clean_shutdown_is_seen():
     assert agg.state.vehicle_closed
     agg.update(decoded(MAV.heartbeat_encode(2, 12, 1, custom_mode(4, 3), 4)), 3.0)
     assert not agg.state.vehicle_closed
+
+
+def test_position_change_across_a_link_gap_is_not_a_restart():
+    """After 5 s without data the vehicle may simply be 30 m further on: not a restart."""
+    agg = _bound_aggregator()
+    assert agg.update(decoded(MAV.local_position_ned_encode(1100, 1, 2, -3, 0, 0, 0)), 1.1) == ["odom"]
+    assert agg.update(decoded(MAV.local_position_ned_encode(6100, 31, 2, -3, 0, 0, 0)), 6.1) == ["odom"]
+    assert agg.state.resets == []

@@ -84,6 +84,9 @@ QUAT_NORM_TOL = 0.01          # |‖q‖ - 1|
 REBOOT_BACKWARDS_S = 1.0
 #: a local-position step larger than this plus twice what the velocity explains is a reset [m]
 POSITION_JUMP_M = 5.0
+#: ... between consecutive samples at most this far apart (after a longer gap, e.g. a link outage,
+#: the vehicle may simply have moved; a reboot still shows by its boot time) [s]
+JUMP_CHECK_MAX_DT_S = 1.0
 
 #: streams requested from the autopilot with SET_MESSAGE_INTERVAL (message id -> Hz)
 STREAM_RATES_HZ: dict[int, float] = {
@@ -521,8 +524,8 @@ class TelemetryAggregator:
             t_b, p, v = parse_local_position_ned(msg)
             self._boot_time(t_b, kinds, now)
             prev = self._last_pos
-            if prev is not None and "reset" not in kinds:
-                dt = max(t_b - prev[0], 0.0)
+            dt = t_b - prev[0] if prev is not None else np.inf
+            if prev is not None and "reset" not in kinds and 0.0 <= dt <= JUMP_CHECK_MAX_DT_S:  # not across a gap
                 explained = 2.0 * max(float(np.max(np.abs(prev[2]))), float(np.max(np.abs(v)))) * dt
                 jump = float(np.linalg.norm(p - prev[1]))
                 if jump > POSITION_JUMP_M + explained:
