@@ -8,6 +8,8 @@ import sys
 from pathlib import Path
 
 from twin_nodes.base.io import atomic_write_text
+from twin_nodes.base.outputs import shown
+from twin_nodes.cli.paths import declare
 from twin_nodes.cli.options import WORKERS, finite_float, seed
 from twin_nodes.discovery.report import json_default, summary_text, write_report
 
@@ -15,17 +17,18 @@ from twin_nodes.discovery.report import json_default, summary_text, write_report
 def register(sub) -> None:
     p = sub.add_parser("discover", help="locate the twin/real mismatch, name the missing physics, refit, "
                                         "show the held-out improvement")
-    p.add_argument("flight", help="PX4 ULog (.ulg)")
-    p.add_argument("--params", help="nominal vehicle params YAML (default: the shipped file for the log's "
-                                    "airframe, else the nominal built from the log itself)")
-    p.add_argument("--json", dest="json_out", help="write the result here")
-    p.add_argument("--report", help="write plots and index.html into this folder")
-    p.add_argument("--out-params", help="write the refitted params YAML here (when something is accepted)")
+    io = declare(p)
+    io.input("flight", help="PX4 ULog (.ulg)")
+    io.input("--params", help="nominal vehicle params YAML (default: the shipped file for the log's "
+                              "airframe, else the nominal built from the log itself)")
+    io.output("--json", dest="json_out", help="write the result here")
+    io.output("--report", kind="dir", help="write plots and index.html into this folder")
+    io.output("--out-params", help="write the refitted params YAML here (when something is accepted)")
     p.add_argument("--heldout", type=finite_float(0.05, 0.95), default=0.35,
                    help="fraction of the flight held out, 0.05..0.95 (default 0.35)")
     p.add_argument("--no-closed-loop", action="store_true", help="skip the closed-loop twin before/after metrics")
-    p.add_argument("--plan-dir", help="write a confirmation mission plan per 'likely' effect into this folder")
-    p.add_argument("--confirm", metavar="FOLLOWUP", help="re-judge each 'likely' effect of FLIGHT on this follow-up "
+    io.output("--plan-dir", kind="dir", help="write a confirmation mission plan per 'likely' effect into this folder")
+    io.input("--confirm", metavar="FOLLOWUP", help="re-judge each 'likely' effect of FLIGHT on this follow-up "
                                                          "flight (flown with the confirmation plan): confirm or drop")
     p.set_defaults(func=_discover)
 
@@ -34,25 +37,29 @@ def register(sub) -> None:
     q.add_argument("--source", choices=("ours", "px4sih", "rotorpy", "all"), default="ours",
                    help="ours: our generator; px4sih: the PX4 SIH flights in ../shared (see "
                         "missions/sih_effects/manifest.yaml); rotorpy: RotorPy flights (cached); all: the three")
-    q.add_argument("--out", default="out/prove", help="folder for the results and tables (one subfolder per source)")
-    q.add_argument("--vehicle", default="px4_sih_quadx", help="ours: shipped params name or a params YAML")
+    qio = declare(q)
+    qio.output("--out", kind="update", default="out/prove",
+               help="folder for the results and tables (one subfolder per source; kept and updated across runs)")
+    qio.input("--vehicle", default="px4_sih_quadx", help="ours: shipped params name or a params YAML")
     q.add_argument("--size", choices=("full", "ci"), default="full")
     q.add_argument("--workers", type=WORKERS, default=min(2, os.cpu_count() or 1))
-    q.add_argument("--shared", help="px4sih: the shared folder (default ../shared beside the repository)")
-    q.add_argument("--sih-dir", action="append", default=[], metavar="DIR",
+    qio.input("--shared", help="px4sih: the shared folder (default ../shared beside the repository)")
+    qio.input("--sih-dir", action="append", default=[], metavar="DIR",
                    help="px4sih: also these flights of our own (DIR/<name>/flight.ulg + truth.json, as "
                         "launch_scripts/fly_sih.sh writes them); repeatable")
-    q.add_argument("--cache", default="out/cache/rotorpy", help="rotorpy: where the simulated flights are kept")
+    qio.output("--cache", kind="update", default="out/cache/rotorpy",
+               help="rotorpy: where the simulated flights are kept (reused across runs)")
     q.set_defaults(func=_prove)
 
     s = sub.add_parser("simulate", help="fly the shipped mission with our simulator (optionally with a hidden "
                                         "effect) and write it as a PX4 ULog")
-    s.add_argument("--params", default="params/px4_sih_quadx.yaml", help="vehicle params YAML")
+    sio = declare(s)
+    sio.input("--params", default="params/px4_sih_quadx.yaml", help="vehicle params YAML")
     s.add_argument("--effect", default="none",
                    help="hidden effect, e.g. 'motor_efficiency:motor=3,efficiency=0.85' (default none)")
     s.add_argument("--seed", type=seed(), default=1)
-    s.add_argument("--plan", help="fly this mission plan (missions/*.plan.yaml format) instead of the built-in mission")
-    s.add_argument("--out", required=True, help="output .ulg")
+    sio.input("--plan", help="fly this mission plan (missions/*.plan.yaml format) instead of the built-in mission")
+    sio.output("--out", required=True, help="output .ulg")
     s.set_defaults(func=_simulate)
 
 
@@ -78,19 +85,17 @@ def _discover(args) -> int:
     if args.plan_dir:
         from twin_nodes.discovery.plans import write_plans
         for path in write_plans(res, args.plan_dir, args.flight):
-            print(f"confirmation plan: {path}")
+            print(f"confirmation plan: {shown(path)}")
     if args.json_out:
         atomic_write_text(args.json_out, json.dumps(res, indent=1, default=json_default))
-        print(f"result: {args.json_out}")
     if args.report:
         write_report(args.report, res, series)
-        print(f"report: {Path(args.report) / 'index.html'}")
+        print(f"report: {shown(Path(args.report) / 'index.html')}")
     if args.out_params and res["accepted"]:
         from twin_nodes.vehicle.params import from_ros_dict
         new = from_ros_dict(res["refit_params"], args.out_params)
         write_params(new, args.out_params, header=f"refitted by rotortwin discover on {args.flight}: "
                                                    f"added {', '.join(res['accepted'])}")
-        print(f"refitted params: {args.out_params}")
     return 0
 
 
@@ -139,6 +144,6 @@ def _simulate(args) -> int:
         facts = write_plan_flight(args.out, vp, hidden, args.seed, wps, plan.rtl_after)
     else:
         facts = write_flight(args.out, vp, hidden, args.seed)
-    print(f"wrote {args.out}: {facts['duration_s']:.0f} s, hidden effect {hidden.name} {hidden.params}, "
+    print(f"{shown(args.out)}: {facts['duration_s']:.0f} s, hidden effect {hidden.name} {hidden.params}, "
           f"XY tracking RMSE {facts['xy_tracking_rmse_m']:.2f} m, Z {facts['z_tracking_rmse_m']:.2f} m")
     return 0

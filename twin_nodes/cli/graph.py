@@ -36,6 +36,8 @@ import sys
 from pathlib import Path
 
 from twin_nodes.base.errors import TwinError
+from twin_nodes.base.outputs import shown
+from twin_nodes.cli.paths import declare
 from twin_nodes.cli.options import SPEED, WINDOW_S, domain_id, port
 from twin_nodes.live.attach import add_foxglove_option, foxglove_beside, free_domain
 from twin_nodes.graph import bag_dir, default_params_for, run_graph
@@ -44,14 +46,11 @@ from twin_nodes.graph import bag_dir, default_params_for, run_graph
 def _cmd_compare(args: argparse.Namespace) -> int:
     from twin_nodes.base.io import atomic_write_text
     from twin_nodes.graph.domains import check_domain_id
-    from twin_nodes.graph.outputs import check_outputs
     from twin_nodes.twin.metrics import table2, to_jsonable
 
-    # every output checked before anything runs (a missing folder must not cost a whole run)
+    # the outputs were checked and staged by the CLI's guard (cli/paths.py) before this runs
     if args.domain_id is not None:
         check_domain_id(args.domain_id)
-    check_outputs([args.flight, args.params], files={"--json": args.json}, dirs={"--report": args.report},
-                  new_dirs={"--mcap": str(bag_dir(args.mcap)) if args.mcap else None})
     from twin_nodes.twin.compare import load_flight
 
     # the flight loaded and checked here, in this process, for both modes: the loader's warnings are
@@ -90,7 +89,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
                   f"{st.get('wall_s', 0):.1f} s ({st.get('real_time_factor', 0):.1f}x real time)"
                   + (f"; run dir {res_g.run_dir}" if res_g.run_dir_kept else ""), file=sys.stderr)
         if bag:
-            print(f"recording: {bag} (MCAP {bag / (bag.name + '.mcap')})", file=sys.stderr)
+            print(f"recording: {shown(bag)} (MCAP {shown(bag / (bag.name + '.mcap'))})", file=sys.stderr)
     metrics["params_file"] = str(params_file)
     print(table2(metrics, title=f"Twin vs real (Table 2 layout): {Path(args.flight).name}, "
                                 f"params {Path(params_file).name}"))
@@ -99,7 +98,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     if report_dir:
         from twin_nodes.twin.report import write_report
         idx = write_report(report_dir, aligned, metrics, title=Path(args.flight).name)
-        print(f"report: {idx}", file=sys.stderr)
+        print(f"report: {shown(idx)}", file=sys.stderr)
     return 0
 
 
@@ -107,19 +106,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     raw = argparse.RawDescriptionHelpFormatter
     c = subparsers.add_parser("compare", help="replay a ULog through the node graph and print Table-2 metrics",
                               description=__doc__, formatter_class=raw)
-    c.add_argument("flight", help="PX4 ULog (.ulg)")
-    c.add_argument("--params", help="vehicle params YAML (default: from the log's SYS_AUTOSTART)")
+    io = declare(c)
+    io.input("flight", help="PX4 ULog (.ulg)")
+    io.input("--params", help="vehicle params YAML (default: from the log's SYS_AUTOSTART)")
     c.add_argument("--mode", choices=("closed", "open"), default="closed",
                    help="closed: our controller flies the setpoints; open: real motor commands, re-synced")
     c.add_argument("--rate", type=SPEED, default=0.0,
                    help="replay speed: 0 = as fast as the nodes keep up (default), 1 = real time, 20 = 20x")
     c.add_argument("--horizon", type=WINDOW_S, default=2.0, help="open loop: re-sync period [s] (default 2)")
     c.add_argument("--window", type=WINDOW_S, default=5.0, help="rolling metrics window [s] (default 5)")
-    c.add_argument("--json", help="write the whole-flight metrics here")
-    c.add_argument("--mcap", help="record every topic into this bag directory (rosbag2 layout; a trailing "
+    io.output("--json", help="write the whole-flight metrics here")
+    io.output("--mcap", kind="dir", path=lambda v: str(bag_dir(v)), help="record every topic into this bag directory (rosbag2 layout; a trailing "
                                   ".mcap is dropped: OUT.mcap -> OUT/OUT.mcap)")
-    c.add_argument("--report", help="write PNG plots and index.html here")
-    c.add_argument("--run-dir", help="node logs and pid files (default: REPORT/run or a temp dir)")
+    io.output("--report", kind="dir", help="write PNG plots and index.html here")
+    io.output("--run-dir", kind="update", help="node logs and pid files (default: REPORT/run or a temp dir)")
     c.add_argument("--domain-id", type=domain_id(), help="ROS_DOMAIN_ID 0..232 (default: a free one of 1..101); "
                                                  "refused while another rotortwin run holds it")
     c.add_argument("--offline", action="store_true", help="no ROS: the same metrics via compare_log")
