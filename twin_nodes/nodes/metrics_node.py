@@ -192,7 +192,8 @@ class MetricsNode(GraphNode):
         m["log"] = self.plan.get("ulog", "") if self.plan else self.source_label
         m["source"] = ("rotortwin graph (replay -> twin -> metrics nodes)" if self.plan else
                        "rotortwin live (vehicle telemetry -> twin -> metrics nodes)")
-        m["resets"] = [{"t_s": r["t_s"], "reason": r["reason"]} for r in self.engine.resets]
+        if self.engine.resets:  # vehicle restarts (live); a replay's totals keep their keys
+            m["resets"] = [{"t_s": r["t_s"], "reason": r["reason"]} for r in self.engine.resets]
         m["received"] = {**self.received, "/twin/*": len(tw)}
         self.final = m
         text = table2(m, title=f"Twin vs real (Table 2 layout): {m['log']}")
