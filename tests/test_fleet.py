@@ -153,7 +153,9 @@ def test_run_fleet_resumes_and_records_failures(tmp_path, by_value):
     assert len(rows) == 6 and {r["status"] for r in rows} == {"ok", "failed"}
     assert next(r for r in rows if r["status"] == "failed")["error"].endswith("expected a ULog")
     again = run_fleet(flights, tmp_path / "cat", workers=2, task=fake_task, progress=False)
-    assert again == {"done": [], "skipped": 6, "lost": []}
+    # the ok flights are skipped; the failed one is retried (and fails again)
+    assert again["skipped"] == 5 and not again["lost"] and not again["duplicates"]
+    assert [(Path(d["path"]).name, d["status"]) for d in again["done"]] == [("f02.ulg", "failed")]
 
 
 def test_killed_worker_loses_no_flight(tmp_path, by_value):

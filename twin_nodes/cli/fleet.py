@@ -9,8 +9,9 @@
     rotortwin fleet simulate OUT_DIR [--vehicles 5] [--flights 10] [--workers N]
 
 ``discover``/``compare`` run one Dask task per flight (an embedded LocalCluster of N one-thread
-worker processes, or the scheduler at ADDRESS); flights already in the catalog with the same
-size and mtime are skipped; a failed flight is a catalog row with its one-line error.
+worker processes, or the scheduler at ADDRESS); flights with an ok row for the same file content
+are skipped, failed ones are retried (exit 1 while any still fail); identical files count once (the
+duplicate is named); a failed flight is a catalog row with its vehicle, date and one-line error.
 """
 
 from __future__ import annotations
@@ -67,9 +68,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(f"rotortwin: {d['error']}", file=sys.stderr)
     for d in res["lost"]:
         print(f"rotortwin: {d['path']}: not finished ({d['error']}); rerun to complete the catalog", file=sys.stderr)
+    for d in res["duplicates"]:
+        print(f"duplicate: {d['path']}: same content as {d['same_as']} (counted once)")
     print(f"fleet {args.mode}: {len(flights)} flights: {len(res['done']) - len(failed)} done, {len(failed)} failed, "
-          f"{len(res['lost'])} not finished, {res['skipped']} already in {args.catalog}")
-    return 1 if failed or res["lost"] else 0
+          f"{len(res['lost'])} not finished, {len(res['duplicates'])} duplicate(s), "
+          f"{res['skipped']} already in {args.catalog}")
+    if failed or res["lost"]:
+        print(f"rotortwin: {len(failed)} flight(s) still failed, {len(res['lost'])} not finished (reasons above; "
+              "failed ones are catalog rows with status failed); a rerun retries them", file=sys.stderr)
+        return 1
+    return 0
 
 
 def _cmd_query(args: argparse.Namespace) -> int:
@@ -86,7 +94,15 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from twin_nodes.fleet.report import write_report
 
     s = write_report(args.catalog, args.out)
-    print(f"{s['flights']} flights, {len(s['vehicles'])} vehicles, {len(s['failed'])} failed")
+    print(f"{s['flights']} flights, {len(s['vehicles'])} vehicles, {len(s['failed'])} failed, "
+          f"{len(s['duplicates'])} duplicate(s), {len(s['corrupt_files'])} corrupt row file(s)")
+    for f in s["failed"]:
+        why = f["error"][len(f["path"]) + 2:] if f["error"].startswith(f"{f['path']}: ") else f["error"]
+        print(f"FAILED {f['path']} [{f['vehicle_id']}, {f['date']}]: {why}")
+    for d in s["duplicates"]:
+        print(f"DUPLICATE {d['path']}: same content as {d['same_as']} (counted once)")
+    for c in s["corrupt_files"]:
+        print(f"CORRUPT {c['file']}: {c['error']} (skipped)")
     for a in s["alarms"]:
         print(f"ALARM {a['vehicle_id']} [{a['kind']}] {a['message']}")
     if not s["alarms"]:

@@ -47,17 +47,15 @@ def _flights(args: list[str]) -> list[Path]:
 
 
 def _cmd_survey(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+    from twin_nodes.discovery.survey import markdown_table, survey_rows
 
-    from twin_nodes.discovery.survey import markdown_table, survey_flight
-
-    rows, failed = [], []
-    for f in tqdm(_flights(args.flights), desc="survey", unit="flight", disable=not sys.stderr.isatty()):
-        try:
-            rows.append(survey_flight(f, args.params))
-        except TwinError as exc:
-            failed.append(f"{f.name}: {exc}")
-            print(f"rotortwin: {f.name}: {exc}", file=sys.stderr)
+    rows = survey_rows(_flights(args.flights), args.params, progress=sys.stderr.isatty())
+    failed = [r["error"] for r in rows if r.get("status") == "failed"]
+    for why in failed:
+        print(f"rotortwin: {why}", file=sys.stderr)
+    if failed:
+        print(f"rotortwin: {len(failed)} of {len(rows)} flights failed (each is a row of the table with its reason)",
+              file=sys.stderr)
     table = markdown_table(rows)
     print(table)
     if args.md:

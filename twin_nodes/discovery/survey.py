@@ -3,6 +3,8 @@
 For each flight: the params (given, shipped for its airframe, or built from the log itself), discovery
 with its guards, and the closed-loop twin's Table-2 metrics on the held-out last part of the airborne
 flight before and after the refit — one row per flight, beside the reference paper's Table 2.
+Every flight gets a row: one that fails is a ``failed`` row with its one-line reason
+(:func:`survey_rows`), and the table says so.
 """
 
 from __future__ import annotations
@@ -10,6 +12,8 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
+
+from twin_nodes.base.errors import TwinError, one_line
 
 #: the reference paper's Table 2 (Búho Negro twin vs real): the bar a real-vehicle twin is judged by
 PAPER_TABLE2 = {"throttle_rmse": 0.052, "motor_p75_best": 0.012, "motor_p75_worst": 0.112, "xy_rmse_m": 3.35,
@@ -40,6 +44,8 @@ def survey_flight(path: str | Path, params: str | Path | None = None) -> dict:
 
     return {
         "flight": Path(path).stem,
+        "path": str(path),
+        "status": "ok",
         "params": params_file.name,
         "params_note": note or "given",
         "accepted": [e for e in res["effects"] if e["accepted"]],
@@ -54,16 +60,49 @@ def survey_flight(path: str | Path, params: str | Path | None = None) -> dict:
     }
 
 
+def failure_reason(path: str | Path, exc: BaseException) -> str:
+    """One line: a TwinError's message (it names the file); any other exception as
+    ``<file>: <Type>: <first line of its message>``."""
+    text = str(exc).strip()
+    first = one_line(text.splitlines()[0]) if text else ""
+    if isinstance(exc, TwinError):
+        return first or f"{path}: {type(exc).__name__}"
+    return f"{path}: {type(exc).__name__}: {first}" if first else f"{path}: {type(exc).__name__}"
+
+
+def survey_row(path: str | Path, params: str | Path | None = None) -> dict:
+    """:func:`survey_flight`'s row, or ``{"flight", "path", "status": "failed", "error"}`` when the
+    flight fails for any reason (never raises for one flight)."""
+    t0 = time.time()
+    try:
+        return survey_flight(path, params)
+    except Exception as exc:  # one bad flight is its own row; the survey goes on
+        return {"flight": Path(path).stem, "path": str(path), "status": "failed",
+                "error": failure_reason(path, exc), "elapsed_s": round(time.time() - t0, 1)}
+
+
+def survey_rows(paths, params: str | Path | None = None, progress: bool = False) -> list[dict]:
+    """One row per flight, in order (:func:`survey_row`)."""
+    from tqdm import tqdm
+
+    return [survey_row(p, params) for p in tqdm(list(paths), desc="survey", unit="flight", disable=not progress)]
+
+
 def meets_targets(m: dict) -> dict[str, bool]:
     return {k: bool(m[k] <= v) for k, v in TARGETS.items()}
 
 
 def markdown_table(rows: list[dict]) -> str:
-    """Per flight: closed-loop held-out metrics before -> after refit, and what discovery accepted."""
+    """Per flight: closed-loop held-out metrics before -> after refit, and what discovery accepted;
+    a failed flight's row gives its reason."""
     head = ("| flight | held-out window s | throttle RMSE % | per-motor P75 % (mean) | XY RMSE m | Z RMSE m "
             "| equation error (all channels) | accepted (param) |\n|---|---|---|---|---|---|---|---|")
     lines = [head]
     for r in rows:
+        if r.get("status") == "failed":
+            why = str(r.get("error", "")).replace("|", "\\|")
+            lines.append(f"| {r['flight']} | failed: {why} | | | | | | |")
+            continue
         b, a = r["before"], r["after"]
         acc = "; ".join(f"{e['name']} ({', '.join(f'{k}={v:.3g}' for k, v in e['params'].items())})"
                         for e in r["accepted"]) or "none"

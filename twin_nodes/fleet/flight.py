@@ -1,8 +1,11 @@
 """One flight -> one catalog row: identity and date from the ULog header, params, discovery or the twin.
 
 :func:`process_flight` never raises for a bad flight: it returns a ``failed`` row carrying the
-one-line error (the :class:`~twin_nodes.base.errors.TwinError` message), so one bad log never
-stops a fleet run.  It runs on a Dask worker; everything it needs is imported inside it.
+one-line error (the :class:`~twin_nodes.base.errors.TwinError` message; any other exception as
+``<file>: <Type>: <message>``), so one bad log never stops a fleet run.  The identity and date are
+read first and kept on a failed row; when even the header cannot be read they come from the
+folder and the file mtime (:func:`fallback_identity`).  It runs on a Dask worker; everything it
+needs is imported inside it.
 """
 
 from __future__ import annotations
@@ -11,10 +14,12 @@ import datetime as _dt
 import json
 import math
 import os
+import re
 import time
 from pathlib import Path
 
 from twin_nodes.base.errors import TwinError
+from twin_nodes.discovery.survey import failure_reason as reason
 from twin_nodes.fleet.catalog import effect_columns, file_key, now_utc, verdict, write_row
 
 
@@ -23,7 +28,8 @@ def identity(path: str | os.PathLike[str]) -> dict:
 
     ``vehicle_id``: ``sys_uuid`` if logged, else the hardware id (``ver_hw`` + ``ver_hw_subtype``)
     with ``sys_name``, else the file's folder; ``vehicle_id_source`` says which.  Date:
-    ``time_ref_utc`` (info), else the first GPS fix time, else the file mtime (``date_source``)."""
+    ``time_ref_utc`` (info), else the first GPS fix time, else the date and time in the file name,
+    else the file mtime (``date_source``, see :func:`file_date`)."""
     from pyulog import ULog
 
     try:
@@ -42,17 +48,53 @@ def identity(path: str | os.PathLike[str]) -> dict:
     else:
         out["vehicle_id"], out["vehicle_id_source"] = f"folder:{Path(path).resolve().parent.name}", "folder"
     ref = info.get("time_ref_utc")
-    t, src = None, None
+    t = None
     if isinstance(ref, (int, float)) and ref > 0:
         t, src = float(ref), "time_ref_utc"
     else:
-        t = _gps_time(path)
-        src = "gps" if t is not None else None
+        t, src = _gps_time(path), "gps"
     if t is None:
-        t, src = Path(path).stat().st_mtime, "file_mtime"
-    out["flight_time_utc"] = _dt.datetime.fromtimestamp(t, _dt.timezone.utc).isoformat(timespec="seconds")
-    out["date_source"] = src
+        out["flight_time_utc"], out["date_source"] = file_date(path)
+    else:
+        out["flight_time_utc"] = _dt.datetime.fromtimestamp(t, _dt.timezone.utc).isoformat(timespec="seconds")
+        out["date_source"] = src
     return out
+
+
+#: QGroundControl's download name ``log_<n>_<Y>-<M>-<D>-<h>-<m>-<s>.ulg`` (local time of the
+#: computer that downloaded it); PX4's own ``<Y>-<M>-<D>/<h>_<m>_<s>.ulg`` on the SD card
+_QGC_NAME = re.compile(r"(\d{4})-(\d{1,2})-(\d{1,2})-(\d{1,2})-(\d{1,2})-(\d{1,2})$")
+_PX4_DIR, _PX4_STEM = re.compile(r"^(\d{4})-(\d{2})-(\d{2})$"), re.compile(r"^(\d{2})_(\d{2})_(\d{2})$")
+
+
+def file_date(path: str | os.PathLike[str]) -> tuple[str, str]:
+    """``(flight time, date_source)`` from the file alone: the date and time in its name
+    (``file_name``; written without a zone: QGroundControl names downloads in local time), else its
+    mtime in UTC (``file_mtime``), else ``("", "")``."""
+    p = Path(path)
+    m = _QGC_NAME.search(p.stem)
+    parts = m.groups() if m else None
+    if parts is None and _PX4_DIR.match(p.parent.name) and _PX4_STEM.match(p.stem):
+        parts = _PX4_DIR.match(p.parent.name).groups() + _PX4_STEM.match(p.stem).groups()
+    if parts is not None:
+        try:
+            return _dt.datetime(*map(int, parts)).isoformat(timespec="seconds"), "file_name"
+        except ValueError:  # not a date after all (month 13...)
+            pass
+    try:
+        t = p.stat().st_mtime
+    except OSError:
+        return "", ""
+    return _dt.datetime.fromtimestamp(t, _dt.timezone.utc).isoformat(timespec="seconds"), "file_mtime"
+
+
+def fallback_identity(path: str | os.PathLike[str]) -> dict:
+    """Identity and date of a file whose header cannot be read: its folder, and the date of
+    :func:`file_date` (its name, else its mtime)."""
+    p = Path(path).resolve()
+    when, src = file_date(p)
+    return {"sys_uuid": "", "ver_hw": "", "sys_name": "", "vehicle_id": f"folder:{p.parent.name}",
+            "vehicle_id_source": "folder", "flight_time_utc": when, "date_source": src}
 
 
 def _gps_time(path) -> float | None:
@@ -105,12 +147,13 @@ def metric_columns(prefix: str, m: dict | None) -> dict:
 
 
 def analyse(path: str, mode: str, params: str | None, params_map: dict | None,
-            closed_loop_metrics: bool) -> dict:
-    """The row of one flight (raises TwinError on a bad flight)."""
+            closed_loop_metrics: bool, ident: dict | None = None) -> dict:
+    """The row of one flight (raises TwinError on a bad flight); ``ident`` as :func:`identity`
+    returns it, read here when not given."""
     from twin_nodes.logs.ulog_io import read_ulog
     from twin_nodes.vehicle.params import load_params
 
-    ident = identity(path)
+    ident = identity(path) if ident is None else ident
     pfile, note = resolve_params(path, ident["vehicle_id"], params, params_map)
     vp = load_params(pfile)
     log = read_ulog(path)
@@ -142,15 +185,18 @@ def process_flight(path: str, catalog: str, mode: str = "discover", params: str 
     key = file_key(path)
     row = {**key, "mode": mode, "status": "ok", "error": ""}
     try:
-        row.update(analyse(path, mode, params, params_map, closed_loop_metrics))
-    except TwinError as exc:
-        row.update(status="failed", error=str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
-    except Exception as exc:  # a bug on one flight must not stop the fleet; recorded, one line
-        row.update(status="failed", error=f"{path}: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
-    row.setdefault("vehicle_id", "")
-    row.setdefault("flight_time_utc", "")
+        ident = identity(path)
+    except Exception as exc:  # unreadable header: the row still says which vehicle (folder) and when (mtime)
+        row.update(fallback_identity(path), status="failed", error=reason(path, exc))
+    else:
+        row.update(ident)
+        try:
+            row.update(analyse(path, mode, params, params_map, closed_loop_metrics, ident))
+        except Exception as exc:  # a bad flight, or a bug on one flight: recorded, one line; the fleet goes on
+            row.update(status="failed", error=reason(path, exc))
     row["elapsed_s"] = round(time.time() - t0, 2)
     row["processed_at"] = now_utc()
     write_row(catalog, row)
     return {"path": key["path"], "status": row["status"], "error": row["error"], "vehicle_id": row["vehicle_id"],
-            "elapsed_s": row["elapsed_s"], "effects": row.get("effects_present", "")}
+            "flight_time_utc": row["flight_time_utc"], "elapsed_s": row["elapsed_s"],
+            "effects": row.get("effects_present", "")}

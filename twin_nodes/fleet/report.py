@@ -8,6 +8,10 @@ motor that weakens shows as 1.00 -> 0.97 -> ... -> 0.82.  Alarms:
 - ``payload``: the mass differs from the nominal by more than its rule — the flights (days) listed;
 - ``new_effect``: an effect not seen on the vehicle's first flight is found (``confirmed`` /
   ``accepted``) on at least :data:`NEW_EFFECT_MIN_FLIGHTS` later flights and no rule fired for it.
+
+Nothing is lost from the report: every failed flight is counted and listed with its vehicle,
+date and one-line reason; rows of identical content (sha256) count once and the others are listed
+as duplicates; damaged row files are skipped and listed.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from twin_nodes.base.io import atomic_write_text
-from twin_nodes.fleet.catalog import PRESENT, effect_key, load
+from twin_nodes.fleet.catalog import PRESENT, effect_key, load, row_files
 
 #: effect -> (parameter, kind, limit, nominal): ``below`` alarms when value < limit; ``relative``
 #: when |value / nominal_mass - 1| > limit (nominal from the row's params)
@@ -182,18 +186,44 @@ def _plot(t: Trend, out: Path) -> None:
     fig.savefig(out, dpi=90)
 
 
+def dedupe(rows: list[dict]) -> tuple[list[dict], list[dict]]:
+    """Rows with the same ``content_sha256`` are one flight: keep an ``ok`` one (else the first),
+    the others as duplicates ``{"path", "same_as"}``.  Rows without a hash are all kept."""
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        if r.get("content_sha256"):
+            groups.setdefault(r["content_sha256"], []).append(r)
+    keep_ids = {id(next((r for r in g if r.get("status") == "ok"), g[0])): g for g in groups.values()}
+    kept, dups = [], []
+    for r in rows:
+        h = r.get("content_sha256")
+        if not h or id(r) in keep_ids:
+            kept.append(r)
+            continue
+        same = next(x for x in groups[h] if id(x) in keep_ids)
+        dups.append({"path": r["path"], "same_as": same["path"]})
+    return kept, dups
+
+
+def failed_flights(rows: list[dict]) -> list[dict]:
+    """Every row that is not ``ok``: path, vehicle, date and the one-line reason."""
+    return [{"path": r["path"], "vehicle_id": r.get("vehicle_id") or "", "date": (r.get("flight_time_utc") or "")[:10],
+             "error": r.get("error") or f"status {r.get('status')!r} without a reason"}
+            for r in rows if r.get("status") != "ok"]
+
+
 def write_report(catalog: str | os.PathLike[str], out_dir: str | os.PathLike[str]) -> dict:
     """Trends, alarms and ``index.html`` (+ one PNG per trend, ``report.json``) in ``out_dir``."""
-    rows = load(catalog)
+    files = row_files(catalog)
+    rows, dups = dedupe(load(catalog, files.good))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     tr = trends(rows)
     al = alarms(rows, tr)
     vehicles: dict[str, dict] = {}
     for r in rows:
-        if not r.get("vehicle_id"):  # failed before its header was read: listed under failed only
-            continue
-        v = vehicles.setdefault(r["vehicle_id"], {"flights": 0, "failed": 0, "first": None, "last": None})
+        vid = r.get("vehicle_id") or "(unknown)"  # rows of catalogs written before failed rows kept it
+        v = vehicles.setdefault(vid, {"flights": 0, "failed": 0, "first": None, "last": None})
         v["flights"] += 1
         v["failed"] += r.get("status") != "ok"
         d = (r.get("flight_time_utc") or "")[:10]
@@ -204,14 +234,15 @@ def write_report(catalog: str | os.PathLike[str], out_dir: str | os.PathLike[str
         name = f"trend_{k:03d}.png"
         _plot(t, out / name)
         pngs.append(name)
-    failed = [{"path": r["path"], "error": r.get("error", "")} for r in rows if r.get("status") != "ok"]
+    failed = failed_flights(rows)
     summary = {"catalog": str(catalog), "flights": len(rows), "vehicles": vehicles,
                "alarms": [asdict(a) for a in al], "trends": [asdict(t) | {"label": t.label} for t in tr],
-               "failed": failed}
+               "failed": failed, "duplicates": dups, "corrupt_files": files.corrupt}
     atomic_write_text(out / "report.json", json.dumps(summary, indent=1, default=str))
     e = html.escape
     parts = ["<html><head><meta charset='utf-8'><title>fleet report</title></head><body>",
-             f"<h1>Fleet report</h1><p>{len(rows)} flights, {len(vehicles)} vehicles, {len(failed)} failed; "
+             f"<h1>Fleet report</h1><p>{len(rows)} flights, {len(vehicles)} vehicles, {len(failed)} failed, "
+             f"{len(dups)} duplicate(s), {len(files.corrupt)} corrupt row file(s); "
              f"catalog {e(str(catalog))}</p><h2>Alarms</h2>"]
     parts.append("<ul>" + "".join(f"<li><b>{e(a.vehicle_id)}</b> [{a.kind}] {e(a.message)}</li>" for a in al)
                  + "</ul>" if al else "<p>none</p>")
@@ -226,8 +257,16 @@ def write_report(catalog: str | os.PathLike[str], out_dir: str | os.PathLike[str
         parts.append(f"<h3>{e(t.vehicle_id)}: {e(t.label)}</h3><p>{t.values[0]:.3f} -> {t.values[-1]:.3f} over "
                      f"{len(t.values)} flights</p><img src='{png}'>")
     if failed:
-        parts.append("<h2>Failed flights</h2><ul>" + "".join(
-            f"<li>{e(f['path'])}: {e(f['error'])}</li>" for f in failed) + "</ul>")
+        parts.append("<h2>Failed flights</h2><table border=1 cellpadding=3><tr><th>flight</th><th>vehicle</th>"
+                     "<th>date</th><th>reason</th></tr>" + "".join(
+                         f"<tr><td>{e(f['path'])}</td><td>{e(f['vehicle_id'])}</td><td>{e(f['date'])}</td>"
+                         f"<td>{e(f['error'])}</td></tr>" for f in failed) + "</table>")
+    if dups:
+        parts.append("<h2>Duplicates (identical content, counted once)</h2><ul>" + "".join(
+            f"<li>{e(d['path'])}: same content as {e(d['same_as'])}</li>" for d in dups) + "</ul>")
+    if files.corrupt:
+        parts.append("<h2>Corrupt row files (skipped)</h2><ul>" + "".join(
+            f"<li>{e(c['file'])}: {e(c['error'])}</li>" for c in files.corrupt) + "</ul>")
     parts.append("</body></html>")
     atomic_write_text(out / "index.html", "\n".join(parts))
     return summary

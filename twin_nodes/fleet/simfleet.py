@@ -91,6 +91,9 @@ def write_fleet(folder: str | os.PathLike[str], flights: list[Flight], params_fi
     """Write every flight of ``flights`` not already in ``folder`` (processes in parallel)."""
     from concurrent.futures import ProcessPoolExecutor
 
+    from twin_nodes.fleet.run import check_workers
+
+    check_workers(workers)
     jobs = [(str(folder), f, str(params_file)) for f in flights]
     if workers <= 1:
         return [Path(_write_task(j)) for j in jobs]
