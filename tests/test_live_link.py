@@ -194,3 +194,4 @@ def test_live_normal_stop_is_not_a_link_loss(tmp_path):
     print("outages", res.outages, "flags", flags[-3:], "link.json", link)
     assert res.outages == [] and res.metrics["link_losses"] == [], (res.outages, live.logs())
     assert not [v for t, v in flags if v == 1.0 and t > 0.5], flags
+    assert res.watched["log"] == live.cfg.url and res.watched["system_id"] == 1 and res.watched["messages"] > 100

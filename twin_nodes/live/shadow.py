@@ -91,6 +91,7 @@ class LiveResult:
     foxglove_url: str | None
     exit_codes: dict[str, int] = field(default_factory=dict)
     wall_s: float = 0.0
+    watched: dict[str, Any] = field(default_factory=dict)  # what was watched (also in metrics when scored)
 
 
 def watched_header(url: str, bridge: dict[str, Any], link: dict[str, Any]) -> dict[str, Any]:
@@ -219,11 +220,12 @@ def run_live(cfg: LiveConfig, *, domain_id: int | None = None, run_dir: str | os
     metrics = json.loads(json_path.read_text()) if json_path.exists() else None
     link = json.loads(link_path.read_text()) if link_path.exists() else {"outages": []}
     bridge = json.loads(bridge_path.read_text()) if bridge_path.exists() else {}
+    header = watched_header(cfg.url, bridge, link)
     if metrics is not None:
-        metrics.update(watched_header(cfg.url, bridge, link))
+        metrics.update(header)
     res = LiveResult(metrics=metrics, outages=link.get("outages", []), run_dir=rd, domain_id=lease.domain_id,
                      bag_path=Path(cfg.bag) if cfg.bag else None, foxglove_url=url, exit_codes=codes,
-                     wall_s=time.monotonic() - t_wall)
+                     wall_s=time.monotonic() - t_wall, watched=header)
     if temp_run:
         shutil.rmtree(rd, ignore_errors=True)
     return res
