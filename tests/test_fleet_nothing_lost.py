@@ -28,7 +28,7 @@ from twin_nodes.cli import main  # noqa: E402
 from twin_nodes.fleet import catalog as cat  # noqa: E402
 from twin_nodes.fleet.flight import process_flight  # noqa: E402
 from twin_nodes.fleet.report import write_report  # noqa: E402
-from twin_nodes.fleet.run import run_fleet  # noqa: E402
+from twin_nodes.fleet.run import find_flights, run_fleet  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS = str(ROOT / "params/px4_sih_quadx.yaml")
@@ -134,11 +134,13 @@ def test_identical_content_counts_once_and_is_named(tmp_path, by_value):
     shutil.copyfile(flights[1], copy)
     link = tmp_path / "logs" / "hardlink.ulg"
     os.link(flights[2], link)
-    inputs = flights + [copy, link]
+    (tmp_path / "logs" / "symlink.ulg").symlink_to(flights[0])
+    inputs = find_flights([str(tmp_path / "logs"), str(flights[0])])  # f0 twice by name: once
+    assert len(inputs) == 6
     res = run_fleet(inputs, tmp_path / "cat", workers=1, task=task_ok_or_fail, progress=False)
     assert len(res["done"]) == 3 and len(cat.load(tmp_path / "cat")) == 3
     dups = {Path(d["path"]).name: Path(d["same_as"]).name for d in res["duplicates"]}
-    assert dups == {"renamed.ulg": "f1.ulg", "hardlink.ulg": "f2.ulg"}
+    assert dups == {"renamed.ulg": "f1.ulg", "hardlink.ulg": "f2.ulg", "symlink.ulg": "f0.ulg"}
     # the copy alone, later: already in the catalog under the other name -> named, not redone
     alone = run_fleet([copy], tmp_path / "cat", workers=1, task=task_ok_or_fail, progress=False)
     assert alone["done"] == [] and [Path(d["same_as"]).name for d in alone["duplicates"]] == ["f1.ulg"]

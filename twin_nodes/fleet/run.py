@@ -24,7 +24,9 @@ from twin_nodes.fleet.flight import process_flight
 
 
 def find_flights(args: list[str]) -> list[Path]:
-    """ULog files named or found (recursively) in the folders named, sorted, de-duplicated."""
+    """ULog files named or found (recursively) in the folders named, sorted, each name once (as an
+    absolute path, links not resolved: a second name of the same file is :func:`run_fleet`'s
+    duplicate, named there)."""
     out: list[Path] = []
     for a in args:
         p = Path(a)
@@ -36,7 +38,7 @@ def find_flights(args: list[str]) -> list[Path]:
             raise TwinError(f"{a}: <path>: expected a ULog file or a folder of them")
     seen, uniq = set(), []
     for p in out:
-        r = p.resolve()
+        r = p.absolute()
         if r not in seen:
             seen.add(r)
             uniq.append(r)
@@ -94,7 +96,8 @@ def plan(keys: list[dict], rows: list[dict]) -> tuple[list[dict], list[dict], li
     (:func:`~twin_nodes.fleet.catalog.catalogued`) into (to do, already done, duplicates).
 
     Files with the same content are one flight: the one already ``ok`` in the catalog under its
-    own path, else the first given, is kept; each other is a duplicate ``{"path", "same_as"}``.
+    own path, else the first given, is kept; each other is a duplicate ``{"path", "same_as"}``
+    (``path`` the name it was given by, ``given`` in the key, when that is a link to the other).
     A kept file whose content is ``ok`` in the catalog under another path is a duplicate of that
     path.  A ``failed`` row is not done: that flight is to do again."""
     by_path = {r["path"]: r for r in rows}
@@ -110,7 +113,7 @@ def plan(keys: list[dict], rows: list[dict]) -> tuple[list[dict], list[dict], li
         g = groups[k["content_sha256"]]
         keep = next((x for x in g if is_done(x, by_path.get(x["path"]))), g[0])
         if k is not keep:
-            dups.append({"path": k["path"], "same_as": keep["path"]})
+            dups.append({"path": k.get("given", k["path"]), "same_as": keep["path"]})
         elif is_done(k, by_path.get(k["path"])):
             done.append(k)
         elif ok_by_hash.get(k["content_sha256"], k["path"]) != k["path"]:
@@ -137,7 +140,7 @@ def run_fleet(flights: list[str | os.PathLike[str]], catalog: str | os.PathLike[
     check_workers(workers)
     catalog = Path(catalog).resolve()
     catalog.mkdir(parents=True, exist_ok=True)
-    keys = [file_key(f) for f in flights]
+    keys = [{**file_key(f), "given": str(Path(f).absolute())} for f in flights]
     todo, skipped, dups = plan(keys, catalogued(catalog))
     out = {"done": [], "skipped": len(skipped), "lost": [], "duplicates": dups}
     if not todo:
