@@ -19,6 +19,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from twin_nodes.base.outputs import shown
+from twin_nodes.cli.paths import declare
 from twin_nodes.cli.options import WORKERS, positive_int
 
 
@@ -28,27 +30,31 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = p.add_subparsers(dest="fleet_command", metavar="FLEET_COMMAND")
     for mode in ("discover", "compare"):
         q = sub.add_parser(mode, help=f"{mode} every flight into the catalog (one Dask task each)")
-        q.add_argument("flights", nargs="+", help="PX4 ULogs or folders of them (searched recursively)")
-        q.add_argument("--catalog", required=True, help="catalog folder (one Parquet file per flight)")
+        io = declare(q)
+        io.input("flights", nargs="+", help="PX4 ULogs or folders of them (searched recursively)")
+        io.output("--catalog", kind="update", required=True,
+                  help="catalog folder (one Parquet file per flight; an existing one is resumed)")
         q.add_argument("--scheduler", help="a running Dask scheduler (tcp://host:8786); default: embedded cluster")
         g = q.add_mutually_exclusive_group()
-        g.add_argument("--params", help="one params YAML for every flight")
-        g.add_argument("--params-map", help="YAML: vehicle id -> params file (others: built from the log)")
+        io.input("--params", group=g, help="one params YAML for every flight")
+        io.input("--params-map", group=g, help="YAML: vehicle id -> params file (others: built from the log)")
         q.add_argument("--workers", type=WORKERS, default=2, help="embedded cluster worker processes (default 2)")
         q.add_argument("--no-closed-loop", action="store_true",
                        help="discover: skip the closed-loop Table-2 metrics (faster)")
         q.set_defaults(func=_cmd_run, mode=mode)
     q = sub.add_parser("query", help="SQL on the catalog with DuckDB (the table is `flights`)")
-    q.add_argument("catalog")
-    q.add_argument("sql")
+    declare(q).input("catalog", help="catalog folder")
+    q.add_argument("sql", help="the query, e.g. 'SELECT vehicle_id, count(*) FROM flights GROUP BY 1'")
     q.set_defaults(func=_cmd_query)
     q = sub.add_parser("report", help="per-vehicle trends, alarms, HTML with plots")
-    q.add_argument("catalog")
-    q.add_argument("--out", required=True, help="report folder (index.html, report.json, PNGs)")
+    io = declare(q)
+    io.input("catalog", help="catalog folder")
+    io.output("--out", kind="dir", required=True, help="report folder (index.html, report.json, PNGs)")
     q.set_defaults(func=_cmd_report)
     q = sub.add_parser("simulate", help="write the simulated demo fleet (degrading motor, payload days, healthy)")
-    q.add_argument("out")
-    q.add_argument("--params", default="params/px4_sih_quadx.yaml")
+    io = declare(q)
+    io.output("out", kind="dir", help="folder for the simulated flights")
+    io.input("--params", default="params/px4_sih_quadx.yaml", help="vehicle params YAML")
     q.add_argument("--vehicles", type=positive_int(1000), default=5)
     q.add_argument("--flights", type=positive_int(10000), default=10, help="flights per vehicle")
     q.add_argument("--workers", type=WORKERS, default=2)
@@ -107,7 +113,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
         print(f"ALARM {a['vehicle_id']} [{a['kind']}] {a['message']}")
     if not s["alarms"]:
         print("no alarms")
-    print(f"report: {args.out}/index.html")
+    print(f"report: {shown(args.out)}/index.html")
     return 0
 
 
@@ -120,5 +126,5 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     for f in fl:
         if f.effect != "none":
             print(f"{f.name}: {f.effect} {dict(f.params)}")
-    print(f"wrote {len(paths)} flights to {args.out}")
+    print(f"simulated {len(paths)} flights into {shown(args.out)}")
     return 0

@@ -19,15 +19,17 @@ from pathlib import Path
 
 from twin_nodes.base.errors import TwinError
 from twin_nodes.base.io import atomic_write_text
+from twin_nodes.cli.paths import declare
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("survey", help="discover on many flights; closed-loop held-out table per flight",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("flights", nargs="+", help="PX4 ULogs or folders of them")
-    p.add_argument("--params", help="one params YAML for every flight (default: resolved per flight)")
-    p.add_argument("--md", help="write the markdown table here")
-    p.add_argument("--json", dest="json_out", help="write the rows here")
+    io = declare(p)
+    io.input("flights", nargs="+", help="PX4 ULogs or folders of them")
+    io.input("--params", help="one params YAML for every flight (default: resolved per flight)")
+    io.output("--md", help="write the markdown table here")
+    io.output("--json", dest="json_out", help="write the rows here")
     p.set_defaults(func=_cmd_survey)
 
 
