@@ -345,3 +345,31 @@ def test_a_signal_during_discover_leaves_no_output(sig, tmp_path):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode in (130, 143, -sig), err
     assert os.listdir(tmp_path) == [], os.listdir(tmp_path)
+
+
+def test_a_forked_worker_stopped_by_sigterm_dies_quietly(tmp_path):
+    """Pool workers forked during a command inherit its SIGTERM handler: they must end as SIGTERM
+    says, without the traceback of the interrupt meant for the command itself."""
+    code = f"""
+import multiprocessing as mp, os, signal, sys, time
+from twin_nodes.cli import build_parser
+from twin_nodes.cli.paths import run_guarded
+
+def cmd(args):
+    ctx = mp.get_context("fork")
+    p = ctx.Process(target=time.sleep, args=(30,))
+    p.start()
+    time.sleep(0.5)
+    os.kill(p.pid, signal.SIGTERM)
+    p.join(10)
+    print("child exit", p.exitcode)
+    return 0
+
+args = build_parser().parse_args(["simulate", "--out", {str(tmp_path / 'x.ulg')!r}])
+sys.exit(run_guarded(cmd, args))
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 0, r.stderr
+    assert "child exit -15" in r.stdout
+    assert "Traceback" not in r.stderr and "_Terminated" not in r.stderr

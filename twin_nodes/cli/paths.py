@@ -88,7 +88,15 @@ class _Terminated(KeyboardInterrupt):
     """SIGTERM/SIGHUP: handled like Ctrl-C, so staged outputs are removed on the way out."""
 
 
+_OWNER = {"pid": 0}
+
+
 def _raise_terminated(signum: int, frame: Any) -> None:
+    if os.getpid() != _OWNER["pid"]:
+        # a forked worker (multiprocessing, Dask) inherited the handler: die as the signal says, quietly
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+        return
     raise _Terminated(signal.Signals(signum).name)
 
 
@@ -101,6 +109,7 @@ def run_guarded(func: Callable[[argparse.Namespace], Any], args: argparse.Namesp
     plan = check(pa.outputs, args, pa.input_values(args), force=bool(getattr(args, "force", False)))
     old = {}
     if _main_thread():
+        _OWNER["pid"] = os.getpid()
         for s in (signal.SIGTERM, signal.SIGHUP):
             old[s] = signal.signal(s, _raise_terminated)
     staging = Staging(plan)
