@@ -238,3 +238,16 @@ def test_a_log_that_is_no_flight_is_refused_in_one_line(tmp_path):
         p = C.edited_flight(tmp_path / f"{edit.__name__}.ulg", edit)  # with the quad X rotor positions
         with pytest.raises(LogError, match=msg):
             nominal_from_log(read_ulog(p), mass_kg=1.5)
+
+
+def test_a_flight_whose_velocity_is_unknown_for_a_while_still_builds():
+    """PX4 logs NaN velocity while its horizontal estimate is invalid (here 91 of 1079 airborne samples
+    of a fleet flight): those stretches are left out, not spread over the flight by the low-pass
+    (before: ValueError 'need more samples than coefficients, got 0 <= 1')."""
+    from twin_nodes.logs.ulog_io import read_ulog
+
+    log = read_ulog(shared_log("fleet_quadx_v6c/ZweiterFlugtag", "log_39_2023-6-7-13-55-54.ulg"))
+    nom = nominal_from_log(log, mass_kg=1.5)
+    r = nom.params.rotors
+    assert r.count == 4
+    assert 2.0 < r.thrust_max_n < 20.0  # a ~1.5 kg quad: 4 rotors lifting it with margin

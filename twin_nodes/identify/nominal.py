@@ -147,7 +147,12 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
 
     t = _airborne_grid(log, GRID_HZ)
     sig = _signals(log, t)
-    ok = np.all(np.isfinite(sig["motors"]), axis=1) & np.all(np.isfinite(sig["rates"]), axis=1)
+    # every equation below needs all of these at a sample: a stretch where one is unknown (PX4 logs NaN
+    # velocity while its horizontal estimate is invalid) is left out, else the low-pass would spread the
+    # NaN over its whole segment and leave no sample to fit
+    ok = np.ones(len(t), bool)
+    for key in ("motors", "rates", "q", "v_enu", "f_body"):
+        ok &= np.all(np.isfinite(np.asarray(sig[key], float).reshape(len(t), -1)), axis=1)
     t = t[ok]
     sig = {k: v[ok] for k, v in sig.items()}
     segs = _segments(t, GRID_HZ)
