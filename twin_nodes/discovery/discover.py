@@ -213,24 +213,48 @@ def _block_stats(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_c
     k = int(np.sum(d > 0))
     p = float(binom.sf(k - 1, d.size, 0.5))
     z = float(norm.isf(max(p, 1e-300)))
-    flips = _sign_flips(d.size)
-    p_flip = (1.0 + np.sum(flips @ np.abs(d) >= d.sum())) / (1.0 + flips.shape[0])
+    p_flip = (1.0 + np.sum(_flip_sums(d.size, np.abs(d)) >= d.sum())) / (1.0 + N_FLIPS)
     zw = float(norm.isf(p_flip))
     st["t"] = max(t, z, zw)
     return st
 
 
 _FLIPS: dict[int, np.ndarray] = {}
+#: the sign-flip test's flips, and the rows made and multiplied at a time: the flip matrix is
+#: 20000 x (active blocks) and the blocks are 0.5 s, so as float64 it grew with the flight (a
+#: 1-hour flight: ~800 MB per block count, up to 17 counts cached); kept as bits (1/64) and
+#: expanded FLIP_ROWS rows at a time, with the same random stream (an even number of draws per
+#: chunk: the generator's 32-bit buffer ends with each chunk) and the same BLAS product per row
+#: (bit for bit what the whole matrix gave, tests/test_bench_smoke.py)
+N_FLIPS = 20000
+FLIP_ROWS = 2000
 
 
 def _sign_flips(n: int) -> np.ndarray:
-    """The sign-flip test's 20000 fixed-seed flips of n blocks (the same matrix every call: made once)."""
+    """The sign-flip test's 20000 fixed-seed flips of n blocks, packed as bits (True: +1), made once
+    per n (:func:`_flip_sums` expands them)."""
     if n not in _FLIPS:
         if len(_FLIPS) > 16:
             _FLIPS.clear()
-        _FLIPS[n] = np.random.default_rng(12345).choice((-1.0, 1.0), size=(20000, n))
+        rng = np.random.default_rng(12345)
+        _FLIPS[n] = np.concatenate([
+            np.packbits(rng.choice((-1.0, 1.0), size=(min(FLIP_ROWS, N_FLIPS - r0), n)) > 0, axis=1)
+            for r0 in range(0, N_FLIPS, FLIP_ROWS)])
         _FLIPS[n].flags.writeable = False
     return _FLIPS[n]
+
+
+def _flip_sums(n: int, a: np.ndarray) -> np.ndarray:
+    """``flips @ a`` for the n-block flip matrix, FLIP_ROWS rows at a time (equal bit for bit to
+    the product with the whole float64 matrix)."""
+    bits = _sign_flips(n)
+    out = np.empty(N_FLIPS)
+    for r0 in range(0, N_FLIPS, FLIP_ROWS):
+        f = np.unpackbits(bits[r0:r0 + FLIP_ROWS], axis=1, count=n).astype(float)
+        f *= 2.0
+        f -= 1.0
+        out[r0:r0 + FLIP_ROWS] = f @ a
+    return out
 
 
 def _block_test(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_change: float = 0.0
