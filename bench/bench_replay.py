@@ -39,7 +39,7 @@ sys.path.insert(0, str(REPO))
 
 def make_long_flight(path: Path, minutes: float, seed: int = 3) -> dict:
     """Fly the SIH quad through repeated missions for >= ``minutes`` and write a ULog."""
-    from twin_nodes.discovery.prove import EstimateNoise, mission_setpoints, record_to_topics
+    from twin_nodes.twin.simflight import EstimateNoise, mission_setpoints, record_to_topics
     from twin_nodes.vehicle.params import shipped
     from twin_nodes.twin.sim import fly_closed_loop
     from twin_nodes.logs.ulog_write import write_px4_ulog

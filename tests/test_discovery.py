@@ -10,7 +10,8 @@ import pytest
 from conftest import missing_shared
 
 from twin_nodes.discovery.discover import _block_test, discover
-from twin_nodes.discovery.prove import Hidden, run_one, suite
+from twin_nodes.prove.ours import run_one, suite
+from twin_nodes.twin.simflight import Hidden
 from twin_nodes.base.errors import TwinError
 from twin_nodes.vehicle.params import shipped
 from twin_nodes.logs.ulog_io import read_ulog

@@ -547,7 +547,7 @@ def test_each_roll_pitch_inertia_axis_stands_on_its_own_evidence(tmp_path, chang
     Iyy +10 %, t 1.05 and 0.80, now held; IXX/IYY x1.5 on M4 gives Ixx t 3.89, supplied 0.0376 for 0.0375.)"""
     from twin_nodes.discovery.candidates import build_candidates
     from twin_nodes.discovery.discover import T_CRIT, _axis_tests, assess, prepare_flight
-    from twin_nodes.discovery.prove import Hidden, write_flight
+    from twin_nodes.twin.simflight import Hidden, write_flight
     vp = shipped("px4_sih_quadx")
     inertia = np.diag(vp.inertia)
     params = {k: float(inertia[i] * change.get(k, 1.0)) for i, k in enumerate(("ixx", "iyy", "izz"))}

@@ -17,7 +17,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from tests.conftest import px4_sitl_binary
 from twin_nodes.base.errors import ParamsError, TwinError
-from twin_nodes.discovery import prove_sih
+from twin_nodes.prove import sih as prove_sih
 from twin_nodes.logs.ulog_write import write_px4_ulog
 from twin_nodes.mavlink import sih_flight as sf
 from twin_nodes.mavlink.mission import load_plan, plan_from_mapping, plan_to_mission_items, upload_plan

@@ -1,6 +1,7 @@
 """The package layout is the architecture: no import cycles, each subpackage imports only
 the layers its ``__init__`` declares, no module at the package root but the face and the
-entry point, and the CLI stays thin."""
+entry point, the evidence (``prove``) apart from the method (``discovery``: it never imports
+``prove``; only the CLI does), and the CLI stays thin."""
 
 from __future__ import annotations
 
@@ -153,6 +154,38 @@ def test_cli_modules_are_thin():
     long = {p.name: n for p in (PKG / "cli").glob("*.py")
             if (n := len(p.read_text(encoding="utf-8").splitlines())) > 250}
     assert not long, f"CLI modules over 250 lines (move the logic below the CLI): {long}"
+
+
+#: the evidence package: it imports the method, and only the CLI imports it
+EVIDENCE = "prove"
+#: the layers that may import the evidence package (besides itself)
+EVIDENCE_USERS = {"cli"}
+
+
+def evidence_importers(graph: dict[str, set[str]]) -> list[str]:
+    """``module -> prove module`` for every import of the evidence package from outside it and the CLI."""
+    return sorted(f"{m} -> {d}" for m, deps in graph.items() for d in deps
+                  if layer(d) == EVIDENCE and layer(m) not in EVIDENCE_USERS | {EVIDENCE})
+
+
+def test_prove_is_a_declared_subpackage_above_discovery():
+    assert (PKG / EVIDENCE / "__init__.py").exists()
+    allowed = declared_imports(PKG / EVIDENCE)
+    assert allowed is not None and "discovery" in allowed
+    assert EVIDENCE not in (declared_imports(PKG / "discovery") or set())
+
+
+def test_nothing_but_the_cli_imports_prove():
+    """discovery (the method) must not depend on its evidence; no other layer does either."""
+    bad = evidence_importers(module_graph())
+    assert not bad, "only the CLI may import twin_nodes.prove: " + "; ".join(bad)
+
+
+def test_evidence_rule_catches_discovery_importing_prove():
+    graph = {"twin_nodes.discovery.plan_flight": {"twin_nodes.prove.ours"},
+             "twin_nodes.cli.discover": {"twin_nodes.prove.sources"},
+             "twin_nodes.prove.ours": {"twin_nodes.discovery.discover"}}
+    assert evidence_importers(graph) == ["twin_nodes.discovery.plan_flight -> twin_nodes.prove.ours"]
 
 
 def test_msgs_py_depends_on_nothing_of_ours():

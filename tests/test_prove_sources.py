@@ -18,8 +18,10 @@ import pytest
 import yaml
 from conftest import shared_log
 
-from twin_nodes.discovery import prove, prove_sih
-from twin_nodes.discovery.prove import DragContext, Hidden, Truth, compare, findings, score, score_flight
+from twin_nodes.prove import scoring
+from twin_nodes.prove import sih as prove_sih
+from twin_nodes.prove.scoring import DragContext, Truth, compare, findings, score, score_flight
+from twin_nodes.twin.simflight import Hidden
 from twin_nodes.vehicle.params import load_params, shipped
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -82,15 +84,15 @@ def test_score_rules_no_effect_and_effect_rows():
     assert not low_cut["passed"]
     s = score([none_row, ok, low_cut], "x")
     assert (s["n_right_top"], s["false_accepts_on_no_effect"], s["n_passed"]) == (2, 1, 1)
-    table = prove.format_table(s)
+    table = scoring.format_table(s)
     assert "mass (confirmed)" in table and table.splitlines()[-1].startswith("x: right effect on top 2/2")
 
-    assert prove.breakdown(s, "logging") == []  # rows without the key: no breakdown
+    assert scoring.breakdown(s, "logging") == []  # rows without the key: no breakdown
     # per logging profile and per change, the same four numbers (px4sih rows carry both keys)
     none_row.update(logging="default", sih_change="none")
     ok.update(logging="highrate", sih_change="SIH_MASS")
     low_cut.update(logging="default", sih_change="SIH_MASS")
-    lines = prove.format_table(score([none_row, ok, low_cut], "px4sih")).splitlines()
+    lines = scoring.format_table(score([none_row, ok, low_cut], "px4sih")).splitlines()
     assert lines[-4].startswith("px4sih [logging default]: right effect on top 1/1 (100 %); findings on no-effect "
                                 "flights 1/1; params within 10 % 1/1; held-out cut >= 50 % 0/1; flights passing "
                                 "every rule 0/2")
@@ -114,9 +116,9 @@ def test_a_true_effect_named_only_as_the_top_findings_alternative_is_shown_not_s
     assert not alone["true_is_alternative"]
     s = score([row, alone], "x")
     assert s["n_right_top"] == 0 and s["n_true_is_alternative"] == 1
-    assert prove.summary_line(s).endswith("(not scored: on 1 more the true effect is the top finding's "
+    assert scoring.summary_line(s).endswith("(not scored: on 1 more the true effect is the top finding's "
                                           "not-told-apart alternative)")
-    assert "not scored" not in prove.summary_line(score([alone], "x"))
+    assert "not scored" not in scoring.summary_line(score([alone], "x"))
 
 
 # ---------------------------------------------------------------- px4sih
@@ -202,7 +204,7 @@ def test_px4sih_without_shared_folder_is_a_one_line_error(tmp_path):
 
 # ---------------------------------------------------------------- rotorpy
 
-from twin_nodes.discovery import prove_rotorpy as prp  # noqa: E402  (imports rotorpy lazily)
+from twin_nodes.prove import rotorpy_flights as prp  # noqa: E402  (imports rotorpy lazily)
 
 
 @pytest.fixture(autouse=True)

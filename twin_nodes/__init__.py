@@ -7,9 +7,11 @@ Subpackages, lowest layer first (each ``__init__`` says what it owns and what it
 - ``physics``    rigid body + rotors + plug-in effects, RK4 model (numba, ENU/FLU)
 - ``vehicle``    parameter files, the paper's derivations, PX4/Gazebo export, rotor geometry
 - ``logs``       ULog read/write, time alignment, replay streams, ROS conversions, MCAP
-- ``twin``       controller, simulator, the twin beside a flight, comparison, metrics, report
+- ``twin``       controller, simulator, simulated PX4-like flights, the twin beside a flight, comparison, metrics, report
 - ``identify``   the second reference's identification methods
-- ``discovery``  missing-physics discovery and the prove suite
+- ``discovery``  missing-physics discovery (the method)
+- ``prove``      the evidence: flights with one known change each (ours, PX4 SIH, RotorPy), found blind, scored
+- ``fleet``      discovery over many flights on Dask, the Parquet flight catalog, trends and alarms
 - ``mavlink``    PX4 over MAVLink: simulator link, telemetry, missions
 - ``nodes``      thin rclpy shells, one process each
 - ``graph``      the process orchestrator (``run_graph``) and bag regression

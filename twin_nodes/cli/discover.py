@@ -100,8 +100,8 @@ def _discover(args) -> int:
 
 
 def _prove(args) -> int:
-    from twin_nodes.discovery.prove import format_table, summary_line
-    from twin_nodes.discovery.prove_sources import SOURCES, run_sources
+    from twin_nodes.prove.scoring import format_table, summary_line
+    from twin_nodes.prove.sources import SOURCES, run_sources
 
     sources = SOURCES if args.source == "all" else (args.source,)
     out = Path(args.out)
@@ -123,14 +123,14 @@ def _prove(args) -> int:
 
 def parse_effect(spec: str):
     """The ``--effect`` argument ('name:k=v,k=v') -> Hidden (grammar: physics.effects.parse_effect)."""
-    from twin_nodes.discovery.prove import Hidden
+    from twin_nodes.twin.simflight import Hidden
     from twin_nodes.physics.effects import parse_effect as parse_spec
 
     return Hidden(*parse_spec(spec))
 
 
 def _simulate(args) -> int:
-    from twin_nodes.discovery.prove import write_flight
+    from twin_nodes.twin.simflight import write_flight
     from twin_nodes.vehicle.params import load_params
 
     vp = load_params(args.params)

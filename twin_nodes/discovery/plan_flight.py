@@ -7,7 +7,7 @@ profile along the leg (``ACC`` m/s^2 up to the item's speed; vertical speed limi
 ``MPC_Z_V_AUTO_UP``/``_DN``); a stop item ends at rest with a 0.5 s hold, a fly-through item keeps
 its speed into the next leg.  After the last item: return to launch at ``RTL_ALT`` and land
 (``rtl_after``) or land where it is.  The PX4-like controller flies the setpoints (250 Hz), the
-plant carries the hidden effect, the log is written like :func:`twin_nodes.discovery.prove.write_flight`
+plant carries the hidden effect, the log is written like :func:`twin_nodes.twin.simflight.write_flight`
 does (same topics, rates and noise).
 
 Waypoints come as ``(north_m, east_m, alt_m, speed_m_s, fly_through)`` tuples (the CLI reads the
@@ -22,8 +22,8 @@ from typing import Sequence
 
 import numpy as np
 
-from twin_nodes.discovery.prove import EstimateNoise, Hidden, record_to_topics
 from twin_nodes.twin.sim import fly_closed_loop
+from twin_nodes.twin.simflight import EstimateNoise, Hidden, record_to_topics
 from twin_nodes.vehicle.export_px4 import simulated_log_params
 from twin_nodes.vehicle.params import VehicleParams
 

@@ -1,8 +1,8 @@
 """A simulated fleet for demos and tests: several vehicles, each flight a PX4-like ULog with a
 vehicle identity (``sys_uuid``, ``sys_name``) and a date (``time_ref_utc``) in its header.
 
-Flown with the discovery prove suite's generator (the built-in mission, the PX4-like controller,
-the logging of :func:`twin_nodes.discovery.prove.record_to_topics`).  :func:`plan` lays out the
+Flown with the prove suite's generator (the built-in mission, the PX4-like controller,
+the logging of :func:`twin_nodes.twin.simflight.record_to_topics`).  :func:`plan` lays out the
 standard fleet: one vehicle whose motor weakens flight by flight, one that carries a payload on
 some days, the rest healthy.
 """
@@ -62,7 +62,7 @@ def plan(n_vehicles: int = 5, flights_per_vehicle: int = 10, *, weak_motor: int 
 
 def write_fleet_flight(folder: str | os.PathLike[str], f: Flight, params_file: str | os.PathLike[str]) -> Path:
     """Simulate one flight of the plan and write it (atomically) as ``folder/<vehicle>_dNN.ulg``."""
-    from twin_nodes.discovery.prove import Hidden, record_to_topics, simulate_flight
+    from twin_nodes.twin.simflight import Hidden, record_to_topics, simulate_flight
     from twin_nodes.logs.ulog_write import write_px4_ulog
     from twin_nodes.vehicle.export_px4 import simulated_log_params
     from twin_nodes.vehicle.params import load_params

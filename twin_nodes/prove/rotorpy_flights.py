@@ -5,7 +5,7 @@ speed), aerodynamics (rotor drag ``k_d``, parasitic drag ``c_D``, induced inflow
 ``k_h``), wind models and its own SE(3) geometric controller.  Each flight here is RotorPy's own Crazyflie
 (``rotorpy.vehicles.crazyflie_params``) flown by RotorPy's ``SE3Control``, which believes the nominal vehicle,
 while RotorPy's ``Multirotor`` carries one changed physical parameter (or a RotorPy wind).  The flight is then
-logged the way PX4 logs (the ours suite's :func:`~twin_nodes.discovery.prove.record_to_topics`: estimator-grade
+logged the way PX4 logs (the ours suite's :func:`~twin_nodes.twin.simflight.record_to_topics`: estimator-grade
 noise, 50 Hz motor topic from a 250 Hz controller, 100 Hz IMU) and discovered blind with the nominal
 ``params/rotorpy_crazyflie.yaml`` (:func:`nominal_params` of RotorPy's parameters).
 
@@ -38,8 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from twin_nodes.base import frames
-from twin_nodes.discovery.prove import (DragContext, EstimateNoise, Hidden, Truth, effect_class, map_jobs,
-                                        record_to_topics, score, score_flight, write_result)
+from twin_nodes.prove.scoring import DragContext, Truth, effect_class, map_jobs, score, score_flight, write_result
+from twin_nodes.twin.simflight import EstimateNoise, Hidden, record_to_topics
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 
 GENERATOR_VERSION = 2
@@ -125,10 +125,10 @@ def _generator_code_hash(mission_name: str) -> str:
     """A hash of the code that makes a flight (missions, the loop, logging): an edit there makes new flights."""
     import inspect
 
-    from twin_nodes.discovery import prove
+    from twin_nodes.twin import simflight
 
     parts = [MISSIONS[mission_name], fly, write_record, _leg, _take_off, _landing, _shortest, _Hold, _YawTurn, _Timed,
-             Mission, nominal_params, prove.record_to_topics, prove.EstimateNoise]
+             Mission, nominal_params, simflight.record_to_topics, simflight.EstimateNoise]
     return hashlib.sha256("".join(inspect.getsource(o) for o in parts).encode()).hexdigest()
 
 

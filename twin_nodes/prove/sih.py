@@ -30,8 +30,8 @@ import re
 from pathlib import Path
 
 from twin_nodes.base.errors import TwinError
-from twin_nodes.discovery.prove import (DragContext, Hidden, Truth, effect_class, map_jobs, score, score_flight,
-                                        write_result)
+from twin_nodes.prove.scoring import DragContext, Truth, effect_class, map_jobs, score, score_flight, write_result
+from twin_nodes.twin.simflight import Hidden
 from twin_nodes.vehicle.params import VehicleParams, load_params
 
 REPO = Path(__file__).resolve().parents[2]
@@ -145,7 +145,7 @@ def run_one(args) -> dict:
     write_result(Path(out_dir) / f"{flight['flight'].replace('/', '_')}.json", res)
     row = score_flight(name, truth, res, vp, drag, source="px4sih", log=flight["path"])
     tj = flight["truth_json"]
-    # the groups a breakdown reports (prove.breakdown): how the flight was logged, what was changed
+    # the groups a breakdown reports (scoring.breakdown): how the flight was logged, what was changed
     row["logging"] = str((tj.get("logging") or {}).get("profile") or "default")
     row["sih_change"] = "+".join(sorted(tj.get("sih_changes") or {})) or "none"
     return row

@@ -1,4 +1,4 @@
-"""The twin beside a flight: the PX4-like controller, the simulator, the streaming TwinRunner, comparison, metrics and the compare report.
+"""The twin beside a flight: the PX4-like controller, the simulator, simulated PX4-like flights with a hidden effect (``simflight``), the streaming TwinRunner, comparison, metrics and the compare report.
 
 May import: base, physics, vehicle, logs.
 """
