@@ -17,3 +17,5 @@ echo "== missing-physics discovery"
 "$BIN/rotortwin" discover "$FLIGHT" --params "$PARAMS" --json "$OUT/discover.json" \
     --report "$OUT/discover_report" --out-params "$OUT/refitted_params.yaml" --force
 echo "== outputs in $OUT"
+# the finding in one line, read from the discover JSON (any 'rotortwin discover --json' result works)
+"$BIN/rotortwin" finding "$OUT/discover.json"

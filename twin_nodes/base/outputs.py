@@ -18,7 +18,8 @@ One guard for every command (the CLI layer calls it; no command checks its own o
 
 An output is described by :class:`Output`; its ``kind`` is ``file`` (one file), ``dir`` (a folder the
 command fills; an existing one must be empty unless ``force``; with ``force`` its entries of the same
-name are replaced and the rest kept) or ``update`` (a folder kept across runs: may exist, never staged).
+name are replaced and the rest kept), ``update`` (a folder kept across runs: may exist, never staged)
+or ``bag`` (a recording: a path ending in ``.mcap`` is checked as a ``file``, any other as a ``dir``).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from twin_nodes.base.errors import TwinError, one_line
 __all__ = ["Output", "Planned", "Staging", "check", "shown", "STAGE_PREFIX"]
 
 STAGE_PREFIX = ".rotortwin-stage-"
-KINDS = ("file", "dir", "update")
+KINDS = ("file", "dir", "update", "bag")
 
 #: staged path -> final path of the outputs of the command running in this process (for what it prints)
 _SHOWN: dict[str, str] = {}
@@ -46,9 +47,9 @@ class Output:
     """One output option of a command.
 
     ``dest``: the argparse destination; ``option``: what the user typed (``--json``, ``OUT``);
-    ``kind``: ``file`` | ``dir`` | ``update``; ``staged``: written via the stage (default for
-    ``file`` and ``dir``); ``path``: maps the given value to the path really written (e.g. a bag
-    folder from ``run.mcap``); ``default``: the path written when the option is not given (computed
+    ``kind``: ``file`` | ``dir`` | ``update`` | ``bag`` (``file`` for a value ending in ``.mcap``,
+    else ``dir``); ``staged``: written via the stage (default for ``file``, ``dir`` and ``bag``);
+    ``path``: maps the given value to the path really written; ``default``: the path written when the option is not given (computed
     from the other arguments); ``skip``: the option is not an output for these arguments."""
 
     dest: str
@@ -143,14 +144,15 @@ def check(outputs: Iterable[Output], args: Any, inputs: Iterable[str | os.PathLi
             continue
         value = str(value)
         p = Path(os.path.expanduser(out.path(value) if out.path else value))
-        _against_inputs(p, value, out.option, out.kind, ins)
+        kind = out.kind if out.kind != "bag" else ("file" if p.suffix == ".mcap" else "dir")
+        _against_inputs(p, value, out.option, kind, ins)
         for other in plan:
             a, b = _abs(p), _abs(other.final)
             if a == b:
                 raise _err(value, out.option, f"expected another path than {other.out.option}'s")
         exists = os.path.lexists(p)
         replaces = False
-        if out.kind == "file":
+        if kind == "file":
             if exists and os.path.isdir(p):
                 raise _err(value, out.option, "expected a file path, this is a folder")
             if exists and not force:
@@ -163,7 +165,7 @@ def check(outputs: Iterable[Output], args: Any, inputs: Iterable[str | os.PathLi
                 raise _err(value, out.option, "expected a folder, this is a file")
             if exists and not os.access(p, os.W_OK | os.X_OK):
                 raise _err(value, out.option, "expected a writable folder")
-            if exists and out.kind == "dir" and any(os.scandir(p)) and not force:
+            if exists and kind == "dir" and any(os.scandir(p)) and not force:
                 n = sum(1 for _ in os.scandir(p))
                 raise _err(value, out.option, f"expected a new or empty folder; it holds {n} entries "
                                               f"(pass --force to write into it, replacing entries of the same name)")

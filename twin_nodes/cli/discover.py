@@ -1,4 +1,4 @@
-"""``rotortwin discover``, ``rotortwin prove`` and ``rotortwin simulate``."""
+"""``rotortwin discover``, ``rotortwin finding``, ``rotortwin prove`` and ``rotortwin simulate``."""
 
 from __future__ import annotations
 
@@ -31,6 +31,11 @@ def register(sub) -> None:
     io.input("--confirm", metavar="FOLLOWUP", help="re-judge each 'likely' effect of FLIGHT on this follow-up "
                                                          "flight (flown with the confirmation plan): confirm or drop")
     p.set_defaults(func=_discover)
+
+    f = sub.add_parser("finding", help="the finding of a 'discover --json' result in one line: effect, "
+                                       "parameters, verdict, held-out throttle RMSE before -> after")
+    declare(f).input("result", metavar="DISCOVER_JSON", help="the JSON written by 'rotortwin discover --json'")
+    f.set_defaults(func=_finding)
 
     q = sub.add_parser("prove", help="flights with one known effect each (ours, PX4 SIH, RotorPy), discovered "
                                      "blind and scored per source")
@@ -82,6 +87,7 @@ def _discover(args) -> int:
         from twin_nodes.discovery.confirm import confirm
         res["confirmation"] = confirm(res, read_ulog(args.confirm), vp)
     print(summary_text(res))
+    print(finding_line(res))
     if args.plan_dir:
         from twin_nodes.discovery.plans import write_plans
         for path in write_plans(res, args.plan_dir, args.flight):
@@ -96,6 +102,39 @@ def _discover(args) -> int:
         new = from_ros_dict(res["refit_params"], args.out_params)
         write_params(new, args.out_params, header=f"refitted by rotortwin discover on {args.flight}: "
                                                    f"added {', '.join(res['accepted'])}")
+    return 0
+
+
+def finding_line(res: dict) -> str:
+    """One line: each confirmed or likely effect with its parameters and verdict, then the closed-loop
+    twin's held-out throttle RMSE before -> after the refit (when discover flew it)."""
+    def pretty(params: dict) -> str:
+        return ", ".join(f"{k} {int(v)}" if k == "motor" else f"{k} {v:.4g}" for k, v in params.items())
+    found = [e for e in res["effects"] if e.get("verdict") in ("confirmed", "likely")]
+    text = "; ".join(f"{e['name']} ({pretty(e.get('params') or {})}), {e['verdict']}" for e in found) \
+        or "no missing physics found"
+    before = ((res.get("baseline") or {}).get("closed_loop_heldout") or {}).get("throttle_rmse")
+    after = ((res.get("after") or {}).get("closed_loop_heldout") or {}).get("throttle_rmse")
+    if before is not None and after is not None:
+        text += f"; held-out throttle RMSE {100 * before:.2f} % -> {100 * after:.2f} %"
+    elif before is not None:
+        text += f"; held-out throttle RMSE {100 * before:.2f} %"
+    return f"finding: {text}"
+
+
+def _finding(args) -> int:
+    from twin_nodes.base.errors import LogError
+
+    try:
+        res = json.loads(Path(args.result).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise LogError(args.result, "<file>", "file not found") from None
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise LogError(args.result, "<file>", f"expected the JSON of 'rotortwin discover --json' ({exc})") from None
+    if not isinstance(res, dict) or not isinstance(res.get("effects"), list) \
+            or not all(isinstance(e, dict) and "name" in e for e in res["effects"]):
+        raise LogError(args.result, "effects", "expected the JSON of 'rotortwin discover --json' (a list of effects)")
+    print(finding_line(res))
     return 0
 
 

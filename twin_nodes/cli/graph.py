@@ -87,9 +87,10 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         if st:
             print(f"graph: ROS_DOMAIN_ID {res_g.domain_id}, {st.get('messages', 0)} messages replayed in "
                   f"{st.get('wall_s', 0):.1f} s ({st.get('real_time_factor', 0):.1f}x real time)"
-                  + (f"; run dir {res_g.run_dir}" if res_g.run_dir_kept else ""), file=sys.stderr)
+                  + (f"; run dir {shown(res_g.run_dir)}" if res_g.run_dir_kept else ""), file=sys.stderr)
         if bag:
-            print(f"recording: {shown(bag)} (MCAP {shown(bag / (bag.name + '.mcap'))})", file=sys.stderr)
+            print(f"recording: {shown(bag)}" + ("" if bag.suffix == ".mcap" else
+                                                f" (MCAP {shown(bag / (bag.name + '.mcap'))})"), file=sys.stderr)
     metrics["params_file"] = str(params_file)
     print(table2(metrics, title=f"Twin vs real (Table 2 layout): {Path(args.flight).name}, "
                                 f"params {Path(params_file).name}"))
@@ -116,8 +117,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     c.add_argument("--horizon", type=WINDOW_S, default=2.0, help="open loop: re-sync period [s] (default 2)")
     c.add_argument("--window", type=WINDOW_S, default=5.0, help="rolling metrics window [s] (default 5)")
     io.output("--json", help="write the whole-flight metrics here")
-    io.output("--mcap", kind="dir", path=lambda v: str(bag_dir(v)), help="record every topic into this bag directory (rosbag2 layout; a trailing "
-                                  ".mcap is dropped: OUT.mcap -> OUT/OUT.mcap)")
+    io.output("--mcap", kind="bag", help="record every topic: OUT.mcap writes that one MCAP file (the rosbag2 "
+                                         "metadata inside it), any other OUT a rosbag2 bag directory")
     io.output("--report", kind="dir", help="write PNG plots and index.html here")
     io.output("--run-dir", kind="update", help="node logs and pid files (default: REPORT/run or a temp dir)")
     c.add_argument("--domain-id", type=domain_id(), help="ROS_DOMAIN_ID 0..232 (default: a free one of 1..101); "

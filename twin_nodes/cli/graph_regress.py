@@ -78,13 +78,19 @@ def _cmd_regress(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bag_folder(value: str) -> list[str]:
+    """The rosbag2 folder an ``.mcap`` lies in (an input too); none for a single ``.mcap`` file."""
+    folder = os.path.dirname(os.path.abspath(value))
+    return [folder] if value.endswith(".mcap") and os.path.isfile(os.path.join(folder, "metadata.yaml")) else []
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     r = subparsers.add_parser("regress", help="fly a baseline recording with today's twin; exit 1 if a metric "
                                               "got worse", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     io = declare(r)
-    io.input("bag", also=lambda v: [os.path.dirname(os.path.abspath(v))] if v.endswith(".mcap") else [],
-             help="baseline bag directory (or its .mcap) recorded by 'rotortwin compare --mcap'")
+    io.input("bag", also=_bag_folder,
+             help="baseline recorded by 'rotortwin compare --mcap': a bag directory, its .mcap, or one .mcap file")
     io.input("--params", help="vehicle params YAML (default: the ones recorded with the baseline)")
     r.add_argument("--tolerance", type=positive_float(1e6), default="0.05", help="relative tolerance, finite > 0 (default 0.05)")
     r.add_argument("--abs-tolerance", type=positive_float(1e6), default="1e-3",

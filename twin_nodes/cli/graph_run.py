@@ -86,9 +86,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     io = declare(rc)
     recovering = lambda a: a.out == "recover"  # noqa: E731
     # a live recording is not staged: what it recorded must survive a kill (record recover)
-    io.output("out", kind="dir", staged=False, skip=recovering, help="bag directory to create, or 'recover'")
+    io.output("out", kind="bag", staged=False, skip=recovering,
+              help="recording to create (OUT.mcap: one MCAP file; any other OUT: a bag directory), or 'recover'")
     io.input("bag", nargs="?", help="with 'recover': the cut-short bag directory or .mcap")
-    io.output("--out", dest="recover_out", kind="dir", skip=lambda a: not recovering(a), fallback=_recovered_dir,
-              help="with 'recover': output directory (default BAG_recovered)")
+    io.output("--out", dest="recover_out", kind="bag", skip=lambda a: not recovering(a), fallback=_recovered_dir,
+              help="with 'recover': the recovered recording (X.mcap: one MCAP file; any other: a bag directory; "
+                   "default BAG_recovered)")
     ros_extra(rc)
     rc.set_defaults(func=_cmd_record)

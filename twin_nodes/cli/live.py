@@ -33,12 +33,6 @@ from pathlib import Path
 from twin_nodes.base.errors import TwinError
 from twin_nodes.base.outputs import shown
 from twin_nodes.cli.paths import declare
-
-
-def _bag_dir(value: str):
-    from twin_nodes.graph import bag_dir
-
-    return bag_dir(value)
 from twin_nodes.cli.options import PWM_US, SECONDS, WINDOW_S, domain_id, port
 
 
@@ -166,8 +160,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--url", help="the vehicle's MAVLink URL (udpin:0.0.0.0:14550, tcp:HOST:5760, /dev/ttyACM0)")
     _link_args(p)
     # a live recording is not staged: what it recorded must survive a kill (record recover)
-    declare(p).output("--mcap", kind="dir", staged=False, path=lambda v: str(_bag_dir(v)),
-                      help="record every topic into this bag directory")
+    declare(p).output("--mcap", kind="bag", staged=False,
+                      help="record every topic: OUT.mcap one MCAP file, any other OUT a rosbag2 bag directory")
     p.add_argument("--foxglove", nargs="?", type=port(), const=8765, default=None, metavar="PORT",
                    help="serve Foxglove on ws://127.0.0.1:PORT (default 8765)")
     p.add_argument("--duration", type=SECONDS, help="stop after S s (default: Ctrl-C)")

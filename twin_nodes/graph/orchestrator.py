@@ -207,8 +207,8 @@ def run_graph(ulog: str | os.PathLike[str], params_file: str | os.PathLike[str],
     if not (ulog.is_file() or ulog.is_dir()):
         raise LogError(str(ulog), "<file>", "file not found")
     if bag:
-        if Path(bag).exists():
-            raise TwinError(f"{bag}: the bag directory already exists")
+        if os.path.lexists(bag):
+            raise TwinError(f"{bag}: the recording already exists")
         parent = Path(bag).resolve().parent
         if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
             raise TwinError(f"{bag}: expected a bag path in an existing, writable directory ({parent})")
@@ -280,7 +280,10 @@ def run_graph(ulog: str | os.PathLike[str], params_file: str | os.PathLike[str],
             if interrupted:
                 print(f"rotortwin: interrupted: the recording so far is finalised in {bag}", file=sys.stderr)
             else:
-                shutil.rmtree(bag, ignore_errors=True)  # a failed run's bag is removed
+                if Path(bag).is_dir():
+                    shutil.rmtree(bag, ignore_errors=True)  # a failed run's bag is removed
+                else:
+                    Path(bag).unlink(missing_ok=True)
         if temp_run:
             shutil.rmtree(rd, ignore_errors=True)
     return GraphResult(metrics=metrics, json_path=json_path, aligned_path=aligned_path,
@@ -340,9 +343,10 @@ def run_node(node: str, params: dict[str, Any], extra: list[str] | None = None) 
 
 
 def bag_dir(arg: str) -> Path:
-    """The bag directory for ``arg``: a trailing ``.mcap`` is dropped (``OUT.mcap`` -> ``OUT/OUT.mcap``)."""
-    p = Path(arg)
-    return p.with_suffix("") if p.suffix == ".mcap" else p
+    """The recording written for ``--mcap ARG``: the path itself.  A path ending in ``.mcap`` is one MCAP
+    file (the rosbag2 metadata inside it); any other a rosbag2 folder of that name (``metadata.yaml`` +
+    ``ARG/ARG.mcap``).  See :func:`twin_nodes.logs.recording.open_bag_writer`."""
+    return Path(arg)
 
 
 def load_aligned(path: Path) -> Any:

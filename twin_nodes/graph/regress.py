@@ -175,7 +175,10 @@ class Baseline:
 
     @property
     def bag_dir(self) -> Path:
-        return self.path if self.path.is_dir() else self.path.parent
+        """The recording: a rosbag2 folder (also when given its ``.mcap``), or a single ``.mcap`` file."""
+        if self.path.is_dir() or not (self.path.parent / "metadata.yaml").is_file():
+            return self.path
+        return self.path.parent
 
 
 def _last_json(topics: dict[str, Any], topic: str) -> dict[str, Any] | None:
@@ -390,7 +393,7 @@ def regress_baseline(bag: str | os.PathLike[str], params: str | os.PathLike[str]
     abs_tol = check_tolerance(abs_tol, "--abs-tolerance")
     base = load_baseline(bag)
     bag_dir = base.bag_dir
-    if update and not (bag_dir / "metadata.yaml").is_file():
+    if update and bag_dir.is_dir() and not (bag_dir / "metadata.yaml").is_file():
         raise LogError(str(bag_dir), "metadata.yaml", "expected a bag directory to update")
     cfg = base.config or {}
     mode = str(cfg.get("mode") or base.metrics.get("mode") or "closed")

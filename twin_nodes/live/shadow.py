@@ -155,7 +155,7 @@ def run_live(cfg: LiveConfig, *, domain_id: int | None = None, run_dir: str | os
 
     n_motors = load_params(cfg.params_file).rotors.count
     if cfg.bag and Path(cfg.bag).exists():
-        raise TwinError(f"{cfg.bag}: the bag directory already exists")
+        raise TwinError(f"{cfg.bag}: the recording already exists")
     lease = lease_domain(domain_id)
     temp_run = run_dir is None
     rd = Path(run_dir) if run_dir else Path(tempfile.mkdtemp(prefix="rotortwin_live_"))

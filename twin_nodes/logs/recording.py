@@ -3,7 +3,10 @@
 :class:`McapRecorder` writes a rosbag2 directory (``metadata.yaml`` + one
 ``<dir>.mcap``) through ``rosbags.rosbag2.Writer(dir, version=9,
 storage_plugin=StoragePlugin.MCAP)`` and the rosbags typestore's CDR
-serialiser, so it runs in plain tests and produces what ``ros2 bag`` writes:
+serialiser; given a path ending in ``.mcap`` it writes that one file instead
+(no folder: the rosbag2 metadata is inside it, the ``rosbag2`` metadata record
+``ros2 bag``'s MCAP storage writes, so ``rosbags`` ``AnyReader``, the ``mcap``
+library and Foxglove read it as it is), so it runs in plain tests and produces what ``ros2 bag`` writes:
 profile ``ros2``, schemas ``pkg/msg/Type`` with encoding ``ros2msg``, channels
 with message encoding ``cdr`` and ``offered_qos_profiles`` metadata, and a
 ``rosbag2`` metadata record (conventions.md §4).  Messages are rosbags typestore
@@ -48,7 +51,7 @@ import numpy as np
 
 from twin_nodes.base.errors import LogError
 
-__all__ = ["McapRecorder", "QOS_PRESETS", "read_bag", "read_bag_raw", "BagTopic", "cdr_header_stamp",
+__all__ = ["McapRecorder", "open_bag_writer", "close_bag_writer", "single_file", "QOS_PRESETS", "read_bag", "read_bag_raw", "BagTopic", "cdr_header_stamp",
            "topic_counts", "recover", "RecoveryReport", "default_typestore", "MCAP_MAGIC"]
 
 #: the first bytes of every MCAP file
@@ -68,6 +71,67 @@ def default_typestore() -> Any:
     from rosbags.typesys import Stores, get_typestore
 
     return get_typestore(Stores.ROS2_JAZZY)
+
+
+def single_file(path: str | os.PathLike[str]) -> bool:
+    """A recording path ending in ``.mcap`` is one MCAP file; any other path a rosbag2 folder."""
+    return Path(path).suffix == ".mcap"
+
+
+def open_bag_writer(out: str | os.PathLike[str]) -> Any:
+    """An open rosbags MCAP ``Writer`` for the recording ``out``: a rosbag2 folder (``metadata.yaml`` +
+    ``<out>/<out>.mcap``), or, for a path ending in ``.mcap``, that single file.
+
+    The single file is written in place from the first byte (a recording cut short by a kill can be
+    recovered from it): the writer opens its MCAP in a private folder beside ``out`` (same file system),
+    which is linked to ``out`` (refused when ``out`` exists) and removed at once.  Close it with
+    :func:`close_bag_writer`.  Raises rosbags' ``WriterError`` when ``out`` exists."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.errors import WriterError
+
+    out = Path(out)
+    if not single_file(out):
+        w = Writer(out, version=9, storage_plugin=StoragePlugin.MCAP)
+        w.open()
+        return w
+    if os.path.lexists(out):
+        raise WriterError(f"{out} exists already, not overwriting.")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    import tempfile
+    work = Path(tempfile.mkdtemp(prefix=".rotortwin-rec-", dir=out.parent))
+    try:
+        w = Writer(work / out.stem, version=9, storage_plugin=StoragePlugin.MCAP)
+        w.open()
+        st = w.storage
+        try:
+            os.link(st.path, out)  # exclusive: fails when out exists
+        except FileExistsError:
+            w.abort()
+            raise WriterError(f"{out} exists already, not overwriting.") from None
+        os.unlink(st.path)
+        st.path = out  # the name the rosbag2 metadata inside the file gives it
+    finally:
+        import shutil
+        shutil.rmtree(work, ignore_errors=True)
+    w._rotortwin_single = out
+    return w
+
+
+def close_bag_writer(writer: Any) -> None:
+    """Finish a writer of :func:`open_bag_writer`: summary, footer and the rosbag2 metadata (inside the
+    single file; a folder also gets ``metadata.yaml``)."""
+    single = getattr(writer, "_rotortwin_single", None)
+    if single is None:
+        writer.close()
+        return
+    import shutil
+    import tempfile
+    meta = Path(tempfile.mkdtemp(prefix="rotortwin-meta-"))
+    writer.metapath = meta / "metadata.yaml"  # the rosbags writer also writes it beside: not for one file
+    try:
+        writer.close()
+    finally:
+        shutil.rmtree(meta, ignore_errors=True)
 
 
 def _qos(history: str, depth: int, reliability: str, durability: str) -> Any:
@@ -224,7 +288,8 @@ class McapRecorder:
 
     Parameters
     ----------
-    out_dir : the bag directory to create (must not exist).
+    out_dir : the recording to create (must not exist): a rosbag2 directory, or one MCAP file when the
+        path ends in ``.mcap`` (:func:`open_bag_writer`).
     typestore : rosbags typestore; default :func:`default_typestore` (Jazzy).
     chunk_bytes : close and flush the MCAP chunk at this uncompressed size.
     chunk_period_s : … or when its messages span this much message time [s].
@@ -243,7 +308,6 @@ class McapRecorder:
         chunk_period_s: float = 1.0,
         fsync_chunks: bool = False,
     ):
-        from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.rosbag2.errors import WriterError
 
         self.path = Path(out_dir)
@@ -255,10 +319,10 @@ class McapRecorder:
         self._chunk_period_ns = int(chunk_period_s * 1e9)
         self._fsync = bool(fsync_chunks)
         try:
-            self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-            self._writer.open()
+            self._writer = open_bag_writer(self.path)
         except WriterError as exc:
-            raise LogError(str(self.path), "out_dir", f"expected a new directory: {exc}") from None
+            what = "a new .mcap file" if single_file(self.path) else "a new directory"
+            raise LogError(str(self.path), "out_dir", f"expected {what}: {exc}") from None
         self._conns: dict[str, Any] = {}
         self._types: dict[str, str] = {}
         self.counts: dict[str, int] = {}
@@ -266,8 +330,8 @@ class McapRecorder:
 
     @property
     def mcap_path(self) -> Path:
-        """The ``.mcap`` file inside the bag directory."""
-        return self.path / f"{self.path.name}.mcap"
+        """The ``.mcap`` file: the recording itself, or the one inside the bag directory."""
+        return self.path if single_file(self.path) else self.path / f"{self.path.name}.mcap"
 
     def add_topic(self, name: str, msgtype: str, qos: Any = "reliable") -> str:
         """Register topic ``name`` of type ``msgtype`` (``pkg/msg/Type``); returns the
@@ -375,7 +439,7 @@ class McapRecorder:
         if self._closed:
             return
         self._closed = True
-        self._writer.close()
+        close_bag_writer(self._writer)
 
     def _check_open(self) -> None:
         if self._closed:
@@ -581,7 +645,8 @@ def _rihs01(msgtype: str, encoding: str, text: str) -> str:
 
 def recover(path: str | os.PathLike[str], out_dir: str | os.PathLike[str] | None = None
             ) -> RecoveryReport:
-    """Rewrite a (possibly truncated) recording into a valid rosbag2/MCAP directory.
+    """Rewrite a (possibly truncated) recording into a valid rosbag2/MCAP directory (or one ``.mcap``
+    file, when ``out_dir`` ends in ``.mcap``).
 
     ``path`` is a bag directory or an ``.mcap`` file; the source is never
     modified.  ``out_dir`` defaults to ``<path>_recovered`` (for a file:
@@ -590,7 +655,6 @@ def recover(path: str | os.PathLike[str], out_dir: str | os.PathLike[str] | None
     module docstring."""
     from mcap.records import Channel, Footer, Message, Schema
     from mcap.stream_reader import StreamReader
-    from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.rosbag2.metadata import parse_qos
 
     src = Path(path)
@@ -620,8 +684,7 @@ def recover(path: str | os.PathLike[str], out_dir: str | os.PathLike[str] | None
     complete = False
     error = ""
     used = 0
-    writer = Writer(out, version=9, storage_plugin=StoragePlugin.MCAP)
-    writer.open()
+    writer = open_bag_writer(out)
     try:
         with open(mcap_file, "rb") as fh:
             stream = _ExactReader(fh)  # type: ignore[arg-type]
@@ -662,11 +725,14 @@ def recover(path: str | os.PathLike[str], out_dir: str | os.PathLike[str] | None
             raise LogError(str(mcap_file), "messages",
                            "expected at least one complete chunk with messages; nothing to recover"
                            + (f" ({error})" if error and not complete else ""))
-        writer.close()
+        close_bag_writer(writer)
     except BaseException:
         writer.abort()
         import shutil
-        shutil.rmtree(out, ignore_errors=True)  # a failed recovery leaves nothing behind
+        if single_file(out):
+            out.unlink(missing_ok=True)
+        else:
+            shutil.rmtree(out, ignore_errors=True)  # a failed recovery leaves nothing behind
         raise
     return RecoveryReport(source=mcap_file, out_dir=out, n_messages=sum(counts.values()),
                           counts=counts, complete=complete, bytes_used=used, bytes_total=total,

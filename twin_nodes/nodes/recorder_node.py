@@ -7,7 +7,8 @@ each with serialized (``raw=True``) messages, matching the publishers' QoS
 (reliable or best effort; transient-local when a publisher is latched, so
 ``/replay/plan``, ``/replay/done`` and ``/twin_error/final_json`` are kept).
 The CDR bytes go to the bag unchanged through :class:`twin_nodes.logs.recording.McapRecorder`
-(``rosbags`` writer: ``metadata.yaml`` + ``<out>/<out>.mcap``).
+(``rosbags`` writer: ``metadata.yaml`` + ``<out>/<out>.mcap``; an ``out`` ending in ``.mcap`` is that one
+file, the rosbag2 metadata inside it).
 
 Message time in the bag (every message at its own time, never wall-clock time on a replay):
 
@@ -52,7 +53,7 @@ _METRIC = re.compile(r"^/twin_error/(?!diagnostics$|final_)[^/]+/[^/]+$")
 class RecorderNode(GraphNode):
     def __init__(self) -> None:
         super().__init__("recorder")
-        out = declare(self, "out", "", "bag directory to create (rosbag2 layout, one .mcap)")
+        out = declare(self, "out", "", "recording to create: a bag directory (rosbag2 layout) or one .mcap file")
         self.exclude = re.compile(declare(self, "exclude", r"^/(rosout|parameter_events)$",
                                           "regex of topics not to record"))
         fsync = bool(declare(self, "fsync", False, "fsync every chunk (power-loss safety)"))
@@ -60,7 +61,7 @@ class RecorderNode(GraphNode):
         lag_s = float(declare(self, "reorder_lag_s", 2.0, "write messages in time order, holding them this "
                                                           "long [s of message time]"))
         if not out:
-            raise ValueError("parameter 'out': expected a bag directory to create")
+            raise ValueError("parameter 'out': expected a bag directory or .mcap file to create")
         self.bag = McapRecorder(out, chunk_period_s=chunk_s, fsync_chunks=fsync)
         self.subs: dict[str, Any] = {}
         self.kind: dict[str, str] = {}
