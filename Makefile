@@ -24,8 +24,9 @@ demo: setup
 test: setup
 	$(BIN)/python -m pytest -q -m "not slow" -p no:cacheprovider
 
+# every benchmark, each with its defaults (bench/README.md); ROTORTWIN_BENCH_SMOKE=1 for a quick smoke run
 bench: setup
-	for b in bench/bench_*.py; do $(BIN)/python $$b || exit 1; done
+	for b in bench/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
 
 clean:
 	rm -rf $(VENV) out

@@ -17,6 +17,9 @@ parameters (largest relative difference, over the confirmed/likely effects and o
 likely list, and the closed-loop twin's held-out numbers.  ``--strict`` exits 1 if the results
 differ (verdicts, accepted, or a confirmed/likely parameter by more than 1e-3 relative) or the
 new path is slower than ``--target`` s per flight-minute (default 3).
+
+``ROTORTWIN_BENCH_SMOKE=1``: a smoke run (no flight given: bench/_smoke.py's ~1-minute simulated
+flight, no warm-up, no closed-loop twin; the numbers mean nothing).
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 import discover_before  # bench/: the frozen previous evaluation path
+from _smoke import SIH, SMOKE, tiny_flight
 
 DEMO = ROOT / "bags" / "sim_quadx_weak_motor3.ulg"
 DEMO_PARAMS = ROOT / "params" / "px4_sih_quadx.yaml"
@@ -99,6 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--strict", action="store_true", help="exit 1 if the results differ or the target is missed")
     ap.add_argument("--json", help="write the timings and the comparison here")
     a = ap.parse_args(argv)
+    if SMOKE and a.flight == str(DEMO):
+        a.flight, a.params, a.no_warmup, a.no_closed_loop = str(tiny_flight()), a.params or str(SIH), True, True
 
     from twin_nodes.discovery import evaluate
     from twin_nodes.discovery.discover import discover

@@ -6,6 +6,10 @@ answers every HIL_SENSOR with HIL_ACTUATOR_CONTROLS over TCP loopback.  The rate
 taken over the lockstep part (from PX4's first reply to the last step).
 
     .venv/bin/python bench/bench_lockstep.py [--sim-seconds 20] [--params P.yaml] [--repeat 3]
+
+Every case also prints its ratio against the first case run (case 1: what PX4 asks for),
+measured in the same run.  ``--cases`` picks cases.  ``ROTORTWIN_BENCH_SMOKE=1``: a smoke run
+(cases 1 and 2, 1 s simulated, one repeat; the numbers mean nothing).
 """
 
 from __future__ import annotations
@@ -47,10 +51,14 @@ def run_once(vp, sim_seconds: float, state_interval_us: int, on_step=None, srv=N
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sim-seconds", type=float, default=20.0)
+    smoke = os.environ.get("ROTORTWIN_BENCH_SMOKE") == "1"
+    ap.add_argument("--sim-seconds", type=float, default=1.0 if smoke else 20.0)
     ap.add_argument("--params", help="vehicle params (default shipped px4_sih_quadx)")
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=1 if smoke else 3)
+    ap.add_argument("--cases", default="1,2" if smoke else "1,2,3,ros",
+                    help="which cases: 1-3 and 'ros' (the px4_bridge node); default all (smoke: 1,2)")
     args = ap.parse_args()
+    which = {c.strip() for c in args.cases.split(",")}
     vp = load_params(args.params) if args.params else shipped("px4_sih_quadx")
     print(f"rotortwin lockstep benchmark: {vp.name}, dt {vp.dt_s * 1e3:g} ms, step 4 ms, "
           f"{args.sim_seconds:g} s simulated per run, best and median of {args.repeat}; "
@@ -61,17 +69,25 @@ def main() -> None:
         ("as the first, plus an on_step callback that copies the state (ROS publishing excluded)", 5000,
          lambda info: info.velocity_body_flu),
     ]
-    for name, interval, cb in cases:
-        rates = [run_once(vp, args.sim_seconds, interval, cb)[0] for _ in range(args.repeat)]
-        _report(name, rates)
-    _bench_ros(vp, args)
+    for k, (name, interval, cb) in enumerate(cases, 1):
+        if str(k) in which:
+            rates = [run_once(vp, args.sim_seconds, interval, cb)[0] for _ in range(args.repeat)]
+            _report(name, rates)
+    if "ros" in which:
+        _bench_ros(vp, args)
+
+
+_REFERENCE: list[float] = []   # the first case run's median steps/s, this run
 
 
 def _report(name: str, rates: list[float]) -> None:
     best, med = max(rates), statistics.median(rates)
+    if not _REFERENCE:
+        _REFERENCE.append(med)
     print(f"  {name}:\n    {best:7.0f} steps/s best, {med:7.0f} median "
           f"= {best / REAL_TIME_STEPS_PER_S:5.2f}x / {med / REAL_TIME_STEPS_PER_S:5.2f}x real time "
-          f"({1e6 / med:5.0f} µs per step)")
+          f"({1e6 / med:5.0f} µs per step)\n    ratio vs the first case run (median, this run): "
+          f"{med / _REFERENCE[0]:5.2f}x")
 
 
 def _bench_ros(vp, args) -> None:

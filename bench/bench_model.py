@@ -23,6 +23,7 @@ Numba compile time is excluded (reported on its own); timings are the best of --
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import sys
 import time
@@ -80,12 +81,17 @@ def best_of(repeat: int, fn) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=20.0, help="simulated seconds for our single-vehicle rows")
-    ap.add_argument("--rotorpy-seconds", type=float, default=3.0, help="simulated seconds for RotorPy")
-    ap.add_argument("--batch", type=int, default=100, help="vehicles in the batch row")
-    ap.add_argument("--batch-seconds", type=float, default=5.0)
-    ap.add_argument("--repeat", type=int, default=3)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 epilog="ROTORTWIN_BENCH_SMOKE=1: a smoke run (1 s, 0.2 s RotorPy, a batch of 4, "
+                                        "one repeat; the numbers mean nothing)")
+    smoke = os.environ.get("ROTORTWIN_BENCH_SMOKE") == "1"
+    ap.add_argument("--seconds", type=float, default=1.0 if smoke else 20.0,
+                    help="simulated seconds for our single-vehicle rows")
+    ap.add_argument("--rotorpy-seconds", type=float, default=0.2 if smoke else 3.0,
+                    help="simulated seconds for RotorPy")
+    ap.add_argument("--batch", type=int, default=4 if smoke else 100, help="vehicles in the batch row")
+    ap.add_argument("--batch-seconds", type=float, default=0.2 if smoke else 5.0)
+    ap.add_argument("--repeat", type=int, default=1 if smoke else 3)
     ap.add_argument("--strict", action="store_true", help="exit 1 if a target is missed")
     args = ap.parse_args(argv)
 

@@ -14,7 +14,13 @@ and reports:
   and writes each of them;
 - real-time factor: seconds of log per second of wall time while the replay runs;
 - dropped messages: MCAP count vs the replay's plan for every ``/real`` topic, and the
-  four ``/twin`` topics against each other (must all be 0).
+  four ``/twin`` topics against each other (must all be 0);
+- the reference measured in the same run: the same twin on the same flight offline, in this
+  process (``rotortwin compare --offline``'s :func:`twin_nodes.twin.compare.compare_log`), its
+  real-time factor, and the graph's real-time factor as a ratio of it.
+
+``ROTORTWIN_BENCH_SMOKE=1``: a smoke run on one simulated mission (~2 min of log, cached under
+``out/bench/smoke/``; the numbers mean nothing).
 
 The issue's target is >= 20x real time on 2 cores; ``--strict`` exits 1 below it or on
 any drop.  Timings depend on what else the machine runs: compare numbers only between
@@ -74,10 +80,13 @@ def make_long_flight(path: Path, minutes: float, seed: int = 3) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--minutes", type=float, default=10.0, help="length of the simulated flight (default 10)")
+    smoke = os.environ.get("ROTORTWIN_BENCH_SMOKE") == "1"
+    ap.add_argument("--minutes", type=float, default=0.1 if smoke else 10.0,
+                    help="length of the simulated flight (default 10; at least one mission, ~2 min)")
     ap.add_argument("--flight", help="replay this ULog instead of a simulated one")
     ap.add_argument("--rate", type=float, default=0.0, help="replay rate (default 0: as fast as the nodes keep up)")
-    ap.add_argument("--out", default=str(REPO / "out" / "bench"), help="work folder (default out/bench)")
+    ap.add_argument("--out", default=str(REPO / "out" / "bench" / ("smoke" if smoke else "")),
+                    help="work folder (default out/bench)")
     ap.add_argument("--strict", action="store_true", help="exit 1 below 20x real time or on any dropped message")
     args = ap.parse_args(argv)
 
@@ -98,7 +107,9 @@ def main(argv: list[str] | None = None) -> int:
                   f"{time.monotonic() - t0:.1f} s -> {flight}", flush=True)
     run_dir = out / "run"
     shutil.rmtree(run_dir, ignore_errors=True)
-    bag = run_dir / "bag"
+    # the bag beside the run folder: run_graph wants its parent to exist and the bag not to
+    bag = out / "bag"
+    shutil.rmtree(bag, ignore_errors=True)
     res = run_graph(flight, params_dir() / "px4_sih_quadx.yaml", rate=args.rate, run_dir=run_dir, bag=str(bag),
                     progress=True, timeout_s=3600)
     st = res.replay_stats
@@ -118,6 +129,16 @@ def main(argv: list[str] | None = None) -> int:
         "cpu_count": os.cpu_count(), "load_avg_1min": os.getloadavg()[0],
         "throttle_rmse": res.metrics.get("throttle_rmse"),
     }
+    # the reference, same run: the same twin beside the same flight offline (no ROS, one process)
+    from twin_nodes.twin.compare import compare_log, load_flight
+    from twin_nodes.vehicle.params import load_params
+
+    log = load_flight(flight)
+    t0 = time.perf_counter()
+    compare_log(log, load_params(params_dir() / "px4_sih_quadx.yaml"))
+    off_s = time.perf_counter() - t0
+    off_rtf = float(st["log_s"]) / off_s
+    row.update(offline_wall_s=off_s, offline_real_time_factor=off_rtf)
     (out / "bench_replay.json").write_text(json.dumps(row, indent=1))
     print(f"\nreplay -> twin -> metrics -> recorder, {st['log_s']:.0f} s of log ({flight.name})")
     print(f"  real-time factor      {st['real_time_factor']:8.1f} x   (target >= 20x on 2 cores)")
@@ -125,6 +146,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  replayed messages     {st['messages']:8d}     {st['messages_per_s']:8.0f} msg/s")
     print(f"  graph messages        {total:8d}     {total / wall:8.0f} msg/s (all recorded to MCAP)")
     print(f"  dropped messages      {sum(drops.values()) if drops else 0:8d}     {drops or ''}")
+    print(f"  offline twin          {off_rtf:8.1f} x   real time ({off_s:.1f} s; compare_log, one process, same flight)")
+    print(f"  ratio graph / offline {st['real_time_factor'] / off_rtf:8.2f}     (real-time factors, this run)")
     print(f"  load average (1 min)  {os.getloadavg()[0]:8.2f}     on {os.cpu_count()} cores")
     print(f"  -> {out / 'bench_replay.json'}")
     if args.strict and (drops or st["real_time_factor"] < 20.0):
