@@ -63,17 +63,15 @@ def _alive(pid: int) -> bool:
 @pytest.mark.parametrize("domain", ["-1", "233", "500"])
 def test_domain_id_out_of_range_is_refused(flights, domain):
     r = _cli("compare", flights["short"], "--params", PARAMS, "--domain-id", domain, "--quiet", timeout=120)
-    _one_line_error(r, "--domain-id", "0..232", domain)
+    _one_line_error(r, "--domain-id", "[0, 232]", domain)
 
 
-def test_domain_leased_by_another_run_is_refused_and_skipped(tmp_path):
+def test_domain_leased_by_another_run_is_refused_and_skipped(flights):
     from twin_nodes.graph.domains import lease_domain, participant_port_busy
 
     with lease_domain() as held:
         d = held.domain_id
-        flight = tmp_path / "f.ulg"
-        flight.write_bytes(b"")
-        r = _cli("compare", flight, "--params", PARAMS, "--domain-id", d, timeout=60)
+        r = _cli("compare", flights["short"], "--params", PARAMS, "--domain-id", d, timeout=60)
         _one_line_error(r, f"ROS domain {d} is in use by another rotortwin run", f"pid {os.getpid()}")
         # automatic choice: never a leased domain, never one with a DDS participant on it
         other = next(i for i in range(60, 100) if i != d and not participant_port_busy(i))
@@ -89,11 +87,12 @@ def test_domain_leased_by_another_run_is_refused_and_skipped(tmp_path):
         assert again.domain_id == d
 
 
-def test_json_into_missing_or_unwritable_folder_fails_before_running(tmp_path):
+def test_json_into_a_file_or_unwritable_folder_fails_before_running(tmp_path):
     flight = shared_log("sitl", "px4sih_default_triangle.ulg")
     t0 = time.monotonic()
-    r = _cli("compare", flight, "--params", PARAMS, "--json", tmp_path / "missing" / "m.json", timeout=60)
-    _one_line_error(r, "--json", "does not exist")
+    (tmp_path / "a_file").write_text("x")  # a missing folder is made; a path through a file cannot be
+    r = _cli("compare", flight, "--params", PARAMS, "--json", tmp_path / "a_file" / "m.json", timeout=60)
+    _one_line_error(r, "--json", "is a file")
     ro = tmp_path / "ro"
     ro.mkdir()
     ro.chmod(0o500)
@@ -110,16 +109,19 @@ def test_json_into_missing_or_unwritable_folder_fails_before_running(tmp_path):
 def test_unwritable_output_folder_is_refused_even_as_root(tmp_path, monkeypatch):
     """The unwritable-folder check itself, with the permission answer forced (as root a read-only
     folder is writable, so the CLI case above can only skip there)."""
+    import argparse
+
+    from twin_nodes.base import outputs
     from twin_nodes.base.errors import TwinError
-    from twin_nodes.graph import outputs
 
     ro = tmp_path / "ro"
     ro.mkdir()
     real_access = os.access
     monkeypatch.setattr(outputs.os, "access", lambda p, mode: False if Path(p) == ro else real_access(p, mode))
-    with pytest.raises(TwinError, match=r"m\.json: --json: expected a path in a writable directory; .* is not writable"):
-        outputs.check_output_file(ro / "m.json", "--json", [])
-    assert outputs.check_output_file(tmp_path / "m.json", "--json", []) == tmp_path / "m.json"
+    spec = [outputs.Output("json", "--json")]
+    with pytest.raises(TwinError, match=r"m\.json: --json: expected a path in a writable folder; .* is not writable"):
+        outputs.check(spec, argparse.Namespace(json=str(ro / "m.json")), [])
+    assert outputs.check(spec, argparse.Namespace(json=str(tmp_path / "m.json")), [])[0].final == tmp_path / "m.json"
 
 
 def test_output_equal_to_input_is_refused_and_json_is_written_whole(tmp_path):
@@ -159,17 +161,17 @@ def ros():
 
 
 @pytest.mark.ros
-def test_log_without_a_subscribed_topic_does_not_wait(ros, flights, tmp_path):
-    """No motor topic in the log: the recorder used to wait 60 s for a publisher that never comes."""
+def test_log_without_motors_is_refused_before_the_graph_starts(ros, flights, tmp_path):
+    """No motor topic in the log: the graph used to fly and score it (exit 0) where offline refused it
+    (exit 2; issue 28); now both refuse it in one line before any node starts, and nothing is written."""
     t0 = time.monotonic()
     r = _cli("compare", flights["no_motors"], "--params", PARAMS, "--mcap", tmp_path / "bag", "--quiet",
              timeout=55)
-    assert r.returncode == 0, r.stderr[-2000:]
+    _one_line_error(r, "no_motors.ulg", "motors")
     assert time.monotonic() - t0 < 50
-    from twin_nodes.logs.recording import topic_counts
-
-    counts = topic_counts(tmp_path / "bag")
-    assert "/real/motors" not in counts and counts["/real/odom"] > 500 and counts["/twin/odom"] > 500
+    assert not (tmp_path / "bag").exists()
+    off = _cli("compare", flights["no_motors"], "--params", PARAMS, "--offline", "--quiet", timeout=55)
+    assert off.returncode == 2 and off.stderr.strip().splitlines()[-1] == r.stderr.strip().splitlines()[-1]
 
 
 @pytest.mark.ros
@@ -259,9 +261,12 @@ def test_kill_9_of_the_cli_stops_every_node(ros, flights, tmp_path):
                 break
             time.sleep(0.5)
         assert len(pids) == 4, pids
-        mcap = bag / "bag.mcap"
+        # the bag is staged (renamed into place only by a CLI that finishes): it is in the stage beside it
         t_end = time.monotonic() + 60
+        mcap = Path("/nonexistent")
         while time.monotonic() < t_end and (not mcap.exists() or mcap.stat().st_size < 150_000):
+            found = list(tmp_path.glob(".rotortwin-stage-*/bag/bag.mcap"))
+            mcap = found[0] if found else mcap
             time.sleep(0.5)  # flying at real time: wait for a few chunks in the bag
         assert all(_alive(p) for p in pids.values())
         os.kill(cli.pid, signal.SIGKILL)
@@ -279,5 +284,6 @@ def test_kill_9_of_the_cli_stops_every_node(ros, flights, tmp_path):
             cli.kill()
     from twin_nodes.logs.recording import topic_counts
 
-    counts = topic_counts(bag)  # finalised (metadata.yaml, summary) by the recorder on its way out
+    counts = topic_counts(mcap.parent)  # finalised (metadata.yaml, summary) by the recorder on its way out
     assert counts["/real/odom"] > 20 and "/twin/odom" in counts
+    assert not bag.exists()  # the CLI never finished: nothing appeared where the user looks

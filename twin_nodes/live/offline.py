@@ -19,6 +19,8 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from twin_nodes.mavlink.telemetry import watched
+
 __all__ = ["compare_telemetry", "read_tlog", "watched"]
 
 NS = 1_000_000_000
@@ -125,11 +127,3 @@ def compare_telemetry(messages: Iterable[tuple[float, Any]], vp: Any, *, config:
     return m
 
 
-def watched(what: str, st: Any, t_start: float | None, t_end: float | None, losses: list) -> dict[str, Any]:
-    """What a live run or a telemetry log watched (``live.json``'s header, issue 28)."""
-    return {"log": what, "system_id": st.system_id, "component_id": st.component_id,
-            "start_s": t_start, "end_s": t_end, "messages": st.messages_rx,
-            "ignored": {"bad_data": st.bad_data, "foreign": st.foreign, "before_heartbeat": st.unbound,
-                        "rejected": dict(st.rejected)},
-            "resets": [{"t_s": r.get("t_s", r["rx_s"]), "reason": r["reason"]} for r in st.resets],
-            "link_losses": losses}

@@ -64,6 +64,7 @@ __all__ = [
     "motors_from_actuator_output_status", "motors_from_servo_output_raw", "parse_battery_status",
     "parse_sys_status_battery", "parse_position_target_local_ned", "parse_highres_imu",
     "landed_from_extended_sys_state", "px4_nav_state", "px4_mode_name", "normalise_url", "STREAM_RATES_HZ",
+    "watched",
 ]
 
 log = logging.getLogger("rotortwin.telemetry")
@@ -792,3 +793,13 @@ class TelemetryClient:
             self._streams_requested = True
         except Exception as exc:
             log.warning("could not request streams: %s", exc)
+
+
+def watched(what: str, st: Any, t_start: float | None, t_end: float | None, losses: list) -> dict[str, Any]:
+    """What a live run or a telemetry log watched (``live.json``'s header, issue 28)."""
+    return {"log": what, "system_id": st.system_id, "component_id": st.component_id,
+            "start_s": t_start, "end_s": t_end, "messages": st.messages_rx,
+            "ignored": {"bad_data": st.bad_data, "foreign": st.foreign, "before_heartbeat": st.unbound,
+                        "rejected": dict(st.rejected)},
+            "resets": [{"t_s": r.get("t_s", r["rx_s"]), "reason": r["reason"]} for r in st.resets],
+            "link_losses": losses}

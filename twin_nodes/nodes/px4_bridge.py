@@ -235,7 +235,7 @@ class TelemetryBridgeNode(GraphNode):
             import json
 
             from twin_nodes.base.io import atomic_write_text
-            from twin_nodes.live.offline import watched
+            from twin_nodes.mavlink.telemetry import watched
 
             st = self.client.state
             w = watched(self.url, st, self.t_first_rx_unix, self.t_last_rx_unix, [])
