@@ -531,3 +531,23 @@ def test_cli_from_ulog_bad_log_parameters(tmp_path, capsys, changes, line):
     err = capsys.readouterr().err.strip().splitlines()
     assert [ln for ln in err if not ln.startswith("rotortwin: warning:")] == [f"rotortwin: error: {log}: {line}"]
     assert not out.exists()
+
+
+def test_cli_sys_autostart_nan_is_one_line(tmp_path, capsys, monkeypatch):
+    """``SYS_AUTOSTART = nan`` in a log: ``compare``/``discover`` without --params pick the vehicle by it
+    (``int(nan)``: a ValueError traceback before issue 28)."""
+    import ulog_cases as C
+    from twin_nodes.logs.ulog_write import write_px4_ulog
+
+    log = write_px4_ulog(tmp_path / "f.ulg", C.small_topics(20.0, 50.0),
+                         {"MPC_THR_HOVER": 0.5, **_ca(SYS_AUTOSTART=float("nan"))}, {"ver_sw": "test"},
+                         start_us=C.T0_US)
+    out = tmp_path / "out"
+    out.mkdir()
+    monkeypatch.chdir(out)
+    for argv in (["compare", "--offline", str(log), "--quiet", "--json", "m.json"],
+                 ["discover", str(log), "--no-closed-loop", "--json", "r.json"]):
+        assert main(argv) == 2, argv
+        err = [ln for ln in capsys.readouterr().err.strip().splitlines() if not ln.startswith("rotortwin: warning:")]
+        assert err == [f"rotortwin: error: {log}: SYS_AUTOSTART: expected an integer 0..99999999, got nan"], argv
+    assert list(out.iterdir()) == []

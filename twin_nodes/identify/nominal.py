@@ -44,6 +44,7 @@ from twin_nodes.identify.yaw_gain import applied_yaw_gain, yaw_gain_for_twin
 from twin_nodes.logs.flyable import check_flyable, read_flight
 from twin_nodes.logs.ulog_io import FlightLog
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
+from twin_nodes.vehicle.px4_params import int_param  # noqa: I001 - a log integer, range-checked
 from twin_nodes.vehicle.px4_params import (AIRFRAMES, RateGainsPx4, outer_loop_gains, param, rate_gains_physical,
                                            rotor_layout)
 
@@ -95,7 +96,7 @@ def _airborne_grid(log: FlightLog, rate_hz: float, trim_s: float = 2.0) -> np.nd
 def _mass(log: FlightLog, mass_kg: float | None) -> tuple[float, str]:
     if mass_kg is not None:
         return float(mass_kg), "--mass-kg"
-    autostart = int(log.params.get("SYS_AUTOSTART", 0) or 0)
+    autostart = int_param(log.params, "SYS_AUTOSTART", log.path, 0, 99_999_999)
     af = AIRFRAMES.get(autostart)
     if af is not None:
         return af.mass_kg, (f"ASSUMED typical take-off mass of airframe {autostart} ({af.name}); give --mass-kg "
@@ -527,7 +528,7 @@ def params_for_log(ulog: str | os.PathLike[str], explicit: str | os.PathLike[str
             raise ParamsError(str(p), "<file>", "an existing params YAML file")
         return p, None
     params = read_params(ulog)
-    autostart = int(params.get("SYS_AUTOSTART", 0) or 0)
+    autostart = int_param(params, "SYS_AUTOSTART", str(ulog), 0, 99_999_999)
     stem = SHIPPED_AIRFRAMES.get(autostart)
     if stem is not None:
         return params_dir() / f"{stem}.yaml", f"params: shipped {stem}.yaml for SYS_AUTOSTART {autostart}"
