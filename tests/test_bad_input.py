@@ -294,6 +294,71 @@ def test_simulate_effect_out_of_range_is_one_line(tmp_path, monkeypatch):
         assert list(tmp_path.iterdir()) == []
 
 
+# --------------------------------------------------------------------------- the re-audit's cases (issue 28)
+
+#: the 2026-11-26 re-audit's defects that are about what a command is given (argv with {F} = the shipped
+#: flight copied into OUT, {P} = a params file there, {L} = a symbolic link to it, {PL} = a plan there,
+#: {T} = a tlog there, {B} = a baseline bag folder there, {O} = OUT): each must be refused in one line,
+#: exit 2, every file there unchanged and nothing new written
+AUDIT = {
+    "discover onto its log": ["discover", "{F}", "--json", "{F}"],
+    "discover --json onto its params": ["discover", "{F}", "--params", "{P}", "--json", "{P}"],
+    "discover --out-params onto its params via a link": ["discover", "{F}", "--params", "{P}", "--out-params", "{L}"],
+    "survey --md onto its log": ["survey", "{F}", "--md", "{F}"],
+    "identify hover --out onto its params": ["identify", "hover", "{F}", "--params", "{P}", "--out", "{P}"],
+    "simulate --out onto its params": ["simulate", "--params", "{P}", "--out", "{P}"],
+    "simulate --out onto its plan": ["simulate", "--params", "{P}", "--plan", "{PL}", "--out", "{PL}"],
+    "live tlog --json onto its tlog": ["live", "tlog", "{T}", "--json", "{T}"],
+    "regress --json onto the baseline recording": ["regress", "{B}", "--offline", "--json", "{B}/bag.mcap"],
+    "compare --report into the folder holding its log": ["compare", "{F}", "--offline", "--report", "{O}"],
+    "discover --json onto an existing file (no --force)": ["discover", "{F}", "--json", "{O}/keep.txt"],
+    "discover --json through a file": ["discover", "{F}", "--json", "{O}/keep.txt/r.json"],
+    "discover --heldout nan": ["discover", "{F}", "--heldout", "nan"],
+    "discover --heldout 1": ["discover", "{F}", "--heldout", "1"],
+    "compare --window 0": ["compare", "{F}", "--window", "0"],
+    "compare --rate -1": ["compare", "{F}", "--rate", "-1"],
+    "compare --horizon nan": ["compare", "{F}", "--horizon", "nan"],
+    "identify hover --mass-kg -1": ["identify", "hover", "{F}", "--mass-kg", "-1"],
+    "fleet simulate --vehicles -1": ["fleet", "simulate", "{O}/fleet", "--vehicles", "-1"],
+    "fleet discover --workers 0": ["fleet", "discover", "{F}", "--catalog", "{O}/cat", "--workers", "0"],
+    "params check: omega_max_rad_s 1e-300": ["params", "check", "{O}/tiny_omega.yaml"],
+    "params check: a duplicate key": ["params", "check", "{O}/duplicate_key.yaml"],
+}
+AUDIT_RESULTS: list[dict] = []
+
+
+@pytest.mark.parametrize("case", list(AUDIT))
+def test_the_reaudits_cases(corpus, tmp_path, monkeypatch, case):
+    monkeypatch.chdir(tmp_path)
+    flight = tmp_path / "flight.ulg"
+    shutil.copy(ROOT / "bags" / "sim_quadx_weak_motor3.ulg", flight)
+    shutil.copy(PARAMS, tmp_path / "p.yaml")
+    (tmp_path / "p_link.yaml").symlink_to(tmp_path / "p.yaml")
+    shutil.copy(ROOT / "missions" / "triangle.plan.yaml", tmp_path / "m.plan.yaml")
+    (tmp_path / "f.tlog").write_bytes(np.random.default_rng(1).bytes(512))
+    (tmp_path / "bag").mkdir()
+    (tmp_path / "bag" / "bag.mcap").write_bytes(b"\x89MCAP0\r\n a baseline")
+    (tmp_path / "keep.txt").write_text("precious")
+    for name in ("tiny_omega.yaml", "duplicate_key.yaml"):
+        shutil.copy(corpus / name, tmp_path / name)
+    subs = {"{F}": str(flight), "{PL}": str(tmp_path / "m.plan.yaml"), "{P}": str(tmp_path / "p.yaml"),
+            "{L}": str(tmp_path / "p_link.yaml"), "{T}": str(tmp_path / "f.tlog"), "{B}": str(tmp_path / "bag"),
+            "{O}": str(tmp_path)}
+    argv = []
+    for a in AUDIT[case]:
+        for k in ("{PL}", "{F}", "{P}", "{L}", "{T}", "{B}", "{O}"):
+            a = a.replace(k, subs[k])
+        argv.append(a)
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    rc, _, stderr = run_cli(argv)
+    lines = [ln for ln in stderr.strip().splitlines() if not ln.startswith("rotortwin: warning: ")]
+    AUDIT_RESULTS.append({"case": case, "argv": " ".join(AUDIT[case]), "rc": rc,
+                          "message": (lines[-1] if lines else "").replace(f"{tmp_path}/", "")})
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith("rotortwin: error: "), stderr
+    after = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    assert after == before
+
+
 # --------------------------------------------------------------------------- docs/reliability.md
 
 
@@ -336,6 +401,22 @@ def _write_doc(corpus):
         "flight written by `twin_nodes.logs.ulog_write` and byte-edited (`tests/ulog_cases.py`).",
         "",
     ]
+    if AUDIT_RESULTS:
+        lines += ["## The re-audit's cases (issue 28), as they run now", "",
+                  "The 2026-11-26 re-audit's defects that are about what a command is given, run on a copy of "
+                  "the shipped flight (F), a params file (P; L a symbolic link to it), a plan (PL), a tlog (T) "
+                  "and a baseline bag (B) in OUT.  Every one is refused before any work, exit 2, one line, every "
+                  "file in OUT unchanged and nothing new written (`test_the_reaudits_cases`).  Outputs are "
+                  "checked by one guard for every command (`twin_nodes/base/outputs.py`; "
+                  "`tests/test_outputs.py` walks the argument parser and tries every output option against every "
+                  "input, as a link and a hard link too, plus Ctrl-C and SIGTERM during a run).", "",
+                  "| case | command | exit | message |", "|---|---|---|---|"]
+        for r in AUDIT_RESULTS:
+            argv = r["argv"].replace("{O}/", "OUT/").replace("{O}", "OUT")
+            for k, v in (("{PL}", "PL"), ("{F}", "F"), ("{P}", "P"), ("{L}", "L"), ("{T}", "T"), ("{B}", "B")):
+                argv = argv.replace(k, v)
+            lines.append(f"| {r['case']} | `rotortwin {argv}` | {r['rc']} | {_cell(r['message'], 170)} |")
+        lines.append("")
     for cmd, rows in by_cmd.items():
         argv = " ".join(COMMANDS[cmd][0]).replace(PARAMS, "params/px4_sih_quadx.yaml")
         argv = argv.replace("{F}", "FILE").replace("{O}", "OUT").replace("{G}", "good.ulg")
