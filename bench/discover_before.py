@@ -26,7 +26,7 @@ from scipy.signal import butter, sosfiltfilt
 from twin_nodes.base import frames
 from twin_nodes.base.errors import LogError
 from twin_nodes.discovery.candidates import Candidate
-from twin_nodes.discovery.discover import Judge, _equation_judge, _scales
+from twin_nodes.discovery.judging import Judge, _equation_judge, _scales
 from twin_nodes.discovery.output_error import JUDGED, MIN_AXIS_R2, STEP_S, Windows
 from twin_nodes.discovery.residuals import DEFAULT_RATE_HZ, LOWPASS_HZ, EquationData
 from twin_nodes.physics.core import NX_BODY
@@ -421,13 +421,17 @@ def _carried_setpoint(self) -> np.ndarray:
 @contextlib.contextmanager
 def before():
     """Run ``discover`` with the frozen evaluation path (and one process) inside this block."""
-    from twin_nodes.discovery import discover as d
     from twin_nodes.discovery import evaluate as ev
+    from twin_nodes.discovery import judging
     from twin_nodes.discovery import locate as loc
+    from twin_nodes.discovery.stages import mismatch, refit, report
+    from twin_nodes.discovery.stages import prepare as flight
     from twin_nodes.twin.runner import TwinRunner
-    swaps = [(d, "prepare", prepare), (d, "residual_channels", residual_channels),
-             (d, "output_error", output_error), (d, "judge_axes", judge_axes),
-             (d, "fit_candidate", fit_candidate), (loc, "model_rotor_states", model_rotor_states),
+    # each name where discovery's stages look it up (discover.py before it was split into stages)
+    swaps = [(flight, "prepare", prepare),
+             *[(m, "residual_channels", residual_channels) for m in (judging, mismatch, refit, report)],
+             (judging, "output_error", output_error), (judging, "judge_axes", judge_axes),
+             (judging, "fit_candidate", fit_candidate), (loc, "model_rotor_states", model_rotor_states),
              (TwinRunner, "_carried_setpoint", _carried_setpoint)]
     swaps += [(ev, name, value) for name, value in BEFORE_SETTINGS.items()]
     saved = [(mod, name, getattr(mod, name)) for mod, name, _ in swaps]

@@ -192,3 +192,36 @@ def test_msgs_py_depends_on_nothing_of_ours():
     graph = module_graph()
     assert not {d for m, deps in graph.items() if m.startswith("msgs_py") for d in deps
                 if d.startswith("twin_nodes")}
+
+
+#: discovery is read stage by stage (``twin_nodes/discovery/stages/``, docs/ARCHITECTURE.md "Discovery
+#: stages"): no function in it over this many lines, no module over MAX_MODULE_LINES
+MAX_FUNCTION_LINES = 80
+MAX_MODULE_LINES = 600
+DISCOVERY = PKG / "discovery"
+
+
+def long_functions(path: Path, limit: int = MAX_FUNCTION_LINES) -> dict[str, int]:
+    """``name: lines`` of every function (nested ones and methods included) longer than ``limit``
+    lines, counted by ``ast`` (end_lineno - lineno + 1)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    return {f"{path.name}:{n.name}": n.end_lineno - n.lineno + 1 for n in ast.walk(tree)
+            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n.end_lineno - n.lineno + 1 > limit}
+
+
+def test_discovery_functions_are_short():
+    long = {k: v for p in sorted(DISCOVERY.rglob("*.py")) for k, v in long_functions(p).items()}
+    assert not long, f"discovery functions over {MAX_FUNCTION_LINES} lines (split them): {long}"
+
+
+def test_discovery_modules_are_small():
+    big = {str(p.relative_to(DISCOVERY)): n for p in sorted(DISCOVERY.rglob("*.py"))
+           if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES}
+    assert not big, f"discovery modules over {MAX_MODULE_LINES} lines (split them): {big}"
+
+
+def test_length_rule_catches_a_long_function(tmp_path):
+    body = "\n".join(f"    x{i} = {i}" for i in range(MAX_FUNCTION_LINES))
+    p = tmp_path / "m.py"
+    p.write_text(f"def short():\n    return 1\n\n\ndef long():\n{body}\n    return 0\n", encoding="utf-8")
+    assert long_functions(p) == {"m.py:long": MAX_FUNCTION_LINES + 2}

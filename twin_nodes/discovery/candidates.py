@@ -63,21 +63,9 @@ def _rel(a: float, b: float) -> float:
     return abs(a - b) / max(abs(b), 1e-12)
 
 
-def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
-    """Every applicable candidate for this vehicle and this flight's data."""
-    nominal = effective_params(vp)
-    r = nominal.rotors
-    n = r.count
-    arm = float(np.median(np.hypot(r.x_flu_m, r.y_flu_m)))
-    inertia = nominal.inertia
-    weight = nominal.mass_kg * nominal.gravity_m_s2
-    speed = np.linalg.norm(data.v[data.valid], axis=1)
-    v_typ = float(np.percentile(speed, 90)) if speed.size else 0.0
-    omega_hover = nominal.hover_omega_rad_s
-    dt_log = max(data.motor_dt_s, data.dt)
-    existing = {name for name, _ in vp.effects}
-    out: list[Candidate] = []
-
+def _adder(vp: VehicleParams, existing: set[str], out: list[Candidate]):
+    """``add(name, pnames, x0, lo, hi, floor, ...)``: append that candidate to ``out`` (not where ``vp``
+    models the effect already)."""
     def add(name, pnames, x0, lo, hi, floor, fixed=None, label="", unphysical=None, tied=None):
         if name in existing:
             return  # already modelled: refitting it is the user's nominal, not missing physics
@@ -93,7 +81,24 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
         out.append(Candidate(name, tuple(pnames), np.asarray(x0, float), np.asarray(lo, float),
                              np.asarray(hi, float), build, fixed, floor, label or name,
                              unphysical or (lambda theta: None), tied=tied))
+    return add
 
+
+def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
+    """Every applicable candidate for this vehicle and this flight's data."""
+    nominal = effective_params(vp)
+    r = nominal.rotors
+    n = r.count
+    arm = float(np.median(np.hypot(r.x_flu_m, r.y_flu_m)))
+    inertia = nominal.inertia
+    weight = nominal.mass_kg * nominal.gravity_m_s2
+    speed = np.linalg.norm(data.v[data.valid], axis=1)
+    v_typ = float(np.percentile(speed, 90)) if speed.size else 0.0
+    omega_hover = nominal.hover_omega_rad_s
+    dt_log = max(data.motor_dt_s, data.dt)
+    existing = {name for name, _ in vp.effects}
+    out: list[Candidate] = []
+    add = _adder(vp, existing, out)
     m0 = nominal.mass_kg
     lift_kg = n * r.thrust_at_full_command_n / nominal.gravity_m_s2  # the rotors must still lift it
     add("mass", ["mass"], [m0], [0.4 * m0], [min(3.0 * m0, 0.95 * lift_kg)], lambda th: _rel(th[0], m0) > 0.03)
@@ -111,7 +116,7 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
     # the motor lag in two forms: one time constant both ways (as many parameters as a delay,
     # so the two compete on their cut alone) and separate up/down constants; discovery fits the
     # up/down form only where the one-constant lag is accepted, and keeps it only where it beats
-    # that on held-out blocks (discover._one_variant)
+    # that on held-out blocks (stages.selection._one_variant)
     add("motor_time_constant", ["tau_up"], [0.5 * (tu + td)], [tau_lo], [max(5 * max(tu, td), 0.3)],
         lambda th: max(abs(th[0] - tu), abs(th[0] - td)) > dt_log, label=SYMMETRIC_LAG, tied={"tau_down": "tau_up"})
     add("motor_time_constant", ["tau_up", "tau_down"], [tu, td], [tau_lo, tau_lo],

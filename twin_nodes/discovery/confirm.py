@@ -30,8 +30,10 @@ import math
 import numpy as np
 
 from twin_nodes.discovery.candidates import build_candidates
-from twin_nodes.discovery.discover import (BLOCK_S, MIN_REL_IMPROVEMENT, OE_BLOCK_S, OE_MIN_CHANGE, T_CRIT, _block_stats, _blocks,
-                                           _mode_rms, _restrict_to_axes, _scales, assess, prepare_flight)
+from twin_nodes.discovery.blocktest import _block_stats
+from twin_nodes.discovery.judging import (BLOCK_S, MIN_REL_IMPROVEMENT, OE_BLOCK_S, OE_MIN_CHANGE, T_CRIT, _blocks,
+                                          _mode_rms, _restrict_to_axes, _scales, assess)
+from twin_nodes.discovery.stages.prepare import prepare_flight
 from twin_nodes.vehicle.params import VehicleParams
 
 AGREE_FACTOR = 1.5
@@ -41,6 +43,34 @@ SE_AGREE = 2.0
 
 def _apply(vp: VehicleParams, name: str, params: dict) -> VehicleParams:
     return vp.with_effect(name, **{k: float(v) for k, v in params.items()})
+
+
+def _refit_on_followup(e: dict, cands: dict, judge, vp: VehicleParams, R0: np.ndarray) -> tuple[dict | None, bool]:
+    """The effect ``e`` refitted on the follow-up alone (its own 2-fold test), the better-excited
+    estimate, and whether it agrees with the flight's fit."""
+    refit = None
+    agree = False
+    label = e["name"] if e["name"] != "motor_efficiency" else f"motor_efficiency(motor {int(e['params']['motor'])})"
+    c = cands.get(label)
+    if c is not None and judge.kind == "output":
+        c = _restrict_to_axes(c, judge.windows.usable)
+    if c is not None:
+        f = assess(c, judge, vp, R0)
+        refit = {"params": c.params_dict(f.theta), "heldout_t_stat": round(float(f.t_stat), 2),
+                 "cv_improvement": round(float(f.rel_improvement), 4)}
+        theta_flight = np.array([float(e["params"][p]) for p in c.param_names])
+        s = _scales(c)
+        d0 = (theta_flight - c.x0) / s
+        d1 = (f.theta - c.x0) / s
+        j = int(np.argmax(np.abs(d0)))
+        agree = bool(d0[j] * d1[j] > 0 and max(abs(d0[j]), abs(d1[j])) <= AGREE_FACTOR * min(abs(d0[j]), abs(d1[j])))
+        # where the flight's estimate has a standard error (the instrumented inertia), agreeing
+        # within two of them is agreeing too: a +25 % change estimated 7 % high in the inertia
+        # itself is 1.5 x the change (PX4 SIH g26: Ixx 0.0334 +- 0.0018 against the follow-up's 0.0305)
+        se = (e.get("params_se") or {}).get(c.param_names[j])
+        if se and d0[j] * d1[j] > 0 and abs(f.theta[j] - theta_flight[j]) <= SE_AGREE * se:
+            agree = True
+    return refit, agree
 
 
 def confirm(result: dict, followup_log, vp: VehicleParams) -> dict:
@@ -85,28 +115,7 @@ def confirm(result: dict, followup_log, vp: VehicleParams) -> dict:
         k = mnames.index(ch)
         mode_cut = 1.0 - m1[k] / m0[k] if m0[k] > 0 else 0.0
         # the refit on the follow-up alone (its own 2-fold test), the better-excited estimate
-        refit = None
-        agree = False
-        label = e["name"] if e["name"] != "motor_efficiency" else f"motor_efficiency(motor {int(e['params']['motor'])})"
-        c = cands.get(label)
-        if c is not None and judge.kind == "output":
-            c = _restrict_to_axes(c, judge.windows.usable)
-        if c is not None:
-            f = assess(c, judge, vp, R0)
-            refit = {"params": c.params_dict(f.theta), "heldout_t_stat": round(float(f.t_stat), 2),
-                     "cv_improvement": round(float(f.rel_improvement), 4)}
-            theta_flight = np.array([float(e["params"][p]) for p in c.param_names])
-            s = _scales(c)
-            d0 = (theta_flight - c.x0) / s
-            d1 = (f.theta - c.x0) / s
-            j = int(np.argmax(np.abs(d0)))
-            agree = bool(d0[j] * d1[j] > 0 and max(abs(d0[j]), abs(d1[j])) <= AGREE_FACTOR * min(abs(d0[j]), abs(d1[j])))
-            # where the flight's estimate has a standard error (the instrumented inertia), agreeing
-            # within two of them is agreeing too: a +25 % change estimated 7 % high in the inertia
-            # itself is 1.5 x the change (PX4 SIH g26: Ixx 0.0334 +- 0.0018 against the follow-up's 0.0305)
-            se = (e.get("params_se") or {}).get(c.param_names[j])
-            if se and d0[j] * d1[j] > 0 and abs(f.theta[j] - theta_flight[j]) <= SE_AGREE * se:
-                agree = True
+        refit, agree = _refit_on_followup(e, cands, judge, vp, R0)
         passed = st["t"] > T_CRIT and rel >= 0.0 and mode_cut >= MIN_REL_IMPROVEMENT and agree
         why = []
         if st["t"] <= T_CRIT:

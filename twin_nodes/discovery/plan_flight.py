@@ -34,52 +34,53 @@ RTL_ALT = 15.0
 HOLD_S = 0.5
 
 
-def plan_setpoints(waypoints: Sequence[tuple], rtl_after: bool = True, rate_hz: float = 250.0):
-    """Setpoint history (ENU) of a plan flown PX4-style: returns t, SP (T, 11), armed(t)."""
-    dt = 1.0 / rate_hz
-    T, P, V, A, Y = [], [], [], [], []
-    pos = np.zeros(3)
-    vel = np.zeros(3)
-    yaw = 0.0
-    tt = 0.0
-    armed_from = 2.0
+class _Setpoints:
+    """The setpoint history being written, and where the vehicle is: :func:`plan_setpoints`' moves."""
 
-    def emit(p, v, a, y):
-        nonlocal tt
-        T.append(tt)
-        P.append(np.array(p, float))
-        V.append(np.array(v, float))
-        A.append(np.array(a, float))
-        Y.append(y)
-        tt += dt
+    def __init__(self, rate_hz: float):
+        self.rate_hz = rate_hz
+        self.dt = 1.0 / rate_hz
+        self.T, self.P, self.V, self.A, self.Y = [], [], [], [], []
+        self.pos = np.zeros(3)
+        self.vel = np.zeros(3)
+        self.yaw = 0.0
+        self.tt = 0.0
 
-    def hold(seconds):
-        for _ in range(int(seconds * rate_hz)):
-            emit(pos, np.zeros(3), np.zeros(3), yaw)
+    def emit(self, p, v, a, y):
+        self.T.append(self.tt)
+        self.P.append(np.array(p, float))
+        self.V.append(np.array(v, float))
+        self.A.append(np.array(a, float))
+        self.Y.append(y)
+        self.tt += self.dt
 
-    def turn_to(heading):
-        nonlocal yaw
-        while abs(_wrap(heading - yaw)) > YAW_RATE * dt:
-            yaw = _wrap(yaw + math.copysign(YAW_RATE * dt, _wrap(heading - yaw)))
-            emit(pos, np.zeros(3), np.zeros(3), yaw)
-        yaw = heading
+    def hold(self, seconds):
+        for _ in range(int(seconds * self.rate_hz)):
+            self.emit(self.pos, np.zeros(3), np.zeros(3), self.yaw)
 
-    def vertical(target):
-        nonlocal pos
-        while abs(target - pos[2]) > 0.05:
-            vz = V_UP if target > pos[2] else -V_DN
+    def turn_to(self, heading):
+        dt = self.dt
+        while abs(_wrap(heading - self.yaw)) > YAW_RATE * dt:
+            self.yaw = _wrap(self.yaw + math.copysign(YAW_RATE * dt, _wrap(heading - self.yaw)))
+            self.emit(self.pos, np.zeros(3), np.zeros(3), self.yaw)
+        self.yaw = heading
+
+    def vertical(self, target):
+        dt = self.dt
+        while abs(target - self.pos[2]) > 0.05:
+            vz = V_UP if target > self.pos[2] else -V_DN
             step = vz * dt
-            if abs(step) > abs(target - pos[2]):
-                step = target - pos[2]
-            pos = pos + np.array([0.0, 0.0, step])
-            emit(pos, np.array([0.0, 0.0, vz]), np.zeros(3), yaw)
-        pos = np.array([pos[0], pos[1], target])
+            if abs(step) > abs(target - self.pos[2]):
+                step = target - self.pos[2]
+            self.pos = self.pos + np.array([0.0, 0.0, step])
+            self.emit(self.pos, np.array([0.0, 0.0, vz]), np.zeros(3), self.yaw)
+        self.pos = np.array([self.pos[0], self.pos[1], target])
 
-    def leg(b, cruise, stop):
+    def leg(self, b, cruise, stop):
         """Straight line to b; speed along it ramps at ACC, limited so the vertical part stays
         within the climb/descent limits; ends at rest when ``stop``."""
-        nonlocal pos, vel
-        d = b - pos
+        dt = self.dt
+        d = b - self.pos
         length = float(np.linalg.norm(d))
         if length < 1e-6:
             return
@@ -88,9 +89,9 @@ def plan_setpoints(waypoints: Sequence[tuple], rtl_after: bool = True, rate_hz: 
         if abs(u[2]) > 1e-6:
             vmax = min(vmax, (V_UP if u[2] > 0 else V_DN) / abs(u[2]))
         s = 0.0
-        v = min(float(np.dot(vel, u)), vmax) if np.linalg.norm(vel) > 0 else 0.0
+        v = min(float(np.dot(self.vel, u)), vmax) if np.linalg.norm(self.vel) > 0 else 0.0
         v = max(v, 0.0)
-        a = pos.copy()
+        a = self.pos.copy()
         while s < length:
             remaining = length - s
             if stop and v * v / (2 * ACC) >= remaining:
@@ -100,49 +101,55 @@ def plan_setpoints(waypoints: Sequence[tuple], rtl_after: bool = True, rate_hz: 
                 v = min(v + ACC * dt, vmax)
                 ac = ACC if v < vmax else 0.0
             s = min(s + v * dt, length)
-            emit(a + u * s, u * v, u * ac, yaw)
-        pos = b.copy()
-        vel = np.zeros(3) if stop else u * v
+            self.emit(a + u * s, u * v, u * ac, self.yaw)
+        self.pos = b.copy()
+        self.vel = np.zeros(3) if stop else u * v
 
-    hold(3.0)
+
+def plan_setpoints(waypoints: Sequence[tuple], rtl_after: bool = True, rate_hz: float = 250.0):
+    """Setpoint history (ENU) of a plan flown PX4-style: returns t, SP (T, 11), armed(t)."""
+    f = _Setpoints(rate_hz)
+    dt = f.dt
+    armed_from = 2.0
+    f.hold(3.0)
     wps = [np.array([w[1], w[0], w[2]], float) for w in waypoints]   # ENU: east, north, up
     # PX4 inserts a take-off to the first item's altitude
-    vertical(wps[0][2])
-    hold(1.0)
+    f.vertical(wps[0][2])
+    f.hold(1.0)
     for i, (b, w) in enumerate(zip(wps, waypoints)):
         speed, through = float(w[3]), bool(w[4])
-        horiz = b[:2] - pos[:2]
+        horiz = b[:2] - f.pos[:2]
         if np.hypot(*horiz) > 1.0:
             heading = math.atan2(horiz[1], horiz[0])
-            if abs(_wrap(heading - yaw)) > math.radians(10) or np.linalg.norm(vel) < 0.1:
-                if np.linalg.norm(vel) > 0.1:      # a fly-through corner with a big turn: PX4 slows down
-                    vel = np.zeros(3)
-                turn_to(heading)
+            if abs(_wrap(heading - f.yaw)) > math.radians(10) or np.linalg.norm(f.vel) < 0.1:
+                if np.linalg.norm(f.vel) > 0.1:      # a fly-through corner with a big turn: PX4 slows down
+                    f.vel = np.zeros(3)
+                f.turn_to(heading)
             else:
-                yaw = heading
-        leg(b, speed, stop=not through or i == len(wps) - 1)
+                f.yaw = heading
+        f.leg(b, speed, stop=not through or i == len(wps) - 1)
         if not through:
-            hold(HOLD_S)
+            f.hold(HOLD_S)
     if rtl_after:
-        vertical(max(RTL_ALT, pos[2]))
-        home = np.array([0.0, 0.0, pos[2]])
-        if np.hypot(*(home[:2] - pos[:2])) > 1.0:
-            turn_to(math.atan2(-pos[1], -pos[0]))
-            leg(home, 5.0, stop=True)
-        hold(1.0)
+        f.vertical(max(RTL_ALT, f.pos[2]))
+        home = np.array([0.0, 0.0, f.pos[2]])
+        if np.hypot(*(home[:2] - f.pos[:2])) > 1.0:
+            f.turn_to(math.atan2(-f.pos[1], -f.pos[0]))
+            f.leg(home, 5.0, stop=True)
+        f.hold(1.0)
     # land: MPC_LAND_SPEED 0.7 m/s, the last 1.5 m at MPC_LAND_CRWL 0.3 m/s
-    while pos[2] > -0.5:
-        vz = -0.7 if pos[2] > 1.5 else -0.3
-        pos = pos + np.array([0.0, 0.0, vz * dt])
-        emit(pos, np.array([0.0, 0.0, vz]), np.zeros(3), yaw)
-    armed_until = tt + 1.5
-    hold(2.0)
-    t = np.array(T)
+    while f.pos[2] > -0.5:
+        vz = -0.7 if f.pos[2] > 1.5 else -0.3
+        f.pos = f.pos + np.array([0.0, 0.0, vz * dt])
+        f.emit(f.pos, np.array([0.0, 0.0, vz]), np.zeros(3), f.yaw)
+    armed_until = f.tt + 1.5
+    f.hold(2.0)
+    t = np.array(f.T)
     SP = np.full((len(t), 11), np.nan)
-    SP[:, 0:3] = P
-    SP[:, 3:6] = V
-    SP[:, 6:9] = A
-    SP[:, 9] = Y
+    SP[:, 0:3] = f.P
+    SP[:, 3:6] = f.V
+    SP[:, 6:9] = f.A
+    SP[:, 9] = f.Y
     SP[t < armed_from] = np.nan
     return t, SP, (lambda tq, a0=armed_from, a1=armed_until: (tq >= a0) & (tq < a1))
 

@@ -123,15 +123,8 @@ def _axes_text(res: dict) -> str:
     return "; ".join(f"{k} r\u00b2 {v['r2']:.2f} {'used' if v['used'] else 'left out'}" for k, v in axes.items())
 
 
-def write_report(folder, res: dict, series: dict) -> None:
-    """Plots of the residual before/after on the held-out part and the candidate ranking, plus index.html."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out = Path(folder)
-    out.mkdir(parents=True, exist_ok=True)
+def _plots(out: Path, res: dict, series: dict, plt) -> None:
+    """``residuals.png`` (the equation error before/after) and ``candidates.png`` (the held-out cuts)."""
     t, valid, held = series["t"], series["valid"], series["held"]
     Rb, Ra, names = series["R_before"], series["R_after"], series["names"]
     fig, axes = plt.subplots(len(names), 1, figsize=(10, 1.6 * len(names) + 1), sharex=True)
@@ -163,8 +156,9 @@ def write_report(folder, res: dict, series: dict) -> None:
     fig.savefig(out / "candidates.png", dpi=90)
     plt.close(fig)
 
-    rl = _rate_loop_plot(out, res, plt)
 
+def _effect_rows(eff: list[dict]) -> str:
+    """The candidates table's rows."""
     def verdict(e):
         v = e.get("verdict") or ("confirmed" if e["accepted"] else "rejected")
         return f"<b>{v}</b>" if v != "rejected" else v
@@ -193,13 +187,11 @@ def write_report(folder, res: dict, series: dict) -> None:
         f"<td>{e['heldout_before']:.4f}</td><td>{e['heldout_after']:.4f}</td><td>{resid(e)}</td><td>{excit(e)}</td>"
         f"<td>{html.escape(e['evidence'])} {html.escape(e.get('verdict_note', '') if e.get('verdict') == 'likely' else '')}"
         f"</td></tr>" for e in eff)
-    ex = res.get("excitation") or {}
-    exrows = "".join(f"<tr><td>{html.escape(ch)}</td><td>{v['blocks_heldout']}/{v['blocks_heldout_total']}</td>"
-                     f"<td>{v['blocks_flight']}/{v['blocks_flight_total']}</td><td>"
-                     f"{html.escape(', '.join(f'{k} {n}' for k, n in v['manoeuvres'].items()))}</td></tr>"
-                     for ch, v in ex.items())
-    mm = "".join(f"<tr><td>{m['channel']}</td><td>{m.get('residual', 'equation')}</td><td>{m['t_start']}–{m['t_end']} s"
-                 f"</td><td>{html.escape(m['regime'])}</td><td>{m['severity']}</td></tr>" for m in res["mismatch"][:20])
+    return rows
+
+
+def _events_html(res: dict) -> str:
+    """The short events section ('' without events)."""
     evrows = "".join(
         f"<tr><td>{e['t_start']}–{e['t_end']} s</td><td>{html.escape(_event_channels(e))}</td>"
         f"<td>{e['vz_m_s'][0]:+.1f}..{e['vz_m_s'][1]:+.1f}</td><td>{e['height_m']}</td><td>{e['motors_at_full'] or ''}</td>"
@@ -210,6 +202,31 @@ def write_report(folder, res: dict, series: dict) -> None:
              "full output: reported with what the vehicle did, not fitted.</p>"
              "<table><tr><th>when</th><th>channels (peak)</th><th>vz m/s</th><th>height m</th><th>motors at full</th>"
              f"<th>points to</th></tr>{evrows}</table>") if evrows else ""
+    return evsec
+
+
+def write_report(folder, res: dict, series: dict) -> None:
+    """Plots of the residual before/after on the held-out part and the candidate ranking, plus index.html."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    _plots(out, res, series, plt)
+
+    rl = _rate_loop_plot(out, res, plt)
+
+    rows = _effect_rows(res["effects"])
+    ex = res.get("excitation") or {}
+    exrows = "".join(f"<tr><td>{html.escape(ch)}</td><td>{v['blocks_heldout']}/{v['blocks_heldout_total']}</td>"
+                     f"<td>{v['blocks_flight']}/{v['blocks_flight_total']}</td><td>"
+                     f"{html.escape(', '.join(f'{k} {n}' for k, n in v['manoeuvres'].items()))}</td></tr>"
+                     for ch, v in ex.items())
+    mm = "".join(f"<tr><td>{m['channel']}</td><td>{m.get('residual', 'equation')}</td><td>{m['t_start']}–{m['t_end']} s"
+                 f"</td><td>{html.escape(m['regime'])}</td><td>{m['severity']}</td></tr>" for m in res["mismatch"][:20])
+    evsec = _events_html(res)
     head = (f"Confirmed: <b>{', '.join(res['accepted'])}</b>" if res["accepted"]
             else "Nothing confirmed: no candidate explains the held-out residual significantly.")
     if res.get("likely"):

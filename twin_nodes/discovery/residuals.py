@@ -101,6 +101,41 @@ def _fill_nan(x: np.ndarray) -> np.ndarray:
     return x
 
 
+def _fine_commands(ms, lo: float, n: int, dt: float, oversample: int, command_hold_s: float
+                   ) -> tuple[np.ndarray, float]:
+    """The motor commands on a grid ``oversample`` times finer than the ``n``-sample grid from ``lo``:
+    linear between logged samples, NaN (stopped) kept; and the motor logging interval."""
+    t_fine = lo + np.arange(n * oversample) * (dt / oversample)
+    t_cmd = t_fine - command_hold_s   # the command acting at t_fine was logged this much earlier
+    u_fine = np.empty((len(t_fine), ms.values.shape[1]))
+    for i in range(ms.values.shape[1]):
+        col = ms.values[:, i]
+        fin = np.isfinite(col)
+        u_fine[:, i] = np.interp(t_cmd, ms.t_s[fin], col[fin]) if fin.sum() >= 2 else np.nan
+        stopped = np.interp(t_cmd, ms.t_s, (~fin).astype(float)) > 0.5
+        u_fine[stopped, i] = np.nan
+    motor_dt = float(np.median(np.diff(ms.t_s))) if len(ms.t_s) > 1 else dt
+    return u_fine, motor_dt
+
+
+def _ground_contact(vp: VehicleParams, data: EquationData, height: np.ndarray, rate_hz: float) -> np.ndarray:
+    """The grid samples in ground contact (padded by 0.5 s either side)."""
+    model = Multirotor(vp)
+    S = model_rotor_states(model, data)
+    thrust = model.params.rotors.thrust_from_state(np.maximum(S, 0)).sum(1)
+    weight = vp.mass_kg * vp.gravity_m_s2
+    contact = (height < 0.5) & (np.linalg.norm(data.v, axis=1) < 0.3) & (thrust < 0.7 * weight)
+    contact |= height < 0.05
+    # sitting on the ground whatever the height estimate says (after touchdown PX4's EKF height can
+    # read 1 m for seconds): far too little thrust to fly, yet the accelerometer reads a supported
+    # vehicle, not a falling one
+    contact |= (thrust < 0.6 * weight) & (vp.mass_kg * data.f[:, 2] - thrust > 0.3 * weight)
+    # pad contact by 0.5 s either side (touchdown transients)
+    pad = int(round(0.5 * rate_hz))
+    contact = np.convolve(contact.astype(float), np.ones(2 * pad + 1), mode="same") > 0
+    return contact
+
+
 def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample: int = 10) -> EquationData:
     """Resample what equation error needs onto one grid and mark the usable samples."""
     need = ["position_enu", "velocity_enu", "attitude_q", "motors", "specific_force_flu"]
@@ -144,16 +179,7 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     alpha = np.gradient(w, dt, axis=0)
     # commands on a fine grid: linear between logged samples, NaN (stopped) kept
     ms = log.require("motors")
-    t_fine = lo + np.arange(n * oversample) * (dt / oversample)
-    t_cmd = t_fine - timing.command_hold_s   # the command acting at t_fine was logged this much earlier
-    u_fine = np.empty((len(t_fine), ms.values.shape[1]))
-    for i in range(ms.values.shape[1]):
-        col = ms.values[:, i]
-        fin = np.isfinite(col)
-        u_fine[:, i] = np.interp(t_cmd, ms.t_s[fin], col[fin]) if fin.sum() >= 2 else np.nan
-        stopped = np.interp(t_cmd, ms.t_s, (~fin).astype(float)) > 0.5
-        u_fine[stopped, i] = np.nan
-    motor_dt = float(np.median(np.diff(ms.t_s))) if len(ms.t_s) > 1 else dt
+    u_fine, motor_dt = _fine_commands(ms, lo, n, dt, oversample, timing.command_hold_s)
     p = d["position_enu"]
     # ground level: median height while landed before take-off (or the lowest airborne height)
     pre = (t < t0) & np.isfinite(p[:, 2])
@@ -173,19 +199,7 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
                         motor_dt_s=motor_dt,
                         info={"airborne": (t0, t1), "ground_enu_z": ground, "timing": timing.describe()})
     # exclude ground contact: low, slow, and the model's thrust well below the weight
-    model = Multirotor(vp)
-    S = model_rotor_states(model, data)
-    thrust = model.params.rotors.thrust_from_state(np.maximum(S, 0)).sum(1)
-    weight = vp.mass_kg * vp.gravity_m_s2
-    contact = (height < 0.5) & (np.linalg.norm(data.v, axis=1) < 0.3) & (thrust < 0.7 * weight)
-    contact |= height < 0.05
-    # sitting on the ground whatever the height estimate says (after touchdown PX4's EKF height can
-    # read 1 m for seconds): far too little thrust to fly, yet the accelerometer reads a supported
-    # vehicle, not a falling one
-    contact |= (thrust < 0.6 * weight) & (vp.mass_kg * data.f[:, 2] - thrust > 0.3 * weight)
-    # pad contact by 0.5 s either side (touchdown transients)
-    pad = int(round(0.5 * rate_hz))
-    contact = np.convolve(contact.astype(float), np.ones(2 * pad + 1), mode="same") > 0
+    contact = _ground_contact(vp, data, height, rate_hz)
     data.valid &= ~contact
     data.info["contact_samples"] = int(contact.sum())
     rs = log.get("setpoint_rates_flu")

@@ -1,0 +1,16 @@
+"""Discovery as stages: one module per stage, each ``run(input) -> output`` with one input and one
+output dataclass (``docs/ARCHITECTURE.md``, "Discovery stages").  :func:`twin_nodes.discovery.discover.discover`
+runs them in order:
+
+1. :mod:`.prepare`: the flight, prepared once (``FlightInput`` -> ``PreparedFlight``)
+2. :mod:`.mismatch`: the located mismatch (``PreparedFlight`` -> ``Mismatch``)
+3. :mod:`.selection`: greedy forward selection (``SelectionInput`` -> ``Selection``); each round runs
+   3a. :mod:`.candidates` (``CandidateQuery`` -> ``CandidateSet``) and
+   3b. :mod:`.judge` (``JudgeQuery`` -> ``JudgedFits``, the fits per residual)
+4. :mod:`.refit`: the accepted effects refitted jointly (``RefitInput`` -> ``Refit``)
+5. :mod:`.closed_loop`: the closed-loop check (``CheckInput`` -> ``Checked``)
+6. :mod:`.verdicts`: confirmed / likely / rejected (``GradeInput`` -> ``Verdicts``)
+7. :mod:`.instrument`: on PX4 logs, the inertia's roll/pitch axes and PX4's rate loop
+   (``InstrumentInput`` -> ``Instrumented``)
+8. :mod:`.report`: the JSON-ready result (``ReportInput`` -> ``Report``)
+"""

@@ -1,0 +1,547 @@
+"""Stage 7, the refit continued on PX4 logs: an inertia finding's roll/pitch axes each on its
+own evidence (:func:`_equation_axes`), the roll/pitch inertia read by PX4's rate loop flown on the
+model or by the rate setpoint as instrument (:func:`_instrumented`), and where the rate loop says the
+motors are slow, how slow (:func:`_rate_loop_lag`); each may update the verdicts' entries and the
+refit vehicle, the closed-loop check permitting (``InstrumentInput`` -> ``Instrumented``)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from twin_nodes.discovery import rate_loop
+from twin_nodes.discovery.blocktest import _block_test
+from twin_nodes.discovery.judging import MOTOR_DYNAMICS, T_CRIT, _GRADE_ORDER, Fit, _window_folds
+from twin_nodes.discovery.output_error import (AXES, IV_AXIS_PARAM, IV_GAIN_RANGE, MIN_AXIS_R2, Windows,
+                                               instrumented_inertia)
+from twin_nodes.discovery.plans import RATE_LOOP_LOG_S
+from twin_nodes.discovery.stages.prepare import PreparedFlight
+from twin_nodes.discovery.stages.verdicts import Verdicts
+from twin_nodes.discovery.verdicts import LIKELY_MIN_CUT
+from twin_nodes.physics.effects import EFFECTS, effective_params
+from twin_nodes.vehicle.params import VehicleParams
+
+
+@dataclass
+class InstrumentInput:
+    flight: PreparedFlight
+    verdicts: Verdicts                # updated in place
+    current: VehicleParams            # the refit vehicle after the closed-loop check
+    #: the closed-loop check of a changed refit vehicle (:func:`.closed_loop.guard`): why not, or None
+    guard: Callable[[VehicleParams], str | None]
+
+
+@dataclass
+class Instrumented:
+    current: VehicleParams            # the refit vehicle
+    instrumented: dict | None         # the result's ``instrumented`` (None: nothing to instrument)
+    lag: dict | None                  # the result's ``rate_loop_lag`` (None: not looked at)
+
+
+def run(inp: InstrumentInput) -> Instrumented:
+    """The roll/pitch axes, then the instrument on what is still held, then the rate loop's motor lag."""
+    S, v, current, guard = inp.flight, inp.verdicts, inp.current, inp.guard
+    # an inertia finding's roll/pitch axes, each on its own evidence, then the instrument on what is
+    # still held: either may change the refit vehicle
+    current = _equation_axes(S, v.ranked, v.effects, current, v.accepted_labels, guard) or current
+    instrumented, refit = _instrumented(S, current, v.accepted_labels, v.effects, guard, S.nominal)
+    current = refit or current
+    # where the rate loop says the motors are slow, not an inertia: how slow
+    lag = (_rate_loop_lag(S, current, v.effects)
+           if instrumented is not None and instrumented.get("method") == "rate_loop" and instrumented["motor_signature"]
+           else None)
+    return Instrumented(current, instrumented, lag)
+
+
+def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: np.ndarray,
+                        replace: bool = False) -> str:
+    """Attach the instrumented inertia (``iv``: :func:`instrumented_inertia`'s or
+    :func:`~twin_nodes.discovery.rate_loop.inertia`'s result with its ``params``; ``residual``: its
+    held-out numbers) to an ``inertia`` finding already made on the flight's own residuals, as a
+    third residual for the axes it flags.  It is attached where the finding moves those axes the
+    same way within x1.5, or held them at the model's value (then the instrument supplies them;
+    ``held_at_nominal`` loses them); else the disagreement is returned and nothing changes.  With
+    ``replace`` (PX4's rate loop on a log whose motor commands are aliased, where the finding's own
+    roll/pitch fit is biased) the same direction is agreement enough, and the rate loop's value
+    replaces the finding's (kept in ``own_params``).  Returns what happened, for the result's
+    ``instrumented.verdict``."""
+    params, ax = iv["params"], iv["axes"]
+    agree = []
+    for a in iv["flagged"]:
+        k, j = IV_AXIS_PARAM[a]
+        d_iv = params[k] / nominal_inertia[j] - 1.0
+        d_f = entry["params"][k] / nominal_inertia[j] - 1.0
+        held = k in (entry.get("held_at_nominal") or {})
+        ok = held or (d_iv * d_f > 0 and (replace or max(abs(d_iv), abs(d_f)) <= 1.5 * min(abs(d_iv), abs(d_f))))
+        agree.append((a, k, held, ok))
+    if not all(ok for *_, ok in agree):
+        return "disagrees with the " + entry["verdict"] + " finding"
+    for a, k, held, _ in agree:
+        if held or replace:
+            if not held:
+                entry.setdefault("own_params", {})[k] = entry["params"][k]
+            entry["params"][k] = params[k]
+            entry.get("held_at_nominal", {}).pop(k, None)
+            entry.setdefault("instrumented_params", {})[k] = params[k]
+    if "held_at_nominal" in entry and not entry["held_at_nominal"]:
+        entry.pop("held_at_nominal")
+    kind = residual.get("residual", "instrumented")
+    entry.setdefault("residuals", {})[kind] = residual
+    if kind == "rate_loop":
+        says = "PX4's rate loop flown on the model agrees ("
+        part = [f"{a} inertia x{ax[a]['scale']:.2f} +- {ax[a]['scale_se']:.2f}" for a, *_ in agree]
+        held_out = f"held-out {residual['heldout_channel']} body-rate error along the inertia's sensitivity cut "
+    else:
+        says = "the rate setpoint as instrument agrees ("
+        part = [f"{a} gain {ax[a]['gain']:.2f} +- {ax[a]['se']:.2f}" for a, *_ in agree]
+        held_out = f"held-out instrument-projected {residual['heldout_channel']} error cut "
+    def how(k, held):
+        if held:
+            return " supplied by it"
+        if replace:
+            return (f" in place of the finding's {entry['own_params'][k]:.4g} (fitted to motor commands logged "
+                    "slower than the rate loop runs)")
+        return ""
+    entry["verdict_note"] = (entry.get("verdict_note", "") + "; " + says
+                             + ", ".join(f"{p_}, {k} {params[k]:.4g}" + how(k, held)
+                                         for p_, (a, k, held, _) in zip(part, agree))
+                             + f"; {held_out}{100 * residual['heldout_improvement']:.0f} %)")
+    return "corroborates the " + entry["verdict"] + " finding"
+
+
+#: the output-error blocks an instrumented effect's plan asks for: the axis had none a fit could use,
+#: so no block statistic says how many; PX4 SIH SIH_L_ROLL 0.16 (g26, g34): 50-65 active roll blocks
+#: gave t 3.9-4.9 in one follow-up and 58 gave t 2.4 in another, so twice g34's missing 15
+INSTRUMENTED_BLOCKS_MISSING = 30
+
+
+#: the inertia candidate's roll and pitch parameters
+_RP_AXES = tuple(k for k, _ in IV_AXIS_PARAM.values())
+
+
+def _axis_tests(S: PreparedFlight, g: Fit) -> dict[str, tuple[float, int]]:
+    """Per roll/pitch axis of an equation-error inertia fit ``g``: the held-out block test of the fit
+    with that axis free against the same fit (each fold's) with the axis at its nominal value:
+    (statistic, active blocks).  Whether the equation error identifies that axis, not just the set."""
+    c = g.candidate
+    out = {}
+    if g.R is None or len(g.fold_thetas) != len(S.eq.folds):
+        return out
+    for k, name in enumerate(c.param_names):
+        if name not in _RP_AXES:
+            continue
+        Rr = np.zeros_like(g.R)
+        for (_, test), th in zip(S.eq.folds, g.fold_thetas):
+            th0 = np.array(th, float)
+            th0[k] = c.x0[k]
+            Rr[test] = S.eq.residual(c.build(th0))[test]
+        out[name] = _block_test(Rr, g.R, S.eq.blocks)
+    return out
+
+
+def _equation_axes(S: PreparedFlight, ranked: list[Fit], effects_out: list[dict], current: VehicleParams,
+                   accepted: list[str], guard: Callable[[VehicleParams], str | None]) -> VehicleParams | None:
+    """An inertia finding's roll/pitch axes, each on its own evidence.  The output error leaves an axis
+    out on 50 Hz logs (aliased commands) and holds it at the model's value; the equation error fits
+    every axis but, on PX4 SIH's noisy roll gyro, moves an axis it cannot resolve (SIH_IZZ x1.5 on
+    M3: Ixx +17 %, Iyy +10 % for an unchanged truth).  So an axis the output error left out takes the
+    equation error's value when freeing that axis alone beats the nominal on held-out blocks
+    (:func:`_axis_tests`, > ``T_CRIT``), and is held at the model's value otherwise, whichever
+    residual the finding was reported from.  A confirmed finding's refit vehicle follows (unless
+    ``guard``, the closed-loop twin, objects).  Updates ``effects_out`` in place; returns the new
+    refit vehicle (None: unchanged)."""
+    refit = None
+    for f, e in zip(ranked, effects_out):
+        if f.candidate.name != "inertia" or e["verdict"] not in ("confirmed", "likely"):
+            continue
+        g, o = f.by_kind.get("equation"), f.by_kind.get("output")
+        if g is None:
+            continue
+        left_out = set(o.candidate.held) if o is not None else set(_RP_AXES)
+        axes = [a for a in _RP_AXES if a in left_out and a in g.candidate.param_names]
+        if not axes:
+            continue
+        tests = _axis_tests(S, g)
+        eqp = g.candidate.params_dict(g.theta)
+        nominal = dict(zip(g.candidate.param_names, g.candidate.x0))
+        params = dict(e["params"])
+        held = dict(e.get("held_at_nominal") or {})
+        why_held = o.candidate.held if o is not None else {}
+        note = {}
+        for a in axes:
+            t, n = tests.get(a, (0.0, 0))
+            note[a] = {"t": round(float(t), 2), "blocks": int(n), "equation_value": round(float(eqp[a]), 6)}
+            if t > T_CRIT:
+                params[a] = float(eqp[a])
+                held.pop(a, None)
+                note[a]["used"] = True
+            else:
+                params[a] = float(nominal[a])
+                held[a] = (f"{why_held.get(a, 'held at nominal: the output error leaves the axis out')}; the "
+                           f"equation error's {a} {eqp[a]:.4g} does not beat the nominal on held-out blocks "
+                           f"alone (t={t:.1f} over {n})")
+                note[a]["used"] = False
+        if params == e["params"]:
+            e["equation_axes"] = note
+            continue
+        if e["verdict"] == "confirmed" and f.candidate.label in accepted:
+            trial = (refit or current).with_effect("inertia", **params)
+            against = guard(trial)
+            if against:
+                e["equation_axes"] = {**note, "not_applied": against}
+                continue
+            refit = trial
+        e["params"] = params
+        e["equation_axes"] = note
+        if held:
+            e["held_at_nominal"] = held
+        else:
+            e.pop("held_at_nominal", None)
+        used = [a for a in axes if note[a]["used"]]
+        kept = [a for a in axes if not note[a]["used"]]
+        if used:
+            ts = ", ".join("t={:.1f}".format(note[a]["t"]) for a in used)
+            e["verdict_note"] += (f"; {', '.join(used)} from the equation error (freeing it alone beats the "
+                                  f"nominal on held-out blocks: {ts})")
+        if kept:
+            e["verdict_note"] += f"; {', '.join(kept)} held at the model's value (not resolved on its own)"
+    return refit
+
+
+def _left_out_text(win: Windows, axes: list[str], motor_dt_s: float) -> str:
+    """Why the output error could not fit these axes, and what follow-up flight would."""
+    r2 = ", ".join(f"{a} r^2 {win.axis_r2[AXES.index(a)]:.3f}" for a in axes)
+    if motor_dt_s > RATE_LOOP_LOG_S:
+        return (f"the output error leaves the axis out ({r2} < {MIN_AXIS_R2}: motors logged every "
+                f"{1000 * motor_dt_s:.0f} ms, aliased): confirm on a flight with the motors logged every 4 ms "
+                "(rate doublets)")
+    return (f"the output error leaves the axis out ({r2} < {MIN_AXIS_R2}, too little of it excited): confirm "
+            "on a flight with more rate doublets")
+
+
+def _instrumented(S: PreparedFlight, current: VehicleParams, accepted: list[str], effects_out: list[dict],
+                  guard: Callable[[VehicleParams], str | None] = lambda vp: None,
+                  nominal: VehicleParams | None = None) -> tuple[dict | None, VehicleParams | None]:
+    """Roll/pitch inertia on the axes the output error leaves out, with the rate setpoint as
+    instrument (:func:`~twin_nodes.discovery.output_error.instrumented_inertia`), on top of what
+    was accepted.  On its own it can only be ``likely``: a single moment on an axis no fit can
+    resolve, for a follow-up flight with the motors logged at the rate loop's rate (where the axis
+    is usable) to confirm; beside an ``inertia`` finding it is a third residual
+    (:func:`attach_instrumented`).  A *confirmed* inertia that held an axis at the model's value
+    gets that axis from the instrument when it passes the same checks and ``guard`` (the closed-loop
+    twin on the held-out part) has nothing against it (the refit vehicle with it is returned).  Updates the ``inertia`` entry of ``effects_out`` in place (re-sorted by grade);
+    returns the numbers for the result (None: nothing to instrument) and the new refit vehicle
+    (None: unchanged)."""
+    win = S.windows
+    if win is None:
+        return None, None
+    entry = next((e for e in effects_out if e["name"] == "inertia"), None)
+    d = S.data
+    finding = "inertia" in accepted or (entry is not None and entry["verdict"] == "likely")
+    if (finding and entry is None) or (not finding and any(name == "inertia" for name, _ in current.effects)):
+        return None, None
+    I_cur = np.diag(effective_params(current).inertia)
+    # a confirmed finding leaves the instrument the axes it held at the model's value
+    held = (entry or {}).get("held_at_nominal") or {}
+    allowed = (tuple(a for a, (k, _) in IV_AXIS_PARAM.items() if k in held) if "inertia" in accepted
+               else ("roll", "pitch"))
+    fold1, fold2 = _window_folds(win, S.t_split, S.t_split2)
+
+    def build(ixx, iyy):
+        return current.with_effect("inertia", ixx=ixx, iyy=iyy, izz=float(I_cur[2]))
+    reading = _instrument_reading(S, current, nominal, finding, allowed, I_cur, build, (fold1, fold2))
+    if reading is None:
+        return None, None
+    iv, not_used, reference, replace = reading
+    out = _instrument_numbers(iv, not_used)
+    if not iv["flagged"]:
+        return out, None
+    v = _instrument_verdict(iv, out, win, d, entry)
+    if v is None:
+        return out, None
+    return _instrument_entry(v, iv, out, entry, effects_out, build, guard, reference, replace, d)
+
+
+def _instrument_reading(S: PreparedFlight, current: VehicleParams, nominal: VehicleParams | None, finding: bool,
+                        allowed: tuple, I_cur: np.ndarray, build: Callable, folds: tuple) -> tuple | None:
+    """The instrument's reading of the roll/pitch inertia: PX4's rate loop flown on the model where the log
+    has it, else the rate setpoint as instrument; (reading, why the rate loop is not used, the inertia
+    it is read against, whether it replaces the finding's values), None: nothing to read."""
+    win, d = S.windows, S.data
+    fold1, fold2 = folds
+
+    def flown(vp_on, axes):
+        """PX4's rate loop on ``vp_on`` (a PX4 log: no aliased motor commands in it), None where the
+        log has none or it reads an axis at the edge of its range (then the reason)."""
+        r = rate_loop.inertia(d, S.log_params, vp_on, S.t_split, S.t_split2, axes)
+        if r is not None and r.get("pinned"):
+            return None, (f"PX4's rate loop on the model reads {', '.join(r['pinned'])} at the edge of x0.5-x2 of "
+                          "the model's inertia: not this vehicle's rate loop, the rate setpoint as instrument instead")
+        return r, None
+    iv, not_used, reference, replace = None, None, I_cur, False
+    if finding and d.motor_dt_s > RATE_LOOP_LOG_S and nominal is not None:
+        # the finding's roll/pitch were fitted to aliased motor commands (the output error's least
+        # squares is attenuated, the equation error's roll noisy): PX4's rate loop, which uses none,
+        # reads both axes against the model's own inertia and supplies what it flags
+        I_nom = np.diag(effective_params(nominal).inertia)
+        iv, not_used = flown(current.with_effect("inertia", ixx=float(I_nom[0]), iyy=float(I_nom[1]),
+                                                 izz=float(I_cur[2])), ("roll", "pitch"))
+        replace = iv is not None
+        reference = I_nom if replace else I_cur
+    if not replace:
+        if not allowed:
+            return None
+        if not_used is None:
+            iv, not_used = flown(current, allowed)
+        if iv is None:
+            iv = instrumented_inertia(d, win, current, fold1, fold2, build, allowed)
+    if iv is None:
+        return None
+    if replace and iv.get("params"):
+        # an axis the rate loop does not flag keeps the finding's value
+        for a, (k, j) in IV_AXIS_PARAM.items():
+            if a not in iv["flagged"]:
+                iv["params"][k] = float(I_cur[j])
+    return iv, not_used, reference, replace
+
+
+def _instrument_numbers(iv: dict, not_used: str | None) -> dict:
+    """The instrument's numbers for the result's ``instrumented`` entry (its verdict still "none")."""
+    method = iv.get("method", "instrument")
+    out = {"method": method,
+           "axes": {a: {k: (round(float(v), 4) if isinstance(v, float) else v) for k, v in ax.items() if k != "index"}
+                    for a, ax in iv["axes"].items()},
+           "yaw_gain": round(float(iv["yaw_gain"]), 4), "flagged": iv["flagged"], "verdict": "none",
+           "motor_signature": bool(iv.get("motor_signature"))}
+    if method == "rate_loop":
+        out.update(loop=iv["loop"], windows=iv["windows"], window_s=iv["window_s"],
+                   yaw_scale=round(float(iv["yaw_scale"]), 4), curve=iv["curve"])
+    if not_used:
+        out["rate_loop_not_used"] = not_used
+    return out
+
+
+def _instrument_verdict(iv: dict, out: dict, win: Windows, d, entry: dict | None) -> dict | None:
+    """Whether the flagged axes make a ``likely`` inertia (updates ``out``); None: they do not (``out`` says
+    why), else the numbers :func:`_instrument_entry` reports."""
+    why = []
+    if iv.get("motor_signature"):
+        why.append(f"yaw is off the same way (gain {iv['yaw_gain']:.3f} +- {iv['yaw_se']:.3f}): the motors (lag, "
+                   "delay, thrust or moment per command), not the inertia")
+    ax = iv["axes"]
+    main = max(iv["flagged"], key=lambda a: ax[a].get("heldout_before", 0.0) or 0.0)
+    for a in iv["flagged"]:
+        x = ax[a]
+        lo, hi = IV_GAIN_RANGE
+        if not lo <= x["gain"] <= hi:
+            why.append(f"{a} gain {x['gain']:.2f} outside the physical range")
+        sides = [(x[f"gain_fold{k}"] - 1.0) / x[f"se_fold{k}"] for k in (1, 2)
+                 if np.isfinite(x[f"gain_fold{k}"]) and np.isfinite(x[f"se_fold{k}"]) and x[f"se_fold{k}"] > 0]
+        if len(sides) < 2 or not all(abs(t) > 2.0 and np.sign(t) == np.sign(x["gain"] - 1.0) for t in sides):
+            why.append(f"the two folds do not both move {a} the same way at 2 standard errors")
+    m = ax[main]
+    b0, b1 = m.get("heldout_before", math.nan), m.get("heldout_after", math.nan)
+    cut = 1.0 - b1 / b0 if np.isfinite(b0) and np.isfinite(b1) and b0 > 0 else math.nan
+    rl = iv.get("method", "instrument") == "rate_loop"
+    kind = "rate_loop" if rl else "instrumented"
+    what = (f"{main} body-rate error along its sensitivity to the inertia (PX4's rate loop flown on the model)" if rl
+            else f"instrument-projected {main} error")
+    if not (cut >= LIKELY_MIN_CUT):
+        why.append(f"held-out cut of the {what} {100 * cut:.0f} % < {100 * LIKELY_MIN_CUT:.0f} %")
+    params = iv.get("params")
+    out.update(params=params, heldout_channel=main, heldout_improvement=round(float(cut), 4) if np.isfinite(cut) else None)
+    if why or params is None:
+        out["verdict"] = "none"
+        out["why_not"] = why
+        return None
+    out["verdict"] = "likely"
+    if rl:
+        note = ("likely (rate loop): PX4's rate loop (the log's gains and filters) flown on the model from the logged "
+                "rate setpoint reads " + ", ".join(f"{a} inertia x{ax[a]['scale']:.2f} +- {ax[a]['scale_se']:.2f}"
+                                                   for a in iv["flagged"])
+                + f" (yaw x{iv['yaw_scale']:.2f}: not the motors); held-out {what} cut {100 * cut:.0f} %; "
+                + _left_out_text(win, iv["flagged"], d.motor_dt_s))
+    else:
+        note = ("likely (instrumented): the rate setpoint as instrument gives "
+                + ", ".join(f"{a} gain {ax[a]['gain']:.2f} +- {ax[a]['se']:.2f}" for a in iv["flagged"])
+                + f" (yaw {iv['yaw_gain']:.2f}: not the motors); held-out {what} cut "
+                  f"{100 * cut:.0f} %; " + _left_out_text(win, iv["flagged"], d.motor_dt_s))
+    if entry is not None and entry.get("closed_loop"):
+        # the inertia the flight's own residuals fitted was dropped by the closed-loop twin: the
+        # instrument does not bring the effect back on its own
+        out["verdict"] = "none"
+        out["why_not"] = [f"the inertia fitted on this flight {entry['closed_loop']}"]
+        return None
+    return {"note": note, "main": main, "m": m, "b0": b0, "b1": b1, "cut": cut, "rl": rl, "kind": kind,
+            "what": what, "params": params}
+
+
+def _instrument_entry(v: dict, iv: dict, out: dict, entry: dict | None, effects_out: list[dict], build: Callable,
+                      guard: Callable[[VehicleParams], str | None], reference: np.ndarray, replace: bool, d
+                      ) -> tuple[dict, VehicleParams | None]:
+    """The instrument's ``likely`` inertia as a third residual of the flight's own finding, or as a new
+    ``inertia`` entry of ``effects_out`` (re-sorted by grade); returns the result's numbers and the new
+    refit vehicle (None: unchanged)."""
+    note, main, m, b0, b1, cut = v["note"], v["main"], v["m"], v["b0"], v["b1"], v["cut"]
+    rl, kind, what, params = v["rl"], v["kind"], v["what"], v["params"]
+    ax = iv["axes"]
+    prev = dict(entry) if entry is not None else {}
+    residual = {"residual": kind, "heldout_channel": main, "heldout_before": round(float(b0), 5),
+                "heldout_after": round(float(b1), 5), "heldout_improvement": round(float(cut), 4),
+                "heldout_t_stat": round(float(m.get("heldout_t", math.nan)), 2), "params": params,
+                "fold_gains": [round(float(ax[main]["gain_fold1"]), 4), round(float(ax[main]["gain_fold2"]), 4)]}
+    if entry is not None and entry["verdict"] != "rejected":
+        # already a finding on its own residuals: the instrument is a third residual for its axes
+        refit = None
+        if entry["verdict"] == "confirmed":
+            # the refit vehicle takes the axes the confirmed fit held and the instrument supplies,
+            # unless the closed-loop twin says otherwise
+            refit = build(float(params["ixx"]), float(params["iyy"]))
+            against = guard(refit)
+            if against:
+                out["verdict"] = f"not supplied to the confirmed finding: {against}"
+                return out, None
+        out["verdict"] = attach_instrumented(entry, iv, residual, reference, replace)
+        return out, refit if out["verdict"].startswith("corroborates") else None
+    # standard errors of the instrumented axes (from the fit part's gain: I/g, se_I = I se_g / g)
+    params_se = {}
+    for a in iv["flagged"]:
+        k = IV_AXIS_PARAM[a][0]
+        g1, s1 = ax[a]["gain_fold1"], ax[a]["se_fold1"]
+        if np.isfinite(g1) and np.isfinite(s1) and g1 > 0:
+            params_se[k] = float(params[k] * s1 / g1)
+    new = {"name": "inertia", "accepted": False, "verdict": "likely", "verdict_note": note, "params": params,
+           "params_se": params_se,
+           "evidence": (f"inertia ({', '.join(f'{k}={v:.4g}' for k, v in params.items())}) cuts the held-out "
+                        f"{what} by {100 * cut:.0f} %: likely ({'rate loop' if rl else 'instrumented'})"),
+           "residual": kind, "heldout_channel": main, "heldout_before": residual["heldout_before"],
+           "heldout_after": residual["heldout_after"],
+           "heldout_units": ((f"{main} body-rate error along its sensitivity to the inertia, |sum <J, e>| / |J| "
+                              "(rad/s), held-out windows of PX4's rate loop flown on the model") if rl else
+                             (f"RMS of the output error in {main} projected on the rate setpoint's change (rad/s^2) "
+                              "on the held-out part")),
+           "heldout_improvement": residual["heldout_improvement"], "heldout_t_stat": residual["heldout_t_stat"],
+           "cv_improvement": residual["heldout_improvement"], "above_resolution_floor": True,
+           "excitation": {**(prev.get("excitation") or {}), "channel": main, "residual": kind,
+                          **({"windows": iv["windows"]} if rl else {"instrument_r": round(float(m["instrument_r"]), 3)}),
+                          "plans": ["rate_doublets"], "blocks_missing": INSTRUMENTED_BLOCKS_MISSING,
+                          "supplied_by": "roll and pitch rate doublets" + (
+                              " with the motors logged every 4 ms (PX4: SDLOG_PROFILE's high-rate bit), where the "
+                              "output error can fit the axis" if d.motor_dt_s > RATE_LOOP_LOG_S else "")},
+           "residuals": {**(prev.get("residuals") or {}), kind: residual},
+           "alternatives": []}
+    if entry is not None:
+        effects_out.remove(entry)
+    k = next((i for i, e in enumerate(effects_out) if _GRADE_ORDER[e["verdict"]] > 1
+              or (e["verdict"] == "likely" and (e.get("cv_improvement") or 0) < new["cv_improvement"])), len(effects_out))
+    effects_out.insert(k, new)
+    return out, None
+
+
+def _rate_loop_lag(S: PreparedFlight, current: VehicleParams, effects_out: list[dict]) -> dict | None:
+    """The motors' time constant read by PX4's rate loop flown on the model
+    (:func:`~twin_nodes.discovery.rate_loop.motor_lag`), where the rate loop said the motors, not an
+    inertia, are slow (every axis off the same way) and the model's lag and delay are its own.
+
+    It is ``likely`` when the lag is far from the model's on every axis alike, both folds move it the
+    same way by 2 standard errors, fold 1's lag cuts the held-out rate error along its sensitivity by
+    ``LIKELY_MIN_CUT``, lies inside the effect's physical range, and beats an extra delay on the
+    held-out windows; never ``confirmed`` (no residual of the flight's own shows it: PX4 SIH
+    SIH_T_TAU 0.09 s on a 50 Hz log, where lag and delay cut the output error 9-10 %).  The entry
+    replaces the flight's own ``motor_time_constant`` (kept as its residuals), re-sorted by grade.
+    Returns the numbers for the result (None: not looked at)."""
+    if any(name in MOTOR_DYNAMICS for name, _ in current.effects):
+        return None
+    r = rate_loop.motor_lag(S.data, S.log_params, current, S.t_split, S.t_split2)
+    if r is None:
+        return None
+    out = {k: (round(float(v), 5) if isinstance(v, float) else v) for k, v in r.items() if k not in ("loop", "heldout_sse")}
+    out["heldout_sse"] = {k: round(float(v), 2) for k, v in r["heldout_sse"].items()}
+    out["verdict"] = "none"
+    tau0, tau1 = r["model_tau"], r["tau_fold1"]
+    if not r["flagged"]:
+        out["why_not"] = [f"the lag {r['tau']:.3f} +- {r['se']:.3f} s is not far from the model's {tau0:.3f} s on "
+                          f"every axis alike (roll, pitch, yaw {', '.join(f'{v:.3f}' for v in r['axis_tau'].values())})"]
+        return out
+    why = []
+    sides = [(r[f"tau_fold{k}"] - tau0) / r[f"se_fold{k}"] for k in (1, 2)
+             if np.isfinite(r[f"tau_fold{k}"]) and np.isfinite(r[f"se_fold{k}"]) and r[f"se_fold{k}"] > 0]
+    if len(sides) < 2 or not all(abs(t) > 2.0 and np.sign(t) == np.sign(r["tau"] - tau0) for t in sides):
+        why.append("the two folds do not both move the lag the same way at 2 standard errors")
+    b0, b1 = r["heldout_before"], r["heldout_after"]
+    cut = 1.0 - b1 / b0 if np.isfinite(b0) and np.isfinite(b1) and b0 > 0 else math.nan
+    if not (cut >= LIKELY_MIN_CUT):
+        why.append(f"held-out cut of the body-rate error along the lag's sensitivity {100 * cut:.0f} % < "
+                   f"{100 * LIKELY_MIN_CUT:.0f} %")
+    lo, hi = EFFECTS["motor_time_constant"].ranges["tau_up"]
+    if not lo <= tau1 <= hi:
+        why.append(f"lag {tau1:.3f} s outside the physical range {lo:g}-{hi:g} s")
+    held = r["heldout_sse"]
+    if not held["lag"] < held["delay"]:
+        why.append(f"an extra {1e3 * r['delay_fold1']:.0f} ms delay fits the held-out windows as well "
+                   f"(sum of squares {held['delay']:.0f} vs the lag's {held['lag']:.0f})")
+    out["heldout_improvement"] = round(float(cut), 4) if np.isfinite(cut) else None
+    if why:
+        out["why_not"] = why
+        return out
+    out["verdict"] = "likely"
+    return _rate_loop_lag_entry(r, out, cut, effects_out)
+
+
+def _rate_loop_lag_entry(r: dict, out: dict, cut: float, effects_out: list[dict]) -> dict:
+    """A ``likely`` motor lag from PX4's rate loop (``r``: :func:`~twin_nodes.discovery.rate_loop.motor_lag`'s
+    result): its residual, and its entry in ``effects_out`` in place of the flight's own
+    ``motor_time_constant`` unless that is already a finding; returns ``out``."""
+    tau0, tau1 = r["model_tau"], r["tau_fold1"]
+    b0, b1 = r["heldout_before"], r["heldout_after"]
+    held = r["heldout_sse"]
+    params = {"tau_up": float(tau1), "tau_down": float(tau1)}
+    # reported in the axis the lag moves most (as projected_view), the joint numbers beside it
+    per = r["heldout_axes"]
+    main = max(per, key=lambda a: per[a]["before"] if np.isfinite(per[a]["before"]) else -1.0)
+    residual = {"residual": "rate_loop", "heldout_channel": main, "heldout_before": round(float(per[main]["before"]), 5),
+                "heldout_after": round(float(per[main]["after"]), 5),
+                "heldout_improvement": round(float(per[main]["cut"]), 4),
+                "heldout_axes": {a: {k: round(float(v), 4) for k, v in x.items()} for a, x in per.items()},
+                "heldout_joint": {"before": round(float(b0), 5), "after": round(float(b1), 5),
+                                  "cut": round(float(cut), 4), "t": round(float(r["heldout_t"]), 2)},
+                "heldout_t_stat": round(float(r["heldout_t"]), 2), "params": params,
+                "fold_params": [round(float(r["tau_fold1"]), 5), round(float(r["tau_fold2"]), 5)]}
+    prev = next((e for e in effects_out if e["name"] == "motor_time_constant"), None)
+    if prev is not None and prev["verdict"] in ("confirmed", "likely"):
+        return out
+    axis_tau = ", ".join(f"{a} {v:.3f}" for a, v in r["axis_tau"].items())
+    note = (f"likely (rate loop): PX4's rate loop (the log's gains and filters) flown on the model from the logged "
+            f"rate setpoint reads the motors' lag {r['tau']:.3f} +- {r['se']:.3f} s for the model's {tau0:.3f} "
+            f"(each axis: {axis_tau} s); held-out body-rate error along the lag's sensitivity cut {100 * cut:.0f} % "
+            f"(roll, pitch, yaw together; {main} {100 * per[main]['cut']:.0f} %); "
+            f"an extra {1e3 * r['delay_fold1']:.0f} ms delay instead fits the held-out windows worse (sum of squares "
+            f"{held['delay']:.0f} vs {held['lag']:.0f}); confirm on a flight with the motors logged every 4 ms "
+            "(rate doublets), where the output error resolves it")
+    new = {"name": "motor_time_constant", "accepted": False, "verdict": "likely", "verdict_note": note,
+           "params": params, "params_se": {"tau_up": float(r["se_fold1"]), "tau_down": float(r["se_fold1"])},
+           "evidence": (f"motor_time_constant (tau {tau1:.4g} s) cuts the held-out body-rate error of PX4's rate loop "
+                        f"along its sensitivity by {100 * cut:.0f} %: likely (rate loop)"),
+           "residual": "rate_loop", "heldout_channel": main, "heldout_before": residual["heldout_before"],
+           "heldout_after": residual["heldout_after"],
+           "heldout_units": (f"{main} body-rate error (in units of its own RMS) along its sensitivity to the lag, "
+                             "|sum <J, e>| / |J|, held-out windows of PX4's rate loop flown on the model"),
+           "heldout_improvement": residual["heldout_improvement"], "heldout_t_stat": residual["heldout_t_stat"],
+           "cv_improvement": residual["heldout_improvement"], "above_resolution_floor": True,
+           "excitation": {**((prev or {}).get("excitation") or {}), "channel": main,
+                          "residual": "rate_loop", "windows": r["windows"], "plans": ["rate_doublets"],
+                          "blocks_missing": INSTRUMENTED_BLOCKS_MISSING,
+                          "supplied_by": "roll and pitch rate doublets with the motors logged every 4 ms (PX4: "
+                                         "SDLOG_PROFILE's high-rate bit), where the output error can fit the lag"},
+           "residuals": {**((prev or {}).get("residuals") or {}), "rate_loop": residual},
+           "alternatives": [{"name": "actuator_delay", "params": {"delay": float(r["delay_fold1"])},
+                             "heldout_sse": held["delay"], "note": "the rate loop's best extra delay"}]}
+    if prev is not None:
+        effects_out.remove(prev)
+    k = next((i for i, e in enumerate(effects_out) if _GRADE_ORDER[e["verdict"]] > 1
+              or (e["verdict"] == "likely" and (e.get("cv_improvement") or 0) < new["cv_improvement"])), len(effects_out))
+    effects_out.insert(k, new)
+    return out

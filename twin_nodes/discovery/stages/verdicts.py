@@ -1,0 +1,185 @@
+"""Stage 6, the verdicts: every candidate's latest fit graded ``confirmed`` / ``likely`` / ``rejected``
+(physical range and resolution floor, held-out significance, what a ``likely`` one lacks), with the
+other residual's view of it, ranked and written as the result's effect entries
+(``GradeInput`` -> ``Verdicts``)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from twin_nodes.discovery.judging import (MIN_REL_IMPROVEMENT, MOTOR_DYNAMICS, T_CRIT, _GRADE_ORDER, Fit, Judge,
+                                          _mode_rms, _summary, _window_folds)
+from twin_nodes.discovery.output_error import projected_view
+from twin_nodes.discovery.stages.prepare import PreparedFlight
+from twin_nodes.discovery.verdicts import grade
+from twin_nodes.vehicle.params import VehicleParams
+
+
+@dataclass
+class GradeInput:
+    """The selection's fits after the closed-loop check."""
+
+    flight: PreparedFlight
+    accepted: list[Fit]               # what is kept (the closed-loop check may have dropped some)
+    last: dict[str, Fit]              # report entry -> the latest fit of each candidate
+    first_rank: list[str]             # round 1's order (the rejected are listed in it)
+    base_held: np.ndarray             # the nominal's held-out equation error per channel
+
+
+@dataclass
+class Verdicts:
+    """The graded fits, ranked, and their entries of the result (same order)."""
+
+    ranked: list[Fit]
+    effects: list[dict]
+    accepted_labels: list[str]
+
+
+def run(inp: GradeInput) -> Verdicts:
+    """Grade, rank and describe every candidate's latest fit."""
+    S, accepted, last = inp.flight, inp.accepted, inp.last
+    eq, oe, vp, names, base_held = S.eq, S.oe, S.nominal, S.names, inp.base_held
+    # grades: confirmed (accepted and kept), likely, rejected (with why)
+    acc_labels = [f.candidate.label for f in accepted]
+    side_base: dict[int, np.ndarray] = {}
+    for f in last.values():
+        if f in accepted:
+            f.accepted = True
+        elif f.accepted:
+            f.accepted = False
+        expl = None
+        if (not f.accepted and f.t_stat > T_CRIT and f.rel_improvement >= MIN_REL_IMPROVEMENT and acc_labels
+                and f.above_floor and not f.at_bound and f.unphysical is None and f.closed_loop is None):
+            expl = ", ".join(acc_labels)
+        grade(f, T_CRIT, MIN_REL_IMPROVEMENT, S.excitation, expl)
+        if f.other is None:
+            # the other residual's view of this fit, for the report
+            judge = oe if f.kind == "equation" else eq
+            if judge is not None:
+                b = f.base_vp or vp
+                if id(b) not in side_base:
+                    side_base[id(b)] = (judge.residual(b) if judge is eq else
+                                        _scatter(judge.residual(b, judge.held_mask), judge.held_mask))
+                f.other = _side(judge, f.vp, side_base[id(b)], vp)
+        f.evidence = _evidence(f, names, base_held)
+    rank = {lab: i for i, lab in enumerate(inp.first_rank)}
+    ranked = sorted(last.values(), key=lambda f: (_GRADE_ORDER[f.verdict],
+                                                  acc_labels.index(f.candidate.label) if f.accepted else 0,
+                                                  -f.rel_improvement if f.verdict != "rejected"
+                                                  else rank.get(f.candidate.label, 99)))
+    effects_out = [_effect_json(f, names, base_held) for f in ranked]
+    _instrumented_views(S, ranked, effects_out)
+    return Verdicts(ranked, effects_out, acc_labels)
+
+
+def _instrumented_views(S: PreparedFlight, ranked: list[Fit], effects_out: list[dict]) -> None:
+    """A motor lag or delay acts on every rotational axis: its held-out cut there in the
+    instrument-projected error too, which the 50 Hz aliasing does not bound (reported only)."""
+    if S.windows is not None:
+        held_w = _window_folds(S.windows, S.t_split, S.t_split2)[0][1]
+        for f, e in zip(ranked, effects_out):
+            if e["verdict"] in ("confirmed", "likely") and f.candidate.name in MOTOR_DYNAMICS:
+                view = projected_view(S.data, S.windows, f.base_vp or S.nominal, f.vp, held_w)
+                if view is not None:
+                    e.setdefault("residuals", {})["instrumented"] = view
+
+
+def _side(judge: Judge, vp_c: VehicleParams, R0: np.ndarray, nominal: VehicleParams, rows=None) -> dict:
+    """The other residual's held-out numbers (fold 1) at a fit: the mode it moves most."""
+    rows = judge.held_mask if rows is None else rows
+    R1 = judge.residual(vp_c, rows)
+    r0, names = _mode_rms(R0[rows], nominal)
+    r1, _ = _mode_rms(R1, nominal)
+    k = int(np.argmax(r0 ** 2 - r1 ** 2))
+    tot0 = float(np.sqrt(np.mean(R0[rows] ** 2)))
+    tot1 = float(np.sqrt(np.mean(R1 ** 2)))
+    return {"residual": judge.kind, "heldout_channel": names[k], "heldout_before": round(float(r0[k]), 5),
+            "heldout_after": round(float(r1[k]), 5),
+            "heldout_improvement": round(1.0 - float(r1[k]) / float(r0[k]), 4) if r0[k] > 0 else 0.0,
+            "heldout_all_channels_improvement": round(1.0 - tot1 / tot0, 4) if tot0 > 0 else 0.0}
+
+
+def _scatter(R_rows: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    out = np.zeros((rows.size, R_rows.shape[1]))
+    out[rows] = R_rows
+    return out
+
+
+def _evidence(f: Fit, names: list[str], before_ch: np.ndarray) -> str:
+    pretty = ", ".join(f"{k}={v:.4g}" for k, v in f.candidate.params_dict(f.theta).items())
+    if f.kind == "equation":
+        drop = before_ch - f.heldout_channels
+        ch = names[int(np.argmax(drop))]
+    else:
+        ch = f"{f.judged[0]} (output error)"
+    why = []
+    if not f.above_floor:
+        why.append("fitted size below the physical resolution floor")
+    if f.at_bound:
+        why.append("estimate pinned to the edge of the physical range")
+    if f.unphysical:
+        why.append(f"unphysical: {f.unphysical}")
+    if f.closed_loop:
+        why.append(f.closed_loop)
+    if f.t_stat <= T_CRIT:
+        why.append(f"not significant on held-out blocks (t={f.t_stat:.1f})")
+    if f.rel_improvement < MIN_REL_IMPROVEMENT:
+        why.append(f"explains only {100 * f.rel_improvement:.0f} % of the held-out residual")
+    reason = "; ".join(why) if why else f"t={f.t_stat:.1f} over {f.n_blocks} held-out blocks"
+    verdict = f.verdict if f.verdict else ("accepted" if f.accepted else "rejected")
+    if verdict == "confirmed":
+        verdict = "accepted, confirmed"
+    note = f"; {f.verdict_note}" if f.verdict in ("likely",) or (f.verdict == "rejected" and
+                                                                  f.verdict_note.startswith("explained")) else ""
+    alt = ""
+    if f.alternatives:
+        alt = " Not told apart from: " + ", ".join(
+            f"{a['name']} ({', '.join(f'{k}={v:.4g}' for k, v in a['params'].items())}, {100 * a['cv_improvement']:.0f} %)"
+            for a in f.alternatives) + "."
+    return (f"{f.candidate.label} ({pretty}) cuts the held-out residual by {100 * f.rel_improvement:.0f} %, "
+            f"mostly in {ch}: {verdict} ({reason}{note}).{alt}")
+
+
+def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:
+    jname, jb, ja = f.judged
+    out = {
+        "name": f.candidate.name,
+        "accepted": bool(f.accepted),
+        "verdict": f.verdict,
+        "verdict_note": f.verdict_note,
+        "params": f.candidate.params_dict(f.theta),
+        "evidence": f.evidence,
+        "residual": f.kind,
+        "heldout_channel": jname,
+        "heldout_before": round(jb, 5),
+        "heldout_after": round(ja, 5),
+        "heldout_units": (f"RMS {'equation' if f.kind == 'equation' else 'output'} error in the {jname} mode on "
+                          "the held-out part, fraction of full motor output"),
+        "heldout_improvement": round(1.0 - ja / jb, 4) if jb > 0 else 0.0,
+        "heldout_t_stat": round(float(f.t_stat), 2) if math.isfinite(f.t_stat) else None,
+        "cv_improvement": round(float(f.rel_improvement), 4),
+        "above_resolution_floor": bool(f.above_floor),
+        "excitation": f.excitation,
+        "residuals": {f.kind: _summary(f)},
+        "alternatives": f.alternatives,
+    }
+    if f.candidate.held:
+        out["held_at_nominal"] = dict(f.candidate.held)
+    if f.closed_loop:
+        out["closed_loop"] = f.closed_loop
+    if f.other is not None:
+        out["residuals"][f.other["residual"]] = f.other
+    if f.kind == "equation":
+        out.update({
+            "heldout_all_channels_before": round(float(np.sqrt(np.mean(base_held ** 2))), 5),
+            "heldout_all_channels_after": round(float(f.heldout_rms), 5),
+            "heldout_all_channels_improvement": round(float(f.heldout_cut), 4),
+            "heldout_channels_before": {k: round(float(v), 5) for k, v in zip(names, base_held)},
+            "heldout_channels_after": {k: round(float(v), 5) for k, v in zip(names, f.heldout_channels)},
+        })
+    else:
+        out["heldout_all_channels_improvement"] = round(float(f.heldout_cut), 4)
+    return out
