@@ -355,8 +355,15 @@ import multiprocessing as mp, os, signal, sys, time
 from twin_nodes.cli import build_parser
 from twin_nodes.cli.paths import run_guarded
 
+def default_sigterm():
+    sys.exit(0 if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL else 3)
+
 def cmd(args):
     ctx = mp.get_context("fork")
+    q = ctx.Process(target=default_sigterm)
+    q.start()
+    q.join(10)
+    print("child sigterm default", q.exitcode == 0)
     p = ctx.Process(target=time.sleep, args=(30,))
     p.start()
     time.sleep(0.5)
@@ -372,4 +379,5 @@ sys.exit(run_guarded(cmd, args))
                        env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert r.returncode == 0, r.stderr
     assert "child exit -15" in r.stdout
+    assert "child sigterm default True" in r.stdout  # a pool worker blocked in C must die at once
     assert "Traceback" not in r.stderr and "_Terminated" not in r.stderr

@@ -88,16 +88,28 @@ class _Terminated(KeyboardInterrupt):
     """SIGTERM/SIGHUP: handled like Ctrl-C, so staged outputs are removed on the way out."""
 
 
-_OWNER = {"pid": 0}
+_OWNER = {"pid": 0, "at_fork": False}
 
 
 def _raise_terminated(signum: int, frame: Any) -> None:
-    if os.getpid() != _OWNER["pid"]:
-        # a forked worker (multiprocessing, Dask) inherited the handler: die as the signal says, quietly
+    if os.getpid() != _OWNER["pid"]:  # a child forked before _child_defaults could run: die as the signal says
         signal.signal(signum, signal.SIG_DFL)
         os.kill(os.getpid(), signum)
         return
     raise _Terminated(signal.Signals(signum).name)
+
+
+def _child_defaults() -> None:
+    """In a process forked during a command (a multiprocessing pool worker, a background fit, Dask):
+    SIGTERM and SIGHUP back to their default action, as before the command installed its handler.  A
+    Python-level handler only runs when the worker's main thread returns to Python, and a pool
+    worker blocked on its task queue while its pool is torn down must die at once."""
+    for s in (signal.SIGTERM, signal.SIGHUP):
+        try:
+            if signal.getsignal(s) is _raise_terminated:
+                signal.signal(s, signal.SIG_DFL)
+        except (ValueError, OSError):  # not the main thread of the child: the handler above still applies
+            pass
 
 
 def run_guarded(func: Callable[[argparse.Namespace], Any], args: argparse.Namespace) -> int:
@@ -110,6 +122,9 @@ def run_guarded(func: Callable[[argparse.Namespace], Any], args: argparse.Namesp
     old = {}
     if _main_thread():
         _OWNER["pid"] = os.getpid()
+        if not _OWNER["at_fork"]:
+            os.register_at_fork(after_in_child=_child_defaults)
+            _OWNER["at_fork"] = True
         for s in (signal.SIGTERM, signal.SIGHUP):
             old[s] = signal.signal(s, _raise_terminated)
     staging = Staging(plan)
