@@ -135,7 +135,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     line (:func:`twin_nodes.logs.flyable.check_flyable`)."""
     p = log.params
     src: dict[str, str] = {}
-    layout = rotor_layout(p, log.path, arm_m)
+    layout = rotor_layout(p, log.path, arm_m, log.moving_outputs)
     n = len(layout.x_flu_m)
     if log.n_motors != n:
         raise LogError(log.path, "actuator_motors",

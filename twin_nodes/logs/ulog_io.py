@@ -86,6 +86,8 @@ Motor commands (``motors``, (n, N) in [0, 1], PX4 motor order, NaN = stopped):
 
 ``N`` (``FlightLog.n_motors``) is ``CA_ROTOR_COUNT``, else the number of motor
 output functions, else from ``MAV_TYPE`` (quad 4, hexa 6, octo 8, tri 3).
+``FlightLog.moving_outputs`` counts the motor outputs that move while armed
+(:func:`moving_motor_outputs`), against which a layout without ``CA_*`` is checked.
 """
 
 from __future__ import annotations
@@ -233,6 +235,9 @@ class FlightLog:
     n_motors: int
     #: parameter changes during the log: (t_s since start, name, value)
     param_changes: list[tuple[float, str, float]] = field(default_factory=list)
+    #: the motor outputs that move while armed: (count, topic they were counted on), None when the
+    #: log has neither ``actuator_motors`` nor ``actuator_outputs`` (:func:`moving_motor_outputs`)
+    moving_outputs: tuple[int, str] | None = None
 
     def get(self, name: str) -> Series | None:
         """The series ``name`` or None when the log does not have it."""
@@ -916,6 +921,36 @@ def _motors_from_pwm(
     return _series("motors", tp.t_s, u, src)
 
 
+def moving_motor_outputs(topics: dict[tuple[str, int], _Topic]) -> tuple[int, str] | None:
+    """How many motor outputs move while armed: ``actuator_motors.control[0..11]`` channels whose
+    armed values range (max - min) over more than 0.001 (PX4 >= 1.13 with control allocation), else the
+    ``actuator_outputs`` MAIN instance (multi_id 0, the mixer's outputs: MAIN channel i = mixer row i)
+    channels whose armed PWM ranges over more than 5 us (unused channels sit at the disarmed value).
+    None when neither topic is logged."""
+    am = _first_instance(topics, "actuator_motors")
+    if am is not None and am.has("control[0]"):
+        k = next(i for i in range(17) if i == 16 or not am.has(f"control[{i}]"))
+        c, what, thr = am.arr("control", k), "actuator_motors.control", 1e-3
+        t = am.t_s
+    else:
+        ao = topics.get(("actuator_outputs", 0))
+        if ao is None or not ao.has("output[0]"):
+            return None
+        k = next(i for i in range(17) if i == 16 or not ao.has(f"output[{i}]"))
+        c, what, thr = ao.arr("output", k), "actuator_outputs[0].output", 5.0
+        t = ao.t_s
+    armed = _armed_at(topics, t)
+    if armed is not None and armed.any():
+        c = c[armed]
+    if c.shape[0] < 2:
+        return 0, what
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(c)
+        spread = np.array([np.ptp(c[finite[:, j], j]) if finite[:, j].sum() > 1 else 0.0
+                           for j in range(c.shape[1])])
+    return int(np.sum(spread > thr)), what
+
+
 def _channels_vary(tp: _Topic, chans: list[int], topics: dict[tuple[str, int], _Topic]) -> bool:
     if not tp.has("output[15]"):
         return False
@@ -1347,7 +1382,8 @@ def read_ulog(path: str | os.PathLike[str]) -> FlightLog:
     changes = [(max(0.0, (int(t) - start) * 1e-6), str(n), _float(v))
                for t, n, v in ulog.changed_parameters]
     log = FlightLog(path=str(p), start_us=start, duration_s=duration, params=params, info=info,
-                    series=series, warnings=warnings, n_motors=n_motors, param_changes=changes)
+                    series=series, warnings=warnings, n_motors=n_motors, param_changes=changes,
+                    moving_outputs=moving_motor_outputs(topics))
     for w in log.data_warnings():
         LOG.warning("%s: %s", p, w)
     return log

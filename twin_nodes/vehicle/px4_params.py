@@ -5,7 +5,11 @@ of every value:
 
 - the rotor layout: ``CA_ROTOR_COUNT``, ``CA_ROTORn_PX/PY/PZ`` [m, FRD] and the spin sign
   of ``CA_ROTORn_KM`` (> 0 = CCW) on PX4 >= v1.13; older logs (mixer files, no ``CA_*``)
-  take the airframe's geometry from :data:`AIRFRAMES` by ``SYS_AUTOSTART``.  Many PX4
+  take the airframe's geometry from :data:`AIRFRAMES` by ``SYS_AUTOSTART``, else from PX4's own
+  mixer geometry (:mod:`twin_nodes.vehicle.px4_geometry`: SYS_AUTOSTART -> ``set MIXER`` -> the
+  mixer's ``R:`` key -> the geometry toml, PX4 1.8-1.13), else an ASSUMED generic layout of the
+  ``MAV_TYPE`` class whose rotor count the moving motor outputs confirm.  Without ``CA_*`` the
+  rotor count is checked against the motor outputs that move in the log.  Many PX4
   airframes give ``CA_ROTORn_PX/PY`` normalised to +-1 (only the ratios matter to the
   allocation); such a layout is scaled to the airframe's real arm length when the
   airframe is known, else the caller must supply one;
@@ -65,6 +69,55 @@ class RotorLayout:
     z_flu_m: tuple[float, ...]
     direction: tuple[int, ...]
     source: str
+    #: coaxial pairs (0-based rotor indices): two rotors at one place (same x, y) spinning opposite
+    #: ways; the lower one works in the upper one's wake (its own thrust loss is not identified yet)
+    coaxial: tuple[tuple[int, int], ...] = ()
+
+
+#: ASSUMED typical arm [m] (centre to the farthest rotor axis) by rotor count, when neither ``--arm-m``
+#: nor a known airframe gives one: tri 0.30 (600 mm class), quad 0.25 (500 mm class, as 4001 above),
+#: hexa 0.35, octo 0.45 (the larger frames those counts are built for)
+CLASS_ARM_M = {2: 0.25, 3: 0.30, 4: 0.25, 6: 0.35, 8: 0.45}
+#: MAV_TYPE -> the generic PX4 geometry key of that class (rc.vehicle_setup / rcS set MAV_TYPE from
+#: the mixer: 2 quad, 13 hexa, 14 octo, 15 tri); 3 (coaxial helicopter) has no multirotor mixer
+MAV_TYPE_GEOMETRY = {2: "4x", 13: "6x", 14: "8x", 15: "3y"}
+
+
+def coaxial_pairs(x: np.ndarray, y: np.ndarray, direction: np.ndarray) -> tuple[tuple[int, int], ...]:
+    """Pairs of rotors at one horizontal place (within 1e-6 of the largest radius) spinning opposite ways."""
+    tol = 1e-6 * max(float(np.max(np.hypot(x, y))), 1e-9)
+    pairs, used = [], set()
+    for i in range(len(x)):
+        for j in range(i + 1, len(x)):
+            if (i not in used and j not in used and abs(x[i] - x[j]) <= tol and abs(y[i] - y[j]) <= tol
+                    and direction[i] != direction[j]):
+                pairs.append((i, j))
+                used |= {i, j}
+    return tuple(pairs)
+
+
+def _geometry_layout(key: str, arm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """PX4 geometry ``key`` (FRD, MAIN output order) scaled so its farthest rotor is ``arm`` [m] out."""
+    from twin_nodes.vehicle.px4_geometry import GEOMETRIES
+    rot = GEOMETRIES[key]["rotors"]
+    pos = np.array([r[1] for r in rot], float)
+    scale = arm / float(np.max(np.hypot(pos[:, 0], pos[:, 1])))
+    return pos[:, 0] * scale, pos[:, 1] * scale, pos[:, 2] * scale, np.array([r[2] for r in rot])
+
+
+def _check_moving(path: str, n: int, moving: tuple[int, str] | None, what: str) -> None:
+    """Refuse, in one line, a rotor count that differs from the motor outputs moving in the log."""
+    if moving is not None and moving[0] > 0 and moving[0] != n:
+        raise ParamsError(path, moving[1].split(".")[0],
+                          f"{n} rotors ({what}) but {moving[0]} motor outputs move in the log ({moving[1]}); "
+                          f"supply a params file with --params")
+
+
+def _arm(arm_m: float | None, n: int) -> tuple[float, str]:
+    if arm_m is not None:
+        return arm_m, "--arm-m"
+    a = CLASS_ARM_M.get(n, 0.25)
+    return a, f"ASSUMED {a:g} m arm, typical of a {n}-rotor frame; give --arm-m"
 
 
 def _quad_x(arm_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -119,10 +172,14 @@ POSITION_M = 100.0
 MAX_ROTORS = 32
 
 
-def rotor_layout(params: Mapping[str, float], path: str = "<log>", arm_m: float | None = None) -> RotorLayout:
+def rotor_layout(params: Mapping[str, float], path: str = "<log>", arm_m: float | None = None,
+                 moving_outputs: tuple[int, str] | None = None) -> RotorLayout:
     """The rotor layout from a log's parameters (see the module docstring).
 
-    ``arm_m`` [m] scales a normalised layout (or gives an unknown airframe's arm).
+    ``arm_m`` [m] scales a normalised layout (or gives an unknown airframe's arm).  ``moving_outputs``
+    (count, topic: ``FlightLog.moving_outputs``) is the number of motor outputs that move in the log:
+    without ``CA_*`` the layout's rotor count must equal it (a one-line ParamsError naming both
+    counts), and it confirms the rotor count of a ``MAV_TYPE`` generic layout.
     Raises :class:`ParamsError` naming the missing or out-of-range parameter when nothing fits:
     ``CA_ROTOR_COUNT`` an integer 0..32, each ``CA_ROTORn_PX/PY/PZ`` finite and within 100 m,
     ``CA_ROTORn_KM`` finite in -1..1, and the positions spanning roll and pitch."""
@@ -163,20 +220,74 @@ def rotor_layout(params: Mapping[str, float], path: str = "<log>", arm_m: float 
                               f"spread of at least {LIMITS['span_m']:g} m along every horizontal axis), got "
                               f"{span:.3g} m; supply a params file with --params")
         direction = np.where(km >= 0.0, 1, -1)
-    else:
-        if airframe is None:
-            raise ParamsError(path, "CA_ROTOR_COUNT",
-                              f"rotor geometry: the log has no CA_* parameters and SYS_AUTOSTART {autostart} "
-                              f"is not a known airframe ({', '.join(str(k) for k in sorted(AIRFRAMES))}); "
-                              f"supply a params file with --params")
+    elif airframe is not None:
         px, py = _quad_x(arm_m if arm_m is not None else airframe.arm_m)
         pz = np.zeros(4)
         direction = np.array([1, 1, -1, -1])
         source = (f"airframe {autostart} ({airframe.name}, no CA_* parameters in this log): PX4 quad X "
                   f"layout, {'--arm-m' if arm_m is not None else airframe.source}")
+        _check_moving(path, 4, moving_outputs, f"airframe {autostart}")
+    else:
+        px, py, pz, direction, source = _mixer_or_class_layout(params, path, autostart, arm_m, moving_outputs)
     flu = frd_to_flu(np.column_stack([px, py, pz]))
     return RotorLayout(tuple(float(v) for v in flu[:, 0]), tuple(float(v) for v in flu[:, 1]),
-                       tuple(float(v) for v in flu[:, 2]), tuple(int(d) for d in direction), source)
+                       tuple(float(v) for v in flu[:, 2]), tuple(int(d) for d in direction), source,
+                       coaxial_pairs(px, py, direction))
+
+
+def _mixer_or_class_layout(params: Mapping[str, float], path: str, autostart: int, arm_m: float | None,
+                           moving: tuple[int, str] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                     np.ndarray, str]:
+    """A log without ``CA_*`` whose airframe is not in :data:`AIRFRAMES`: PX4's mixer geometry of the
+    airframe (:mod:`twin_nodes.vehicle.px4_geometry`), else an ASSUMED generic layout of the
+    ``MAV_TYPE`` class confirmed by the moving motor outputs, else a one-line ParamsError."""
+    from twin_nodes.vehicle.px4_geometry import AUTOSTART, GEOMETRIES
+    mav_type = int_param(params, "MAV_TYPE", path, -1, 1_000_000) if "MAV_TYPE" in params else None
+    rows = AUTOSTART.get(autostart)
+    if rows:
+        keys = sorted({(r[3], r[4]) for r in rows})
+        if len(keys) > 1:
+            raise ParamsError(path, "SYS_AUTOSTART",
+                              f"one mixer geometry for airframe {autostart}; PX4 changed it between versions ("
+                              + ", ".join(f"{r[2]} -> {r[3]} at {r[5][0]}..{r[5][-1]}" for r in rows)
+                              + "); supply a params file with --params")
+        script, name, mixer, key, yaw, commits = rows[-1]
+        geom = GEOMETRIES[key]
+        n = len(geom["rotors"])
+        if any(tuple(r[3]) != (0.0, 0.0, -1.0) for r in geom["rotors"]):
+            raise ParamsError(path, "SYS_AUTOSTART", f"a multirotor with upward thrust axes; airframe {autostart}'s "
+                                                     f"geometry {key} has a tilted rotor; supply --params")
+        expect = {2: 4, 13: 6, 14: 8, 15: 3}.get(mav_type) if mav_type is not None else None
+        if expect is not None and expect != n:
+            raise ParamsError(path, "MAV_TYPE", f"{n} rotors (MAV_TYPE {mav_type} says {expect}) for airframe "
+                                                f"{autostart}'s mixer {mixer} (geometry {key}); supply --params")
+        _check_moving(path, n, moving, f"airframe {autostart}'s PX4 mixer {mixer}")
+        arm, arm_src = _arm(arm_m, n)
+        px, py, pz, spin = _geometry_layout(key, arm)
+        source = (f"airframe {autostart} ({name}, no CA_* parameters in this log): PX4 mixer {mixer} -> geometry "
+                  f"{key} ({geom['file']}.toml, {script} @ PX4 {commits[0]}..{commits[-1]})"
+                  + (", yaw reversed by the mixer's R: line" if yaw < 0 else "") + f", {arm_src}")
+        return px, py, pz, spin * yaw, source
+    key = MAV_TYPE_GEOMETRY.get(mav_type) if mav_type is not None else None
+    if key is None or moving is None or moving[0] == 0:
+        if mav_type == 3:
+            why = "MAV_TYPE 3 is a coaxial helicopter (rotor heads with servos), not a multirotor the twin models"
+        elif key is None:
+            why = f"MAV_TYPE {mav_type if mav_type is not None else '(absent)'} names no multirotor class"
+        else:
+            why = f"MAV_TYPE {mav_type} names a class but no motor outputs move in the log to confirm the rotor count"
+        raise ParamsError(path, "CA_ROTOR_COUNT",
+                          f"rotor geometry: the log has no CA_* parameters, SYS_AUTOSTART {autostart} is not a "
+                          f"known airframe ({len(AUTOSTART) + len(AIRFRAMES)} PX4 1.8-1.13 ids known) and {why}; "
+                          f"supply a params file with --params")
+    n = len(GEOMETRIES[key]["rotors"])
+    _check_moving(path, n, moving, f"MAV_TYPE {mav_type}")
+    arm, arm_src = _arm(arm_m, n)
+    px, py, pz, spin = _geometry_layout(key, arm)
+    source = (f"ASSUMED generic PX4 {GEOMETRIES[key]['file']} layout (geometry {key}): SYS_AUTOSTART {autostart} is "
+              f"not a known airframe, MAV_TYPE {mav_type} and {moving[0]} moving motor outputs ({moving[1]}); "
+              f"give --params for the real one; {arm_src}")
+    return px, py, pz, spin, source
 
 
 def param(params: Mapping[str, float], name: str, default: float) -> tuple[float, str]:
