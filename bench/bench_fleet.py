@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import tempfile
 import time
@@ -47,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("flights", nargs="?", help="folder of .ulg flights (real discovery)")
     ap.add_argument("--synthetic", action="store_true")
-    smoke = os.environ.get("ROTORTWIN_BENCH_SMOKE") == "1"
+    from _smoke import SMOKE as smoke  # bench/ is on sys.path when a bench runs as a script
     ap.add_argument("--n", type=int, default=2 if smoke else 8, help="synthetic flights")
     ap.add_argument("--task-s", type=float, default=0.2 if smoke else 3.0, help="synthetic CPU seconds per flight")
     ap.add_argument("--params", default=str(Path(__file__).resolve().parents[1] / "params/px4_sih_quadx.yaml"))

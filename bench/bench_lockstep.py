@@ -51,7 +51,7 @@ def run_once(vp, sim_seconds: float, state_interval_us: int, on_step=None, srv=N
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    smoke = os.environ.get("ROTORTWIN_BENCH_SMOKE") == "1"
+    from _smoke import SMOKE as smoke  # bench/ is on sys.path when a bench runs as a script
     ap.add_argument("--sim-seconds", type=float, default=1.0 if smoke else 20.0)
     ap.add_argument("--params", help="vehicle params (default shipped px4_sih_quadx)")
     ap.add_argument("--repeat", type=int, default=1 if smoke else 3)

@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  epilog="ROTORTWIN_BENCH_SMOKE=1: a smoke run (1 s, 0.2 s RotorPy, a batch of 4, "
                                         "one repeat; the numbers mean nothing)")
-    smoke = os.environ.get("ROTORTWIN_BENCH_SMOKE") == "1"
+    from _smoke import SMOKE as smoke  # bench/ is on sys.path when a bench runs as a script
     ap.add_argument("--seconds", type=float, default=1.0 if smoke else 20.0,
                     help="simulated seconds for our single-vehicle rows")
     ap.add_argument("--rotorpy-seconds", type=float, default=0.2 if smoke else 3.0,

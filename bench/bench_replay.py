@@ -80,7 +80,7 @@ def make_long_flight(path: Path, minutes: float, seed: int = 3) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    smoke = os.environ.get("ROTORTWIN_BENCH_SMOKE") == "1"
+    from _smoke import SMOKE as smoke  # bench/ is on sys.path when a bench runs as a script
     ap.add_argument("--minutes", type=float, default=0.1 if smoke else 10.0,
                     help="length of the simulated flight (default 10; at least one mission, ~2 min)")
     ap.add_argument("--flight", help="replay this ULog instead of a simulated one")
@@ -131,11 +131,11 @@ def main(argv: list[str] | None = None) -> int:
     }
     # the reference, same run: the same twin beside the same flight offline (no ROS, one process)
     from twin_nodes.twin.compare import compare_log, load_flight
-    from twin_nodes.vehicle.params import load_params
+    from twin_nodes.vehicle.params import shipped
 
     log = load_flight(flight)
     t0 = time.perf_counter()
-    compare_log(log, load_params(params_dir() / "px4_sih_quadx.yaml"))
+    compare_log(log, shipped("px4_sih_quadx"))
     off_s = time.perf_counter() - t0
     off_rtf = float(st["log_s"]) / off_s
     row.update(offline_wall_s=off_s, offline_real_time_factor=off_rtf)

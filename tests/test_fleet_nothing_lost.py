@@ -59,7 +59,10 @@ def test_failed_row_other_exception_keeps_identity_one_line(tmp_path, monkeypatc
     def boom(*a, **k):
         raise RuntimeError("first line\nsecond line")
 
+    import twin_nodes.logs.flyable as fly
+
     monkeypatch.setattr(uio, "read_ulog", boom)
+    monkeypatch.setattr(fly, "read_ulog", boom)  # the fleet loads through flyable.read_flight
     process_flight(str(log), str(tmp_path / "cat"), params=PARAMS, closed_loop_metrics=False)
     [row] = cat.load(tmp_path / "cat")
     assert row["vehicle_id"] == UUID and row["flight_time_utc"].startswith("2023-06-21")

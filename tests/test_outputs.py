@@ -381,3 +381,14 @@ sys.exit(run_guarded(cmd, args))
     assert "child exit -15" in r.stdout
     assert "child sigterm default True" in r.stdout  # a pool worker blocked in C must die at once
     assert "Traceback" not in r.stderr and "_Terminated" not in r.stderr
+
+
+def test_an_error_about_an_output_names_the_users_path(tmp_path, monkeypatch, capsys):
+    """A command's own check of an output (identify's file suffix) runs on the staged path: the
+    message must still name the path the user typed."""
+    monkeypatch.chdir(tmp_path)
+    csv = tmp_path / "steps.csv"
+    csv.write_text("time_s,command,rpm\n0,0,0\n")
+    assert main(["identify", "motor", str(csv), "--out", "d/foo.txt"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert STAGE_PREFIX not in err and "d/foo.txt: --out: expected a file name ending in" in err, err

@@ -30,10 +30,6 @@ INIT = "ROMFS/px4fmu_common/init.d"
 MIXERS = "ROMFS/px4fmu_common/mixers"
 
 
-def git(repo: str, *args: str) -> str:
-    return subprocess.run(["git", "--git-dir", repo, *args], check=True, capture_output=True, text=True).stdout
-
-
 def show(repo: str, commit: str, path: str) -> str | None:
     r = subprocess.run(["git", "--git-dir", repo, "show", f"{commit}:{path}"], capture_output=True, text=True)
     return r.stdout if r.returncode == 0 else None

@@ -33,7 +33,7 @@ from typing import Any, Callable, Iterable
 
 from twin_nodes.base.errors import TwinError, one_line
 
-__all__ = ["Output", "Planned", "Staging", "check", "shown", "STAGE_PREFIX"]
+__all__ = ["Output", "Planned", "Staging", "check", "shown", "unstaged", "STAGE_PREFIX"]
 
 STAGE_PREFIX = ".rotortwin-stage-"
 KINDS = ("file", "dir", "update", "bag")
@@ -252,6 +252,13 @@ class Staging:
         self.stages.clear()
         for pl in self.plan:
             _SHOWN.pop(str(pl.write), None)
+
+
+def unstaged(text: str) -> str:
+    """``text`` (an error message) with every staged path of this process replaced by the user's."""
+    for staged, final in _SHOWN.items():
+        text = text.replace(staged, final)
+    return text
 
 
 def shown(path: str | os.PathLike[str] | None) -> str:

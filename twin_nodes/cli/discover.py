@@ -71,15 +71,16 @@ def register(sub) -> None:
 def _discover(args) -> int:
     from twin_nodes.discovery.discover import discover
     from twin_nodes.identify.nominal import params_for_log
+    from twin_nodes.logs.flyable import read_flight  # too short, never airborne, no GPS: one line
     from twin_nodes.logs.ulog_io import read_ulog
     from twin_nodes.vehicle.params import load_params, write_params
 
-    params_file, note = params_for_log(args.flight, args.params)
+    vp = load_params(args.params) if args.params else None  # a bad params file is named before the log
+    log = read_flight(args.flight)
+    params_file, note = params_for_log(args.flight, args.params, log=log)  # the log loaded once
     if note:
         print(f"rotortwin: {note}", file=sys.stderr)
-    vp = load_params(params_file)
-    from twin_nodes.logs.flyable import read_flight  # too short, never airborne, no GPS: one line
-    log = read_flight(args.flight)
+    vp = vp or load_params(params_file)
     res = discover(log, vp, heldout_fraction=args.heldout, progress=sys.stderr.isatty(),
                    closed_loop_metrics=not args.no_closed_loop)
     series = res.pop("_series")

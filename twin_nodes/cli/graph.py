@@ -56,7 +56,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     # the flight loaded and checked here, in this process, for both modes: the loader's warnings are
     # printed and an unusable flight is refused (one line, exit 2) before any node starts
     log = load_flight(args.flight)
-    params_file = default_params_for(args.flight, args.params)
+    params_file = default_params_for(args.flight, args.params, log=log)
     report_dir = Path(args.report) if args.report else None
     if args.offline:
         from twin_nodes.twin.compare import compare_log

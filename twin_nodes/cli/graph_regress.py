@@ -27,15 +27,14 @@ import sys
 
 from twin_nodes.cli.paths import declare
 from twin_nodes.cli.options import domain_id, positive_float
-from twin_nodes.graph.regress import check_tolerance, format_changes, regress_bag, regress_baseline
+from twin_nodes.graph.regress import format_changes, regress_bag, regress_baseline
 
 
 def _cmd_regress(args: argparse.Namespace) -> int:
     from twin_nodes.base.io import atomic_write_text
     from twin_nodes.twin.metrics import table2, to_jsonable
 
-    rel = check_tolerance(args.tolerance, "--tolerance")
-    abs_ = check_tolerance(args.abs_tolerance, "--abs-tolerance")
+    rel, abs_ = args.tolerance, args.abs_tolerance  # range-checked by their argparse types
     if args.self_check:
         stored, fresh, problems = regress_bag(args.bag, rel, abs_)
         print(table2(fresh, title=f"Recomputed from {args.bag}"))

@@ -33,9 +33,7 @@ written, so a failure leaves nothing behind.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
-import os
 import shlex
 from pathlib import Path
 from typing import Any, Callable
@@ -227,21 +225,9 @@ def _command_line(args: argparse.Namespace) -> str:
 
 
 def _finish(args: argparse.Namespace, text: str, plot: Callable[[str], None]) -> None:
-    """Write the plot and the output, each via a temporary file renamed into place."""
-    written = []
-    try:
-        if args.plot:
-            tmp = str(args.plot) + ".tmp.png"
-            plot(tmp)
-            written.append((tmp, args.plot))
-        if args.out:
-            tmp = str(args.out) + ".tmp"
-            Path(tmp).write_text(text, encoding="utf-8")
-            written.append((tmp, args.out))
-    except Exception:
-        for tmp, _ in written:
-            with contextlib.suppress(OSError):
-                os.remove(tmp)
-        raise
-    for tmp, final in written:
-        os.replace(tmp, final)
+    """Write the plot and the output (staged by the CLI's guard: renamed into place only when the
+    command succeeded, so a failure here leaves nothing)."""
+    if args.plot:
+        plot(args.plot)
+    if args.out:
+        Path(args.out).write_text(text, encoding="utf-8")

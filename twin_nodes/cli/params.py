@@ -102,13 +102,8 @@ def _exports(vp: VehicleParams, args: argparse.Namespace) -> list[tuple[str, str
 
 
 def _write_text(path: str, text: str) -> None:
-    tmp = Path(path + ".tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        tmp.replace(path)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise ParamsError(path, "<output>", f"cannot write ({exc.strerror or exc})") from None
+    """An output (staged by the CLI's guard: renamed into place only when the command succeeded)."""
+    Path(path).write_text(text, encoding="utf-8")
 
 
 def _cmd_derive(args: argparse.Namespace) -> int:
@@ -146,17 +141,10 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
-def _positive(value: float | None, option: str) -> None:
-    if value is not None and not (value > 0 and value < 1e4):
-        raise ParamsError(option, "<value>", f"expected a positive finite number, got {value}")
-
-
 def _cmd_from_ulog(args: argparse.Namespace) -> int:
     from twin_nodes.identify.nominal import nominal_from_log
     from twin_nodes.logs.ulog_io import read_ulog
 
-    _positive(args.mass_kg, "--mass-kg")
-    _positive(args.arm_m, "--arm-m")
     nom = nominal_from_log(read_ulog(args.ulog), mass_kg=args.mass_kg, arm_m=args.arm_m, name=args.name)
     print(nom.header())
     print()

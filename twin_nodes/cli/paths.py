@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from twin_nodes.base.errors import TwinError
-from twin_nodes.base.outputs import Output, Staging, check
+from twin_nodes.base.outputs import Output, Staging, check, unstaged
 
 __all__ = ["PathArgs", "declare", "run_guarded"]
 
@@ -132,7 +132,14 @@ def run_guarded(func: Callable[[argparse.Namespace], Any], args: argparse.Namesp
         staging.begin()
         for pl in plan:
             setattr(args, pl.out.dest, str(pl.write))
-        rc = int(func(args) or 0)
+        try:
+            rc = int(func(args) or 0)
+        except TwinError as exc:  # a message naming an output names the user's path, not the stage
+            exc.args = (unstaged(str(exc)),)
+            raise
+        except OSError as exc:
+            exc.filename = unstaged(exc.filename) if isinstance(exc.filename, str) else exc.filename
+            raise
         if rc in (0, 1):
             try:
                 done = staging.commit()

@@ -46,7 +46,7 @@ from twin_nodes.discovery.stages import closed_loop, instrument, mismatch, prepa
 from twin_nodes.discovery.stages.closed_loop import CLOSED_LOOP_TOL_REL, _closed_loop_guard, _closed_loop_metrics, _worse
 from twin_nodes.discovery.stages.instrument import (INSTRUMENTED_BLOCKS_MISSING, _axis_tests, _equation_axes,
                                                     _instrumented, _rate_loop_lag, attach_instrumented)
-from twin_nodes.discovery.stages.prepare import PreparedFlight, Setup, prepare_flight
+from twin_nodes.discovery.stages.prepare import PreparedFlight, prepare_flight
 from twin_nodes.discovery.stages.refit import _joint_refit
 from twin_nodes.discovery.stages.selection import _one_variant, _parsimonious, _pick, _tie_break
 from twin_nodes.vehicle.params import VehicleParams
@@ -60,7 +60,7 @@ __all__ = [
     "_restrict_to_axes", "_scales", "_summary", "_window_folds", "assess", "fit_candidate", "regimes",
     "CLOSED_LOOP_TOL_REL", "_closed_loop_guard", "_closed_loop_metrics", "_worse", "INSTRUMENTED_BLOCKS_MISSING",
     "_axis_tests", "_equation_axes", "_instrumented", "_rate_loop_lag", "attach_instrumented", "PreparedFlight",
-    "Setup", "prepare_flight", "_joint_refit", "_one_variant", "_parsimonious", "_pick", "_tie_break"]
+    "prepare_flight", "_joint_refit", "_one_variant", "_parsimonious", "_pick", "_tie_break"]
 
 def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTION, max_effects: int = MAX_EFFECTS,
              progress: bool = False, closed_loop_metrics: bool = True, output_error: bool = True) -> dict:

@@ -26,13 +26,14 @@ def survey_flight(path: str | Path, params: str | Path | None = None) -> dict:
     """Discover on one flight with its params resolved as ``rotortwin discover`` does; a summary row."""
     from twin_nodes.discovery.discover import discover
     from twin_nodes.identify.nominal import params_for_log
-    from twin_nodes.logs.ulog_io import read_ulog
+    from twin_nodes.logs.flyable import read_flight
     from twin_nodes.vehicle.params import load_params
 
     t0 = time.time()
-    params_file, note = params_for_log(path, params)
+    log = read_flight(path)  # loaded once; a flight that is no usable flight is a row with the reason
+    params_file, note = params_for_log(path, params, log=log)
     vp = load_params(params_file)
-    res = discover(read_ulog(path), vp)
+    res = discover(log, vp)
     res.pop("_series", None)
     before = res["baseline"]["closed_loop_heldout"]
     after = res["after"]["closed_loop_heldout"]

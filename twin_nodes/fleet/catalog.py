@@ -169,13 +169,6 @@ def catalogued(catalog: str | os.PathLike[str]) -> list[dict]:
     return out
 
 
-def done_keys(catalog: str | os.PathLike[str]) -> dict[str, tuple[int, int]]:
-    """path -> (size, mtime_ns) of every flight in the catalog with an ``ok`` row (a ``failed``
-    row is not done: the next run retries it)."""
-    return {r["path"]: (int(r["file_size"]), int(r["file_mtime_ns"])) for r in catalogued(catalog)
-            if r["status"] == "ok"}
-
-
 def is_done(key: dict, row: dict | None) -> bool:
     """Whether the catalog ``row`` of a path covers this version of the file: an ``ok`` row with
     the same content (sha256; size and mtime for rows without a hash)."""

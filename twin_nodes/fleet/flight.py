@@ -17,6 +17,7 @@ import os
 import re
 import time
 from pathlib import Path
+from typing import Any
 
 from twin_nodes.base.errors import TwinError
 from twin_nodes.discovery.survey import failure_reason as reason
@@ -115,7 +116,7 @@ def _gps_time(path) -> float | None:
 
 
 def resolve_params(path: str | os.PathLike[str], vehicle_id: str, params: str | None,
-                   params_map: dict[str, str] | None) -> tuple[Path, str]:
+                   params_map: dict[str, str] | None, log: Any = None) -> tuple[Path, str]:
     """The params file for one flight: ``--params``, else the per-vehicle map, else from the log."""
     from twin_nodes.identify.nominal import params_for_log
 
@@ -123,7 +124,7 @@ def resolve_params(path: str | os.PathLike[str], vehicle_id: str, params: str | 
         return Path(params), "given"
     if params_map and vehicle_id in params_map:
         return Path(params_map[vehicle_id]), f"params map: {vehicle_id}"
-    p, note = params_for_log(path, None)
+    p, note = params_for_log(path, None, log=log)
     return p, (note or "from log").split(";")[0]
 
 
@@ -150,13 +151,13 @@ def analyse(path: str, mode: str, params: str | None, params_map: dict | None,
             closed_loop_metrics: bool, ident: dict | None = None) -> dict:
     """The row of one flight (raises TwinError on a bad flight); ``ident`` as :func:`identity`
     returns it, read here when not given."""
-    from twin_nodes.logs.ulog_io import read_ulog
+    from twin_nodes.logs.flyable import read_flight
     from twin_nodes.vehicle.params import load_params
 
     ident = identity(path) if ident is None else ident
-    pfile, note = resolve_params(path, ident["vehicle_id"], params, params_map)
+    log = read_flight(path)  # loaded once; no usable flight: a failed row with the reason
+    pfile, note = resolve_params(path, ident["vehicle_id"], params, params_map, log=log)
     vp = load_params(pfile)
-    log = read_ulog(path)
     row = {**ident, "duration_s": float(log.duration_s), "params_file": str(pfile), "params_note": note,
            "nominal_mass_kg": float(vp.mass_kg)}
     if mode == "compare":

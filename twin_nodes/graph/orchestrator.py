@@ -30,13 +30,13 @@ from twin_nodes.base.errors import LogError, TwinError
 NODE_MODULES = {"replay": "ulog_replay", "twin": "twin_node", "metrics": "metrics_node", "recorder": "recorder_node"}
 
 
-def default_params_for(ulog: str | os.PathLike[str], explicit: str | None = None) -> Path:
+def default_params_for(ulog: str | os.PathLike[str], explicit: str | None = None, log: Any = None) -> Path:
     """The params file to fly: ``explicit``, else the shipped one for the log's airframe, else the
     nominal built from the log itself (:func:`twin_nodes.identify.nominal.params_for_log`); says
-    which on stderr in one line when it was not given."""
+    which on stderr in one line when it was not given (``log``: the flight already loaded)."""
     from twin_nodes.identify.nominal import params_for_log
 
-    path, note = params_for_log(ulog, explicit)
+    path, note = params_for_log(ulog, explicit, log=log)
     if note:
         print(f"rotortwin: {note}", file=sys.stderr)
     return path
@@ -278,7 +278,8 @@ def run_graph(ulog: str | os.PathLike[str], params_file: str | os.PathLike[str],
         lease.release()
         if not ok and recorder_started and bag and Path(bag).exists():
             if interrupted:
-                print(f"rotortwin: interrupted: the recording so far is finalised in {bag}", file=sys.stderr)
+                # a rotortwin command staged the bag: its guard removes it with the other unfinished outputs
+                print(f"rotortwin: interrupted: the recording so far was finalised ({bag})", file=sys.stderr)
             else:
                 if Path(bag).is_dir():
                     shutil.rmtree(bag, ignore_errors=True)  # a failed run's bag is removed
@@ -293,7 +294,7 @@ def run_graph(ulog: str | os.PathLike[str], params_file: str | os.PathLike[str],
 
 
 def _raise_interrupt(signum: int, _frame: Any) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")
+    raise KeyboardInterrupt(signal.Signals(signum).name)  # as the CLI's guard names it (exit 143/129)
 
 
 def _follow_replay(g: Graph, rp: subprocess.Popen, progress: bool, timeout_s: float, ulog: Path) -> None:

@@ -510,9 +510,10 @@ _CODE_KEY = b"".join(inspect.getsource(sys.modules[name]).encode() for name in
 SHIPPED_AIRFRAMES = {10040: "px4_sih_quadx", 1100: "px4_sih_quadx"}
 
 
-def params_for_log(ulog: str | os.PathLike[str], explicit: str | os.PathLike[str] | None = None
-                   ) -> tuple[Path, str | None]:
-    """The params file to fly beside ``ulog`` and a one-line note when it was not given.
+def params_for_log(ulog: str | os.PathLike[str], explicit: str | os.PathLike[str] | None = None,
+                   log: FlightLog | None = None) -> tuple[Path, str | None]:
+    """The params file to fly beside ``ulog`` and a one-line note when it was not given (``log``: the
+    flight already loaded from ``ulog``, so it is not read again).
 
     ``explicit`` if given; else the shipped file for the log's airframe (SYS_AUTOSTART);
     else the nominal built from the log itself (:func:`nominal_from_log`), written once to
@@ -527,7 +528,7 @@ def params_for_log(ulog: str | os.PathLike[str], explicit: str | os.PathLike[str
         if not p.is_file():
             raise ParamsError(str(p), "<file>", "an existing params YAML file")
         return p, None
-    params = read_params(ulog)
+    params = log.params if log is not None else read_params(ulog)
     autostart = int_param(params, "SYS_AUTOSTART", str(ulog), 0, 99_999_999)
     stem = SHIPPED_AIRFRAMES.get(autostart)
     if stem is not None:
@@ -536,7 +537,7 @@ def params_for_log(ulog: str | os.PathLike[str], explicit: str | os.PathLike[str
     h.update(_CODE_KEY)
     out = cache_dir() / "nominal" / f"{Path(ulog).stem}-{h.hexdigest()[:12]}.yaml"
     if not out.is_file():
-        nom = nominal_from_log(read_flight(ulog))
+        nom = nominal_from_log(log if log is not None else read_flight(ulog))
         out.parent.mkdir(mode=0o700, exist_ok=True)
         write_params(nom.params, out, nom.header())
     return out, (f"params: none given and no shipped file for SYS_AUTOSTART {autostart}: flying the nominal built "

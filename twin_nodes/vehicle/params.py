@@ -51,8 +51,7 @@ import numpy as np
 import yaml
 
 from twin_nodes.base.errors import ParamsError
-from twin_nodes.base.yamlio import MAX_FILE_BYTES, read_yaml_file
-from twin_nodes.base.yamlio import safe_load as _safe_load  # noqa: F401 - the one YAML loader, re-exported
+from twin_nodes.base.yamlio import read_yaml_file, safe_load
 from twin_nodes.physics.effects import EFFECTS
 
 THRUST_MODELS = ("omega_squared", "thrust_factor")
@@ -573,7 +572,6 @@ def from_ros_dict(data: Mapping[str, Any], path: str = "<memory>") -> VehiclePar
         blocks[name] = dict(top.sub(name, required=False).data)
         _check_tree(path, name, blocks[name], budget)
     controller, sensors = blocks["controller"], blocks["sensors"]
-    _check_controller(path, controller)
     vp = VehicleParams(
         name=v.text("name", "vehicle"), mass_kg=mass,
         inertia_kg_m2=tuple(tuple(float(e) for e in row) for row in inertia),
@@ -713,7 +711,7 @@ def write_params(p: VehicleParams, path: str | Path, header: str = "") -> None:
     """Validate, then write atomically (a failed write never leaves a half file)."""
     validate(p)
     text = dump_params(p, header)
-    from_ros_dict(_unwrap_ros(str(path), _safe_load(text)), str(path))  # round-trip check
+    from_ros_dict(_unwrap_ros(str(path), safe_load(text)), str(path))  # round-trip check
     tmp = Path(str(path) + ".tmp")
     tmp.write_text(text, encoding="utf-8")
     tmp.replace(path)

@@ -257,7 +257,8 @@ def _mixer_or_class_layout(params: Mapping[str, float], path: str, autostart: in
         if any(tuple(r[3]) != (0.0, 0.0, -1.0) for r in geom["rotors"]):
             raise ParamsError(path, "SYS_AUTOSTART", f"a multirotor with upward thrust axes; airframe {autostart}'s "
                                                      f"geometry {key} has a tilted rotor; supply --params")
-        expect = {2: 4, 13: 6, 14: 8, 15: 3}.get(mav_type) if mav_type is not None else None
+        cls = MAV_TYPE_GEOMETRY.get(mav_type) if mav_type is not None else None
+        expect = len(GEOMETRIES[cls]["rotors"]) if cls is not None else None
         if expect is not None and expect != n:
             raise ParamsError(path, "MAV_TYPE", f"{n} rotors (MAV_TYPE {mav_type} says {expect}) for airframe "
                                                 f"{autostart}'s mixer {mixer} (geometry {key}); supply --params")

@@ -51,7 +51,6 @@ class PreparedFlight:
 
 
 #: the name it had in ``discover.py``
-Setup = PreparedFlight
 
 
 def run(inp: FlightInput) -> PreparedFlight:
