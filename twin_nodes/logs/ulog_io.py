@@ -109,7 +109,7 @@ from twin_nodes.base import frames
 #: ``<file>: <warning>``; the ``rotortwin`` command prints them on stderr, once each
 LOG = logging.getLogger("rotortwin.logs")
 
-from twin_nodes.logs import time_sync
+from twin_nodes.logs import legacy_topics, time_sync
 from twin_nodes.base.errors import LogError
 
 __all__ = ["Series", "FlightLog", "SERIES_SPEC", "MANUAL_NAV_STATES", "read_ulog", "list_topics", "ULOG_MAGIC",
@@ -182,6 +182,7 @@ TOPICS = (
     "battery_status",
     "sensor_combined",
     "trajectory_setpoint",
+    "vehicle_local_position_setpoint",
     "vehicle_status",
     "vehicle_land_detected",
     "esc_status",
@@ -257,7 +258,9 @@ class FlightLog:
         s = self.series.get(name)
         if s is None or len(s) == 0:
             what = SERIES_SPEC.get(name)
-            expected = (f"expected series '{name}' ({what[0]}, {what[1]}), not in this log"
+            px4 = legacy_topics.PX4_SOURCES.get(name)
+            expected = (f"expected series '{name}' ({what[0]}, {what[1]})"
+                        + (f" from PX4's {px4}" if px4 else "") + ", not in this log"
                         if what else f"expected series '{name}'; known: {', '.join(SERIES_SPEC)}")
             raise LogError(self.path, name, expected)
         return s
@@ -886,18 +889,7 @@ def _motors_from_pwm(
                             "(varying while armed, disarm value when disarmed); no motors series")
             return None
         bank = "MAIN" if inst == 0 else "AUX"
-        g_lo = params.get(f"PWM_{bank}_MIN", params.get("PWM_MAIN_MIN"))
-        g_hi = params.get(f"PWM_{bank}_MAX", params.get("PWM_MAIN_MAX"))
-        if g_lo is not None and g_hi is not None and g_lo > 0 and g_hi > g_lo:
-            lo = np.full(n, g_lo)
-            hi = np.full(n, g_hi)
-            how = f"PWM_{bank}_MIN/MAX {g_lo:.0f}-{g_hi:.0f} us"
-        else:
-            lo = np.array([params.get(f"PWM_{bank}_MIN{c + 1}", 1000.0) for c in chans])
-            hi = np.array([params.get(f"PWM_{bank}_MAX{c + 1}", 2000.0) for c in chans])
-            lo = np.where(lo > 0, lo, 1000.0)
-            hi = np.where(hi > lo, hi, 2000.0)
-            how = "PWM_*_MINn/MAXn (or 1000-2000 us)"
+        lo, hi, how = legacy_topics.pwm_limits(params, bank, chans)  # the mixer era's limits
         why = (f"output-function parameters map only {len(mapping)} of {n} motors" if mapping
                else "no output-function parameters")
         warnings.append(f"motors: {why}; channels {chans} of actuator_outputs[{inst}] chosen "
@@ -1104,6 +1096,8 @@ def _build_series(
             out["angular_accel_flu"] = _series(
                 "angular_accel_flu", av.t_s, frames.frd_to_flu(av.arr("xyz_derivative", 3)),
                 "vehicle_angular_velocity.xyz_derivative (FRD)")
+    elif (old := legacy_topics.attitude_rates(att)) is not None:  # PX4 <= 1.9
+        out["body_rates_flu"] = _series("body_rates_flu", old[0], frames.frd_to_flu(old[1]), old[2])
     else:
         missing("vehicle_angular_velocity", "body_rates_flu")
 
@@ -1139,6 +1133,8 @@ def _build_series(
         out["torque_setpoint_flu"] = _series("torque_setpoint_flu", tq.t_s,
                                              frames.frd_to_flu(tq.arr("xyz", 3)),
                                              "vehicle_torque_setpoint.xyz (FRD)")
+    elif (old := legacy_topics.controls_torque(ac0)) is not None:  # PX4 <= 1.13
+        out["torque_setpoint_flu"] = _series("torque_setpoint_flu", old[0], frames.frd_to_flu(old[1]), old[2])
     # the rate loop's setpoint: smooth (the attitude loop's output), unlike the motor commands a
     # 50 Hz log picks from a 250 Hz loop; discovery uses it as an instrument (output_error)
     rs = get("vehicle_rates_setpoint")
@@ -1181,32 +1177,23 @@ def _build_series(
     else:
         missing("sensor_combined", "gyro_flu, specific_force_flu")
 
-    # --- setpoints (old PX4: x,y,z,vx,vy,vz; new: position[3], velocity[3])
-    ts = get("trajectory_setpoint")
+    # --- setpoints (trajectory_setpoint; PX4 1.8: vehicle_local_position_setpoint; field names per
+    # version in legacy_topics.setpoint_arrays)
+    ts, ts_name = legacy_topics.setpoint_topic(get)
     if ts is not None:
         t = ts.t_s
-        pos = ts.arr("position", 3) if ts.has("position[0]") else (
-            ts.cols(["x", "y", "z"]) if ts.has("x", "y", "z") else None)
-        vel = ts.arr("velocity", 3) if ts.has("velocity[0]") else (
-            ts.cols(["vx", "vy", "vz"]) if ts.has("vx", "vy", "vz") else None)
-        acc = ts.arr("acceleration", 3) if ts.has("acceleration[0]") else None
-        if pos is not None:
-            out["setpoint_position_enu"] = _series("setpoint_position_enu", t,
-                                                   frames.ned_to_enu(pos), "trajectory_setpoint (NED)")
-        if vel is not None:
-            out["setpoint_velocity_enu"] = _series("setpoint_velocity_enu", t,
-                                                   frames.ned_to_enu(vel), "trajectory_setpoint (NED)")
-        if acc is not None:
-            out["setpoint_accel_enu"] = _series("setpoint_accel_enu", t, frames.ned_to_enu(acc),
-                                                "trajectory_setpoint.acceleration (NED)")
+        for key, (v, src) in legacy_topics.setpoint_arrays(ts, ts_name, lpos, params).items():
+            name = {"position": "setpoint_position_enu", "velocity": "setpoint_velocity_enu",
+                    "acceleration": "setpoint_accel_enu"}[key]
+            out[name] = _series(name, t, frames.ned_to_enu(v), src)
         if ts.has("yaw"):
             out["setpoint_yaw_enu"] = _series("setpoint_yaw_enu", t,
                                               frames.yaw_ned_to_enu(ts.col("yaw")),
-                                              "trajectory_setpoint.yaw (NED heading)")
+                                              f"{ts_name}.yaw (NED heading)")
         if ts.has("yawspeed"):
             out["setpoint_yawspeed"] = _series("setpoint_yawspeed", t,
                                                frames.yawspeed_ned_to_enu(ts.col("yawspeed")),
-                                               "trajectory_setpoint.yawspeed (NED heading rate)")
+                                               f"{ts_name}.yawspeed (NED heading rate)")
         _yaw_from_attitude_setpoint(get("vehicle_attitude_setpoint"), ts, out)
     else:
         missing("trajectory_setpoint", "setpoint_*")

@@ -1,0 +1,271 @@
+"""Older PX4 topic sets (PX4 1.8-1.13; twin_nodes/logs/legacy_topics.py) read into the canonical
+series: round trips on logs written in each old layout by the project's own ULog writer (a known
+PWM with known limits gives a known 0..1; rates from vehicle_attitude equal the truth; the 1.8
+position controller's setpoints give back the feed-forward), the real pyulog PX4 logs of the old
+layout, and a real PX4 1.11 flight re-expressed in PX4 1.8's layout (tests/legacy_cases.py)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import ulog_cases as UC
+from conftest import shared_log
+from legacy_cases import to_px4_18_layout
+from testlogs import need_testlog
+from twin_nodes.base import frames as F
+from twin_nodes.cli import main
+from twin_nodes.logs.legacy_topics import pwm_limits
+from twin_nodes.logs.ulog_io import read_ulog
+from twin_nodes.logs.ulog_write import write_px4_ulog
+
+
+def _old(topics: dict, drop: tuple[str, ...] = (), **extra) -> dict:
+    t = {k: dict(v) for k, v in topics.items() if k not in drop}
+    t.update(extra)
+    return t
+
+
+def _write(tmp_path, topics: dict, params: dict, name: str = "old.ulg"):
+    return read_ulog(write_px4_ulog(tmp_path / name, topics, params, {"ver_sw": "legacy"},
+                                    start_us=UC.T0_US))
+
+
+# --------------------------------------------------------------------------- body rates (1.8-1.9)
+
+def test_rates_from_vehicle_attitude_equal_the_truth(tmp_path):
+    base = UC.small_topics()
+    t = base["vehicle_attitude"]["timestamp"]
+    s = (t - UC.T0_US) * 1e-6
+    w = np.column_stack([0.3 * np.sin(2 * s), -0.2 * np.cos(s), 0.5 * np.sin(0.5 * s)]).astype(np.float32)
+    att = dict(base["vehicle_attitude"], rollspeed=w[:, 0], pitchspeed=w[:, 1], yawspeed=w[:, 2])
+    fl = _write(tmp_path, _old(base, ("vehicle_angular_velocity",), vehicle_attitude=att),
+                {"CA_ROTOR_COUNT": 4})
+    r = fl.require("body_rates_flu")
+    assert r.source == "vehicle_attitude.rollspeed,pitchspeed,yawspeed (FRD)"
+    np.testing.assert_array_equal(r.t_s, fl.require("attitude_q").t_s)
+    np.testing.assert_allclose(r.values, F.frd_to_flu(w.astype(float)), atol=1e-7)
+    assert r.values[:, 1] == pytest.approx(-w[:, 1], abs=1e-7)  # FRD pitch rate -> FLU: sign flips
+    # a log with both (never PX4, but the newer topic wins)
+    fl2 = _write(tmp_path, _old(base, vehicle_attitude=att), {"CA_ROTOR_COUNT": 4}, "both.ulg")
+    assert fl2.require("body_rates_flu").source.startswith("vehicle_angular_velocity")
+
+
+# --------------------------------------------------------------------------- PWM -> 0..1 per era
+
+#: (era, parameters, expected per-channel PWM min, max, a name that must be in the motors' source)
+PWM_ERAS = [
+    ("1.8 PWM_MIN/MAX", {"PWM_MIN": 1075, "PWM_MAX": 1950}, [1075] * 4, [1950] * 4, "PWM_MIN"),
+    ("1.9-1.10 per channel over PWM_MIN", {
+        "PWM_MIN": 1100, "PWM_MAX": 1900, **{f"PWM_MAIN_MIN{c}": -1 for c in range(1, 9)},
+        **{f"PWM_MAIN_MAX{c}": -1 for c in range(1, 9)}, "PWM_MAIN_MIN2": 1150, "PWM_MAIN_MAX3": 1950},
+     [1100, 1150, 1100, 1100], [1900, 1900, 1950, 1900], "PWM_MAIN_MIN2"),
+    ("1.11-1.12 PWM_MAIN_MIN/MAX", {
+        "PWM_MAIN_MIN": 1075, "PWM_MAIN_MAX": 1950, **{f"PWM_MAIN_MIN{c}": -1 for c in range(1, 9)},
+        **{f"PWM_MAIN_MAX{c}": -1 for c in range(1, 9)}}, [1075] * 4, [1950] * 4, "PWM_MAIN_MAX"),
+    ("1.13 mixer (SYS_CTRL_ALLOC 0): 1000/2000 = unset", {
+        "SYS_CTRL_ALLOC": 0, "PWM_MAIN_MIN": 1075, "PWM_MAIN_MAX": 1950,
+        **{f"PWM_MAIN_MIN{c}": 1000 for c in range(1, 9)}, **{f"PWM_MAIN_MAX{c}": 2000 for c in range(1, 9)},
+        **{f"PWM_MAIN_FUNC{c}": 0 for c in range(1, 9)}, "PWM_MAIN_MIN4": 1120},
+     [1075, 1075, 1075, 1120], [1950] * 4, "PWM_MAIN_MIN4"),
+    ("no limits in the log", {}, [1000] * 4, [2000] * 4, "PX4 default"),
+]
+
+
+@pytest.mark.parametrize("era,params,lo,hi,named", PWM_ERAS, ids=[e[0] for e in PWM_ERAS])
+def test_pwm_of_each_era_maps_back_to_the_known_command(tmp_path, era, params, lo, hi, named):
+    """actuator_outputs at 10 Hz (PX4's default logger rate for it in every version), no
+    actuator_motors: PWM = min + u (max - min) per channel gives u back; 900 us disarmed -> NaN."""
+    base = UC.small_topics()
+    t = base["vehicle_local_position"]["timestamp"][::5]  # 10 Hz
+    n = t.size
+    u = np.clip(0.45 + 0.3 * np.sin(np.linspace(0, 6, n))[:, None] * [1, -1, 0.5, -0.5], 0, 1)
+    out = np.zeros((n, 16))
+    out[:, :4] = np.array(lo) + u * (np.array(hi) - np.array(lo))
+    st = base["vehicle_status"]
+    armed = np.searchsorted(st["timestamp"], t, side="right") - 1
+    disarmed = st["arming_state"][armed] != 2
+    out[disarmed, :4] = 900.0
+    topics = _old(base, ("actuator_motors",), actuator_outputs={"timestamp": t, "noutputs": np.full(n, 4),
+                                                                "output": out})
+    fl = _write(tmp_path, topics, {"MAV_TYPE": 2, **params})
+    m = fl.require("motors")
+    assert named in m.source and "actuator_outputs[0].output[0,1,2,3]" in m.source, m.source
+    assert np.isnan(m.values[disarmed]).all()
+    np.testing.assert_allclose(m.values[~disarmed], u[~disarmed], atol=2e-6)
+    assert (np.median(np.diff(m.t_s)) == pytest.approx(0.1))
+    got_lo, got_hi, _ = pwm_limits({k: float(v) for k, v in params.items()}, "MAIN", [0, 1, 2, 3])
+    assert list(got_lo) == lo and list(got_hi) == hi
+
+
+def test_pwm_aux_bank_and_a_corrupt_pair_are_said():
+    lo, hi, how = pwm_limits({"PWM_AUX_MIN": 1100.0, "PWM_AUX_MAX": 1900.0, "PWM_MIN": 1000.0}, "AUX", [0, 1])
+    assert list(lo) == [1100, 1100] and list(hi) == [1900, 1900] and "PWM_AUX_MIN" in how
+    lo, hi, how = pwm_limits({"PWM_MAIN_MIN": 1500.0, "PWM_MAIN_MAX": 1400.0}, "MAIN", [0])
+    assert (lo[0], hi[0]) == (1000, 2000) and "max <= min" in how
+
+
+# --------------------------------------------------------------------------- torque / throttle
+
+def test_torque_and_throttle_from_actuator_controls_0(tmp_path):
+    base = UC.small_topics()
+    t = base["vehicle_attitude"]["timestamp"]
+    n = t.size
+    c = np.zeros((n, 8), np.float32)
+    c[:, 0], c[:, 1], c[:, 2], c[:, 3] = 0.02, -0.05, 0.1, 0.55
+    fl = _write(tmp_path, _old(base, ("vehicle_thrust_setpoint",),
+                               actuator_controls_0={"timestamp": t, "control": c}), {"CA_ROTOR_COUNT": 4})
+    tq = fl.require("torque_setpoint_flu")
+    assert tq.source == "actuator_controls_0.control[0..2] (FRD)"
+    np.testing.assert_allclose(tq.values, np.tile([0.02, 0.05, -0.1], (n, 1)), atol=1e-7)
+    np.testing.assert_allclose(fl.require("throttle").values[:, 0], 0.55, atol=1e-7)
+
+
+# --------------------------------------------------------------------------- setpoints per version
+
+def _lpsp_18(base: dict, kxy: float, kz: float) -> tuple[dict, np.ndarray, np.ndarray]:
+    """PX4 1.8's vehicle_local_position_setpoint as its mc_pos_control filled it."""
+    lp = base["vehicle_local_position"]
+    t = lp["timestamp"][::2]
+    s = (t - UC.T0_US) * 1e-6
+    n = t.size
+    sp = np.column_stack([2.0 * np.sin(0.3 * s), 1.0 * s / s[-1], -3.0 * np.ones(n)])
+    ff = np.column_stack([0.6 * np.cos(0.3 * s), np.full(n, 1.0 / s[-1]), np.zeros(n)])
+    pos = np.column_stack([lp["x"][::2], lp["y"][::2], lp["z"][::2]])
+    vel_sp = (sp - pos) * [kxy, kxy, kz] + ff
+    f = {"timestamp": t, "x": sp[:, 0], "y": sp[:, 1], "z": sp[:, 2], "vx": vel_sp[:, 0],
+         "vy": vel_sp[:, 1], "vz": vel_sp[:, 2], "acc_x": np.zeros(n), "acc_y": np.zeros(n),
+         "acc_z": np.full(n, -6.1), "yaw": np.full(n, 0.3), "yawspeed": np.zeros(n)}
+    return {k: (v if k == "timestamp" else np.asarray(v, np.float32)) for k, v in f.items()}, sp, ff
+
+
+def test_px4_18_position_controller_setpoints_give_back_the_feed_forward(tmp_path):
+    base = UC.small_topics()
+    lpsp, sp, ff = _lpsp_18(base, 0.95, 1.0)
+    topics = _old(base, ("trajectory_setpoint",), vehicle_local_position_setpoint=lpsp)
+    fl = _write(tmp_path, topics, {"CA_ROTOR_COUNT": 4, "MPC_XY_P": 0.95, "MPC_Z_P": 1.0})
+    np.testing.assert_allclose(fl.require("setpoint_position_enu").values, F.ned_to_enu(sp), atol=1e-5)
+    v = fl.require("setpoint_velocity_enu")
+    assert "MPC_XY_P" in v.source and v.source.startswith("vehicle_local_position_setpoint")
+    np.testing.assert_allclose(v.values, F.ned_to_enu(ff), atol=1e-5)
+    assert fl.get("setpoint_accel_enu") is None  # 1.8's acc_x.. is thrust x g, not a feed-forward
+    assert fl.require("setpoint_yaw_enu").values[0, 0] == pytest.approx(np.pi / 2 - 0.3, abs=1e-6)
+    # without the gains the feed-forward cannot be separated: the position setpoint alone
+    fl2 = _write(tmp_path, topics, {"CA_ROTOR_COUNT": 4}, "nogain.ulg")
+    assert fl2.get("setpoint_velocity_enu") is None and fl2.get("setpoint_position_enu") is not None
+
+
+@pytest.mark.parametrize("layout", ["1.9-1.10", "1.11-1.12"])
+def test_trajectory_setpoint_field_names_of_old_versions(tmp_path, layout):
+    """1.9-1.12 log trajectory_setpoint as a vehicle_local_position_setpoint (x,y,z, vx,vy,vz); 1.9-1.10
+    add acc_x.. that their PositionControl does not fly, 1.11+ acceleration[3] that it does.  The
+    controller-output vehicle_local_position_setpoint they also log is not the setpoint."""
+    base = UC.small_topics()
+    tsp = base["trajectory_setpoint"]
+    t, n = tsp["timestamp"], tsp["timestamp"].size
+    pos = np.column_stack([np.linspace(0, 5, n), np.zeros(n), np.full(n, -3.0)])
+    vel = np.column_stack([np.full(n, 0.25), np.zeros(n), np.zeros(n)])
+    acc = np.column_stack([np.full(n, 0.1), np.full(n, -0.2), np.zeros(n)])
+    old = {"timestamp": t, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2], "vx": vel[:, 0], "vy": vel[:, 1],
+           "vz": vel[:, 2], "yaw": np.zeros(n), "yawspeed": np.zeros(n)}
+    if layout == "1.9-1.10":
+        old.update(acc_x=acc[:, 0], acc_y=acc[:, 1], acc_z=acc[:, 2])
+    else:
+        old["acceleration"] = acc
+    old = {k: (v if k == "timestamp" else np.asarray(v, np.float32)) for k, v in old.items()}
+    ctrl = dict(old, x=old["x"] + 7.0)
+    fl = _write(tmp_path, _old(base, ("trajectory_setpoint",), trajectory_setpoint=old,
+                               vehicle_local_position_setpoint=ctrl), {"CA_ROTOR_COUNT": 4})
+    p = fl.require("setpoint_position_enu")
+    assert p.source == "trajectory_setpoint (NED)"
+    np.testing.assert_allclose(p.values, F.ned_to_enu(pos), atol=1e-5)
+    np.testing.assert_allclose(fl.require("setpoint_velocity_enu").values, F.ned_to_enu(vel), atol=1e-6)
+    a = fl.get("setpoint_accel_enu")
+    if layout == "1.9-1.10":
+        assert a is None
+    else:
+        np.testing.assert_allclose(a.values, F.ned_to_enu(acc), atol=1e-6)
+
+
+# --------------------------------------------------------------------------- a whole PX4 1.8 layout
+
+def test_px4_18_layout_flies_and_names_what_is_missing(tmp_path, capsys):
+    """Every 1.8 substitute at once (rates, PWM_MIN/MAX at 10 Hz, actuator_controls_0, the 1.8
+    setpoint topic): compare starts and flies.  Without any body-rate field the one-line error
+    names what PX4 field was expected."""
+    base = UC.small_topics()
+    t = base["vehicle_attitude"]["timestamp"]
+    n = t.size
+    att = dict(base["vehicle_attitude"], rollspeed=np.zeros(n, np.float32),
+               pitchspeed=np.zeros(n, np.float32), yawspeed=np.zeros(n, np.float32))
+    u = base["actuator_motors"]["control"][::5, :4]
+    out = np.zeros((u.shape[0], 16))
+    out[:, :4] = 1075 + u * 875
+    st = base["vehicle_status"]
+    k = np.searchsorted(st["timestamp"], t[::5], side="right") - 1
+    out[st["arming_state"][k] != 2, :4] = 900.0  # PX4's disarmed PWM
+    c = np.zeros((n, 8), np.float32)
+    c[:, 3] = 0.5
+    lpsp, _, _ = _lpsp_18(base, 0.95, 1.0)
+    topics = _old(base, ("vehicle_angular_velocity", "actuator_motors", "vehicle_thrust_setpoint",
+                         "trajectory_setpoint"), vehicle_attitude=att,
+                  actuator_outputs={"timestamp": t[::5], "noutputs": np.full(out.shape[0], 4), "output": out},
+                  actuator_controls_0={"timestamp": t, "control": c},
+                  vehicle_local_position_setpoint=lpsp)
+    params = {"MAV_TYPE": 2, "SYS_AUTOSTART": 4001, "PWM_MIN": 1075, "PWM_MAX": 1950,
+              "MPC_XY_P": 0.95, "MPC_Z_P": 1.0}
+    p = write_px4_ulog(tmp_path / "px418.ulg", topics, params, {"ver_sw": "legacy"}, start_us=UC.T0_US)
+    assert main(["compare", "--offline", str(p), "--json", str(tmp_path / "m.json")]) == 0
+    m = json.loads((tmp_path / "m.json").read_text())
+    assert np.isfinite(m["throttle_rmse"]) and m["n_samples"] > 100
+    bad = write_px4_ulog(tmp_path / "norates.ulg", _old(topics, vehicle_attitude=base["vehicle_attitude"]),
+                         params, {"ver_sw": "legacy"}, start_us=UC.T0_US)
+    capsys.readouterr()
+    assert main(["compare", "--offline", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in err[0] and "vehicle_attitude.rollspeed" in err[0], err
+
+
+# --------------------------------------------------------------------------- real logs
+
+@pytest.mark.parametrize("name", ["pyulog_sample", "pyulog_sample_appended_multiple"])
+def test_real_old_layout_logs_load_and_are_refused_in_one_line(name, capsys):
+    """Real PX4 logs of the old layout (pyulog's test data; 2016 master and 1.6-dev: vehicle_attitude
+    rates, PWM_MIN/MAX, actuator_controls_0, vehicle_local_position_setpoint): the reader takes each
+    old field; neither was flown (a bench log never armed; one landed throughout), which compare says
+    in one line."""
+    p = need_testlog(name)
+    fl = read_ulog(p)
+    assert fl.require("body_rates_flu").source.startswith("vehicle_attitude.rollspeed")
+    assert fl.require("throttle").source == "actuator_controls_0.control[3]"
+    assert fl.require("torque_setpoint_flu").source.startswith("actuator_controls_0")
+    capsys.readouterr()
+    assert main(["compare", "--offline", str(p)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "never airborne" in err[-1] and not any("Traceback" in e for e in err)
+
+
+@pytest.mark.slow
+def test_real_px4_111_flight_in_px4_18_layout(tmp_path):
+    """S500 mission1 (PX4 1.11) rewritten as PX4 1.8 logged it: the reader's 1.8 route gives back the
+    same setpoints, feed-forward, motors and throttle exactly, the rates at 1.8's attitude rate; the
+    twin flies it (docs/real_logs.md: XY 1.07 m against 0.42 m on the 1.11 layout, because PX4 1.8
+    logged and flew no acceleration feed-forward)."""
+    src = shared_log("real", "real_s500_rcac_mission1.ulg")
+    a = read_ulog(src)
+    b = read_ulog(to_px4_18_layout(src, tmp_path / "s500_px418.ulg"))
+    tt = np.arange(10.0, 50.0, 0.05)
+    for k in ("setpoint_position_enu", "setpoint_velocity_enu", "motors", "throttle", "torque_setpoint_flu",
+              "setpoint_yaw_enu"):
+        np.testing.assert_allclose(b.require(k).at(tt), a.require(k).at(tt), atol=1e-5, err_msg=k)
+    assert "PWM_MIN" in b.require("motors").source
+    assert b.get("setpoint_accel_enu") is None and a.get("setpoint_accel_enu") is not None
+    rms = np.sqrt(np.nanmean((b.require("body_rates_flu").at(tt) - a.require("body_rates_flu").at(tt)) ** 2))
+    assert rms < 0.1  # 20 Hz attitude stamps against the 50 Hz angular velocity
+    out = tmp_path / "m.json"
+    assert main(["compare", "--offline", str(tmp_path / "s500_px418.ulg"), "--json", str(out)]) == 0
+    m = json.loads(out.read_text())
+    assert m["throttle_rmse"] < 0.03 and m["motor_p75_mean"] < 0.06
+    assert m["xy_rmse_m"] < 1.2 and m["z_rmse_m"] < 0.5

@@ -1,0 +1,186 @@
+"""Older PX4 topic sets (PX4 1.8-1.13) read into :mod:`twin_nodes.logs.ulog_io`'s canonical series.
+
+:func:`~twin_nodes.logs.ulog_io.read_ulog` picks a topic at a few places; where the newer one is
+missing it asks this module for what older PX4 logged instead.  What PX4 logged per version was
+read from PX4-Autopilot's own source (``src/modules/logger/logger.cpp`` (1.8-1.10) /
+``logged_topics.cpp`` (1.11+), ``msg/*.msg``, ``ROMFS/px4fmu_common/init.d/rc.interface``,
+``src/drivers/pwm_out/PWMOut.cpp``, ``src/lib/mixer/mixer_multirotor.cpp``); docs/real_logs.md has
+the table.  In short (default logger profile):
+
+========================== ========================================= ====================================
+quantity                   PX4 1.8 - 1.9                              1.10 - 1.12 (1.13: both)
+========================== ========================================= ====================================
+body rates                 ``vehicle_attitude.rollspeed/pitchspeed/   ``vehicle_angular_velocity.xyz``
+                           yawspeed`` (FRD, 30 ms)
+collective / torque        ``actuator_controls_0.control[3]`` /       same; 1.12+ also
+                           ``control[0..2]`` (normalised, 100 ms)     ``vehicle_thrust/torque_setpoint``
+motors                     ``actuator_outputs`` PWM, 100 ms (10 Hz)   same; 1.13 ``actuator_motors``
+                                                                      with control allocation
+PWM limits                 ``PWM_MIN/MAX`` (1.8), per channel         ``PWM_MAIN_MIN/MAX``, per channel
+                           ``PWM_MAIN_MINn/MAXn`` when >= 0 (1.9+)    ``PWM_MAIN_MINn/MAXn`` when >= 0
+                                                                      (1.13: and not 1000/2000)
+position setpoint          1.8: ``vehicle_local_position_setpoint``   ``trajectory_setpoint`` (x,y,z,
+                           (the controller's own setpoints);          vx,vy,vz; ``acceleration[3]``
+                           1.9: ``trajectory_setpoint`` (no           feed-forward from 1.11; 1.13:
+                           acceleration feed-forward until 1.11)      ``position[3]`` ...)
+========================== ========================================= ====================================
+
+PWM -> 0..1: PX4's multicopter mixer outputs ``u`` in [-1, 1] (``-1 + 2 * thrust`` with idle 0) and the
+output driver writes ``pwm = min + (u + 1) / 2 * (max - min)`` (``pwm_limit``/``output_limit``), so the
+normalised command is ``(pwm - min) / (max - min)`` with the log's own per-channel limits.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+
+__all__ = ["attitude_rates", "controls_torque", "pwm_limits", "setpoint_topic", "setpoint_arrays"]
+
+#: PX4 defaults (``PWM_DEFAULT_MIN``/``MAX``) where a log sets no limit at all
+PWM_DEFAULT = (1000.0, 2000.0)
+
+
+def attitude_rates(att: Any) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """Body rates (FRD, rad/s) from ``vehicle_attitude.rollspeed/pitchspeed/yawspeed`` (PX4 <= 1.9,
+    before ``vehicle_angular_velocity``): ``(t_s, (n, 3) FRD, source)``, None when not logged."""
+    if att is None or not att.has("rollspeed", "pitchspeed", "yawspeed"):
+        return None
+    w = att.cols(["rollspeed", "pitchspeed", "yawspeed"])
+    return att.t_s, w, "vehicle_attitude.rollspeed,pitchspeed,yawspeed (FRD)"
+
+
+def controls_torque(ac0: Any) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """The rate controller's normalised torque (FRD) from ``actuator_controls_0.control[0..2]``
+    (PX4 <= 1.13, before ``vehicle_torque_setpoint``); None when not logged."""
+    if ac0 is None or not ac0.has("control[0]", "control[1]", "control[2]"):
+        return None
+    return ac0.t_s, ac0.arr("control", 3), "actuator_controls_0.control[0..2] (FRD)"
+
+
+def _param(params: dict[str, float], name: str) -> float | None:
+    v = params.get(name)
+    return float(v) if v is not None and np.isfinite(v) else None
+
+
+def pwm_limits(params: dict[str, float], bank: str, chans: list[int]
+               ) -> tuple[np.ndarray, np.ndarray, str]:
+    """Each channel's PWM (min, max) [us] as PX4's mixer-era output driver set them, and how.
+
+    ``chans`` are 0-based channels of the ``PWM_{bank}`` outputs.  Per channel, as PX4 does:
+    ``PWM_{bank}_MINn``/``MAXn`` when set (>= 0; PX4 1.9-1.12 default them to -1 = unset,
+    ``rc.interface``: ``pwm min -c n -p p:PWM_MAIN_MINn``; PX4 1.13's ``PWMOut`` also treats its new
+    defaults 1000 / 2000 as unset), else the bank's ``PWM_{bank}_MIN``/``MAX`` (1.10+), else for MAIN
+    the 1.8-1.9 ``PWM_MIN``/``PWM_MAX``, else 1000 / 2000 us."""
+    era_113 = "SYS_CTRL_ALLOC" in params or any(k.startswith("PWM_MAIN_FUNC") for k in params)
+    out = []
+    for kind, i in (("MIN", 0), ("MAX", 1)):
+        glob = _param(params, f"PWM_{bank}_{kind}")
+        gname = f"PWM_{bank}_{kind}"
+        if glob is None and bank == "MAIN":
+            glob, gname = _param(params, f"PWM_{kind}"), f"PWM_{kind}"
+        if glob is None or glob <= 0:
+            glob, gname = PWM_DEFAULT[i], "PX4 default"
+        vals, names = [], []
+        for c in chans:
+            v = _param(params, f"PWM_{bank}_{kind}{c + 1}")
+            unset = v is None or v < 0 or (era_113 and v == PWM_DEFAULT[i])
+            vals.append(glob if unset else v)
+            names.append(gname if unset else f"PWM_{bank}_{kind}{c + 1}")
+        out.append((np.array(vals), names))
+    (lo, lo_n), (hi, hi_n) = out
+    bad = ~(hi > lo)
+    if bad.any():  # a corrupt pair: PX4 would not fly it either; keep the defaults there and say so
+        lo, hi = np.where(bad, PWM_DEFAULT[0], lo), np.where(bad, PWM_DEFAULT[1], hi)
+    srcs = list(dict.fromkeys(lo_n + hi_n))
+
+    def fmt(v: np.ndarray) -> str:
+        return f"{v[0]:.0f}" if np.all(v == v[0]) else "/".join(f"{x:.0f}" for x in v)
+
+    how = (f"{', '.join(srcs)}: {fmt(lo)}-{fmt(hi)} us"
+           + ("; max <= min on some channel: 1000-2000 us there" if bad.any() else ""))
+    return lo, hi, how
+
+
+def setpoint_topic(get: Callable[[str], Any]) -> tuple[Any, str] | tuple[None, None]:
+    """The position-control setpoint topic: ``trajectory_setpoint`` (PX4 >= 1.9), else PX4 1.8's
+    ``vehicle_local_position_setpoint`` (the position controller's own setpoints)."""
+    for name in ("trajectory_setpoint", "vehicle_local_position_setpoint"):
+        tp = get(name)
+        if tp is not None and (tp.has("position[0]") or tp.has("x", "y", "z")):
+            return tp, name
+    return None, None
+
+
+def _xyz(tp: Any, base: str, names: list[str]) -> np.ndarray | None:
+    if tp.has(f"{base}[0]"):
+        return tp.arr(base, 3)
+    if tp.has(*names):
+        return tp.cols(names)
+    return None
+
+
+def setpoint_arrays(tp: Any, name: str, lpos: Any, params: dict[str, float]
+                    ) -> dict[str, tuple[np.ndarray, str]]:
+    """Position / velocity / acceleration setpoints (NED) of the setpoint topic, as
+    ``{"position"|"velocity"|"acceleration": (values (n, 3), source)}``.
+
+    ``trajectory_setpoint``: ``position[3]`` (1.13+) or ``x,y,z``; ``velocity[3]`` or ``vx,vy,vz``
+    (the feed-forward); ``acceleration[3]`` (1.11+, which ``PositionControl`` adds to the velocity
+    loop's output).  PX4 1.9-1.10 log ``acc_x,acc_y,acc_z`` but their ``PositionControl`` only stores
+    them (no acceleration feed-forward), so they are not read: the twin flies what PX4 flew.
+
+    PX4 1.8's ``vehicle_local_position_setpoint`` holds the controller's own setpoints: ``vx..`` is
+    the velocity loop's input ``(pos_sp - pos) * MPC_XY_P/MPC_Z_P + feed-forward`` and ``acc_x..``
+    the thrust times g (``mc_pos_control_main.cpp``), so the feed-forward is taken back out of it
+    with the log's position and gains, and the acceleration is not read."""
+    out: dict[str, tuple[np.ndarray, str]] = {}
+    pos = _xyz(tp, "position", ["x", "y", "z"])
+    vel = _xyz(tp, "velocity", ["vx", "vy", "vz"])
+    if pos is not None:
+        out["position"] = (pos, f"{name} (NED)")
+    if name == "trajectory_setpoint":
+        if vel is not None:
+            out["velocity"] = (vel, f"{name} (NED)")
+        acc = tp.arr("acceleration", 3) if tp.has("acceleration[0]") else None
+        if acc is not None:
+            out["acceleration"] = (acc, f"{name}.acceleration (NED)")
+        return out
+    if vel is None:
+        return out
+    kxy, kz = _param(params, "MPC_XY_P"), _param(params, "MPC_Z_P")
+    if pos is None or lpos is None or not lpos.has("x", "y", "z") or kxy is None or kz is None:
+        return out  # no way to separate the feed-forward: fly the position setpoint alone
+    from twin_nodes.logs import time_sync
+
+    p_real = time_sync.interp_to(lpos.t_s, lpos.cols(["x", "y", "z"]), tp.t_s, kind="linear")
+    ff = vel - (pos - p_real) * np.array([kxy, kxy, kz])
+    out["velocity"] = (ff, f"{name}.vx,vy,vz - (x,y,z - position) * MPC_XY_P/MPC_Z_P "
+                           "(the feed-forward, NED)")
+    return out
+
+
+#: canonical series -> the PX4 fields it is read from, newest first (for the one-line error when a
+#: log has none of them)
+PX4_SOURCES: dict[str, str] = {
+    "position_enu": "vehicle_local_position.x,y,z",
+    "velocity_enu": "vehicle_local_position.vx,vy,vz",
+    "attitude_q": "vehicle_attitude.q",
+    "body_rates_flu": "vehicle_angular_velocity.xyz (PX4 >= 1.10) or vehicle_attitude.rollspeed,pitchspeed,"
+                      "yawspeed (PX4 <= 1.9)",
+    "motors": "actuator_motors.control (PX4 >= 1.13 with control allocation) or actuator_outputs.output "
+              "(PWM, motor channels moving while armed)",
+    "throttle": "vehicle_thrust_setpoint.xyz[2] (PX4 >= 1.12) or actuator_controls_0.control[3]",
+    "torque_setpoint_flu": "vehicle_torque_setpoint.xyz (PX4 >= 1.12) or actuator_controls_0.control[0..2]",
+    "setpoint_position_enu": "trajectory_setpoint.position or .x,y,z (PX4 >= 1.9) or "
+                             "vehicle_local_position_setpoint.x,y,z (PX4 1.8)",
+    "setpoint_velocity_enu": "trajectory_setpoint.velocity or .vx,vy,vz (PX4 >= 1.9) or "
+                             "vehicle_local_position_setpoint.vx,vy,vz with MPC_XY_P/MPC_Z_P (PX4 1.8)",
+    "nav_state": "vehicle_status.nav_state",
+    "armed": "vehicle_status.arming_state",
+    "landed": "vehicle_land_detected.landed",
+    "battery_v": "battery_status.voltage_v",
+    "gyro_flu": "sensor_combined.gyro_rad",
+    "specific_force_flu": "sensor_combined.accelerometer_m_s2",
+}
