@@ -17,7 +17,7 @@ from legacy_cases import to_px4_18_layout
 from testlogs import need_testlog
 from twin_nodes.base import frames as F
 from twin_nodes.cli import main
-from twin_nodes.logs.legacy_topics import pwm_limits
+from twin_nodes.logs.legacy_topics import output_limits, pwm_limits
 from twin_nodes.logs.ulog_io import read_ulog
 from twin_nodes.logs.ulog_write import write_px4_ulog
 
@@ -105,6 +105,52 @@ def test_pwm_aux_bank_and_a_corrupt_pair_are_said():
     assert list(lo) == [1100, 1100] and list(hi) == [1900, 1900] and "PWM_AUX_MIN" in how
     lo, hi, how = pwm_limits({"PWM_MAIN_MIN": 1500.0, "PWM_MAIN_MAX": 1400.0}, "MAIN", [0])
     assert (lo[0], hi[0]) == (1000, 2000) and "max <= min" in how
+
+
+def test_uavcan_and_dshot_units_per_px4():
+    """UAVCAN ESC raw commands (0..8191, PX4 1.9 ``(u + 1) / 2 x 8191``) and DShot (max(1, DSHOT_MIN x
+    1999)..1999, PX4 1.10-1.12) are told from PWM by their values and the log's parameters."""
+    raw = np.array([[4095.5, 6000.0], [2000.0, 8191.0]])
+    lo, hi, how = output_limits({"UAVCAN_ENABLE": 3.0}, "MAIN", [0, 1], raw)
+    assert list(lo) == [0, 0] and list(hi) == [8191, 8191] and "UAVCAN" in how
+    assert (raw[0, 0] - lo[0]) / (hi[0] - lo[0]) == pytest.approx(0.5, abs=1e-4)
+    # UAVCAN enabled but the motors on PWM (values in PWM's range): PWM limits
+    lo, hi, how = output_limits({"UAVCAN_ENABLE": 3.0, "PWM_MAIN_MIN": 1075.0, "PWM_MAIN_MAX": 1950.0},
+                                "MAIN", [0], np.array([[1100.0], [1700.0]]))
+    assert (lo[0], hi[0]) == (1075, 1950)
+    lo, hi, how = output_limits({"DSHOT_CONFIG": 600.0, "DSHOT_MIN": 0.055}, "MAIN", [0, 1, 2, 3],
+                                np.array([[110.0, 400, 1200, 1999]] * 2))
+    assert lo[0] == pytest.approx(109.0, abs=0.5) and hi[0] == 1999 and "DShot" in how
+    lo, _, _ = output_limits({"PWM_MAIN_TIM0": -3.0}, "MAIN", [0], np.array([[50.0]]))  # 1.13: DShot600
+    assert lo[0] == 1.0
+
+
+def test_mixer_idle_is_found_and_undone(tmp_path):
+    """A mixer file with idle 0.3 (``R: 4x ... 3000``): PX4 writes 0.3 + 0.7 x out; the reader finds the
+    idle from the log (mean motor against throttle) and gives back the mixer's command; with idle 0 it
+    changes nothing."""
+    base = UC.small_topics(dur_s=40.0)
+    t = base["vehicle_attitude"]["timestamp"]
+    n = t.size
+    s = (t - UC.T0_US) * 1e-6
+    thr = 0.45 + 0.1 * np.sin(0.7 * s)
+    cmd = np.clip(thr[:, None] + 0.03 * np.sin(3 * s)[:, None] * [1, -1, 1, -1], 0, 1)
+    c = np.zeros((n, 8), np.float32)
+    c[:, 3] = thr
+    st = base["vehicle_status"]
+    k = np.searchsorted(st["timestamp"], t, side="right") - 1
+    armed = st["arming_state"][k] == 2
+    for idle, name in ((0.3, "idle.ulg"), (0.0, "noidle.ulg")):
+        out = np.zeros((n, 16))
+        out[:, :4] = 1000 + 1000 * (idle + (1 - idle) * cmd)
+        out[~armed, :4] = 900.0
+        topics = _old(base, ("actuator_motors", "vehicle_thrust_setpoint"),
+                      actuator_outputs={"timestamp": t, "noutputs": np.full(n, 4), "output": out},
+                      actuator_controls_0={"timestamp": t, "control": c})
+        fl = _write(tmp_path, topics, {"MAV_TYPE": 2, "PWM_MIN": 1000, "PWM_MAX": 2000}, name)
+        m = fl.require("motors")
+        np.testing.assert_allclose(m.values[armed], cmd[armed], atol=1e-5)
+        assert ("mixer idle 0.300 undone" in m.source) == (idle > 0), m.source
 
 
 # --------------------------------------------------------------------------- torque / throttle
@@ -230,21 +276,54 @@ def test_px4_18_layout_flies_and_names_what_is_missing(tmp_path, capsys):
 
 # --------------------------------------------------------------------------- real logs
 
-@pytest.mark.parametrize("name", ["pyulog_sample", "pyulog_sample_appended_multiple"])
-def test_real_old_layout_logs_load_and_are_refused_in_one_line(name, capsys):
-    """Real PX4 logs of the old layout (pyulog's test data; 2016 master and 1.6-dev: vehicle_attitude
-    rates, PWM_MIN/MAX, actuator_controls_0, vehicle_local_position_setpoint): the reader takes each
-    old field; neither was flown (a bench log never armed; one landed throughout), which compare says
-    in one line."""
+#: real logs that are not flights: each must load (its old fields read) and be refused in one line
+NOT_FLIGHTS = {
+    "toopazo_v5_log156": "too short",  # PX4 1.9.0-dev, armed 5 s on the ground
+    "mch_v5_test2": "never airborne",  # PX4 1.13.2-dev, never armed (its -inf battery current left out)
+    "pyulog_sample_appended_multiple": "never airborne",  # PX4 1.6-dev, landed throughout
+    "roboto_v5_test": "without GPS",  # PX4 1.12.3-dev, an 8 s hop with no horizontal position
+}
+
+
+@pytest.mark.parametrize("name", sorted(NOT_FLIGHTS))
+def test_real_old_logs_that_are_no_flights_load_and_are_refused_in_one_line(name, capsys):
     p = need_testlog(name)
     fl = read_ulog(p)
-    assert fl.require("body_rates_flu").source.startswith("vehicle_attitude.rollspeed")
-    assert fl.require("throttle").source == "actuator_controls_0.control[3]"
-    assert fl.require("torque_setpoint_flu").source.startswith("actuator_controls_0")
+    assert fl.get("body_rates_flu") is not None and fl.get("attitude_q") is not None
+    if name in ("toopazo_v5_log156", "pyulog_sample_appended_multiple"):  # PX4 <= 1.9 layout
+        assert fl.require("body_rates_flu").source.startswith("vehicle_attitude.rollspeed")
+        assert fl.require("torque_setpoint_flu").source.startswith("actuator_controls_0")
+    if name == "toopazo_v5_log156":  # armed on the ground, motors at idle: PWM_MIN 1200 -> 0..0.05
+        m = fl.require("motors")
+        assert "PWM_MIN" in m.source and np.nanmax(m.values) == pytest.approx((1254 - 1200) / 750, abs=1e-3)
+    if name == "mch_v5_test2":
+        assert fl.get("battery_a") is None and any("battery_a" in w and "left out" in w for w in fl.warnings)
     capsys.readouterr()
     assert main(["compare", "--offline", str(p)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert "never airborne" in err[-1] and not any("Traceback" in e for e in err)
+    assert NOT_FLIGHTS[name] in err[-1] and not any("Traceback" in e for e in err), err
+
+
+@pytest.mark.slow
+def test_real_px4_19_uavcan_mission_flies(tmp_path):
+    """PX4 1.9.0-beta (the corpus' tuning half): body rates from vehicle_attitude, UAVCAN ESC raw
+    commands on actuator_outputs[1] (not instance 0), the custom mixer's idle 0.30 found and undone,
+    trajectory_setpoint's 1.9 field names (its acc_x.. not flown, as PX4 1.9 did not); compare flies it
+    (docs/real_logs.md has the numbers it gives)."""
+    p = need_testlog("auterion_v3_esc_status")
+    fl = read_ulog(p)
+    m = fl.require("motors")
+    assert m.source.startswith("actuator_outputs[1].output[0,1,2,3] (UAVCAN ESC raw commands 0-8191")
+    idle = float(m.source.split("mixer idle ")[1].split()[0])
+    assert idle == pytest.approx(0.30, abs=0.01)
+    assert fl.moving_outputs == (4, "actuator_outputs[1].output")
+    assert fl.require("body_rates_flu").source.startswith("vehicle_attitude.rollspeed")
+    assert fl.require("setpoint_position_enu").source == "trajectory_setpoint (NED)"
+    assert fl.get("setpoint_accel_enu") is None
+    out = tmp_path / "m.json"
+    assert main(["compare", "--offline", str(p), "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["n_samples"] > 1000 and r["throttle_rmse"] < 0.12 and r["xy_rmse_m"] < 4.0
 
 
 @pytest.mark.slow

@@ -184,3 +184,83 @@ PX4_SOURCES: dict[str, str] = {
     "gyro_flu": "sensor_combined.gyro_rad",
     "specific_force_flu": "sensor_combined.accelerometer_m_s2",
 }
+
+
+#: UAVCAN ESC raw command full scale (``uavcan::equipment::esc::RawCommand.cmd``, 14 bit): PX4 1.9 writes
+#: ``(u + 1) / 2 * 8191`` into actuator_outputs, 1.11+ its mixer output between 0 (1 with
+#: ``UAVCAN_ESC_IDLT``) and 8191; 65535 = disarmed (``DISARMED_OUTPUT_VALUE``)
+UAVCAN_RAW_MAX = 8191.0
+#: DShot throttle full scale (``DSHOT_MAX_THROTTLE``; 0 = disarmed, minimum ``DSHOT_MIN`` x 1999, >= 1)
+DSHOT_MAX = 1999.0
+#: no PWM output is below this while armed (``PWM_LOWEST_MIN`` 90 us is a servo's; motor minimums are
+#: 900+): channels of a PWM bank must stay above it, DShot/UAVCAN channels need not
+PWM_ARMED_FLOOR = 800.0
+
+
+def output_protocol(params: dict[str, float]) -> str:
+    """``'uavcan'`` when UAVCAN ESCs are enabled (``UAVCAN_ENABLE`` >= 3), ``'dshot'`` when DShot is
+    configured (``DSHOT_CONFIG`` > 0, PX4 1.10-1.12; a ``PWM_*_TIMn`` of -5..-2, 1.13+), else ``'pwm'``."""
+    if (_param(params, "UAVCAN_ENABLE") or 0) >= 3:
+        return "uavcan"
+    tim = [v for k, v in params.items() if k.startswith(("PWM_MAIN_TIM", "PWM_AUX_TIM")) and np.isfinite(v)]
+    if (_param(params, "DSHOT_CONFIG") or 0) > 0 or any(-5 <= v <= -2 for v in tim):
+        return "dshot"
+    return "pwm"
+
+
+def armed_floor(params: dict[str, float]) -> float:
+    """The lowest armed value a motor channel may have in this log's outputs (see PWM_ARMED_FLOOR)."""
+    return PWM_ARMED_FLOOR if output_protocol(params) == "pwm" else 1.0
+
+
+def output_limits(params: dict[str, float], bank: str, chans: list[int], armed: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, str]:
+    """Each motor channel's (value at zero thrust, value at full thrust) in ``actuator_outputs`` units and
+    how, for the mixer era (no output functions): PWM per :func:`pwm_limits`; UAVCAN raw commands
+    (values above PWM's range while UAVCAN ESCs are enabled) 0..8191, or ``UAVCAN_EC_MINn/MAXn``;
+    DShot (values below PWM's range while DShot is configured) ``max(1, DSHOT_MIN x 1999)``..1999.
+    ``armed``: the channels' values while armed, (n, len(chans))."""
+    proto = output_protocol(params)
+    finite = armed[np.isfinite(armed)]
+    top = float(finite.max()) if finite.size else 0.0
+    low = float(finite.min()) if finite.size else PWM_ARMED_FLOOR
+    k = len(chans)
+    if proto == "uavcan" and top > 2500.0:
+        lo = np.array([_param(params, f"UAVCAN_EC_MIN{c + 1}") or 0.0 for c in chans])
+        hi = np.array([_param(params, f"UAVCAN_EC_MAX{c + 1}") or UAVCAN_RAW_MAX for c in chans])
+        return lo, hi, f"UAVCAN ESC raw commands {lo.min():.0f}-{hi.max():.0f} (UAVCAN_ENABLE >= 3)"
+    if proto == "dshot" and low < PWM_ARMED_FLOOR:
+        dmin = _param(params, "DSHOT_MIN")
+        lo = float(np.clip(int((dmin or 0.0) * DSHOT_MAX), 1.0, DSHOT_MAX))  # PX4 casts to int
+        return (np.full(k, lo), np.full(k, DSHOT_MAX),
+                f"DShot throttle {lo:.0f}-{DSHOT_MAX:.0f} (DSHOT_MIN {dmin if dmin is not None else 'unset'})")
+    return pwm_limits(params, bank, chans)
+
+
+def mixer_idle(motors: Any, throttle: Any, airborne: list[tuple[float, float]]) -> tuple[float, str] | None:
+    """The idle speed of a PX4 1.8-1.13 multicopter mixer file (the ``R:`` line's last number), found in
+    the log: that mixer writes ``idle + (1 - idle) x out`` (``mixer_multirotor.cpp``: ``_idle_speed +
+    outputs[i] * (1 - _idle_speed)``), so the mean motor command is ``idle + (1 - idle) x throttle``
+    where nothing saturates.  Stock mixers have idle 0 (PWM_MIN gives the idle), and then the fit is
+    0.000/1.000 on every shared log; a custom one (e.g. UAVCAN ESCs) shows here.  Returns
+    ``(idle, how)`` when the fit is clear (intercept > 0.05, intercept + slope within 0.03 of 1,
+    residual < 0.02 over a throttle range >= 0.1), else None."""
+    t = motors.t_s
+    inside = np.zeros(t.size, bool)
+    for a, b in airborne:
+        inside |= (t > a + 2.0) & (t < b - 2.0)
+    if inside.sum() < 50:
+        return None
+    u = motors.values[inside]
+    x = throttle.at(t[inside])[:, 0]
+    ok = np.all(np.isfinite(u), 1) & np.isfinite(x) & (u.max(1, initial=0) < 0.99) & (u.min(1, initial=1) > 0.01)
+    if ok.sum() < 50 or np.ptp(x[ok]) < 0.1:
+        return None
+    A = np.column_stack([np.ones(ok.sum()), x[ok]])
+    y = u[ok].mean(1)
+    (a, b), *_ = np.linalg.lstsq(A, y, rcond=None)
+    resid = float(np.std(y - A @ [a, b]))
+    if a > 0.05 and abs(a + b - 1.0) < 0.03 and resid < 0.02:
+        return float(a), (f"mixer idle {a:.3f} undone (mean motor = {a:.3f} + {b:.3f} x throttle, "
+                          f"residual {resid:.4f}, {int(ok.sum())} samples)")
+    return None

@@ -883,13 +883,16 @@ def _motors_from_pwm(
         how = (f"PWM_{bank}_FUNCn; PWM_{bank}_MINn/MAXn "
                f"{'/'.join(f'{v:.0f}' for v in lo)}-{'/'.join(f'{v:.0f}' for v in hi)} us")
     else:
-        inst, chans = _guess_motor_channels(aos, n, topics)
+        inst, chans = _guess_motor_channels(aos, n, topics, legacy_topics.armed_floor(params))
         if inst is None:
             warnings.append(f"motors: no actuator_outputs instance has {n} motor-like channels "
                             "(varying while armed, disarm value when disarmed); no motors series")
             return None
         bank = "MAIN" if inst == 0 else "AUX"
-        lo, hi, how = legacy_topics.pwm_limits(params, bank, chans)  # the mixer era's limits
+        armed = _armed_at(topics, aos[inst].t_s)
+        o = aos[inst].arr("output", 16)[:, chans]
+        # the mixer era's limits: PWM per PX4 version, or UAVCAN/DShot units
+        lo, hi, how = legacy_topics.output_limits(params, bank, chans, o[armed] if armed is not None else o)
         why = (f"output-function parameters map only {len(mapping)} of {n} motors" if mapping
                else "no output-function parameters")
         warnings.append(f"motors: {why}; channels {chans} of actuator_outputs[{inst}] chosen "
@@ -897,7 +900,7 @@ def _motors_from_pwm(
     tp = aos[inst]
     pwm = tp.arr("output", 16)[:, chans]
     u = (pwm - lo) / (hi - lo)
-    stopped = (pwm < lo - 1.0) | ~np.isfinite(pwm)
+    stopped = (pwm < lo - 1.0) | (pwm > hi + 1.0) | ~np.isfinite(pwm)
     armed = _armed_at(topics, tp.t_s)
     if armed is not None:
         stopped |= ~armed[:, None]
@@ -913,34 +916,61 @@ def _motors_from_pwm(
     return _series("motors", tp.t_s, u, src)
 
 
+def _undo_mixer_idle(out: dict[str, Series], warnings: list[str]) -> None:
+    """Mixer-era motor outputs of a mixer file with an idle speed (legacy_topics.mixer_idle) mapped
+    back to the mixer's thrust command, ``(u - idle) / (1 - idle)``, as actuator_motors would be."""
+    m, thr = out.get("motors"), out.get("throttle")
+    if m is None or thr is None or not m.source.startswith("actuator_outputs"):
+        return
+    flag = out.get("landed") or out.get("armed")
+    if flag is None:
+        return
+    air = _true_intervals(flag.t_s, flag.values[:, 0] < 0.5 if "landed" in out else flag.values[:, 0] > 0.5,
+                          float(m.t_s[-1]))
+    found = legacy_topics.mixer_idle(m, thr, air)
+    if found is None:
+        return
+    idle, how = found
+    u = np.clip((m.values - idle) / (1.0 - idle), 0.0, 1.0)
+    out["motors"] = Series(m.t_s, u, m.units, m.frame, f"{m.source[:-1]}; {how})", m.interp)
+    warnings.append(f"motors: {how}")
+
+
 def moving_motor_outputs(topics: dict[tuple[str, int], _Topic]) -> tuple[int, str] | None:
     """How many motor outputs move while armed: ``actuator_motors.control[0..11]`` channels whose
     armed values range (max - min) over more than 0.001 (PX4 >= 1.13 with control allocation), else the
-    ``actuator_outputs`` MAIN instance (multi_id 0, the mixer's outputs: MAIN channel i = mixer row i)
-    channels whose armed PWM ranges over more than 5 us (unused channels sit at the disarmed value).
-    None when neither topic is logged."""
+    channels of the ``actuator_outputs`` instance with the most of them (the mixer's outputs: channel i =
+    mixer row i) whose armed value ranges over more than 5 (us of PWM; unused channels sit at the
+    disarmed value).  None when neither topic is logged."""
     am = _first_instance(topics, "actuator_motors")
     if am is not None and am.has("control[0]"):
         k = next(i for i in range(17) if i == 16 or not am.has(f"control[{i}]"))
-        c, what, thr = am.arr("control", k), "actuator_motors.control", 1e-3
-        t = am.t_s
-    else:
-        ao = topics.get(("actuator_outputs", 0))
-        if ao is None or not ao.has("output[0]"):
-            return None
+        c = am.arr("control", k)
+        return _count_moving(topics, am.t_s, c, 1e-3), "actuator_motors.control"
+    # the mixer era: the instance whose channels move most (MAIN is instance 0 on most boards, but on
+    # Pixhawks with an IO co-processor or UAVCAN ESCs the mixer's outputs may be another instance)
+    best: tuple[int, str] | None = None
+    for (name, mid), ao in sorted(topics.items()):
+        if name != "actuator_outputs" or not ao.has("output[0]"):
+            continue
         k = next(i for i in range(17) if i == 16 or not ao.has(f"output[{i}]"))
-        c, what, thr = ao.arr("output", k), "actuator_outputs[0].output", 5.0
-        t = ao.t_s
+        m = _count_moving(topics, ao.t_s, ao.arr("output", k), 5.0)
+        if best is None or m > best[0]:
+            best = (m, f"actuator_outputs[{mid}].output")
+    return best
+
+
+def _count_moving(topics: dict[tuple[str, int], _Topic], t: np.ndarray, c: np.ndarray, thr: float) -> int:
     armed = _armed_at(topics, t)
     if armed is not None and armed.any():
         c = c[armed]
     if c.shape[0] < 2:
-        return 0, what
+        return 0
     with np.errstate(invalid="ignore"):
         finite = np.isfinite(c)
         spread = np.array([np.ptp(c[finite[:, j], j]) if finite[:, j].sum() > 1 else 0.0
                            for j in range(c.shape[1])])
-    return int(np.sum(spread > thr)), what
+    return int(np.sum(spread > thr))
 
 
 def _channels_vary(tp: _Topic, chans: list[int], topics: dict[tuple[str, int], _Topic]) -> bool:
@@ -954,7 +984,7 @@ def _channels_vary(tp: _Topic, chans: list[int], topics: dict[tuple[str, int], _
 
 
 def _guess_motor_channels(
-    aos: dict[int, _Topic], n: int, topics: dict[tuple[str, int], _Topic]
+    aos: dict[int, _Topic], n: int, topics: dict[tuple[str, int], _Topic], floor: float = 800.0
 ) -> tuple[int | None, list[int]]:
     for inst in sorted(aos):
         tp = aos[inst]
@@ -966,8 +996,8 @@ def _guess_motor_channels(
             armed = np.ones(o.shape[0], bool)
         oa = o[armed] if armed.any() else o
         varies = np.nanstd(oa, axis=0) > 5.0 if oa.shape[0] > 1 else np.zeros(16, bool)
-        in_range = np.nanmin(oa, axis=0) >= 800.0 if oa.size else np.zeros(16, bool)
-        low_when_disarmed = (np.nanmin(o, axis=0) < 1000.0) | ((~armed).sum() == 0)
+        in_range = np.nanmin(oa, axis=0) >= floor if oa.size else np.zeros(16, bool)
+        low_when_disarmed = (np.nanmin(o, axis=0) <= 1000.0) | ((~armed).sum() == 0)  # PWM_DISARMED 900 or 1000
         good = np.flatnonzero(varies & in_range & low_when_disarmed)
         if good.size >= n:
             return inst, [int(c) for c in good[:n]]
@@ -1255,6 +1285,7 @@ def _build_series(
             "groundtruth_body_rates_flu", gw.t_s, frames.frd_to_flu(gw.arr("xyz", 3)),
             "vehicle_angular_velocity_groundtruth.xyz (FRD)")
 
+    _undo_mixer_idle(out, warnings)  # needs landed/armed
     if n_src.startswith("default"):
         warnings.append(f"n_motors = {n_motors}: no CA_ROTOR_COUNT, output functions or MAV_TYPE")
     return out, n_motors
@@ -1280,6 +1311,9 @@ VALUE_LIMITS: dict[str, tuple[float, str]] = {
 #: quaternion series: rows whose norm is this far from 1 (or zero) are corrupt
 _QUAT_SERIES = ("attitude_q", "groundtruth_attitude_q")
 _QUAT_NORM_TOL = 0.1
+#: series no twin needs (a log without them flies): when corrupt they are left out with a warning, not
+#: refused (PX4 1.13.2 logs battery_status.current_a = -inf without a current sensor)
+_OPTIONAL_SERIES = ("battery_v", "battery_a", "esc_rpm", "height_agl", "hover_thrust")
 #: more than this fraction of a series' samples corrupt: the series is refused, not repaired
 _MAX_BAD_FRACTION = 0.5
 
@@ -1321,6 +1355,11 @@ def _check_values(path: str, series: dict[str, Series], warnings: list[str]) -> 
         if out.any():
             what.append(f"{int(out.sum())} out of range ({worst})")
         if n_bad > _MAX_BAD_FRACTION * n or n - n_bad < 2:
+            if name in _OPTIONAL_SERIES:  # nothing flies on it: left out, said
+                warnings.append(f"{name} ({field_}): left out, {n_bad} of {n} samples are not "
+                                f"{expected}: " + ", ".join(what))
+                del series[name]
+                continue
             raise LogError(path, field_, f"expected {expected}; {n_bad} of {n} samples are not: "
                                          + ", ".join(what))
         t = s.t_s[bad]
