@@ -348,3 +348,17 @@ def test_real_px4_111_flight_in_px4_18_layout(tmp_path):
     m = json.loads(out.read_text())
     assert m["throttle_rmse"] < 0.03 and m["motor_p75_mean"] < 0.06
     assert m["xy_rmse_m"] < 1.2 and m["z_rmse_m"] < 0.5
+
+
+def test_yaw_law_before_px4_111_from_its_parameters():
+    """PX4 < 1.11 (no MC_YAW_WEIGHT) weighed yaw by MC_YAW_P / mean(MC_ROLL_P, MC_PITCH_P) and did not
+    divide the yaw gain by it: the yaw error reaches the rate setpoint with MC_YAW_P x that weight."""
+    from twin_nodes.vehicle.px4_params import outer_loop_gains
+
+    old = {"MC_ROLL_P": 6.5, "MC_PITCH_P": 6.0, "MC_YAW_P": 2.8}
+    g, src = outer_loop_gains(old, 0.5)
+    w = 2.8 / 6.25
+    assert g["yaw_weight"] == pytest.approx(w) and g["yaw_p_1_s"] == pytest.approx(2.8 * w)
+    assert "PX4 < 1.11" in src["yaw_p_1_s"]
+    g, _ = outer_loop_gains(dict(old, MC_YAW_WEIGHT=0.4), 0.5)  # 1.11+: MC_YAW_P as it is
+    assert g["yaw_p_1_s"] == pytest.approx(2.8) and g["yaw_weight"] == pytest.approx(0.4)

@@ -340,7 +340,24 @@ def outer_loop_gains(params: Mapping[str, float], hover_thrust: float,
             sources[key] = f"log parameter {legacy} x g / hover thrust (pre-v1.12 units)"
             continue
         gains[key], sources[key] = param(params, name or names[0], default)
+    if "MC_YAW_WEIGHT" not in params and "MC_YAW_P" in params:
+        _old_yaw_law(params, gains, sources)
     return gains, sources
+
+
+def _old_yaw_law(params: Mapping[str, float], gains: dict[str, float], sources: dict[str, str]) -> None:
+    """PX4 before 96bbc63 (2020-03, v1.11; no ``MC_YAW_WEIGHT``): the reduced-attitude mix weighs yaw by
+    ``yaw_w = MC_YAW_P / ((MC_ROLL_P + MC_PITCH_P) / 2)`` (clamped to [0, 1]) and then applies
+    ``MC_YAW_P`` undivided (``mc_att_control_main.cpp`` 1.8, ``AttitudeControl.cpp`` 1.9-1.10), so the
+    yaw error reaches the rate setpoint with ``MC_YAW_P x yaw_w``; the twin's yaw law is that gain."""
+    rp = 0.5 * (gains["roll_p_1_s"] + gains["pitch_p_1_s"])
+    w = min(max(gains["yaw_p_1_s"] / rp, 0.0), 1.0) if rp > 0 else 1.0
+    gains["yaw_weight"] = w
+    sources["yaw_weight"] = (f"MC_YAW_P / mean(MC_ROLL_P, MC_PITCH_P) = {w:.3g} (PX4 < 1.11 has no MC_YAW_WEIGHT: "
+                             "its yaw weight)")
+    gains["yaw_p_1_s"] *= w
+    sources["yaw_p_1_s"] = (f"log parameter MC_YAW_P x that yaw weight = {gains['yaw_p_1_s']:.3g} (PX4 < 1.11 "
+                            "did not divide the yaw gain by the weight)")
 
 
 @dataclass(frozen=True)
