@@ -5,7 +5,8 @@ missing it asks this module for what older PX4 logged instead.  What PX4 logged 
 read from PX4-Autopilot's own source (``src/modules/logger/logger.cpp`` (1.8-1.10) /
 ``logged_topics.cpp`` (1.11+), ``msg/*.msg``, ``ROMFS/px4fmu_common/init.d/rc.interface``,
 ``src/drivers/pwm_out/PWMOut.cpp``, ``src/lib/mixer/mixer_multirotor.cpp``); docs/real_logs.md has
-the table.  In short (default logger profile):
+the table, and how UAVCAN/DShot outputs and a mixer idle are told apart.  In short (default logger
+profile):
 
 ========================== ========================================= ====================================
 quantity                   PX4 1.8 - 1.9                              1.10 - 1.12 (1.13: both)
@@ -16,8 +17,8 @@ collective / torque        ``actuator_controls_0.control[3]`` /       same; 1.12
                            ``control[0..2]`` (normalised, 100 ms)     ``vehicle_thrust/torque_setpoint``
 motors                     ``actuator_outputs`` PWM, 100 ms (10 Hz)   same; 1.13 ``actuator_motors``
                                                                       with control allocation
-PWM limits                 ``PWM_MIN/MAX`` (1.8), per channel         ``PWM_MAIN_MIN/MAX``, per channel
-                           ``PWM_MAIN_MINn/MAXn`` when >= 0 (1.9+)    ``PWM_MAIN_MINn/MAXn`` when >= 0
+PWM limits                 ``PWM_MIN/MAX`` (1.8), per channel         ``PWM_MIN/MAX`` (``PWM_MAIN_MIN/MAX``
+                           ``PWM_MAIN_MINn/MAXn`` when >= 0 (1.9+)    from 1.12), per channel when >= 0
                                                                       (1.13: and not 1000/2000)
 position setpoint          1.8: ``vehicle_local_position_setpoint``   ``trajectory_setpoint`` (x,y,z,
                            (the controller's own setpoints);          vx,vy,vz; ``acceleration[3]``
@@ -71,7 +72,7 @@ def pwm_limits(params: dict[str, float], bank: str, chans: list[int]
     ``chans`` are 0-based channels of the ``PWM_{bank}`` outputs.  Per channel, as PX4 does:
     ``PWM_{bank}_MINn``/``MAXn`` when set (>= 0; PX4 1.9-1.12 default them to -1 = unset,
     ``rc.interface``: ``pwm min -c n -p p:PWM_MAIN_MINn``; PX4 1.13's ``PWMOut`` also treats its new
-    defaults 1000 / 2000 as unset), else the bank's ``PWM_{bank}_MIN``/``MAX`` (1.10+), else for MAIN
+    defaults 1000 / 2000 as unset), else the bank's ``PWM_{bank}_MIN``/``MAX`` (1.12+), else for MAIN
     the 1.8-1.9 ``PWM_MIN``/``PWM_MAX``, else 1000 / 2000 us."""
     era_113 = "SYS_CTRL_ALLOC" in params or any(k.startswith("PWM_MAIN_FUNC") for k in params)
     out = []
