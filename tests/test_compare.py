@@ -101,7 +101,7 @@ def test_runner_flies_px4_manual_modes_and_the_params_wind():
     windy = vp.with_effect("wind", vx=3.0, vy=-1.0)
     assert TwinRunner(windy).ext[1:4].tolist() == [3.0, -1.0, 0.0]
     assert TwinRunner(vp).ext[1:4].tolist() == [0.0, 0.0, 0.0]
-    assert MANUAL_NAV_STATES == (0.0, 10.0, 15.0)
+    assert MANUAL_NAV_STATES == (0.0, 10.0, 15.0, 16.0)  # 16: RATTITUDE (PX4 <= 1.11)
 
     r = TwinRunner(vp)
     q = [1.0, 0.0, 0.0, 0.0]

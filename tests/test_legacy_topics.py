@@ -197,7 +197,9 @@ def test_px4_18_position_controller_setpoints_give_back_the_feed_forward(tmp_pat
     assert "MPC_XY_P" in v.source and v.source.startswith("vehicle_local_position_setpoint")
     np.testing.assert_allclose(v.values, F.ned_to_enu(ff), atol=1e-5)
     assert fl.get("setpoint_accel_enu") is None  # 1.8's acc_x.. is thrust x g, not a feed-forward
-    assert fl.require("setpoint_yaw_enu").values[0, 0] == pytest.approx(np.pi / 2 - 0.3, abs=1e-6)
+    ys = fl.require("setpoint_yaw_enu")
+    assert ys.values[0, 0] == pytest.approx(np.pi / 2 - 0.3, abs=1e-6)
+    assert "trajectory_setpoint" not in ys.source and "vehicle_local_position_setpoint" in ys.source
     # without the gains the feed-forward cannot be separated: the position setpoint alone
     fl2 = _write(tmp_path, topics, {"CA_ROTOR_COUNT": 4}, "nogain.ulg")
     assert fl2.get("setpoint_velocity_enu") is None and fl2.get("setpoint_position_enu") is not None

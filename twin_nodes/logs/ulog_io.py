@@ -163,9 +163,10 @@ SERIES_SPEC: dict[str, tuple[str, str, str]] = {
     "groundtruth_body_rates_flu": ("rad/s", "FLU", "linear"),
 }
 
-#: PX4 vehicle_status.nav_state values in which mc_pos_control does not run (MANUAL, ACRO, STAB): the
-#: attitude setpoint and collective thrust come from the pilot's sticks
-MANUAL_NAV_STATES = (0.0, 10.0, 15.0)
+#: PX4 vehicle_status.nav_state values in which mc_pos_control does not run (MANUAL, ACRO, STAB, and
+#: RATTITUDE 16 of PX4 <= 1.11, unused since): the attitude setpoint and collective thrust come from the
+#: pilot's sticks
+MANUAL_NAV_STATES = (0.0, 10.0, 15.0, 16.0)
 
 #: topics read from the log (everything else is skipped by pyulog's filter)
 TOPICS = (
@@ -1225,6 +1226,11 @@ def _build_series(
                                                frames.yawspeed_ned_to_enu(ts.col("yawspeed")),
                                                f"{ts_name}.yawspeed (NED heading rate)")
         _yaw_from_attitude_setpoint(get("vehicle_attitude_setpoint"), ts, out)
+        for k in ("setpoint_yaw_enu", "setpoint_yawspeed"):  # name the setpoint topic this PX4 logged
+            if ts_name != "trajectory_setpoint" and k in out and "trajectory_setpoint" in out[k].source:
+                s = out[k]
+                out[k] = Series(s.t_s, s.values, s.units, s.frame, s.source.replace("trajectory_setpoint", ts_name),
+                                s.interp)
     else:
         missing("trajectory_setpoint", "setpoint_*")
 
