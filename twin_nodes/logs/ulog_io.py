@@ -69,25 +69,33 @@ means "unknown / not controlled / stopped", never zero.
 Motor commands (``motors``, (n, N) in [0, 1], PX4 motor order, NaN = stopped):
 
 1. ``actuator_motors.control[0..N-1]`` when logged (PX4 >= v1.14);
-2. else ``actuator_outputs`` PWM.  Channels come from the output-function
+2. else ``actuator_outputs``.  Channels come from the output-function
    parameters (``PWM_MAIN_FUNCn``/``PWM_AUX_FUNCn`` = 101..112 = Motor1..12; MAIN
    is instance 0, AUX instance 1) scaled by the per-channel
    ``PWM_MAIN_MINn``/``MAXn``; without function parameters (PX4 <= v1.13, the
-   old mixer) by the single ``PWM_MAIN_MIN``/``MAX`` (the X500 log has both sets,
-   and its armed idle sits at PWM_MAIN_MIN = 1075 us, so the old mixer used the
-   single pair), choosing the lowest instance with N channels that vary while
-   armed and drop to the disarm value when disarmed.  A PWM below the channel's
-   minimum (900 us disarm, 0) or a sample while disarmed -> NaN.  PX4 applies the
-   inverse thrust model (``THR_MDL_FAC`` f) before output scaling, so the PWM
-   value u is mapped back with ``f u^2 + (1 - f) u`` (f = 0 in all shared logs;
-   on them the PWM route matches actuator_motors to a median 0.0005).
-   DShot/UAVCAN outputs are not decoded this way (only matters for logs without
-   ``actuator_motors``).
+   old mixer) the lowest instance with N channels that vary while armed and drop
+   to the disarm value when disarmed, scaled as that PX4 version's output driver
+   did (:func:`twin_nodes.logs.legacy_topics.output_limits`: per-channel
+   ``PWM_MAIN_MINn/MAXn`` where set, else ``PWM_MAIN_MIN/MAX`` (1.12+) or
+   ``PWM_MIN/MAX`` (1.8-1.11); UAVCAN raw commands 0..8191; DShot; the X500 log
+   has both sets, and its armed idle sits at PWM_MAIN_MIN = 1075 us, as 1.13's
+   driver treats per-channel 1000/2000 as unset).  A value below the channel's
+   minimum (900 us disarm, 0) or above its maximum, or a sample while disarmed
+   -> NaN.  PX4 applies the inverse thrust model (``THR_MDL_FAC`` f) before
+   output scaling, so the value u is mapped back with ``f u^2 + (1 - f) u`` (f =
+   0 in all shared logs; on them the PWM route matches actuator_motors to a
+   median 0.0005); a custom mixer file's idle speed, found in the log, is undone
+   (:func:`twin_nodes.logs.legacy_topics.mixer_idle`).
 
 ``N`` (``FlightLog.n_motors``) is ``CA_ROTOR_COUNT``, else the number of motor
 output functions, else from ``MAV_TYPE`` (quad 4, hexa 6, octo 8, tri 3).
 ``FlightLog.moving_outputs`` counts the motor outputs that move while armed
 (:func:`moving_motor_outputs`), against which a layout without ``CA_*`` is checked.
+
+Older topic sets (PX4 1.8-1.13) are read where the newer topic is missing, by
+:mod:`twin_nodes.logs.legacy_topics`: body rates from ``vehicle_attitude.rollspeed..``,
+torque from ``actuator_controls_0``, PX4 1.8's ``vehicle_local_position_setpoint``,
+each version's setpoint field names (docs/real_logs.md has the table).
 """
 
 from __future__ import annotations
@@ -923,8 +931,8 @@ def _undo_mixer_idle(out: dict[str, Series], warnings: list[str]) -> None:
     m, thr = out.get("motors"), out.get("throttle")
     if m is None or thr is None or not m.source.startswith("actuator_outputs"):
         return
-    flag = out.get("landed") or out.get("armed")
-    if flag is None:
+    flag = out["landed"] if "landed" in out else out.get("armed")
+    if flag is None or len(flag) == 0:
         return
     air = _true_intervals(flag.t_s, flag.values[:, 0] < 0.5 if "landed" in out else flag.values[:, 0] > 0.5,
                           float(m.t_s[-1]))
