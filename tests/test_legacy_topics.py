@@ -364,3 +364,19 @@ def test_yaw_law_before_px4_111_from_its_parameters():
     assert "PX4 < 1.11" in src["yaw_p_1_s"]
     g, _ = outer_loop_gains(dict(old, MC_YAW_WEIGHT=0.4), 0.5)  # 1.11+: MC_YAW_P as it is
     assert g["yaw_p_1_s"] == pytest.approx(2.8) and g["yaw_weight"] == pytest.approx(0.4)
+
+
+@pytest.mark.parametrize("name", sorted(NOT_FLIGHTS) + ["auterion_v3_esc_status"])
+def test_cached_test_logs_are_the_listed_blobs(name):
+    """tools/fetch_testlogs.py keeps a file only when its git blob id is the listed one; the cache holds
+    exactly those bytes (git hash-object)."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("fetch_testlogs", Path(__file__).parents[1] / "tools" /
+                                                  "fetch_testlogs.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    p = need_testlog(name)
+    assert mod.blob_id(p.read_bytes()) == p.stem
+    assert mod.blob_id(b"") == "e69de29bb2d1d6434b8b29ae775ad8c2e48c5391"  # git's empty blob
