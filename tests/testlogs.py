@@ -1,8 +1,9 @@
 """Public PX4 logs fetched into a private cache, never into the repository.
 
 ``TESTLOGS`` names each log by its repository, commit, path and git blob id; the file is kept as
-``<cache>/<blob>.ulg`` (``$ROTORTWIN_TESTLOGS``, else ``~/.cache/rotortwin/testlogs``) and fetched
-again with ``python tools/fetch_testlogs.py``, which checks the blob id.  A test that needs one calls
+``<cache>/<blob>.ulg`` (``$ROTORTWIN_TESTLOGS``, else ``~/.cache/rotortwin/testlogs``; else the corpus
+cache's tuning half, where those logs carry the same name) and fetched again with
+``python tools/fetch_testlogs.py``, which checks the blob id.  A test that needs one calls
 :func:`need_testlog`, which skips with a one-line reason when it is absent.
 """
 
@@ -42,8 +43,17 @@ def cache_dir() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "rotortwin" / "testlogs"
 
 
+def corpus_tuning_dir() -> Path:
+    """The corpus cache's tuning half (tools/corpus_fetch.py of the corpus branch): the same logs under
+    their corpus id; its judging half is never looked at."""
+    env = os.environ.get("ROTORTWIN_CORPUS", "").strip()
+    return (Path(env) if env else Path.home() / ".cache" / "rotortwin" / "corpus") / "tuning"
+
+
 def testlog_path(name: str) -> Path:
-    return cache_dir() / f"{TESTLOGS[name][3]}.ulg"
+    p = cache_dir() / f"{TESTLOGS[name][3]}.ulg"
+    alt = corpus_tuning_dir() / f"{name}.ulg"
+    return p if p.is_file() or not alt.is_file() else alt
 
 
 def need_testlog(name: str) -> Path:
