@@ -53,11 +53,12 @@ def load_flight(path: Any) -> Any:
     """The flight to compare, loaded and checked once, the same way for the offline and the graph
     mode (the graph's parent process calls it before starting any node, so its loader warnings and
     its refusals are the offline ones): :func:`twin_nodes.logs.flyable.read_flight` (value checks,
-    time repairs, too short / never airborne / without GPS or horizontal velocity) and every series
+    time repairs, too short / never airborne / never left the ground; a flight without GPS is flown
+    and scored on what it has: Z, throttle, motors) and every series
     the twin needs (:data:`TWIN_INPUTS`), else a one-line :class:`~twin_nodes.base.errors.LogError`."""
     from twin_nodes.logs.flyable import read_flight
 
-    log = read_flight(path)
+    log = read_flight(path, horizontal=False)  # flown and scored on what it has (no XY without GPS)
     for name in TWIN_INPUTS:
         log.require(name)
     return log
@@ -182,8 +183,10 @@ def align(run: TwinRun, log: Any, rate_hz: float = DEFAULT_RATE_HZ, t0: float | 
         notes.append(OPEN_LOOP_NOTE)
     div = None
     if run.mode == "closed" and run.x.shape[1] >= 13 and check_divergence:
+        iv_air = log.airborne_intervals()
         div = divergence.detect(run, log, xy_controlled=lambda tt: controlled_axes(log, tt)[0],
-                                z_controlled=lambda tt: controlled_axes(log, tt)[1], t1=t1)
+                                z_controlled=lambda tt: controlled_axes(log, tt)[1], t1=t1,
+                                ground=lambda tt: ground_phases(tt, pos.at(tt, "linear")[:, 2], iv_air))
         if div is not None:
             notes.append(f"DIVERGED at {div['t_s']:.2f} s: {div['cause']} ({div['detail']}); the metrics after "
                          "it describe another flight")

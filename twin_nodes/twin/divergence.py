@@ -91,7 +91,9 @@ def _oscillation(t: np.ndarray, u_twin: np.ndarray, u_real: np.ndarray, ok: np.n
             real = real[np.isfinite(real)]
             span = float(real.max() - real.min()) if real.size else 0.0
             if span < REAL_SPAN_MAX:
-                t_hit = float(t[lo])
+                # from the first sample at a rail in that window: where the oscillation begins
+                at_rail = np.flatnonzero((u[lo:hi] >= RAIL_HI) | (u[lo:hi] <= RAIL_LO))
+                t_hit = float(t[lo + (at_rail[0] if at_rail.size else 0)])
                 if best is None or t_hit < best[0]:
                     best = (t_hit, i)
                 break
@@ -111,11 +113,13 @@ def _yaw(q: np.ndarray) -> np.ndarray:
 
 
 def detect(run: Any, log: Any, xy_controlled=None, z_controlled=None, t0: float | None = None,
-           t1: float | None = None) -> dict | None:
+           t1: float | None = None, ground=None) -> dict | None:
     """The first divergence of the closed-loop twin ``run`` (:class:`~twin_nodes.twin.runner.TwinRun`)
     from the real ``log`` on its airborne part (between ``t0`` and ``t1`` when given):
     ``{"t_s", "cause", "detail"}``, or None.  ``xy_controlled``/``z_controlled``: callables giving
-    where PX4 controlled each axis on a time grid (None: everywhere)."""
+    where PX4 controlled each axis on a time grid (None: everywhere); ``ground``: a callable giving the
+    samples of a time grid where the real vehicle is still on or near the ground (not checked there;
+    :func:`twin_nodes.twin.compare.ground_phases`)."""
     if run.mode != "closed" or len(run.t) < 2:
         return None
     iv = log.airborne_intervals()
@@ -128,12 +132,10 @@ def detect(run: Any, log: Any, xy_controlled=None, z_controlled=None, t0: float 
     for a, b in iv or [(lo, hi)]:
         air |= (t >= a) & (t <= b)
     pos = log.get("position_enu")
-    if iv and pos is not None and len(pos):
+    if ground is not None:
         # not while the real vehicle is still on or near the ground at either end (its landing gear
-        # holds its yaw and height there; the twin's has none): as the metrics' ground phases
-        from twin_nodes.twin.compare import ground_phases
-
-        air &= ~ground_phases(t, pos.at(t, "linear")[:, 2], iv)
+        # holds its yaw and height there; the twin's has none): the metrics' ground phases
+        air &= ~np.asarray(ground(t), bool)
     if not air.any():
         return None
 
@@ -146,7 +148,7 @@ def detect(run: Any, log: Any, xy_controlled=None, z_controlled=None, t0: float 
         if lo <= tb <= hi:
             found.append((tb, "non-finite state", "the twin's state became NaN/inf"))
     att = log.get("attitude_q")
-    ground = float(run.info.get("ground_z", 0.0)) if isinstance(run.info, dict) else 0.0
+    z_ground = float(run.info.get("ground_z", 0.0)) if isinstance(run.info, dict) else 0.0
     if att is not None and len(att):
         q_real, q_twin = att.at(t, "slerp"), twin(range(6, 10))
         z_real, z_twin = _body_z(q_real), _body_z(q_twin)
@@ -180,8 +182,8 @@ def detect(run: Any, log: Any, xy_controlled=None, z_controlled=None, t0: float 
     if pos is not None and len(pos):
         p_real = pos.at(t, "linear")
         p_twin = twin(range(3))
-        h_twin = p_twin[:, 2] - ground
-        h_real = p_real[:, 2] - ground
+        h_twin = p_twin[:, 2] - z_ground
+        h_real = p_real[:, 2] - z_ground
         ts = _first_sustained(t, air & (h_twin < CRASH_H_M) & (h_real > CRASH_REAL_H_M), CRASH_SUSTAIN_S)
         if ts is not None:
             k = np.searchsorted(t, ts)

@@ -21,6 +21,11 @@ Error channels (twin minus real, on one common time grid):
 - ``motor<i>``: per-motor command difference [-, 0..1], PX4 motor order
   (``motor1`` = PX4 Motor1 = ``actuator_motors.control[0]``)
 
+``xy`` and ``z`` count only where PX4 controlled that axis (``Aligned.xy_mask``/``z_mask``;
+``controlled_s``/``controlled_when`` say how long and when); ``throttle_real_hf_rms`` is the real
+throttle's own RMS above 0.5 Hz on the scored samples (what a still-air twin cannot follow);
+``divergence`` is where the twin left the real flight (:mod:`twin_nodes.twin.divergence`) or None.
+
 Throttle and motor values are fractions (0.03 = 3 %); :func:`table2` prints
 them in percent like the Búho Negro paper's Table 2.
 """
@@ -230,6 +235,38 @@ def _intervals(t: np.ndarray, flag: np.ndarray, dt: float) -> list[list[float]]:
     return [[round(float(t[a]), 1), round(float(t[b] + dt), 1)] for a, b in zip(starts, ends)]
 
 
+#: the real throttle's content above this [Hz] is the floor no still-air twin can follow (turbulence,
+#: gusts, the pilot's stick): ``throttle_real_hf_rms``
+HF_CUTOFF_HZ = 0.5
+
+
+def highpass_rms(t: np.ndarray, x: np.ndarray, mask: np.ndarray, cutoff_hz: float = HF_CUTOFF_HZ) -> float:
+    """RMS over ``mask`` of ``x`` high-passed at ``cutoff_hz`` (2nd-order Butterworth, forward-backward,
+    over each run of finite samples of the uniform grid ``t``); NaN when nothing is left."""
+    from scipy.signal import butter, sosfiltfilt
+
+    t = np.asarray(t, float)
+    x = np.asarray(x, float).ravel()
+    mask = np.asarray(mask, bool)
+    if t.size < 16:
+        return math.nan
+    fs = 1.0 / float(np.median(np.diff(t)))
+    if not cutoff_hz < 0.45 * fs:
+        return math.nan
+    sos = butter(2, cutoff_hz, btype="highpass", fs=fs, output="sos")
+    hp = np.full(x.shape, np.nan)
+    ok = np.isfinite(x)
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return math.nan
+    breaks = np.flatnonzero(np.diff(idx) > 1)
+    for a, b in zip(np.concatenate([[idx[0]], idx[breaks + 1]]), np.concatenate([idx[breaks], [idx[-1]]])):
+        if b - a + 1 > 3 * int(fs / cutoff_hz):  # long enough for the filter's edges to settle
+            hp[a:b + 1] = sosfiltfilt(sos, x[a:b + 1])
+    v = hp[mask & np.isfinite(hp)]
+    return float(np.sqrt(np.mean(v * v))) if v.size else math.nan
+
+
 def flight_metrics(al: Aligned) -> dict[str, Any]:
     """Whole-flight metrics with self-explaining keys (see the module docstring).
 
@@ -263,6 +300,7 @@ def flight_metrics(al: Aligned) -> dict[str, Any]:
         out["controlled_s"][ax] = round(float(on.sum()) * dt, 2)
         out["controlled_when"][ax] = _intervals(t, on, dt)[:20]
     out["controlled_axes"] = [ax for ax in ("xy", "z") if out["controlled_s"][ax] > 0]
+    out["throttle_real_hf_rms"] = highpass_rms(t, al.throttle_real, mask, HF_CUTOFF_HZ)
     out["divergence"] = dict(al.divergence) if al.divergence else None
     out["definitions"] = ("errors are twin minus real on a common grid over the masked (airborne) samples; "
                           "xy = horizontal distance [m], z = altitude difference [m], throttle and motors "

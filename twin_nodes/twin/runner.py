@@ -53,6 +53,11 @@ class TwinSample:
     resynced: bool = False
 
 
+#: the real state's horizontal position and velocity columns (may be unknown: no GPS) and the rest
+_HORIZONTAL = (0, 1, 3, 4)
+_NON_HORIZONTAL = np.array([2, 5, 6, 7, 8, 9, 10, 11, 12])
+
+
 class TwinRunner:
     """Streaming twin.  Feed inputs in time order, call ``advance_to(t)``."""
 
@@ -120,7 +125,15 @@ class TwinRunner:
         """The real state ``x`` (13,) [p, v, q, w], a float array of the caller's that this keeps and
         shifts; ``finite``: all of it is finite (a sample with a NaN is ignored)."""
         if not finite:
-            return
+            if not np.isfinite(x[_NON_HORIZONTAL]).all():
+                return
+            # no horizontal position/velocity (no GPS, or the EKF's horizontal estimate invalid): the
+            # last known ones (at the start 0), so that the twin flies on what the flight has; XY is not
+            # scored where the real one is unknown
+            prev = self.real_x if self.real_x is not None else np.zeros(13)
+            for k in _HORIZONTAL:
+                if not math.isfinite(x[k]):
+                    x[k] = prev[k]
         if not self._initialised and np.linalg.norm(x[3:6]) < 0.3:
             # at rest when the twin starts (PX4 logs start at boot or at arming, on the ground):
             # that height is the ground (not the arming state: its message may come first or last)
