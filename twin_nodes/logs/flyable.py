@@ -106,7 +106,8 @@ def check_flyable(log: FlightLog, *, airborne: bool = True, horizontal: bool = T
         raise LogError(path, "vehicle_local_position.z",
                        f"never left the ground: expected it to rise at least {MIN_RISE_M:g} m above where it took "
                        f"off, it rose {rise:.2f} m in the {air:.1f} s '{_airborne_source(log)[0]}' calls airborne "
-                       f"(a hop in ground effect, a held or tethered vehicle, a bench or arm/disarm test)")
+                       f"(a hop in ground effect, a held or tethered vehicle, a bench test, or a height estimate that "
+                       f"never moved)")
     if not horizontal:
         return log
     p_ok = _finite_fraction(log, "position_enu", slice(0, 2), iv)

@@ -261,7 +261,7 @@ def highpass_rms(t: np.ndarray, x: np.ndarray, mask: np.ndarray, cutoff_hz: floa
         return math.nan
     breaks = np.flatnonzero(np.diff(idx) > 1)
     for a, b in zip(np.concatenate([[idx[0]], idx[breaks + 1]]), np.concatenate([idx[breaks], [idx[-1]]])):
-        if b - a + 1 > 3 * int(fs / cutoff_hz):  # long enough for the filter's edges to settle
+        if b - a + 1 >= int(fs / cutoff_hz) and b - a + 1 > 12:  # at least one period of the cut-off
             hp[a:b + 1] = sosfiltfilt(sos, x[a:b + 1])
     v = hp[mask & np.isfinite(hp)]
     return float(np.sqrt(np.mean(v * v))) if v.size else math.nan
