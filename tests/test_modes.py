@@ -196,3 +196,24 @@ def test_a_forced_divergence_is_found_at_its_time(flight, cause):
     # the metrics say so, and the table's divergence line names it
     al = align(run, flight)
     assert al.divergence == d and flight_metrics(al)["divergence"] == d
+
+
+@pytest.mark.parametrize("flags, flown", [((0, 0, 0, 1, 0, 0), "attitude"), ((1, 0, 0, 0, 0, 0), "cascade")],
+                         ids=["attitude", "position"])
+def test_offboard_flies_what_its_flags_say(tmp_path, flags, flown):
+    """OFFBOARD (nav_state 14): ``offboard_control_mode`` says what the companion computer controls.  With the
+    attitude flag the twin flies the logged attitude setpoint (10 deg roll step); with the position flag the
+    cascade on the trajectory setpoint (level: the position setpoint is still)."""
+    names = ("position", "velocity", "acceleration", "attitude", "body_rate", "thrust_and_torque")
+
+    def edit(topics, vp):
+        _status(14)(topics)
+        _attitude_setpoint(topics, roll_deg=10.0, thrust=vp.hover_command)
+        t = topics["vehicle_attitude"]["timestamp"][::10]
+        topics["offboard_control_mode"] = {"timestamp": t, **{n: np.full(t.size, bool(f)) for n, f in zip(names, flags)}}
+    log, run = _fly(tmp_path, f"offboard_{flown}", edit)
+    assert run.info["flown_as_s"].get(flown, 0) > 15.0, run.info["flown_as_s"]
+    roll = _euler_enu(run, STEP_S + 1.5)[0]
+    assert abs(roll - (10.0 if flown == "attitude" else 0.0)) < 1.0, roll
+    xy, z, _ = controlled_axes(log, np.array([STEP_S]))
+    assert bool(xy[0]) == bool(z[0]) == (flown == "cascade")
