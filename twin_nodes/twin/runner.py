@@ -296,7 +296,13 @@ class TwinRunner:
                 u, info = self.ctrl.update_manual(self.x[:13], self.real_x[6:10], self.real_throttle, self.dt_c)
             elif how == "cascade":
                 q_att = self.att_q if np.isfinite(self.att_q).all() else None
-                u, info = self.ctrl.update(self.x[:13], self._effective_setpoint(), self.dt_c, q_att=q_att)
+                sp = self._effective_setpoint()
+                if sp[9] != sp[9] and sp[10] != sp[10] and math.isfinite(self.att_yawrate):
+                    # no yaw setpoint (the pilot yawing in POSCTL/ALTCTL): PX4 holds its current heading and
+                    # feeds the stick's yaw rate forward, logged as the attitude setpoint's yaw_sp_move_rate
+                    sp = sp.copy()
+                    sp[10] = self.att_yawrate
+                u, info = self.ctrl.update(self.x[:13], sp, self.dt_c, q_att=q_att)
             else:
                 self.ctrl.reset()
                 u, info = np.full(self.n, np.nan), np.full(1, np.nan)
