@@ -59,9 +59,9 @@ def _attitude_setpoint(topics, roll_deg: float = 0.0, pitch_deg: float = 0.0, th
     after = s >= STEP_S
     q = F.quat_from_euler(np.where(after, np.radians(roll_deg), 0.0), np.where(after, np.radians(pitch_deg), 0.0),
                           np.zeros(s.size))  # FRD->NED, heading north
+    thrust_body = np.column_stack([np.zeros(s.size), np.zeros(s.size), -_thrust_profile(s, thrust)])
     topics["vehicle_attitude_setpoint"] = {"timestamp": t, "q_d": q.astype(np.float32),
-                                           "thrust_body": np.column_stack([np.zeros(s.size), np.zeros(s.size),
-                                                                           -_thrust_profile(s, thrust)]).astype(np.float32),
+                                           "thrust_body": thrust_body.astype(np.float32),
                                            "yaw_sp_move_rate": np.zeros(s.size, np.float32)}
 
 
@@ -210,7 +210,8 @@ def test_offboard_flies_what_its_flags_say(tmp_path, flags, flown):
         _status(14)(topics)
         _attitude_setpoint(topics, roll_deg=10.0, thrust=vp.hover_command)
         t = topics["vehicle_attitude"]["timestamp"][::10]
-        topics["offboard_control_mode"] = {"timestamp": t, **{n: np.full(t.size, bool(f)) for n, f in zip(names, flags)}}
+        topics["offboard_control_mode"] = {"timestamp": t,
+                                           **{n: np.full(t.size, bool(f)) for n, f in zip(names, flags)}}
     log, run = _fly(tmp_path, f"offboard_{flown}", edit)
     assert run.info["flown_as_s"].get(flown, 0) > 15.0, run.info["flown_as_s"]
     roll = _euler_enu(run, STEP_S + 1.5)[0]

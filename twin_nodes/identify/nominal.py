@@ -89,7 +89,8 @@ def _airborne_grid(log: FlightLog, rate_hz: float, trim_s: float = 2.0) -> np.nd
         if b - a > 2 * trim_s + 2.0:
             pieces.append(np.arange(a + trim_s, b - trim_s, 1.0 / rate_hz))
     if not pieces:
-        raise LogError(log.path, "landed", "too short to identify: expected at least one airborne interval longer than 6 s")
+        raise LogError(log.path, "landed",
+                       "too short to identify: expected at least one airborne interval longer than 6 s")
     return np.concatenate(pieces)
 
 

@@ -40,7 +40,8 @@ OFFBOARD_NAV_STATE = 14.0
 #: its rate setpoint (ACRO), the real attitude (a manual mode in a log without an attitude setpoint),
 #: the position/velocity cascade (ALTCTL/POSCTL/AUTO/offboard trajectories), or not at all (disarmed)
 FLOWN_AS = ("attitude", "rates", "real_attitude", "cascade", "disarmed")
-__all__ = ["MANUAL_NAV_STATES", "MODES", "FLOWN_AS", "controlled_axes", "TwinSample", "TwinRunner", "TwinRun", "run_twin_on_log", "log_inputs"]
+__all__ = ["MANUAL_NAV_STATES", "MODES", "FLOWN_AS", "controlled_axes", "TwinSample", "TwinRunner", "TwinRun",
+           "run_twin_on_log", "log_inputs"]
 
 
 @dataclass
