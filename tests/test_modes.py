@@ -218,3 +218,20 @@ def test_offboard_flies_what_its_flags_say(tmp_path, flags, flown):
     assert abs(roll - (10.0 if flown == "attitude" else 0.0)) < 1.0, roll
     xy, z, _ = controlled_axes(log, np.array([STEP_S]))
     assert bool(xy[0]) == bool(z[0]) == (flown == "cascade")
+
+
+def test_altctl_without_a_trajectory_setpoint_holds_the_real_height(tmp_path):
+    """A log with no trajectory_setpoint (older topic sets) in ALTCTL: the twin flies the pilot's tilt (q_d) with
+    its altitude loop on the real height, not the real position (which would hold it where the vehicle is);
+    only the height is scored."""
+    def edit(topics, vp):
+        _status(1)(topics)
+        _attitude_setpoint(topics, pitch_deg=-5.0, thrust=vp.hover_command)
+        del topics["trajectory_setpoint"]
+    log, run = _fly(tmp_path, "altctl_old", edit)
+    k0, k1 = np.searchsorted(run.t, [STEP_S - 0.5, STEP_S + 3.0])
+    assert abs(run.x[k0, 4]) < 0.1 and 0.65 < run.x[k1, 4] < 0.86, run.x[[k0, k1], 4]
+    z_real = log.get("position_enu").at(np.array([STEP_S + 3.0]))[0, 2]
+    assert abs(run.x[k1, 2] - z_real) < 0.15
+    xy, z, _ = controlled_axes(log, np.array([STEP_S]))
+    assert not xy[0] and z[0]

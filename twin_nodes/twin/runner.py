@@ -35,6 +35,7 @@ from twin_nodes.logs.ulog_io import MANUAL_NAV_STATES
 MODES = ("closed", "open")
 #: PX4 nav_state values with their own setpoint: ACRO flies the rate setpoint, OFFBOARD what its flags say
 ACRO_NAV_STATE = 10.0
+ALTCTL_NAV_STATE = 1.0
 OFFBOARD_NAV_STATE = 14.0
 #: how a closed-loop control step was flown: PX4's attitude setpoint (MANUAL/STAB, offboard attitude),
 #: its rate setpoint (ACRO), the real attitude (a manual mode in a log without an attitude setpoint),
@@ -352,10 +353,15 @@ class TwinRunner:
         target = self._sp_rates[3] if self._sp_rates is not None else (
             bool(np.any(np.isfinite(sp[0:3])) or np.any(np.isfinite(sp[3:6]))))
         if not target:
-            # no position or velocity setpoint (manual modes, old logs): fly the real position
+            # no position or velocity setpoint (manual modes, old logs): fly the real position; in ALTCTL
+            # with PX4's attitude setpoint logged, its real height only (the tilt is the pilot's)
             sp = sp.copy()
             if self.real_x is not None:
-                sp[0:3] = self.real_x[0:3]
+                altctl = self.nav_state == ALTCTL_NAV_STATE and bool(np.isfinite(self.att_q).all())
+                if altctl:
+                    sp[2] = self.real_x[2]
+                else:
+                    sp[0:3] = self.real_x[0:3]
                 if not np.isfinite(sp[9]):
                     q = self.real_x[6:10]
                     sp[9] = np.arctan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
@@ -506,7 +512,10 @@ def controlled_axes(log, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
     if (sp_p is None or not len(sp_p)) and (sp_v is None or not len(sp_v)):
         xy, z = np.ones(t.shape, bool), np.ones(t.shape, bool)
         how = ("no trajectory_setpoint in the log: every axis scored where nav_state is no manual mode (the twin "
-               "holds the real position there)")
+               "holds the real position there), the height only in ALTCTL")
+        nav = log.get("nav_state")
+        if nav is not None and len(nav):
+            xy &= nav.at(t, "previous")[:, 0] != ALTCTL_NAV_STATE
     else:
         def at(s, k):
             return s.at(t, "previous") if s is not None and len(s) else np.full((len(t), k), np.nan)
