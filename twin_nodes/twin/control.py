@@ -325,11 +325,14 @@ def _attitude_to_motors(G, C, P, J, A, x, thrust, qd, yawspeed, w_sp, dt, u, inf
         zw = _qrot(_qconj(q), np.array([0.0, 0.0, 1.0]))
         for k in range(3):
             wsp[k] += zw[k] * yawspeed
-    rmax = G[G_RR_MAX] * np.pi / 180.0
-    ymax = G[G_YR_MAX] * np.pi / 180.0
-    for k in range(2):
-        wsp[k] = min(max(wsp[k], -rmax), rmax)
-    wsp[2] = min(max(wsp[2], -ymax), ymax)
+    if w_sp[0] != w_sp[0]:
+        # the attitude loop's output limits (MC_*RATE_MAX); a given rate setpoint (ACRO) is PX4's own,
+        # already limited by its mode (MC_ACRO_*_MAX may exceed these)
+        rmax = G[G_RR_MAX] * np.pi / 180.0
+        ymax = G[G_YR_MAX] * np.pi / 180.0
+        for k in range(2):
+            wsp[k] = min(max(wsp[k], -rmax), rmax)
+        wsp[2] = min(max(wsp[2], -ymax), ymax)
     # ---- rate PID -> angular acceleration -> torque (J alpha + w x J w)
     alpha = np.zeros(3)
     for k in range(3):
