@@ -308,14 +308,17 @@ def test_survey_every_flight_gets_a_row(tmp_path, monkeypatch):
 
     monkeypatch.setattr(survey, "survey_flight", flaky)
     rows = survey.survey_rows([log, bad, other], PARAMS)
-    assert [(r["flight"], r["status"]) for r in rows] == [(log.stem, "failed"), ("bad", "failed"),
+    # a flight with no flight in it (log_61: never airborne) is left out, with its reason, not failed
+    assert [(r["flight"], r["status"]) for r in rows] == [(log.stem, "left_out"), ("bad", "failed"),
                                                           ("other", "failed")]
     assert "airborne" in rows[0]["error"] and str(bad) in rows[1]["error"] and "ULog" in rows[1]["error"]
     assert rows[2]["error"] == f"{other}: ValueError: need more samples"
     md = survey.markdown_table(rows)
-    for r in rows:
+    assert f"| {log.stem} | left out: " in md and "never airborne" in md
+    for r in rows[1:]:
         assert f"| {r['flight']} | failed: " in md
     assert all("\n" not in r["error"] for r in rows)
+    assert "1 left out (no flight to fit), 2 failed" in md
 
 
 def test_survey_cli_markdown_lists_failed_flights(tmp_path, capsys):
@@ -325,9 +328,11 @@ def test_survey_cli_markdown_lists_failed_flights(tmp_path, capsys):
     md = tmp_path / "t.md"
     assert main(["survey", str(log), str(bad), "--params", PARAMS, "--md", str(md)]) == 1
     text = md.read_text()
-    assert f"| {log.stem} | failed: " in text and "| bad | failed: " in text
+    assert f"| {log.stem} | left out: " in text and "| bad | failed: " in text
     _, err = capsys.readouterr()
-    assert "2 of 2 flights failed" in err
+    assert "1 of 2 flights failed" in err and "rotortwin: left out: " in err
+    # only left-out flights: no failure, exit 0
+    assert main(["survey", str(log), "--params", PARAMS]) == 0
 
 
 def test_file_date_from_name_then_mtime(tmp_path):

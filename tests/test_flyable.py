@@ -70,13 +70,12 @@ def test_each_kind_is_named(tmp_path):
 
 
 @pytest.mark.parametrize("name", NO_GPS, ids=["log_59", "log_65"])
-def test_fleet_logs_without_gps_are_one_line_in_every_command(tmp_path, monkeypatch, name):
+def test_fleet_logs_without_gps_are_one_line_where_horizontal_is_needed(tmp_path, monkeypatch, name):
+    """discover and identify fit horizontal forces: refused in one line.  params from-ulog and compare
+    fly the flight on what it has (issue 24.5): see test_fleet_logs_without_gps_are_flown."""
     f = str(shared_log("fleet_quadx_v6c", name))
     monkeypatch.chdir(tmp_path)
-    for argv in (["params", "from-ulog", f, "--out", "p.yaml"],
-                 ["compare", "--offline", f, "--quiet"],
-                 ["compare", "--offline", f, "--params", PARAMS, "--quiet"],
-                 ["discover", f, "--params", PARAMS, "--json", "r.json", "--no-closed-loop"],
+    for argv in (["discover", f, "--params", PARAMS, "--json", "r.json", "--no-closed-loop"],
                  ["identify", "regress", f, "--out", "r.yaml"],
                  ["identify", "hover", f, "--out", "h.yaml"]):
         rc, _, err = run(argv)
@@ -85,3 +84,36 @@ def test_fleet_logs_without_gps_are_one_line_in_every_command(tmp_path, monkeypa
         assert lines[0].startswith(f"rotortwin: error: {f}: vehicle_local_position.xy_valid,v_xy_valid: without "
                                    "GPS (no horizontal position or velocity)"), (argv, lines)
         assert list(tmp_path.iterdir()) == [], argv
+
+
+@pytest.mark.parametrize("name", NO_GPS, ids=["log_59", "log_65"])
+def test_fleet_logs_without_gps_are_flown(tmp_path, monkeypatch, name):
+    """Without GPS the nominal is built without horizontal drag and the twin flies and is scored on Z,
+    throttle and motors (XY has no real value: n/a).  log_59 is MANUAL throughout (its Z is no PX4
+    axis either), log_65 ALTCTL: PX4 held the height, which the twin's altitude loop holds too."""
+    import json
+
+    f = str(shared_log("fleet_quadx_v6c", name))
+    monkeypatch.chdir(tmp_path)
+    rc, _, err = run(["params", "from-ulog", f, "--out", "p.yaml"])
+    assert rc == 0, err
+    assert "no horizontal velocity" in (tmp_path / "p.yaml").read_text()
+    rc, out, err = run(["compare", "--offline", f, "--params", "p.yaml", "--quiet", "--json", "m.json"])
+    assert rc == 0, err
+    m = json.loads((tmp_path / "m.json").read_text())
+    assert m["xy_rmse_m"] is None and m["controlled_s"]["xy"] == 0.0
+    assert m["divergence"] is None
+    assert m["throttle_rmse"] < 0.05 and m["motor_p75_mean"] < 0.06
+    if name.startswith("DritterFlugtag/log_65"):
+        assert m["controlled_s"]["z"] > 40 and m["z_rmse_m"] < 0.5
+    else:
+        assert m["controlled_s"]["z"] == 0.0 and m["z_rmse_m"] is None
+
+
+def test_never_left_the_ground_is_named(tmp_path):
+    """The fleet's 7 Jun log_13: the land detector says airborne for 12 s, the vehicle rose 0.25 m at
+    full throttle (a held or overweight vehicle): refused as never having left the ground."""
+    f = shared_log("fleet_quadx_v6c", "ZweiterFlugtag/log_13_2023-6-7-10-44-58.ulg")
+    with pytest.raises(LogError, match=r"vehicle_local_position\.z: never left the ground: expected it to rise at "
+                                       r"least 0\.5 m above where it took off, it rose 0\.\d\d m"):
+        read_flight(f)

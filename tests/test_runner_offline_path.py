@@ -34,6 +34,11 @@ def _streamed(log, vp, mode: str, t0: float, t1: float) -> dict[str, np.ndarray]
     batt = np.asarray(data["battery_v"]).reshape(n) if "battery_v" in data else np.full(n, np.nan)
     nav = np.asarray(data["nav_state"]).reshape(n) if "nav_state" in data else np.full(n, np.nan)
     thr = np.asarray(data["throttle"]).reshape(n) if "throttle" in data else np.full(n, np.nan)
+    def col(name: str, k: int) -> np.ndarray:
+        return np.asarray(data[name], float).reshape(n, k) if name in data else np.full((n, k), np.nan)
+    att_q, att_thr, att_yr = col("attitude_setpoint_q", 4), col("attitude_setpoint_thrust", 1), col(
+        "attitude_setpoint_yawrate", 1)
+    rates, offb = col("setpoint_rates_flu", 3), col("offboard_mode", 6)
     out = []
     for k in range(n):
         runner.real_state(t[k], data["position_enu"][k], data["velocity_enu"][k], data["attitude_q"][k],
@@ -42,6 +47,9 @@ def _streamed(log, vp, mode: str, t0: float, t1: float) -> dict[str, np.ndarray]
         runner.setpoint(sp[k])
         runner.armed(bool(armed[k]))
         runner.px4_mode(nav[k], thr[k])
+        runner.attitude_setpoint(att_q[k], att_thr[k, 0], att_yr[k, 0])
+        runner.rate_setpoint(rates[k])
+        runner.offboard_mode(offb[k])
         if np.isfinite(batt[k]):
             runner.battery(batt[k])
         if k + 1 < n:

@@ -21,7 +21,10 @@ with SIGINT and prints the Table-2 summary.  The domain is leased for the run
 (a free one of 1..101, or ``--domain-id`` 0..232 if no other run holds it), the
 nodes die with the CLI, outputs are checked before anything runs and a failed
 run leaves no files (docs/graph.md).  ``--offline`` computes the same
-metrics without ROS (``twin_nodes.twin.compare.compare_log``).
+metrics without ROS (``twin_nodes.twin.compare.compare_log``).  When the closed-loop twin leaves the
+real flight (``divergence`` in the metrics: attitude, heading, motors rail to rail, a crash, a
+run-away; checked offline, the graph's streamed twin has no attitude to check) the metrics are
+still printed and written, one line on stderr names the time and cause, and the exit status is 3.
 
 Without ``--params`` the vehicle file is the shipped one for the log's
 ``SYS_AUTOSTART``, else the nominal built from the log itself (``rotortwin params
@@ -100,7 +103,18 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         from twin_nodes.twin.report import write_report
         idx = write_report(report_dir, aligned, metrics, title=Path(args.flight).name)
         print(f"report: {shown(idx)}", file=sys.stderr)
+    div = metrics.get("divergence")
+    if div:
+        # never a silent wrong twin: the metrics are printed and written, the exit status says they
+        # describe a twin that left the real flight (3; 2 is bad input)
+        print(f"rotortwin: the twin DIVERGED from the real flight at {div['t_s']:.2f} s: {div['cause']} "
+              f"({div['detail']}); exit 3", file=sys.stderr)
+        return EXIT_DIVERGED
     return 0
+
+
+#: ``compare``'s exit status when the closed-loop twin left the real flight's envelope
+EXIT_DIVERGED = 3
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

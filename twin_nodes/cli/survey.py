@@ -7,7 +7,12 @@
 For each flight: params as ``discover`` resolves them (given, shipped for the airframe, or the
 nominal built from the log), discovery with its physical and closed-loop guards, and the
 closed-loop twin's Table-2 metrics on the held-out last 35 % before and after the refit, beside
-the reference paper's Table 2.  A flight that fails is a row with its one-line error; the rest go on.
+the reference paper's Table 2; per flight also the axes PX4 controlled there (seconds), the real
+throttle's own content above 0.5 Hz (the floor a still-air twin cannot follow: the throttle target is
+the larger of 3 % and 1.25x it), and a divergence of the twin (cause and time).  A flight with no
+flight in it (never airborne, never left the ground, too short) is a "left out" row with the reason;
+one without GPS is flown on the nominal and scored on Z, throttle and motors; a flight that fails is
+a row with its one-line error (exit 1); the rest go on.
 """
 
 from __future__ import annotations
@@ -50,9 +55,13 @@ def _flights(args: list[str]) -> list[Path]:
 
 def _cmd_survey(args: argparse.Namespace) -> int:
     from twin_nodes.discovery.survey import markdown_table, survey_rows
+    from twin_nodes.twin.metrics import to_jsonable
 
     rows = survey_rows(_flights(args.flights), args.params, progress=sys.stderr.isatty())
     failed = [r["error"] for r in rows if r.get("status") == "failed"]
+    left_out = [r["error"] for r in rows if r.get("status") == "left_out"]
+    for why in left_out:
+        print(f"rotortwin: left out: {why}", file=sys.stderr)
     for why in failed:
         print(f"rotortwin: {why}", file=sys.stderr)
     if failed:
@@ -63,5 +72,6 @@ def _cmd_survey(args: argparse.Namespace) -> int:
     if args.md:
         atomic_write_text(args.md, table + "\n")
     if args.json_out:
-        atomic_write_text(args.json_out, json.dumps({"rows": rows, "failed": failed}, indent=1))
+        atomic_write_text(args.json_out, json.dumps(to_jsonable({"rows": rows, "failed": failed, "left_out": left_out}),
+                                                    indent=1))
     return 1 if failed else 0

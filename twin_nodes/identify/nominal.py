@@ -41,7 +41,7 @@ from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
                                            rotor_states_from_commands, thrust_regressor, translational_regression,
                                            world_to_body)
 from twin_nodes.identify.yaw_gain import applied_yaw_gain, yaw_gain_for_twin
-from twin_nodes.logs.flyable import check_flyable, read_flight
+from twin_nodes.logs.flyable import MIN_HORIZONTAL_FRACTION, check_flyable, read_flight
 from twin_nodes.logs.ulog_io import FlightLog
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 from twin_nodes.vehicle.px4_params import int_param  # noqa: I001 - a log integer, range-checked
@@ -89,7 +89,8 @@ def _airborne_grid(log: FlightLog, rate_hz: float, trim_s: float = 2.0) -> np.nd
         if b - a > 2 * trim_s + 2.0:
             pieces.append(np.arange(a + trim_s, b - trim_s, 1.0 / rate_hz))
     if not pieces:
-        raise LogError(log.path, "landed", "expected at least one airborne interval longer than 6 s")
+        raise LogError(log.path, "landed",
+                       "too short to identify: expected at least one airborne interval longer than 6 s")
     return np.concatenate(pieces)
 
 
@@ -140,7 +141,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     if log.n_motors != n:
         raise LogError(log.path, "actuator_motors",
                        f"{n} rotors in the parameters, {log.n_motors} motor outputs in the log")
-    check_flyable(log)
+    check_flyable(log, horizontal=False)
     src["rotors.x_flu_m/y_flu_m/z_flu_m, direction"] = layout.source
     m, src["vehicle.mass_kg"] = _mass(log, mass_kg)
     f_fac, src["rotors.thr_mdl_fac"] = param(p, "THR_MDL_FAC", 0.0)
@@ -148,6 +149,13 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
 
     t = _airborne_grid(log, GRID_HZ)
     sig = _signals(log, t)
+    # a flight without horizontal velocity (no GPS: PX4 logs it NaN) is identified on what it has:
+    # the vertical and rotational equations with the horizontal velocity taken as 0, and no horizontal
+    # drag, wind or drag height (their regressors are the horizontal velocity)
+    no_horizontal = float(np.mean(np.isfinite(sig["v_enu"][:, :2]).all(axis=1))) < MIN_HORIZONTAL_FRACTION
+    if no_horizontal:
+        sig["v_enu"] = sig["v_enu"].copy()
+        sig["v_enu"][:, :2] = 0.0
     # every equation below needs all of these at a sample: a stretch where one is unknown (PX4 logs NaN
     # velocity while its horizontal estimate is invalid) is left out, else the low-pass would spread the
     # NaN over its whole segment and leave no sample to fit
@@ -219,21 +227,11 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     # acts on the air-relative velocity, f_b = -(k/m) R^T (v - w) + bias; while the heading turns,
     # the world-fixed wind w separates from the body-fixed biases (linear in (k/m) w)
     f_lp = lp(sig["f_body"])
-    nz = np.zeros(t.size)
-    one = np.ones(t.size)
-    east_b = lp(world_to_body(sig["q"], np.tile([1.0, 0.0, 0.0], (t.size, 1))))
-    north_b = lp(world_to_body(sig["q"], np.tile([0.0, 1.0, 0.0], (t.size, 1))))
-    X = np.vstack([np.column_stack([-v_body[:, 0], east_b[:, 0], north_b[:, 0], one, nz]),
-                   np.column_stack([-v_body[:, 1], east_b[:, 1], north_b[:, 1], nz, one])])
-    hfit = fit_linear(X, np.concatenate([f_lp[:, 0], f_lp[:, 1]]), ["kd/m", "kd/m*w_e", "kd/m*w_n", "bias_x",
-                                                                      "bias_y"])
-    wind = _wind(hfit)
-    if wind is None:
-        X = X[:, [0, 3, 4]]
-        hfit = fit_linear(X, np.concatenate([f_lp[:, 0], f_lp[:, 1]]), ["kd/m", "bias_x", "bias_y"])
-        src["effects.wind"] = (f"not included: no steady wind separable from the accelerometer biases (heading "
-                               f"change, > 3 sigma, {WIND_MIN_M_S}-15 m/s)")
-    drag, drag_se = m * hfit["kd/m"], m * hfit.se("kd/m")
+    if no_horizontal:
+        drag, drag_se, wind, east_b, north_b = 0.0, 1.0, None, None, None
+        src["effects.wind"] = "not included: the log has no horizontal velocity (no GPS)"
+    else:
+        drag, drag_se, wind, east_b, north_b = _horizontal_drag(t, sig, lp, f_lp, v_body, m, src)
     use_drag = drag > 3 * drag_se
     if wind is not None and not use_drag:
         wind = None
@@ -418,6 +416,26 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     return Nominal(vp, log.path, src, fits)
 
 
+def _horizontal_drag(t, sig, lp, f_lp, v_body, m, src):
+    """The isotropic horizontal drag fit with a steady wind (see nominal_from_log):
+    (drag [N/(m/s)], its stderr, wind or None, east and north unit vectors in the body frame)."""
+    nz = np.zeros(t.size)
+    one = np.ones(t.size)
+    east_b = lp(world_to_body(sig["q"], np.tile([1.0, 0.0, 0.0], (t.size, 1))))
+    north_b = lp(world_to_body(sig["q"], np.tile([0.0, 1.0, 0.0], (t.size, 1))))
+    X = np.vstack([np.column_stack([-v_body[:, 0], east_b[:, 0], north_b[:, 0], one, nz]),
+                   np.column_stack([-v_body[:, 1], east_b[:, 1], north_b[:, 1], nz, one])])
+    hfit = fit_linear(X, np.concatenate([f_lp[:, 0], f_lp[:, 1]]), ["kd/m", "kd/m*w_e", "kd/m*w_n", "bias_x",
+                                                                      "bias_y"])
+    wind = _wind(hfit)
+    if wind is None:
+        X = X[:, [0, 3, 4]]
+        hfit = fit_linear(X, np.concatenate([f_lp[:, 0], f_lp[:, 1]]), ["kd/m", "bias_x", "bias_y"])
+        src["effects.wind"] = (f"not included: no steady wind separable from the accelerometer biases (heading "
+                               f"change, > 3 sigma, {WIND_MIN_M_S}-15 m/s)")
+    return m * hfit["kd/m"], m * hfit.se("kd/m"), wind, east_b, north_b
+
+
 def _moment_fits(alpha: np.ndarray, rates: np.ndarray, thrust_units: np.ndarray, geom: RotorGeometry,
                  t_max: float, km: float) -> dict:
     """Per axis, the rotor moment [N m] from the commands regressed on [alpha, w, 1]: I, k_w, trim."""
@@ -537,7 +555,7 @@ def params_for_log(ulog: str | os.PathLike[str], explicit: str | os.PathLike[str
     h.update(_CODE_KEY)
     out = cache_dir() / "nominal" / f"{Path(ulog).stem}-{h.hexdigest()[:12]}.yaml"
     if not out.is_file():
-        nom = nominal_from_log(log if log is not None else read_flight(ulog))
+        nom = nominal_from_log(log if log is not None else read_flight(ulog, horizontal=False))
         out.parent.mkdir(mode=0o700, exist_ok=True)
         write_params(nom.params, out, nom.header())
     return out, (f"params: none given and no shipped file for SYS_AUTOSTART {autostart}: flying the nominal built "

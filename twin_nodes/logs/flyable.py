@@ -7,6 +7,9 @@ the logs that load but are no usable flight:
   right after its start, a 1-sample log), or airborne for less than :data:`MIN_AIRBORNE_S` in all;
 - **never airborne**: no airborne interval (land detector, else arming state, else height; see
   :meth:`FlightLog.airborne_intervals`): bench and arm/disarm tests;
+- **never left the ground**: "airborne" by the land detector but never :data:`MIN_RISE_M` above where it
+  took off (a hop in ground effect, a held or tethered vehicle: the fleet's 7 Jun log_13 sits at full
+  throttle 0.25 m up; a twin flown on it climbs away, and none of it could be scored);
 - **without GPS** / **without horizontal velocity**: the EKF's horizontal position and/or velocity
   (``vehicle_local_position.xy_valid`` / ``v_xy_valid``) invalid in more than
   ``1 - MIN_HORIZONTAL_FRACTION`` of the airborne samples (the fleet's 21 Jun log_59 and log_65:
@@ -28,12 +31,14 @@ import numpy as np
 from twin_nodes.base.errors import LogError
 from twin_nodes.logs.ulog_io import FlightLog, read_ulog
 
-__all__ = ["check_flyable", "read_flight", "MIN_LOG_S", "MIN_AIRBORNE_S", "MIN_HORIZONTAL_FRACTION"]
+__all__ = ["check_flyable", "read_flight", "MIN_LOG_S", "MIN_AIRBORNE_S", "MIN_RISE_M", "MIN_HORIZONTAL_FRACTION"]
 
 #: a log whose position samples span less than this [s] is too short for any command
 MIN_LOG_S = 5.0
 #: airborne for less than this [s] in all: too short a flight
 MIN_AIRBORNE_S = 2.0
+#: rose less than this [m] above its take-off height in all (the metrics' ground margin): never left the ground
+MIN_RISE_M = 0.5
 #: horizontal position/velocity finite in less than this fraction of the airborne samples: refused
 MIN_HORIZONTAL_FRACTION = 0.25
 
@@ -44,6 +49,21 @@ def _airborne_source(log: FlightLog) -> tuple[str, str]:
     if log.get("armed") is not None and len(log.get("armed")):
         return "vehicle_status.arming_state", "never armed"
     return "vehicle_local_position.z", "never more than 1 m above its lowest point"
+
+
+def _max_rise(pos, intervals: list[tuple[float, float]]) -> float | None:
+    """Highest rise [m] above the take-off height (the height at each interval's start) over the airborne
+    intervals; None when the height is unknown there."""
+    best = None
+    for a, b in intervals:
+        inside = (pos.t_s >= a) & (pos.t_s <= b)
+        z = pos.values[inside, 2]
+        z = z[np.isfinite(z)]
+        if z.size < 2:
+            continue
+        r = float(z.max() - z[0])
+        best = r if best is None else max(best, r)
+    return best
 
 
 def _finite_fraction(log: FlightLog, name: str, cols: slice, intervals: list[tuple[float, float]]) -> float:
@@ -81,6 +101,13 @@ def check_flyable(log: FlightLog, *, airborne: bool = True, horizontal: bool = T
         raise LogError(path, _airborne_source(log)[0],
                        f"too short: expected at least {MIN_AIRBORNE_S:g} s airborne, the flight was airborne "
                        f"for {air:.2f} s")
+    rise = _max_rise(pos, iv)
+    if rise is not None and rise < MIN_RISE_M:
+        raise LogError(path, "vehicle_local_position.z",
+                       f"never left the ground: expected it to rise at least {MIN_RISE_M:g} m above where it took "
+                       f"off, it rose {rise:.2f} m in the {air:.1f} s '{_airborne_source(log)[0]}' calls airborne "
+                       f"(a hop in ground effect, a held or tethered vehicle, a bench test, or a height estimate that "
+                       f"never moved)")
     if not horizontal:
         return log
     p_ok = _finite_fraction(log, "position_enu", slice(0, 2), iv)

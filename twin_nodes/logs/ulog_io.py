@@ -161,6 +161,10 @@ SERIES_SPEC: dict[str, tuple[str, str, str]] = {
     "setpoint_yawspeed": ("rad/s", "yaw-rate feed-forward about ENU up, CCW", "previous"),
     "setpoint_rates_flu": ("rad/s", "FLU", "linear"),
     "nav_state": ("-", "PX4 nav_state", "previous"),
+    "attitude_setpoint_q": ("-", "q_wxyz FLU->ENU", "previous"),
+    "attitude_setpoint_thrust": ("-", "-", "previous"),
+    "attitude_setpoint_yawrate": ("rad/s", "yaw-rate feed-forward about ENU up, CCW", "previous"),
+    "offboard_mode": ("-", "flags position, velocity, acceleration, attitude, body_rate, thrust", "previous"),
     "armed": ("-", "bool", "previous"),
     "landed": ("-", "bool", "previous"),
     "esc_rpm": ("rpm", "PX4 motor order", "linear"),
@@ -193,6 +197,7 @@ TOPICS = (
     "trajectory_setpoint",
     "vehicle_local_position_setpoint",
     "vehicle_status",
+    "offboard_control_mode",
     "vehicle_land_detected",
     "esc_status",
     "hover_thrust_estimate",
@@ -1108,6 +1113,51 @@ def _yaw_from_attitude_setpoint(att: _Topic | None, ts: _Topic, out: dict[str, S
                                        "trajectory_setpoint.yaw is finite")
 
 
+#: offboard_control_mode flags, in the order of the ``offboard_mode`` series' columns (older PX4 names
+#: the last one ``actuator``; ``thrust_and_torque``/``direct_actuator`` since 1.14)
+_OFFBOARD_FLAGS = ("position", "velocity", "acceleration", "attitude", "body_rate", "thrust_and_torque")
+
+
+def _mode_setpoint_series(get: Any, out: dict[str, Series]) -> None:
+    """The setpoints PX4 flies in the modes without a position controller (kept apart from the state
+    and actuator reading): ``vehicle_attitude_setpoint`` (``q_d``: the pilot's attitude in
+    MANUAL/STABILIZED, the stick's tilt in ALTCTL, an offboard attitude; ``thrust_body[2]``, before
+    PX4 1.12 ``thrust``; ``yaw_sp_move_rate``) and ``offboard_control_mode``'s flags.  Every sample,
+    whatever the mode (the twin picks by ``nav_state``); the rate setpoint is ``setpoint_rates_flu``."""
+    att = get("vehicle_attitude_setpoint")
+    if att is not None and att.has("q_d[0]", "q_d[1]", "q_d[2]", "q_d[3]") and len(att.t_us):
+        raw = att.arr("q_d", 4)
+        with np.errstate(invalid="ignore"):
+            ok = np.all(np.isfinite(raw), axis=1) & (np.abs(np.linalg.norm(raw, axis=1) - 1.0) < _QUAT_NORM_TOL)
+        if att.has("q_d_valid"):  # PX4 <= 1.8: q_d only meant when flagged
+            ok &= att.col("q_d_valid") != 0
+        if ok.any():
+            q = np.full(raw.shape, np.nan)
+            q[ok] = frames.q_ned_frd_to_enu_flu(raw[ok])
+            out["attitude_setpoint_q"] = _series("attitude_setpoint_q", att.t_s, q,
+                                                 "vehicle_attitude_setpoint.q_d (FRD->NED)")
+        if att.has("thrust_body[2]"):
+            out["attitude_setpoint_thrust"] = _series("attitude_setpoint_thrust", att.t_s,
+                                                      -att.col("thrust_body[2]"),
+                                                      "-vehicle_attitude_setpoint.thrust_body[2]")
+        elif att.has("thrust"):
+            out["attitude_setpoint_thrust"] = _series("attitude_setpoint_thrust", att.t_s, att.col("thrust"),
+                                                      "vehicle_attitude_setpoint.thrust")
+        if att.has("yaw_sp_move_rate"):
+            out["attitude_setpoint_yawrate"] = _series(
+                "attitude_setpoint_yawrate", att.t_s, frames.yawspeed_ned_to_enu(att.col("yaw_sp_move_rate")),
+                "vehicle_attitude_setpoint.yaw_sp_move_rate (NED heading rate)")
+    ocm = get("offboard_control_mode")
+    if ocm is not None and ocm.has("position", "velocity") and len(ocm.t_us):
+        cols = []
+        for f in _OFFBOARD_FLAGS:
+            alt = {"thrust_and_torque": ("actuator", "direct_actuator")}.get(f, ())
+            name = next((n for n in (f,) + alt if ocm.has(n)), None)
+            cols.append(ocm.col(name).astype(float) if name else np.zeros(len(ocm.t_us)))
+        out["offboard_mode"] = _series("offboard_mode", ocm.t_s, np.column_stack(cols),
+                                       "offboard_control_mode." + ",".join(_OFFBOARD_FLAGS))
+
+
 def _build_series(
     topics: dict[tuple[str, int], _Topic], params: dict[str, float], warnings: list[str],
 ) -> tuple[dict[str, Series], int]:
@@ -1300,6 +1350,7 @@ def _build_series(
             "vehicle_angular_velocity_groundtruth.xyz (FRD)")
 
     _undo_mixer_idle(out, warnings)  # needs landed/armed
+    _mode_setpoint_series(get, out)
     if n_src.startswith("default"):
         warnings.append(f"n_motors = {n_motors}: no CA_ROTOR_COUNT, output functions or MAV_TYPE")
     return out, n_motors

@@ -32,7 +32,8 @@ import numpy as np
 
 from twin_nodes.logs import time_sync
 from twin_nodes.twin.metrics import Aligned, flight_metrics
-from twin_nodes.twin.runner import TwinRun, run_twin_on_log
+from twin_nodes.twin import divergence
+from twin_nodes.twin.runner import TwinRun, controlled_axes, run_twin_on_log
 
 __all__ = ["align", "compare_log", "load_flight", "CompareResult", "OPEN_LOOP_NOTE", "DEFAULT_RATE_HZ", "mask_from_intervals",
            "streams_to_log_and_run", "metrics_from_streams"]
@@ -52,11 +53,12 @@ def load_flight(path: Any) -> Any:
     """The flight to compare, loaded and checked once, the same way for the offline and the graph
     mode (the graph's parent process calls it before starting any node, so its loader warnings and
     its refusals are the offline ones): :func:`twin_nodes.logs.flyable.read_flight` (value checks,
-    time repairs, too short / never airborne / without GPS or horizontal velocity) and every series
+    time repairs, too short / never airborne / never left the ground; a flight without GPS is flown
+    and scored on what it has: Z, throttle, motors) and every series
     the twin needs (:data:`TWIN_INPUTS`), else a one-line :class:`~twin_nodes.base.errors.LogError`."""
     from twin_nodes.logs.flyable import read_flight
 
-    log = read_flight(path)
+    log = read_flight(path, horizontal=False)  # flown and scored on what it has (no XY without GPS)
     for name in TWIN_INPUTS:
         log.require(name)
     return log
@@ -120,13 +122,16 @@ def _interp(t_src: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def align(run: TwinRun, log: Any, rate_hz: float = DEFAULT_RATE_HZ, t0: float | None = None,
-          t1: float | None = None, airborne_only: bool = True) -> Aligned:
+          t1: float | None = None, airborne_only: bool = True, check_divergence: bool = True) -> Aligned:
     """Twin outputs and the real log on one uniform grid (via :mod:`twin_nodes.logs.time_sync`).
 
     The grid spans the overlap of the twin run and the real position (clipped to
     ``[t0, t1]`` when given).  ``mask`` keeps samples where both XY are finite
     and, with ``airborne_only``, the vehicle is airborne
-    (:meth:`FlightLog.airborne_intervals`: land detector, else armed, else height)."""
+    (:meth:`FlightLog.airborne_intervals`: land detector, else armed, else height).  XY and Z are
+    scored only where PX4 controlled them (:func:`~twin_nodes.twin.runner.controlled_axes`); a closed-loop
+    twin is checked for a divergence from the real flight up to ``t1`` (:mod:`twin_nodes.twin.divergence`;
+    the streamed graph's twin has no attitude: ``check_divergence=False``)."""
     pos = log.require("position_enu")
     if len(run.t) == 0:
         raise ValueError("align: the twin run has no samples (did the log have state data?)")
@@ -153,8 +158,15 @@ def align(run: TwinRun, log: Any, rate_hz: float = DEFAULT_RATE_HZ, t0: float | 
     # the same way: a 10 Hz motor log is compared with a 10 Hz view of the twin, not its 250 Hz loop
     thr_twin = _as_logged(run.t, run.throttle, thr, t)
     m_twin = _as_logged(run.t, run.motors, mot, t)
-    mask = np.all(np.isfinite(p_real[:, :2]), axis=1) & np.all(np.isfinite(x_twin[:, :2]), axis=1)
+    # throttle and motors are scored wherever the twin flies; xy and z also need the real position
+    # there (a flight without GPS has no horizontal one) and PX4 controlling that axis
+    mask = np.all(np.isfinite(x_twin[:, :3]), axis=1)
+    xy_c, z_c, how = controlled_axes(log, t)
+    xy_mask = xy_c & np.all(np.isfinite(p_real[:, :2]), axis=1)
+    z_mask = z_c & np.isfinite(p_real[:, 2])
     notes: list[str] = []
+    if not xy_c.all() or not z_c.all():
+        notes.append(f"xy and z scored only where PX4 controlled them ({how})")
     if airborne_only:
         iv = log.airborne_intervals()
         if iv:
@@ -169,9 +181,18 @@ def align(run: TwinRun, log: Any, rate_hz: float = DEFAULT_RATE_HZ, t0: float | 
             notes.append("no airborne interval found: the whole overlap is compared")
     if run.mode == "open":
         notes.append(OPEN_LOOP_NOTE)
+    div = None
+    if run.mode == "closed" and run.x.shape[1] >= 13 and check_divergence:
+        iv_air = log.airborne_intervals()
+        div = divergence.detect(run, log, xy_controlled=lambda tt: controlled_axes(log, tt)[0],
+                                z_controlled=lambda tt: controlled_axes(log, tt)[1], t1=t1,
+                                ground=lambda tt: ground_phases(tt, pos.at(tt, "linear")[:, 2], iv_air))
+        if div is not None:
+            notes.append(f"DIVERGED at {div['t_s']:.2f} s: {div['cause']} ({div['detail']}); the metrics after "
+                         "it describe another flight")
     return Aligned(t=t, xy_twin=x_twin[:, :2], xy_real=p_real[:, :2], z_twin=x_twin[:, 2], z_real=p_real[:, 2],
                    throttle_twin=thr_twin, throttle_real=thr_real, motors_twin=m_twin, motors_real=m_real,
-                   mask=mask, mode=run.mode, notes=notes)
+                   mask=mask, mode=run.mode, notes=notes, xy_mask=xy_mask, z_mask=z_mask, divergence=div)
 
 
 def compare_log(log: Any, vp: Any, mode: str = "closed", horizon_s: float = 2.0, airborne_only: bool = True,
@@ -247,5 +268,5 @@ def metrics_from_streams(real: dict[str, tuple[np.ndarray, np.ndarray]], twin: d
                          source: str = "topics") -> CompareResult:
     """Whole-flight metrics of received topic data (see :func:`streams_to_log_and_run`)."""
     log, run = streams_to_log_and_run(real, twin, mode, n_motors, source)
-    al = align(run, log, rate_hz=rate_hz, airborne_only=airborne_only)
+    al = align(run, log, rate_hz=rate_hz, airborne_only=airborne_only, check_divergence=False)
     return CompareResult(metrics=flight_metrics(al), aligned=al, run=run)

@@ -180,22 +180,30 @@ def _init_memory(C, x):
 
 
 @njit(cache=True)
-def manual_update(G, C, P, J, A, x, q_sp, throttle, dt, u, info):
-    """One control step of PX4's manual (stabilised/acro) modes, where the position controller does not
-    run: the pilot's attitude ``q_sp`` (w, x, y, z; FLU->ENU) and collective ``throttle`` (PX4's normalised
-    thrust setpoint, 0..1) go straight to the attitude and rate loops.  The velocity loop's memory is
-    left as it is (PX4 does not run it) but its derivative state follows the vehicle."""
+def manual_update(G, C, P, J, A, x, q_sp, throttle, yawspeed, w_sp, dt, u, info):
+    """One control step of PX4's modes without a position controller: the attitude setpoint ``q_sp``
+    (w, x, y, z; FLU->ENU; MANUAL/STABILIZED: the pilot's ``vehicle_attitude_setpoint.q_d``) with its
+    yaw-rate feed-forward ``yawspeed`` (NaN none), or, where ``w_sp[0]`` is finite, the body-rate setpoint
+    ``w_sp`` (FLU, rad/s; ACRO: ``vehicle_rates_setpoint``) straight to the rate loop; and the collective
+    ``throttle`` (PX4's normalised thrust setpoint, 0..1).  The velocity loop's memory is left as it is
+    (PX4 does not run it) but its derivative state follows the vehicle."""
     n = int(P[I_N])
     _init_memory(C, x)
     for k in range(3):
         C[C_VPREV + k] = x[3 + k]
     thrust = n * _cmd_to_rotor_thrust(P, throttle)
-    _attitude_to_motors(G, C, P, J, A, x, thrust, q_sp, np.nan, dt, u, info)
+    _attitude_to_motors(G, C, P, J, A, x, thrust, q_sp, yawspeed, w_sp, dt, u, info)
 
 
 @njit(cache=True)
-def controller_update(G, C, P, J, A, x, sp, dt, u, info):
-    """One control step.  ``x`` holds the estimate [p, v, q, w] (ENU/FLU); writes ``u`` (N,) and ``info``."""
+def controller_update(G, C, P, J, A, x, sp, q_att, dt, u, info):
+    """One control step.  ``x`` holds the estimate [p, v, q, w] (ENU/FLU); writes ``u`` (N,) and ``info``.
+
+    As PX4's ``PositionControl``: an axis whose position and velocity setpoints are both NaN gets no
+    velocity control (``addIfNotNanVector3f``), only the acceleration setpoint (NaN: none); there the
+    horizontal attitude comes from ``q_att`` (w, x, y, z; FLU->ENU; NaN: none) where given: PX4's own
+    attitude setpoint in ALTCTL (the stick's tilt and the yaw), the collective from the altitude loop
+    projected on its body z (``_accelerationControl``: thrust_z / cos(tilt))."""
     n = int(P[I_N])
     m = P[I_MASS]
     g = P[I_G]
@@ -229,7 +237,11 @@ def controller_update(G, C, P, J, A, x, sp, dt, u, info):
         e = vsp[k] - x[3 + k]
         dv = (x[3 + k] - C[C_VPREV + k]) / dt
         C[C_VPREV + k] = x[3 + k]
-        asp[k] = kp * e + C[C_VI + k] - kd * dv
+        free = sp[k] != sp[k] and sp[3 + k] != sp[3 + k]  # not controlled: no velocity PID (PX4)
+        if free:
+            e = 0.0
+        else:
+            asp[k] = kp * e + C[C_VI + k] - kd * dv
         if sp[6 + k] == sp[6 + k]:
             asp[k] += sp[6 + k]
         verr[k] = e
@@ -265,12 +277,21 @@ def controller_update(G, C, P, J, A, x, sp, dt, u, info):
     xb /= np.sqrt(xb[0] ** 2 + xb[1] ** 2 + xb[2] ** 2)
     yb = np.cross(zb, xb)
     qd = _rotmat_to_quat(xb, yb, zb)
-    _attitude_to_motors(G, C, P, J, A, x, thrust, qd, sp[10], dt, u, info)
+    yawspeed = sp[10]
+    xy_free = sp[0] != sp[0] and sp[1] != sp[1] and sp[3] != sp[3] and sp[4] != sp[4]
+    if xy_free and q_att[0] == q_att[0]:
+        # ALTCTL: PX4's own attitude setpoint (stick tilt and yaw), the collective from the z loop
+        qd = q_att.copy()
+        cz = max(_qrot(qd, np.array([0.0, 0.0, 1.0]))[2], 0.2)
+        thrust = min(max(m * fz / cz, thr_lo), thr_hi)
+    w_none = np.full(3, np.nan)
+    _attitude_to_motors(G, C, P, J, A, x, thrust, qd, yawspeed, w_none, dt, u, info)
 
 
 @njit(cache=True)
-def _attitude_to_motors(G, C, P, J, A, x, thrust, qd, yawspeed, dt, u, info):
-    """Attitude P -> rate PID -> allocation, for collective ``thrust`` [N] and attitude setpoint ``qd``."""
+def _attitude_to_motors(G, C, P, J, A, x, thrust, qd, yawspeed, w_sp, dt, u, info):
+    """Attitude P -> rate PID -> allocation, for collective ``thrust`` [N] and attitude setpoint ``qd``;
+    a finite ``w_sp[0]`` is a body-rate setpoint (FLU, rad/s) that replaces the attitude loop (ACRO)."""
     n = int(P[I_N])
     zb = _qrot(qd, np.array([0.0, 0.0, 1.0]))
     # ---- attitude error as PX4 AttitudeControl::update: tilt first (reduced attitude),
@@ -296,16 +317,22 @@ def _attitude_to_motors(G, C, P, J, A, x, thrust, qd, yawspeed, dt, u, info):
     wsp[0] = 2.0 * qe[1] * G[G_ROLL_P]
     wsp[1] = 2.0 * qe[2] * G[G_PITCH_P]
     wsp[2] = 2.0 * qe[3] * (G[G_YAW_P] / yw if yw > 1e-4 else 0.0)
-    if not np.isnan(yawspeed):
+    if w_sp[0] == w_sp[0]:
+        # ACRO (or an offboard rate setpoint): the rate setpoint is given, no attitude loop
+        wsp[:] = np.nan_to_num(w_sp)
+    elif not np.isnan(yawspeed):
         # yaw-rate feed-forward about world z, expressed in the body frame
         zw = _qrot(_qconj(q), np.array([0.0, 0.0, 1.0]))
         for k in range(3):
             wsp[k] += zw[k] * yawspeed
-    rmax = G[G_RR_MAX] * np.pi / 180.0
-    ymax = G[G_YR_MAX] * np.pi / 180.0
-    for k in range(2):
-        wsp[k] = min(max(wsp[k], -rmax), rmax)
-    wsp[2] = min(max(wsp[2], -ymax), ymax)
+    if w_sp[0] != w_sp[0]:
+        # the attitude loop's output limits (MC_*RATE_MAX); a given rate setpoint (ACRO) is PX4's own,
+        # already limited by its mode (MC_ACRO_*_MAX may exceed these)
+        rmax = G[G_RR_MAX] * np.pi / 180.0
+        ymax = G[G_YR_MAX] * np.pi / 180.0
+        for k in range(2):
+            wsp[k] = min(max(wsp[k], -rmax), rmax)
+        wsp[2] = min(max(wsp[2], -ymax), ymax)
     # ---- rate PID -> angular acceleration -> torque (J alpha + w x J w)
     alpha = np.zeros(3)
     for k in range(3):
@@ -412,6 +439,10 @@ def _rotmat_to_quat(xb, yb, zb):
     return q / np.sqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
 
 
+_NO_Q = np.full(4, np.nan)
+_NO_W = np.full(3, np.nan)
+
+
 class Controller:
     """Stateful wrapper: ``u, info = ctrl.update(x_est, setpoint, dt)``."""
 
@@ -430,20 +461,31 @@ class Controller:
     def reset(self) -> None:
         self.C[:] = 0.0
 
-    def update_manual(self, x: np.ndarray, q_sp: np.ndarray, throttle: float, dt: float
+    def update_manual(self, x: np.ndarray, q_sp: np.ndarray | None, throttle: float, dt: float,
+                      yawspeed: float = float("nan"), rates: np.ndarray | None = None
                       ) -> tuple[np.ndarray, np.ndarray]:
-        """PX4's manual modes: attitude setpoint ``q_sp`` (w, x, y, z) and collective ``throttle`` (0..1)."""
+        """PX4's modes without a position controller: attitude setpoint ``q_sp`` (w, x, y, z) with its
+        yaw-rate feed-forward ``yawspeed``, or the body-rate setpoint ``rates`` (FLU, ACRO; it wins when
+        given), and the collective ``throttle`` (0..1)."""
         u = np.empty(self.n)
         info = np.empty(INFO_SIZE)
+        q = _NO_Q if q_sp is None else np.ascontiguousarray(q_sp, dtype=np.float64)
+        w = _NO_W if rates is None else np.ascontiguousarray(rates, dtype=np.float64)
+        if rates is None and q_sp is None:
+            raise ValueError("update_manual: expected an attitude setpoint q_sp or a rate setpoint")
         manual_update(self.G, self.C, self.P, self.J, self.A, np.ascontiguousarray(x[:13], dtype=np.float64),
-                      np.ascontiguousarray(q_sp, dtype=np.float64), float(throttle), float(dt), u, info)
+                      q, float(throttle), float(yawspeed), w, float(dt), u, info)
         return u, info
 
-    def update(self, x: np.ndarray, sp: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    def update(self, x: np.ndarray, sp: np.ndarray, dt: float, q_att: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """The position/velocity cascade on ``sp`` (see :func:`controller_update`; ``q_att``: PX4's attitude
+        setpoint, flown where the horizontal axes are not controlled)."""
         u = np.empty(self.n)
         info = np.empty(INFO_SIZE)
+        q = _NO_Q if q_att is None else np.ascontiguousarray(q_att, dtype=np.float64)
         controller_update(self.G, self.C, self.P, self.J, self.A, np.ascontiguousarray(x[:13], dtype=np.float64),
-                          np.ascontiguousarray(sp, dtype=np.float64), float(dt), u, info)
+                          np.ascontiguousarray(sp, dtype=np.float64), q, float(dt), u, info)
         return u, info
 
 

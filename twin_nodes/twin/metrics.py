@@ -21,6 +21,11 @@ Error channels (twin minus real, on one common time grid):
 - ``motor<i>``: per-motor command difference [-, 0..1], PX4 motor order
   (``motor1`` = PX4 Motor1 = ``actuator_motors.control[0]``)
 
+``xy`` and ``z`` count only where PX4 controlled that axis (``Aligned.xy_mask``/``z_mask``;
+``controlled_s``/``controlled_when`` say how long and when); ``throttle_real_hf_rms`` is the real
+throttle's own RMS above 0.5 Hz on the scored samples (what a still-air twin cannot follow);
+``divergence`` is where the twin left the real flight (:mod:`twin_nodes.twin.divergence`) or None.
+
 Throttle and motor values are fractions (0.03 = 3 %); :func:`table2` prints
 them in percent like the Búho Negro paper's Table 2.
 """
@@ -172,6 +177,12 @@ class Aligned:
     mask: np.ndarray
     mode: str = "closed"
     notes: list[str] = field(default_factory=list)
+    #: where PX4 controlled the horizontal position / the height (``None``: everywhere); ``xy`` and
+    #: ``z`` are scored only there (:func:`twin_nodes.twin.runner.controlled_axes`)
+    xy_mask: np.ndarray | None = None
+    z_mask: np.ndarray | None = None
+    #: the twin's divergence from the real flight (``{"t_s", "cause", "detail"}``; None: none found)
+    divergence: dict | None = None
 
     def __post_init__(self) -> None:
         n = np.asarray(self.t).shape[0]
@@ -205,8 +216,55 @@ def channel_errors(al: Aligned) -> dict[str, np.ndarray]:
     for k, v in out.items():
         v = np.array(v, dtype=float)
         v[~mask] = np.nan
+        axis = al.xy_mask if k == "xy" else al.z_mask if k == "z" else None
+        if axis is not None:
+            v[~np.asarray(axis, bool)] = np.nan
         out[k] = v
     return out
+
+
+def _intervals(t: np.ndarray, flag: np.ndarray, dt: float) -> list[list[float]]:
+    """[start, end] of each run of True in ``flag`` (times ``t``), rounded to 0.1 s."""
+    out: list[list[float]] = []
+    idx = np.flatnonzero(flag)
+    if idx.size == 0:
+        return out
+    breaks = np.flatnonzero(np.diff(idx) > 1)
+    starts = np.concatenate([[idx[0]], idx[breaks + 1]])
+    ends = np.concatenate([idx[breaks], [idx[-1]]])
+    return [[round(float(t[a]), 1), round(float(t[b] + dt), 1)] for a, b in zip(starts, ends)]
+
+
+#: the real throttle's content above this [Hz] is the floor no still-air twin can follow (turbulence,
+#: gusts, the pilot's stick): ``throttle_real_hf_rms``
+HF_CUTOFF_HZ = 0.5
+
+
+def highpass_rms(t: np.ndarray, x: np.ndarray, mask: np.ndarray, cutoff_hz: float = HF_CUTOFF_HZ) -> float:
+    """RMS over ``mask`` of ``x`` high-passed at ``cutoff_hz`` (2nd-order Butterworth, forward-backward,
+    over each run of finite samples of the uniform grid ``t``); NaN when nothing is left."""
+    from scipy.signal import butter, sosfiltfilt
+
+    t = np.asarray(t, float)
+    x = np.asarray(x, float).ravel()
+    mask = np.asarray(mask, bool)
+    if t.size < 16:
+        return math.nan
+    fs = 1.0 / float(np.median(np.diff(t)))
+    if not cutoff_hz < 0.45 * fs:
+        return math.nan
+    sos = butter(2, cutoff_hz, btype="highpass", fs=fs, output="sos")
+    hp = np.full(x.shape, np.nan)
+    ok = np.isfinite(x)
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return math.nan
+    breaks = np.flatnonzero(np.diff(idx) > 1)
+    for a, b in zip(np.concatenate([[idx[0]], idx[breaks + 1]]), np.concatenate([idx[breaks], [idx[-1]]])):
+        if b - a + 1 >= int(fs / cutoff_hz) and b - a + 1 > 12:  # at least one period of the cut-off
+            hp[a:b + 1] = sosfiltfilt(sos, x[a:b + 1])
+    v = hp[mask & np.isfinite(hp)]
+    return float(np.sqrt(np.mean(v * v))) if v.size else math.nan
 
 
 def flight_metrics(al: Aligned) -> dict[str, Any]:
@@ -234,10 +292,23 @@ def flight_metrics(al: Aligned) -> dict[str, Any]:
     out["n_motors"] = al.n_motors
     out["mode"] = al.mode
     out["rate_hz"] = float(1.0 / np.median(np.diff(t))) if t.size > 1 else math.nan
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    out["controlled_s"], out["controlled_when"] = {}, {}
+    for ax, am in (("xy", al.xy_mask), ("z", al.z_mask)):
+        on = mask & (np.ones(mask.shape, bool) if am is None else np.asarray(am, bool))
+        on &= np.isfinite(err[ax])
+        out["controlled_s"][ax] = round(float(on.sum()) * dt, 2)
+        out["controlled_when"][ax] = _intervals(t, on, dt)[:20]
+    out["controlled_axes"] = [ax for ax in ("xy", "z") if out["controlled_s"][ax] > 0]
+    out["throttle_real_hf_rms"] = highpass_rms(t, al.throttle_real, mask, HF_CUTOFF_HZ)
+    out["divergence"] = dict(al.divergence) if al.divergence else None
     out["definitions"] = ("errors are twin minus real on a common grid over the masked (airborne) samples; "
                           "xy = horizontal distance [m], z = altitude difference [m], throttle and motors "
                           "are fractions 0..1 (PX4 normalised); rmse = sqrt(mean(e^2)); p75/median = 75th/50th "
-                          "percentile of |e| (numpy linear interpolation); max = max |e|")
+                          "percentile of |e| (numpy linear interpolation); max = max |e|; xy and z only where "
+                          "PX4 controlled that axis (controlled_s, controlled_when: a position or velocity "
+                          "setpoint finite in it while mc_pos_control runs); divergence: where the twin left "
+                          "the real flight's envelope (t_s, cause) or null")
     if al.notes:
         out["notes"] = list(al.notes)
     return out
@@ -269,6 +340,12 @@ def table2(m: Mapping[str, Any], title: str = "") -> str:
            f"{_f(m.get('duration_s'), 1, 1)} s at {_f(m.get('rate_hz'), 1, 0)} Hz")
     lines = [head, sub, "-" * (w + 30)]
     lines += [f"{name:<{w}}  {val}" for name, val in rows]
+    cs = m.get("controlled_s") or {}
+    if cs:
+        lines.append("Axes PX4 controlled [s]".ljust(w) + "  " + ", ".join(f"{k} {_f(v, 1, 1)}" for k, v in cs.items()))
+    dv = m.get("divergence")
+    lines.append("Divergence".ljust(w) + "  " + (f"at {_f(dv.get('t_s'), 1, 1)} s: {dv.get('cause')}"
+                                               if dv else "none"))
     for note in m.get("notes", []) or []:
         lines.append(f"note: {note}")
     return "\n".join(lines)

@@ -29,10 +29,20 @@ from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.model import Multirotor
 from twin_nodes.twin.sim import DelayLine
+from twin_nodes.logs import time_sync
 from twin_nodes.logs.ulog_io import MANUAL_NAV_STATES
 
 MODES = ("closed", "open")
-__all__ = ["MANUAL_NAV_STATES", "MODES", "TwinSample", "TwinRunner", "TwinRun", "run_twin_on_log", "log_inputs"]
+#: PX4 nav_state values with their own setpoint: ACRO flies the rate setpoint, OFFBOARD what its flags say
+ACRO_NAV_STATE = 10.0
+ALTCTL_NAV_STATE = 1.0
+OFFBOARD_NAV_STATE = 14.0
+#: how a closed-loop control step was flown: PX4's attitude setpoint (MANUAL/STAB, offboard attitude),
+#: its rate setpoint (ACRO), the real attitude (a manual mode in a log without an attitude setpoint),
+#: the position/velocity cascade (ALTCTL/POSCTL/AUTO/offboard trajectories), or not at all (disarmed)
+FLOWN_AS = ("attitude", "rates", "real_attitude", "cascade", "disarmed")
+__all__ = ["MANUAL_NAV_STATES", "MODES", "FLOWN_AS", "controlled_axes", "TwinSample", "TwinRunner", "TwinRun",
+           "run_twin_on_log", "log_inputs"]
 
 
 @dataclass
@@ -43,6 +53,11 @@ class TwinSample:
     throttle: float        # collective throttle (PX4 thrust-setpoint convention)
     specific_force: np.ndarray  # (3,) FLU
     resynced: bool = False
+
+
+#: the real state's horizontal position and velocity columns (may be unknown: no GPS) and the rest
+_HORIZONTAL = (0, 1, 3, 4)
+_NON_HORIZONTAL = np.array([2, 5, 6, 7, 8, 9, 10, 11, 12])
 
 
 class TwinRunner:
@@ -92,6 +107,15 @@ class TwinRunner:
         #: PX4 nav_state of the real vehicle (NaN unknown) and its logged collective thrust setpoint
         self.nav_state = float("nan")
         self.real_throttle = float("nan")
+        #: PX4's own attitude setpoint (``vehicle_attitude_setpoint``: q_d FLU->ENU, collective thrust,
+        #: yaw-rate feed-forward), its rate setpoint (FLU) and the offboard flags (NaN: not logged)
+        self.att_q = np.full(4, np.nan)
+        self.att_thrust = float("nan")
+        self.att_yawrate = float("nan")
+        self.rates_sp = np.full(3, np.nan)
+        self.offboard_flags = np.full(6, np.nan)
+        #: how the last control step was flown (:data:`FLOWN_AS`)
+        self.flown_as = ""
 
     # ---------------------------------------------------------------- inputs
     def real_state(self, t: float, p_enu, v_enu, q_wxyz, w_flu) -> None:
@@ -103,7 +127,15 @@ class TwinRunner:
         """The real state ``x`` (13,) [p, v, q, w], a float array of the caller's that this keeps and
         shifts; ``finite``: all of it is finite (a sample with a NaN is ignored)."""
         if not finite:
-            return
+            if not np.isfinite(x[_NON_HORIZONTAL]).all():
+                return
+            # no horizontal position/velocity (no GPS, or the EKF's horizontal estimate invalid): the
+            # last known ones (at the start 0), so that the twin flies on what the flight has; XY is not
+            # scored where the real one is unknown
+            prev = self.real_x if self.real_x is not None else np.zeros(13)
+            for k in _HORIZONTAL:
+                if not math.isfinite(x[k]):
+                    x[k] = prev[k]
         if not self._initialised and np.linalg.norm(x[3:6]) < 0.3:
             # at rest when the twin starts (PX4 logs start at boot or at arming, on the ground):
             # that height is the ground (not the arming state: its message may come first or last)
@@ -147,6 +179,54 @@ class TwinRunner:
         the pilot's thrust and the real attitude (see :attr:`manual`)."""
         self.nav_state = float(nav_state)
         self.real_throttle = float(throttle)
+
+    def attitude_setpoint(self, q_wxyz, thrust: float = float("nan"), yawrate: float = float("nan")) -> None:
+        """PX4's attitude setpoint (``vehicle_attitude_setpoint``; q FLU->ENU): the pilot's attitude in
+        MANUAL/STABILIZED, the stick's tilt and the yaw in ALTCTL, an offboard attitude."""
+        self.att_q = np.asarray(q_wxyz, float).reshape(4)
+        self.att_thrust = float(thrust)
+        self.att_yawrate = float(yawrate)
+
+    def rate_setpoint(self, w_flu) -> None:
+        """PX4's body-rate setpoint (``vehicle_rates_setpoint``, FLU rad/s): flown in ACRO."""
+        self.rates_sp = np.asarray(w_flu, float).reshape(3)
+
+    def offboard_mode(self, flags) -> None:
+        """``offboard_control_mode`` flags (position, velocity, acceleration, attitude, body_rate, thrust)."""
+        self.offboard_flags = np.asarray(flags, float).reshape(6)
+
+    def _fly_mode(self) -> str:
+        """What PX4 flies now, by ``nav_state`` and what the log carries (:data:`FLOWN_AS`)."""
+        nav = self.nav_state
+        thr_ok = math.isfinite(self.real_throttle)
+        q_ok = bool(np.isfinite(self.att_q).all())
+        w_ok = bool(np.isfinite(self.rates_sp).all())
+        if nav == ACRO_NAV_STATE:
+            if w_ok and thr_ok:
+                return "rates"
+        elif nav in MANUAL_NAV_STATES:
+            if q_ok and thr_ok:
+                return "attitude"
+        elif nav == OFFBOARD_NAV_STATE:
+            f = self.offboard_flags
+            traj = bool(np.isfinite(self.sp[0:9]).any())
+            if np.isfinite(f).all():
+                if (f[0:3] > 0).any() and traj:
+                    return "cascade"
+                if f[3] > 0 and q_ok and (thr_ok or math.isfinite(self.att_thrust)):
+                    return "attitude"
+                if f[4] > 0 and w_ok and thr_ok:
+                    return "rates"
+            elif not traj:
+                if q_ok and (thr_ok or math.isfinite(self.att_thrust)):
+                    return "attitude"
+                if w_ok and thr_ok:
+                    return "rates"
+            return "cascade"
+        else:
+            return "cascade"
+        # a manual mode without the setpoint this log would need: the pilot's throttle and the real attitude
+        return "real_attitude" if thr_ok and self.real_x is not None else "cascade"
 
     @property
     def manual(self) -> bool:
@@ -204,18 +284,32 @@ class TwinRunner:
             mean_u = np.nanmean(u) if np.any(np.isfinite(u)) else np.nan
             self.throttle = float(mean_u)
         else:
-            if self.is_armed and self.manual:
-                # PX4 MANUAL/STAB/ACRO: no position controller; the pilot's collective thrust and
-                # attitude (the real attitude stands for the stick's attitude setpoint)
+            how = self._fly_mode() if self.is_armed else "disarmed"
+            thr = self.real_throttle if math.isfinite(self.real_throttle) else self.att_thrust
+            if how == "attitude":
+                # PX4 MANUAL/STAB (or offboard attitude): no position controller; PX4's attitude
+                # setpoint (the pilot's sticks) and collective thrust through the attitude and rate loops
+                u, info = self.ctrl.update_manual(self.x[:13], self.att_q, thr, self.dt_c, yawspeed=self.att_yawrate)
+            elif how == "rates":
+                # ACRO (or offboard rates): the logged rate setpoint straight to the rate loop
+                u, info = self.ctrl.update_manual(self.x[:13], None, thr, self.dt_c, rates=self.rates_sp)
+            elif how == "real_attitude":
+                # a manual mode in a log without an attitude setpoint: the real attitude stands for it
                 u, info = self.ctrl.update_manual(self.x[:13], self.real_x[6:10], self.real_throttle, self.dt_c)
-                self.throttle = float(info[0])
-            elif self.is_armed:
-                u, info = self.ctrl.update(self.x[:13], self._effective_setpoint(), self.dt_c)
-                self.throttle = float(info[0])
+            elif how == "cascade":
+                q_att = self.att_q if np.isfinite(self.att_q).all() else None
+                sp = self._effective_setpoint()
+                if sp[9] != sp[9] and sp[10] != sp[10] and math.isfinite(self.att_yawrate):
+                    # no yaw setpoint (the pilot yawing in POSCTL/ALTCTL): PX4 holds its current heading and
+                    # feeds the stick's yaw rate forward, logged as the attitude setpoint's yaw_sp_move_rate
+                    sp = sp.copy()
+                    sp[10] = self.att_yawrate
+                u, info = self.ctrl.update(self.x[:13], sp, self.dt_c, q_att=q_att)
             else:
                 self.ctrl.reset()
-                u = np.full(self.n, np.nan)
-                self.throttle = float("nan")
+                u, info = np.full(self.n, np.nan), np.full(1, np.nan)
+            self.flown_as = how
+            self.throttle = float(info[0])
         self.u = u
         applied = self._delay.push(u)
         # the runner's own arrays (float64, checked shapes): the model's unchecked entry point
@@ -259,10 +353,15 @@ class TwinRunner:
         target = self._sp_rates[3] if self._sp_rates is not None else (
             bool(np.any(np.isfinite(sp[0:3])) or np.any(np.isfinite(sp[3:6]))))
         if not target:
-            # no position or velocity setpoint (manual modes, old logs): fly the real position
+            # no position or velocity setpoint (manual modes, old logs): fly the real position; in ALTCTL
+            # with PX4's attitude setpoint logged, its real height only (the tilt is the pilot's)
             sp = sp.copy()
             if self.real_x is not None:
-                sp[0:3] = self.real_x[0:3]
+                altctl = self.nav_state == ALTCTL_NAV_STATE and bool(np.isfinite(self.att_q).all())
+                if altctl:
+                    sp[2] = self.real_x[2]
+                else:
+                    sp[0:3] = self.real_x[0:3]
                 if not np.isfinite(sp[9]):
                     q = self.real_x[6:10]
                     sp[9] = np.arctan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
@@ -290,7 +389,18 @@ def log_inputs(log, rate_hz: float, t0: float | None = None, t1: float | None = 
     present = names + [n for n in optional if log.get(n) is not None]
     grid, data = log.resample(present, rate_hz, t0, t1)
     data["t"] = grid
+    # PX4's own attitude/rate setpoints and offboard flags, for the modes without a position
+    # controller: on the same grid (they do not shorten it), NaN before their first sample
+    for n in MODE_INPUTS:
+        s = log.get(n)
+        if s is not None and len(s):
+            data[n] = time_sync.interp_to(s.t_s, s.values, grid, kind=s.interp)
     return data
+
+
+#: the series the modes without a position controller fly (:meth:`TwinRunner._fly_mode`)
+MODE_INPUTS = ("attitude_setpoint_q", "attitude_setpoint_thrust", "attitude_setpoint_yawrate", "setpoint_rates_flu",
+               "offboard_mode")
 
 
 def _setpoints(data: dict[str, np.ndarray], n: int) -> np.ndarray:
@@ -316,6 +426,11 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
     batt = np.asarray(data["battery_v"]).reshape(n) if "battery_v" in data else np.full(n, np.nan)
     nav = np.asarray(data["nav_state"]).reshape(n) if "nav_state" in data else np.full(n, np.nan)
     thr = np.asarray(data["throttle"]).reshape(n) if "throttle" in data else np.full(n, np.nan)
+    def col(name: str, k: int) -> np.ndarray:
+        return np.asarray(data[name], float).reshape(n, k) if name in data else np.full((n, k), np.nan)
+    att_q, att_thr, att_yr = col("attitude_setpoint_q", 4), col("attitude_setpoint_thrust", 1)[:, 0], col(
+        "attitude_setpoint_yawrate", 1)[:, 0]
+    rates_sp, offb = col("setpoint_rates_flu", 3), col("offboard_mode", 6)
     P, V, Q, W, U = (np.asarray(data[k]) for k in ("position_enu", "velocity_enu", "attitude_q",
                                                      "body_rates_flu", "motors"))
     # the per-sample work done once, vectorized: the real state rows and whether each is finite,
@@ -330,6 +445,7 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
     # the outputs go into arrays made for the whole run (one row per control step) rather than lists of
     # per-step arrays (~0.5 kB a step in objects, then copied once more: 0.9 GB on a 1-hour flight)
     out = _Rows(n_steps=int((t[-1] - t[0]) * runner.rate_hz) + 2 if n else 0, nx=model.nx, n=runner.n)
+    flown: dict[str, int] = {}
     it = range(n)
     if progress:
         from tqdm import tqdm
@@ -340,6 +456,8 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
         runner._take_setpoint(sp[k], bool(repeated[k]))
         runner.armed(bool(armed[k]))
         runner.px4_mode(nav[k], thr[k])
+        runner.att_q, runner.att_thrust, runner.att_yawrate = att_q[k], att_thr[k], att_yr[k]
+        runner.rates_sp, runner.offboard_flags = rates_sp[k], offb[k]
         if np.isfinite(batt[k]):
             runner.battery(batt[k])
         if k + 1 < n and runner._initialised and runner.t is not None:
@@ -347,6 +465,7 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
             t_next = t[k + 1] + 1e-9
             while runner.t + runner.dt_c <= t_next:
                 _, applied = runner._step()
+                flown[runner.flown_as] = flown.get(runner.flown_as, 0) + 1
                 out.add(runner.t, runner.x, runner.u, runner.throttle,
                         model.specific_force_unchecked(runner.x, applied, runner.ext))
     out_t, out_x, out_u, out_thr, out_sf = out.arrays()
@@ -354,7 +473,9 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
         # the twin's ground is at the real frame's take-off height (set once, before the first step)
         out_x[:, 2] += runner.ground_z
     return TwinRun(t=out_t, x=out_x, motors=out_u, throttle=out_thr, specific_force=out_sf, mode=mode,
-                   info={"rate_hz": runner.rate_hz, "horizon_s": horizon_s, "params": vp.name})
+                   info={"rate_hz": runner.rate_hz, "horizon_s": horizon_s, "params": vp.name,
+                         "ground_z": runner.ground_z,
+                         "flown_as_s": {k: v / runner.rate_hz for k, v in flown.items() if k}})
 
 
 class _Rows:
@@ -376,3 +497,40 @@ class _Rows:
 
     def arrays(self) -> list[np.ndarray]:
         return [a[:self.k] for a in self.a]
+
+
+def controlled_axes(log, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+    """Where PX4 controlled the horizontal position (``xy``) and the height (``z``) on the times ``t``:
+    a position or velocity setpoint finite in that axis (``trajectory_setpoint``; NaN = not controlled,
+    as PX4's ``PositionControl`` reads it) while ``mc_pos_control`` runs (not MANUAL/STAB/ACRO; in
+    OFFBOARD only with the position or velocity flag where ``offboard_control_mode`` is logged).
+    Returns ``(xy, z, how)``; a log without any position/velocity setpoint counts every axis as
+    controlled (the twin then holds the real position) and ``how`` says so."""
+    t = np.asarray(t, float)
+    sp_p, sp_v = log.get("setpoint_position_enu"), log.get("setpoint_velocity_enu")
+    how = "trajectory_setpoint position/velocity finite per axis, nav_state not MANUAL/STAB/ACRO"
+    if (sp_p is None or not len(sp_p)) and (sp_v is None or not len(sp_v)):
+        xy, z = np.ones(t.shape, bool), np.ones(t.shape, bool)
+        how = ("no trajectory_setpoint in the log: every axis scored where nav_state is no manual mode (the twin "
+               "holds the real position there), the height only in ALTCTL")
+        nav = log.get("nav_state")
+        if nav is not None and len(nav):
+            xy &= nav.at(t, "previous")[:, 0] != ALTCTL_NAV_STATE
+    else:
+        def at(s, k):
+            return s.at(t, "previous") if s is not None and len(s) else np.full((len(t), k), np.nan)
+        p, v = at(sp_p, 3), at(sp_v, 3)
+        xy = np.isfinite(p[:, :2]).all(axis=1) | np.isfinite(v[:, :2]).all(axis=1)
+        z = np.isfinite(p[:, 2]) | np.isfinite(v[:, 2])
+    nav = log.get("nav_state")
+    if nav is not None and len(nav):
+        ns = nav.at(t, "previous")[:, 0]
+        running = ~np.isin(ns, MANUAL_NAV_STATES)
+        ocm = log.get("offboard_mode")
+        if ocm is not None and len(ocm):
+            f = ocm.at(t, "previous")
+            traj_flag = np.nan_to_num(f[:, 0]) + np.nan_to_num(f[:, 1]) > 0
+            running &= (ns != OFFBOARD_NAV_STATE) | traj_flag
+        xy &= running
+        z &= running
+    return xy, z, how

@@ -1,0 +1,237 @@
+"""Every flight mode flown as PX4 flies it, and a twin that leaves the flight is said so (issue 24.3, 24.5).
+
+Known truths on logs written with the project's own writer (``ulog_cases.edited_flight``): the real
+vehicle in them hovers level; what PX4 logged as its setpoint is a step.  A twin that flies PX4's setpoint
+follows the step; one that flew the real attitude (before) stays level.
+
+- STABILIZED: ``vehicle_attitude_setpoint.q_d`` steps to 10 deg of roll: the twin rolls 10 deg.
+- ACRO: ``vehicle_rates_setpoint`` 0.5 rad/s of roll for 0.5 s: the twin rolls the integral, 14.3 deg.
+- ALTCTL: no horizontal setpoint (NaN), 5 deg of pitch in ``q_d``, the height held by the z setpoint:
+  the twin accelerates at g tan(5 deg) = 0.86 m/s^2 and holds its height (PX4's PositionControl adds no
+  velocity control on an axis whose position and velocity setpoints are NaN).
+- XY and Z are scored only where PX4 controlled them.
+- A twin forced off the flight (tilted, on the ground, motors rail to rail, run away) is detected at
+  the time it was forced, with that cause; a twin that follows is not.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import ulog_cases as C
+from twin_nodes.base import frames as F
+from twin_nodes.logs.ulog_io import read_ulog
+from twin_nodes.twin import divergence
+from twin_nodes.twin.compare import align
+from twin_nodes.twin.metrics import flight_metrics
+from twin_nodes.twin.runner import TwinRun, controlled_axes, run_twin_on_log
+from twin_nodes.vehicle.params import load_params
+
+ROOT = Path(__file__).resolve().parents[1]
+PARAMS = ROOT / "params" / "px4_sih_quadx.yaml"
+STEP_S = 10.0
+
+
+def _status(nav: int):
+    def edit(topics):
+        vs = topics["vehicle_status"]
+        vs["nav_state"] = np.full(vs["nav_state"].shape, nav)
+    return edit
+
+
+def _thrust_profile(s: np.ndarray, hover: float) -> np.ndarray:
+    """8 % above the hover thrust from 2 s on: the twin lifts off and climbs slowly (clear of the ground,
+    which would hold its attitude)."""
+    return hover * (1.0 + 0.08 * (s >= 2.0))
+
+
+def _hover_thrust(topics, vp) -> None:
+    t = topics["vehicle_thrust_setpoint"]
+    t["xyz"][:, 2] = -_thrust_profile(C._seconds(t), vp.hover_command)
+
+
+def _attitude_setpoint(topics, roll_deg: float = 0.0, pitch_deg: float = 0.0, thrust: float = 0.5) -> None:
+    t = topics["vehicle_attitude"]["timestamp"]
+    s = C._seconds(topics["vehicle_attitude"])
+    after = s >= STEP_S
+    q = F.quat_from_euler(np.where(after, np.radians(roll_deg), 0.0), np.where(after, np.radians(pitch_deg), 0.0),
+                          np.zeros(s.size))  # FRD->NED, heading north
+    thrust_body = np.column_stack([np.zeros(s.size), np.zeros(s.size), -_thrust_profile(s, thrust)])
+    topics["vehicle_attitude_setpoint"] = {"timestamp": t, "q_d": q.astype(np.float32),
+                                           "thrust_body": thrust_body.astype(np.float32),
+                                           "yaw_sp_move_rate": np.zeros(s.size, np.float32)}
+
+
+def _euler_enu(run: TwinRun, t: float) -> np.ndarray:
+    k = int(np.searchsorted(run.t, t))
+    return np.degrees(F.euler_from_quat(run.x[k:k + 1, 6:10])[0])
+
+
+def _fly(tmp_path, name, edit):
+    vp = load_params(PARAMS)
+
+    def full(topics):
+        _hover_thrust(topics, vp)
+        edit(topics, vp)
+    p = C.edited_flight(tmp_path / f"{name}.ulg", full)
+    log = read_ulog(p)
+    return log, run_twin_on_log(log, vp, mode="closed")
+
+
+def test_stabilized_flies_the_attitude_setpoint(tmp_path):
+    def edit(topics, vp):
+        _status(15)(topics)
+        _attitude_setpoint(topics, roll_deg=10.0, thrust=vp.hover_command)
+    log, run = _fly(tmp_path, "stab", edit)
+    assert run.info["flown_as_s"].get("attitude", 0) > 15.0
+    assert abs(_euler_enu(run, STEP_S - 0.5)[0]) < 0.5          # level before the step
+    # PX4's roll right 10 deg (FRD->NED) is the same roll in FLU->ENU (right side down, left side up)
+    after = _euler_enu(run, STEP_S + 1.5)[0]
+    assert abs(after - 10.0) < 1.0, after
+    # the real vehicle stayed level: a twin flying the real attitude would be at 0
+    real = np.degrees(F.euler_from_quat(log.get("attitude_q").at(np.array([STEP_S + 1.5])))[0])
+    assert abs(real[0]) < 1.0
+
+
+def test_acro_flies_the_rate_setpoint(tmp_path):
+    def edit(topics, vp):
+        _status(10)(topics)
+        t = topics["vehicle_attitude"]["timestamp"]
+        s = C._seconds(topics["vehicle_attitude"])
+        rate = np.where((s >= STEP_S) & (s < STEP_S + 0.5), 0.5, 0.0)
+        topics["vehicle_rates_setpoint"] = {"timestamp": t, "roll": rate.astype(np.float32),
+                                            "pitch": np.zeros(s.size, np.float32),
+                                            "yaw": np.zeros(s.size, np.float32)}
+    _, run = _fly(tmp_path, "acro", edit)
+    assert run.info["flown_as_s"].get("rates", 0) > 15.0
+    assert abs(_euler_enu(run, STEP_S - 0.5)[0]) < 0.5
+    # 0.5 rad/s for 0.5 s = 14.3 deg of roll right; the rate loop's lag and integrator leave a degree
+    after = _euler_enu(run, STEP_S + 1.5)[0]
+    assert abs(after - 14.3) < 1.5, after
+
+
+def test_altctl_flies_the_tilt_and_holds_the_height(tmp_path):
+    def edit(topics, vp):
+        _status(1)(topics)
+        _attitude_setpoint(topics, pitch_deg=-5.0, thrust=vp.hover_command)  # FRD pitch down = nose down
+        ts = topics["trajectory_setpoint"]
+        ts["position"][:, 0:2] = np.nan
+        ts["velocity"] = np.full(ts["position"].shape, np.nan)
+    log, run = _fly(tmp_path, "altctl", edit)
+    assert run.info["flown_as_s"].get("cascade", 0) > 15.0
+    k0, k1 = np.searchsorted(run.t, [STEP_S - 0.5, STEP_S + 3.0])
+    # accelerates north (ENU y) at g tan(5 deg) against the SIH quad's drag (k/m = 1/s): 0.858 m/s at
+    # the end, 0.80 m/s after 3 s less the attitude loop's lag; the old twin held the velocity at 0
+    assert abs(run.x[k0, 4]) < 0.1
+    assert 0.65 < run.x[k1, 4] < 0.86, run.x[k1, 4]
+    # the height: the altitude loop holds the logged z setpoint (3 m) while the vehicle tilts
+    z_sp = 3.0
+    assert abs(run.x[k1, 2] - z_sp) < 0.15, run.x[k1, 2]
+    assert abs(run.x[k1, 0]) < 0.1  # no east motion: PX4's attitude setpoint points north
+    xy, z, _ = controlled_axes(log, np.array([STEP_S + 2.0]))
+    assert not xy[0] and z[0]
+
+
+def test_axes_scored_only_where_px4_controlled_them(tmp_path):
+    def edit(topics, vp):
+        vs = topics["vehicle_status"]
+        vs["nav_state"] = np.array([4, 15, 15])  # STABILIZED once armed: no axis controlled
+        _attitude_setpoint(topics, thrust=vp.hover_command)
+    log, run = _fly(tmp_path, "stab_axes", edit)
+    m = flight_metrics(align(run, log))
+    assert m["controlled_s"] == {"xy": 0.0, "z": 0.0}
+    assert np.isnan(m["xy_rmse_m"]) and np.isnan(m["z_rmse_m"])
+    assert np.isfinite(m["throttle_rmse"]) and m["controlled_axes"] == []
+    # the same flight in AUTO: both axes scored for the whole airborne part but its ends
+    log2, run2 = _fly(tmp_path, "auto_axes", lambda topics, vp: None)
+    m2 = flight_metrics(align(run2, log2))
+    assert m2["controlled_s"]["xy"] > 10.0 and m2["controlled_s"]["z"] > 10.0
+
+
+# ---------------------------------------------------------------------------------------- divergence
+
+def _twin_equal_to_real(log) -> TwinRun:
+    """A 'twin' that is the real flight itself, on a 250 Hz grid (no divergence)."""
+    t = np.arange(0.5, log.duration_s - 0.5, 0.004)
+    x = np.zeros((t.size, 13))
+    x[:, 0:3] = log.get("position_enu").at(t)
+    x[:, 3:6] = log.get("velocity_enu").at(t)
+    x[:, 6:10] = log.get("attitude_q").at(t)
+    u = log.get("motors").at(t)
+    return TwinRun(t=t, x=x, motors=u, throttle=u.mean(axis=1), specific_force=np.zeros((t.size, 3)),
+                   mode="closed", info={"ground_z": float(log.get("position_enu").at(np.array([0.6]))[0, 2])})
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    return read_ulog(C.small_flight(tmp_path_factory.mktemp("div") / "f.ulg"))
+
+
+def test_a_twin_that_follows_does_not_diverge(flight):
+    assert divergence.detect(_twin_equal_to_real(flight), flight) is None
+
+
+@pytest.mark.parametrize("cause", ["attitude", "heading", "crash", "motors oscillating", "position run-away"])
+def test_a_forced_divergence_is_found_at_its_time(flight, cause):
+    run = _twin_equal_to_real(flight)
+    t_force = 9.0
+    k = run.t >= t_force
+    if cause == "attitude":
+        run.x[k, 6:10] = F.quat_from_euler(np.full(k.sum(), np.radians(50.0)), np.zeros(k.sum()), np.zeros(k.sum()))
+    elif cause == "heading":
+        e = F.euler_from_quat(run.x[k, 6:10])
+        run.x[k, 6:10] = F.quat_from_euler(e[:, 0], e[:, 1], e[:, 2] + np.radians(150.0))
+    elif cause == "crash":
+        run.x[k, 2] = run.info["ground_z"]
+    elif cause == "motors oscillating":
+        run.motors[k, 1] = np.where(np.sin(2 * np.pi * 4.0 * run.t[k]) > 0, 1.0, 0.0)
+    else:
+        run.x[k, 0] += 12.0 + (run.t[k] - t_force)
+    d = divergence.detect(run, flight)
+    assert d is not None and d["cause"] == cause, d
+    assert abs(d["t_s"] - t_force) < 0.05, d
+    # the metrics say so, and the table's divergence line names it
+    al = align(run, flight)
+    assert al.divergence == d and flight_metrics(al)["divergence"] == d
+
+
+@pytest.mark.parametrize("flags, flown", [((0, 0, 0, 1, 0, 0), "attitude"), ((1, 0, 0, 0, 0, 0), "cascade")],
+                         ids=["attitude", "position"])
+def test_offboard_flies_what_its_flags_say(tmp_path, flags, flown):
+    """OFFBOARD (nav_state 14): ``offboard_control_mode`` says what the companion computer controls.  With the
+    attitude flag the twin flies the logged attitude setpoint (10 deg roll step); with the position flag the
+    cascade on the trajectory setpoint (level: the position setpoint is still)."""
+    names = ("position", "velocity", "acceleration", "attitude", "body_rate", "thrust_and_torque")
+
+    def edit(topics, vp):
+        _status(14)(topics)
+        _attitude_setpoint(topics, roll_deg=10.0, thrust=vp.hover_command)
+        t = topics["vehicle_attitude"]["timestamp"][::10]
+        topics["offboard_control_mode"] = {"timestamp": t,
+                                           **{n: np.full(t.size, bool(f)) for n, f in zip(names, flags)}}
+    log, run = _fly(tmp_path, f"offboard_{flown}", edit)
+    assert run.info["flown_as_s"].get(flown, 0) > 15.0, run.info["flown_as_s"]
+    roll = _euler_enu(run, STEP_S + 1.5)[0]
+    assert abs(roll - (10.0 if flown == "attitude" else 0.0)) < 1.0, roll
+    xy, z, _ = controlled_axes(log, np.array([STEP_S]))
+    assert bool(xy[0]) == bool(z[0]) == (flown == "cascade")
+
+
+def test_altctl_without_a_trajectory_setpoint_holds_the_real_height(tmp_path):
+    """A log with no trajectory_setpoint (older topic sets) in ALTCTL: the twin flies the pilot's tilt (q_d) with
+    its altitude loop on the real height, not the real position (which would hold it where the vehicle is);
+    only the height is scored."""
+    def edit(topics, vp):
+        _status(1)(topics)
+        _attitude_setpoint(topics, pitch_deg=-5.0, thrust=vp.hover_command)
+        del topics["trajectory_setpoint"]
+    log, run = _fly(tmp_path, "altctl_old", edit)
+    k0, k1 = np.searchsorted(run.t, [STEP_S - 0.5, STEP_S + 3.0])
+    assert abs(run.x[k0, 4]) < 0.1 and 0.65 < run.x[k1, 4] < 0.86, run.x[[k0, k1], 4]
+    z_real = log.get("position_enu").at(np.array([STEP_S + 3.0]))[0, 2]
+    assert abs(run.x[k1, 2] - z_real) < 0.15
+    xy, z, _ = controlled_axes(log, np.array([STEP_S]))
+    assert not xy[0] and z[0]
