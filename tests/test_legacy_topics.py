@@ -283,7 +283,7 @@ NOT_FLIGHTS = {
     "toopazo_v5_log156": "too short",  # PX4 1.9.0-dev, armed 5 s on the ground
     "mch_v5_test2": "never airborne",  # PX4 1.13.2-dev, never armed (its -inf battery current left out)
     "pyulog_sample_appended_multiple": "never airborne",  # PX4 1.6-dev, landed throughout
-    "roboto_v5_test": "without GPS",  # PX4 1.12.3-dev, an 8 s hop with no horizontal position
+    "roboto_v5_test": "never left the ground",  # PX4 1.12.3-dev, an 8 s hop without GPS (flown without GPS since 24.5; refused as no flight)
 }
 
 
