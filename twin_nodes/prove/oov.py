@@ -60,8 +60,8 @@ def tag(f: dict) -> str:
 
 
 def oov1_setpoints(rng: np.random.Generator, rate_hz: float = 250.0):
-    """Mission OOV1 (ENU): t, SP (T, 11), armed(t).  Take-off to 10 m; twice: an 80 m leg at 10 m/s and
-    back at 7 m/s, a climb to 35 m at 6 m/s, a descent to 10 m at 4.5 m/s, a climb to 30 m, a descent at
+    """Mission OOV1 (ENU): t, SP (T, 11), armed(t).  Take-off to 10 m; twice: an 80 m leg at 10 m/s, a climb
+    to 35 m at 6 m/s, a descent to 10 m at 4.5 m/s, the leg back at 7 m/s, a climb to 30 m, a descent at
     6 m/s; landing."""
     dt = 1.0 / rate_hz
     rows: list[np.ndarray] = []
@@ -97,15 +97,17 @@ def oov1_setpoints(rng: np.random.Generator, rate_hz: float = 250.0):
     n_ground = len(rows)
     move([0, 0, 10], 2.0, 1.5)
     hold(3.0)
+    # the legs and the vertical manoeuvres interleaved, so that discovery's held-out part (the last 35 %)
+    # holds a leg, a climb and a fast descent too (amendment 1 of the manifest)
     for _ in range(2):
         move([x_far, 0, 10], 10.0, 3.0)
         hold(3.0)
+        move([x_far, 0, 35], 6.0, 4.0)
+        hold(2.0)
+        move([x_far, 0, 10], 4.5, 2.0)
+        hold(3.0)
         move([0, 0, 10], 7.0, 3.0)
         hold(2.0)
-        move([0, 0, 35], 6.0, 4.0)
-        hold(2.0)
-        move([0, 0, 10], 4.5, 2.0)
-        hold(3.0)
         move([0, 0, 30], 6.0, 4.0)
         hold(2.0)
         move([0, 0, 10], 6.0, 2.0)

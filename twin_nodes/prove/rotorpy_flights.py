@@ -335,15 +335,17 @@ def _rp0() -> Mission:
 
 
 def _oovr() -> Mission:
-    """OOVR (``prove --source oov``): take-off; twice: a 20 m leg and back at about 4 m/s, a climb to 9 m, a
-    descent to 1.5 m at about 3.5 m/s, a climb to 9 m, a descent at about 4.5 m/s; landing."""
+    """OOVR (``prove --source oov``): take-off; twice: a 20 m leg at about 4 m/s, a climb to 9 m, a descent to
+    1.5 m at about 3.5 m/s, the leg back, a climb to 9 m, a descent at about 4.5 m/s; landing (legs and
+    vertical manoeuvres interleaved so that the last 35 % of the flight holds each)."""
     h, top = 1.5, 9.0
     o, far = np.array([0.0, 0.0, h]), np.array([20.0, 0.0, h])
-    up = np.array([0.0, 0.0, top])
+    up, far_up = np.array([0.0, 0.0, top]), np.array([20.0, 0.0, top])
     pieces = _take_off([0, 0, 0], h, 0.0)
     for _ in range(2):
-        pieces += [_leg(o, far, 0.0, 0.0, 4.0), _Hold(far, 0.0, 1.5), _leg(far, o, 0.0, 0.0, 4.0), _Hold(o, 0.0, 1.5),
-                   _leg(o, up, 0.0, 0.0, 3.0), _Hold(up, 0.0, 1.0), _leg(up, o, 0.0, 0.0, 3.5), _Hold(o, 0.0, 1.5),
+        pieces += [_leg(o, far, 0.0, 0.0, 4.0), _Hold(far, 0.0, 1.5),
+                   _leg(far, far_up, 0.0, 0.0, 3.0), _Hold(far_up, 0.0, 1.0), _leg(far_up, far, 0.0, 0.0, 3.5),
+                   _Hold(far, 0.0, 1.5), _leg(far, o, 0.0, 0.0, 4.0), _Hold(o, 0.0, 1.5),
                    _leg(o, up, 0.0, 0.0, 3.0), _Hold(up, 0.0, 1.0), _leg(up, o, 0.0, 0.0, 4.5), _Hold(o, 0.0, 1.5)]
     pieces += _landing(o, 0.0)
     return Mission("OOVR", pieces, 1.0, 1.0)
