@@ -325,3 +325,43 @@ def _signature_holds(mech: str, sign: int, part: np.ndarray, feats: np.ndarray) 
     d = float(np.median(part[top]) - np.median(part[mid]))
     return d * sign > 0, (f"thrust {100 * d:+.1f} % at the top 3 % of rotor speeds (omega/omega_max >= "
                           f"{math.sqrt(np.percentile(u2, 97)):.2f}) against hover")
+
+
+# ------------------------------------------------------------------ regimes flown too briefly to test
+
+#: mechanism -> (the regime its signature lives in, as a test on the features, in words, the manoeuvre to fly)
+REGIMES = {
+    "vortex_ring": (lambda F: (_at(F, "descent") >= 0.5) & (_at(F, "descent") <= 1.5),
+                    "descent at 0.5-1.5 v_h", "descents at {lo:.1f}-{hi:.1f} m/s (0.5-1.5 v_h), several seconds each"),
+    "translational_lift": (lambda F: _at(F, "mu") >= 1.0, "horizontal airspeed >= v_h",
+                           "straight legs at >= {v_h:.1f} m/s (v_h)"),
+    "thrust_flattening": (lambda F: _at(F, "omega2") >= 0.85 ** 2, "rotor speed >= 0.85 of the top",
+                          "hard climbs (rotor speeds >= 0.85 of the top)"),
+}
+#: a regime flown in fewer independent test blocks than this cannot be cross-validated
+MIN_REGIME_BLOCKS = 4
+
+
+def brief_regimes(y: np.ndarray, X: np.ndarray, t: np.ndarray, feats: np.ndarray, v_h: float) -> list[dict]:
+    """Regimes a mechanism lives in that the flight entered, but in too few independent blocks for the
+    held-out test: the thrust there against the model (in-sample, the residual over what a unit thrust
+    scale takes out: a fraction of the thrust) and the manoeuvre that would make it testable."""
+    out = []
+    blocks = _groups(t, TEST_BLOCK_S)
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.1
+    for mech, (test, words, fly) in REGIMES.items():
+        k = test(feats)
+        n_blocks = len(np.unique(blocks[k]))
+        if k.sum() * dt < 0.3 or n_blocks >= MIN_REGIME_BLOCKS:
+            continue
+        frac = y[k] / np.maximum(X[k, 0], 1e-9)
+        rest = y[~k] / np.maximum(X[~k, 0], 1e-9)
+        out.append({"mechanism": mech, "regime": words, "seconds": round(float(k.sum() * dt), 2),
+                    "blocks": int(n_blocks), "times_s": [round(float(t[k][0]), 2), round(float(t[k][-1]), 2)],
+                    "thrust_vs_model": round(float(np.median(frac) - np.median(rest)), 3),
+                    "fly": fly.format(lo=0.5 * v_h, hi=1.5 * v_h, v_h=v_h),
+                    "note": (f"{words} flown for {k.sum() * dt:.1f} s ({n_blocks} of the {MIN_REGIME_BLOCKS} independent "
+                             f"{TEST_BLOCK_S:g}-s blocks a held-out test needs): thrust "
+                             f"{100 * (np.median(frac) - np.median(rest)):+.0f} % against the model there (in-sample, "
+                             f"not testable); fly {fly.format(lo=0.5 * v_h, hi=1.5 * v_h, v_h=v_h)}")})
+    return out

@@ -320,6 +320,18 @@ def format_table(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def summary_line(summary: dict) -> str:
+    """One line per split: the issue's three numbers."""
+    parts = []
+    for split in ("tune", "judge"):
+        s = summary.get(split) or {}
+        if s.get("flights"):
+            parts.append(f"{split}: mechanism named right {s['named_right']}/{s['flights']}, closed-loop throttle cut "
+                         f">= 30 % {s['effect_flights_cut_ge_30pct']}/{s['effect_flights']}, terms on no-effect "
+                         f"flights {s['terms_on_no_effect_flights']}")
+    return "oov: " + "; ".join(parts)
+
+
 def run_suite(out_dir: str | Path, workers: int = 1, cache: str | Path = "out/cache/oov", progress: bool = True,
               split: str | None = None) -> dict:
     """The declared flights (``split``: only that split), flown once into ``cache``, discovered, scored."""

@@ -54,6 +54,7 @@ def run(inp: TermsInput) -> Terms:
     search = T.find_term(y_all[rows], X_all[rows], data.t[rows], fit_rows, feats_all[rows])
     out = {"method": _method(norm), "normalisation": {k: round(v, 4) for k, v in norm.fixed().items()},
            "test": _test_json(search), "found": []}
+    out["brief_regimes"] = T.brief_regimes(y_all[rows], X_all[rows], data.t[rows], feats_all[rows], norm.v_h)
     inp.result["terms"] = out
     fit = search.best
     if fit is None or (search.why_none and not _likely(fit)):
@@ -174,9 +175,10 @@ def summary_lines(res: dict) -> list[str]:
     tr = res.get("terms")
     if not tr:
         return []
+    brief = [f"    not testable: {b['note']}" for b in tr.get("brief_regimes") or []]
     if not tr.get("found"):
-        return [f"  physics outside the effect list: none ({tr.get('why', '')})"]
-    lines = ["  physics outside the effect list (structured residual, sparse term):"]
+        return [f"  physics outside the effect list: none ({tr.get('why', '')})"] + brief
+    lines = ["  physics outside the effect list (structured residual, sparse term):"] + brief
     for e in tr["found"]:
         lines.append(f"    {e['verdict'].upper():<9} {e['label']}  EE {100 * e['heldout_improvement']:.1f} % throttle  "
                      + ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items() if k.startswith("c_")))
