@@ -47,6 +47,8 @@ MAX_TERMS = 3
 #: cross-validation groups [s] (contiguous: a group's neighbours are correlated through the 2 Hz low-pass)
 GROUP_S = 8.0
 N_FOLDS = 5
+#: fewer cross-validation groups than this: no held-out test (a flight of under ~24 s airborne)
+MIN_GROUPS = 3
 #: independent blocks of the structured residual test [s]
 TEST_BLOCK_S = 2.0
 #: samples kept per second (the residual is low-passed at 2 Hz)
@@ -204,6 +206,11 @@ def find_term(y: np.ndarray, X: np.ndarray, t: np.ndarray, fit_rows: np.ndarray,
     final coefficients are fitted on (the flight's fit part), ``feats`` (n, K) the features (for the
     multiplier's spread)."""
     groups = _groups(t, GROUP_S)
+    n_groups = len(np.unique(groups))
+    if n_groups < MIN_GROUPS:
+        return TermSearch(None, [], float(np.mean(y ** 2)) if len(y) else 0.0, len(y),
+                          f"too little airborne data for a held-out test: {n_groups} group(s) of {GROUP_S:g} s, "
+                          f"{MIN_GROUPS} needed")
     blocks = [np.flatnonzero(b == _groups(t, TEST_BLOCK_S)) for b in np.unique(_groups(t, TEST_BLOCK_S))]
     r0 = _oof(X[:, :1], y, groups)
     null_mse = float(np.mean(r0 ** 2))
