@@ -164,3 +164,20 @@ def test_term_found_named_and_flown_on_a_tune_flight(tmp_path, mechanism):
         assert row["closed_loop_throttle_cut"] >= 0.30, row
         term = next(e for e in res["effects"] if e["name"] == "state_term")
         assert term["verdict"] == "confirmed" and term["params"]["c_descent2"] < 0
+
+
+def test_a_term_odd_in_vertical_speed_is_named_a_vertical_drag():
+    y, X, t, feats = _synthetic({"climb": 0.05, "descent": -0.05})
+    s = T.find_term(y, X, t, t < t[-1] * 0.65, feats)
+    assert s.best is not None and set(s.best.names) == {"climb", "descent"}
+    named = T.name_term(s.best, feats, weight_n=9.81, v_h=5.0)
+    assert named["mechanism"] == "vertical_drag"
+    # thrust +5 % per v_h of climb rate on a 9.81 N vehicle with v_h 5 m/s: the model's drag 0.098 N/(m/s) too strong
+    assert "0.098" in named["evidence"] and "too strong" in named["evidence"]
+
+
+def test_a_stage_9_term_ranks_after_the_vocabularys_findings():
+    from twin_nodes.prove.scoring import findings
+
+    res = {"effects": [{"name": "inertia", "verdict": "likely"}, {"name": "state_term", "verdict": "confirmed"}]}
+    assert [e["name"] for e in findings(res)] == ["inertia", "state_term"]

@@ -22,7 +22,8 @@ Method (:func:`find_term`):
    RMS cut >= 10 %; the term must also change the thrust by >= :data:`MIN_GAIN_SPREAD` of itself over
    the flight (the resolution floor of the accelerometer's scale).
 4. **Name** (:func:`name_term`): the mechanism whose signature features carry the term, with the sign
-   physics gives it; otherwise "unnamed term in throttle depending on <features>".
+   physics gives it, or a drag linear in the vertical speed (a term odd in v_z); otherwise "unnamed term in
+   throttle depending on <features>".
 """
 
 from __future__ import annotations
@@ -271,7 +272,32 @@ def _part(fit: TermFit, names: tuple[str, ...], feats: np.ndarray) -> np.ndarray
     return part
 
 
-def name_term(fit: TermFit, feats: np.ndarray) -> dict:
+def _vertical_drag(fit: TermFit, feats: np.ndarray, weight_n: float | None, v_h: float | None) -> dict | None:
+    """A term odd in the vertical speed (climb and descent with opposite signs: thrust ~ v_z) is a drag
+    linear in the vertical speed, not rotor aerodynamics: a thrust change ``c v_z / v_h`` of the weight is
+    a force ``W c / v_h`` per m/s along the vertical velocity (positive: the model's vertical drag is
+    that much too strong, e.g. an isotropic linear drag identified on horizontal flight)."""
+    c = dict(zip(fit.names, fit.coef[1:]))
+    if "climb" not in c or "descent" not in c or c["climb"] * c["descent"] >= 0:
+        return None
+    pair = _part(fit, ("climb", "descent"), feats)
+    rest = [float(np.std(_part(fit, sig, feats))) for m, (sig, _, _) in MECHANISMS.items()
+            if m != "vortex_ring"] + [float(np.std(_part(fit, ("descent2",), feats)))]
+    if float(np.std(pair)) < max(rest):
+        return None
+    slope = 0.5 * (c["climb"] - c["descent"])          # thrust fraction per unit of v_z / v_h
+    if weight_n and v_h:
+        dk = weight_n * slope / v_h
+        what = (f"the model's vertical drag is {dk:.3g} N/(m/s) too strong" if dk > 0 else
+                f"a vertical drag of {-dk:.3g} N/(m/s) the model lacks")
+    else:
+        what = "a force along the vertical velocity" if slope > 0 else "a vertical drag the model lacks"
+    return {"mechanism": "vertical_drag", "name": "drag linear in vertical speed",
+            "meaning": "drag of a given law: linear in the vertical speed (the term is odd in v_z)",
+            "evidence": f"thrust {100 * slope:+.1f} % per v_h of climb rate, the same law in descent: {what}"}
+
+
+def name_term(fit: TermFit, feats: np.ndarray, weight_n: float | None = None, v_h: float | None = None) -> dict:
     """The mechanism a term matches, with the evidence (``mechanism`` None: unnamed).
 
     The term's parts by mechanism (the features each mechanism's signature owns; ``climb`` and ``tilt``
@@ -279,6 +305,9 @@ def name_term(fit: TermFit, feats: np.ndarray) -> dict:
     physics gives that mechanism, where the mechanism acts: a thrust gain growing with airspeed, a loss
     at the flown descents of 0.5-1.5 v_h and not at slow ones, a gain near the ground, a loss at the
     highest rotor speeds flown against hover."""
+    drag = _vertical_drag(fit, feats, weight_n, v_h)
+    if drag is not None:
+        return drag
     spreads = {m: float(np.std(_part(fit, sig, feats))) for m, (sig, _, _) in MECHANISMS.items()}
     other = tuple(f for f in fit.names if not any(f in sig for sig, _, _ in MECHANISMS.values()))
     spreads["other"] = float(np.std(_part(fit, other, feats))) if other else 0.0

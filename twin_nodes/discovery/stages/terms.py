@@ -61,7 +61,7 @@ def run(inp: TermsInput) -> Terms:
         out["verdict"] = "none"
         out["why"] = search.why_none or "no feature set beats the constant on held-out blocks"
         return Terms(inp.result)
-    named = T.name_term(fit, feats_all[rows])
+    named = T.name_term(fit, feats_all[rows], current.mass_kg * current.gravity_m_s2, norm.v_h)
     vp_term, theta = _fly(inp, fit, norm)
     entry = _grade(inp, fit, named, vp_term, theta, norm)
     out["found"].append(entry)
