@@ -181,3 +181,26 @@ def test_a_stage_9_term_ranks_after_the_vocabularys_findings():
 
     res = {"effects": [{"name": "inertia", "verdict": "likely"}, {"name": "state_term", "verdict": "confirmed"}]}
     assert [e["name"] for e in findings(res)] == ["inertia", "state_term"]
+
+
+def test_oov_scoring_rules():
+    from twin_nodes.prove.oov import score_oov, summarise
+
+    def res(term=None):
+        found = [term] if term else []
+        return {"effects": [], "terms": {"found": found, "test": {"chosen": []}}}
+
+    lift = {"generator": "ours", "mechanism": "translational_lift", "mission": "OOV1", "seed": 1, "split": "judge"}
+    none = dict(lift, mechanism="none", seed=2)
+    cl = {"before": {"throttle_rmse": 0.04}, "after": {"throttle_rmse": 0.02}}
+    good = {"verdict": "confirmed", "mechanism": "translational_lift", "label": "translational lift",
+            "features": ["mu"], "closed_loop_heldout": cl, "closed_loop_throttle_cut": 0.5, "heldout_improvement": 0.8}
+    rows = [score_oov(lift, res(good)),                                       # named right, cut 50 %
+            score_oov(dict(lift, seed=3), res(dict(good, verdict="rejected"))),   # found, not kept: not named
+            score_oov(dict(lift, seed=4), res(dict(good, mechanism=None, label="unnamed term"))),
+            score_oov(none, res()),                                           # no term: right
+            score_oov(dict(none, seed=5), res(dict(good, mechanism=None)))]   # a term on a no-effect flight
+    assert [r["named_right"] for r in rows] == [True, False, False, True, False]
+    s = summarise(rows)["judge"]
+    assert (s["named_right"], s["flights"], s["effect_flights_cut_ge_30pct"], s["effect_flights"],
+            s["terms_on_no_effect_flights"]) == (2, 5, 1, 3, 1)
