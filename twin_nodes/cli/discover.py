@@ -39,9 +39,11 @@ def register(sub) -> None:
 
     q = sub.add_parser("prove", help="flights with one known effect each (ours, PX4 SIH, RotorPy), discovered "
                                      "blind and scored per source")
-    q.add_argument("--source", choices=("ours", "px4sih", "rotorpy", "all"), default="ours",
+    q.add_argument("--source", choices=("ours", "px4sih", "rotorpy", "oov", "all"), default="ours",
                    help="ours: our generator; px4sih: the PX4 SIH flights in ../shared (see "
-                        "missions/sih_effects/manifest.yaml); rotorpy: RotorPy flights (cached); all: the three")
+                        "missions/sih_effects/manifest.yaml); rotorpy: RotorPy flights (cached); all: the three; "
+                        "oov: physics outside the effect list (twin_nodes/prove/oov_manifest.yaml; ours and "
+                        "RotorPy, cached beside --cache in oov/), scored on term discovery")
     qio = declare(q)
     qio.output("--out", kind="update", default="out/prove",
                help="folder for the results and tables (one subfolder per source; kept and updated across runs)")
@@ -147,13 +149,16 @@ def _prove(args) -> int:
     out = Path(args.out)
     summaries = run_sources(sources, out, size=args.size, workers=args.workers, vehicle=args.vehicle,
                             shared=args.shared, cache=args.cache, sih_dirs=args.sih_dir)
+    from twin_nodes.prove import oov
+
     tables = []
     for src, summary in summaries.items():
-        table = format_table(summary)
+        table = oov.format_table(summary) if src == "oov" else format_table(summary)
         atomic_write_text(out / src / "summary.json", json.dumps(summary, indent=1, default=json_default))
         atomic_write_text(out / src / "table.txt", table + "\n")
         tables.append(f"== {src}\n{table}")
-    text = "\n\n".join(tables + ["\n".join(summary_line(s) for s in summaries.values())])
+    text = "\n\n".join(tables + ["\n".join(oov.summary_line(s) if src == "oov" else summary_line(s)
+                                            for src, s in summaries.items())])
     print(text)
     atomic_write_text(out / "tables.txt", text + "\n")
     atomic_write_text(out / "summary.json", json.dumps(summaries, indent=1, default=json_default))

@@ -42,7 +42,8 @@ from twin_nodes.discovery.judging import (ALT_FRACTION, BLOCK_S, HELDOUT_FRACTIO
                                           _output_judge, _restrict_to_axes, _scales, _summary, _window_folds, assess,
                                           fit_candidate)
 from twin_nodes.discovery.locate import regimes
-from twin_nodes.discovery.stages import closed_loop, instrument, mismatch, prepare, refit, report, selection, verdicts
+from twin_nodes.discovery.stages import (closed_loop, instrument, mismatch, prepare, refit, report, selection, terms,
+                                        verdicts)
 from twin_nodes.discovery.stages.closed_loop import CLOSED_LOOP_TOL_REL, _closed_loop_guard, _closed_loop_metrics, _worse
 from twin_nodes.discovery.stages.instrument import (INSTRUMENTED_BLOCKS_MISSING, _axis_tests, _equation_axes,
                                                     _instrumented, _rate_loop_lag, attach_instrumented)
@@ -91,5 +92,8 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     final = instrument.run(instrument.InstrumentInput(
         flight, graded, checked.current, closed_loop.guard(checked, log, flight, closed_loop_metrics)))
     # 8. before/after on the held-out part, the closed-loop twin's metrics
-    return report.run(report.ReportInput(log, flight, found, checked, graded, final, closed_loop_metrics,
-                                         t_start)).result
+    result = report.run(report.ReportInput(log, flight, found, checked, graded, final, closed_loop_metrics,
+                                           t_start)).result
+    # 9. physics outside the effect list: the structured residual test, a sparse term, named and flown
+    return terms.run(terms.TermsInput(log, flight, checked.accepted, final.current, result,
+                                      closed_loop_metrics)).result

@@ -98,6 +98,8 @@ def summary_text(res: dict) -> str:
         lines.append(f"  follow-up {conf['followup']}:")
         for r in conf["effects"]:
             lines.append(f"    {r['verdict'].upper():<9} {r['name']:<20} {r['note']}")
+    from twin_nodes.discovery.stages.terms import summary_lines
+    lines += summary_lines(res)
     cl = res.get("after", {}).get("closed_loop_heldout")
     cb = res.get("baseline", {}).get("closed_loop_heldout")
     if isinstance(cl, dict) and isinstance(cb, dict):

@@ -249,6 +249,29 @@ def _k_ground_effect(p, x, ext, omega, T, Q):
         T[i] *= gain
 
 
+# the state-dependent thrust multiplier that term discovery (discovery/terms.py) fits and flies: the
+# features of STATE_TERM_FEATURES, each normalised to the vehicle (v_h: the hover induced velocity,
+# R: the rotor radius, omega_max: the top rotor speed); the numpy twin is state_term_features
+@njit(cache=True)
+def _k_state_term(p, x, ext, omega, T, Q):
+    v_h, radius, w_max = p[0], p[1], p[2]
+    va0 = x[3] - ext[1]
+    va1 = x[4] - ext[2]
+    va2 = x[5] - ext[3]
+    mu = math.sqrt(va0 * va0 + va1 * va1) / v_h
+    climb = max(va2, 0.0) / v_h
+    descent = max(-va2, 0.0) / v_h
+    z = max(x[2], radius)
+    ground = (radius / (4.0 * z)) ** 2
+    tilt = 2.0 * (x[7] * x[7] + x[8] * x[8])
+    common = (1.0 + p[3] + p[4] * mu + p[5] * mu * mu + p[6] * climb + p[7] * descent + p[8] * descent * descent
+              + p[9] * ground + p[12] * tilt)
+    for i in range(T.shape[0]):
+        u = omega[i] / w_max
+        gain = common + p[10] * u * u + p[11] * u * u * u * u
+        T[i] *= min(max(gain, 0.1), 3.0)
+
+
 # ---------------------------------------------------------------- effect classes
 
 
@@ -457,11 +480,61 @@ class Inertia(Effect):
         return vp.replace(inertia_kg_m2=tuple(tuple(float(e) for e in row) for row in inertia))
 
 
+#: the state term's features, in its coefficient order (see ``state_term_features``)
+STATE_TERM_FEATURES = ("mu", "mu2", "climb", "descent", "descent2", "ground", "omega2", "omega4", "tilt")
+#: what each feature is, in words (normalised to the vehicle)
+STATE_TERM_MEANING = {
+    "mu": "horizontal airspeed / v_h", "mu2": "(horizontal airspeed / v_h)^2", "climb": "climb rate / v_h",
+    "descent": "descent rate / v_h", "descent2": "(descent rate / v_h)^2", "ground": "(R / 4z)^2",
+    "omega2": "(omega / omega_max)^2", "omega4": "(omega / omega_max)^4", "tilt": "1 - cos(tilt)"}
+
+
+def state_term_features(v_air_enu: np.ndarray, height_m: np.ndarray, q_wxyz: np.ndarray, omega: np.ndarray,
+                        v_h: float, radius: float, omega_max: float) -> np.ndarray:
+    """The state term's features (T, N, 9) in ``STATE_TERM_FEATURES`` order, per sample and rotor.
+
+    ``v_air_enu`` (T, 3) air-relative velocity ENU [m/s], ``height_m`` (T,) above ground, ``q_wxyz``
+    (T, 4) FLU->ENU, ``omega`` (T, N) rotor speeds [rad/s].  The numpy twin of ``_k_state_term``
+    (a test checks both agree)."""
+    v = np.asarray(v_air_enu, float)
+    mu = np.hypot(v[:, 0], v[:, 1]) / v_h
+    climb = np.maximum(v[:, 2], 0.0) / v_h
+    descent = np.maximum(-v[:, 2], 0.0) / v_h
+    ground = (radius / (4.0 * np.maximum(np.asarray(height_m, float), radius))) ** 2
+    q = np.asarray(q_wxyz, float)
+    tilt = 2.0 * (q[:, 1] ** 2 + q[:, 2] ** 2)
+    u = np.asarray(omega, float) / omega_max
+    n = u.shape[1]
+    common = np.stack([mu, mu ** 2, climb, descent, descent ** 2, ground], axis=1)
+    out = np.empty((len(mu), n, 9))
+    out[:, :, 0:6] = common[:, None, :]
+    out[:, :, 6] = u ** 2
+    out[:, :, 7] = u ** 4
+    out[:, :, 8] = tilt[:, None]
+    return out
+
+
+class StateTerm(Effect):
+    name = "state_term"
+    param_names = ("v_h", "radius", "omega_max", "c_one") + tuple(f"c_{f}" for f in STATE_TERM_FEATURES)
+    defaults = {"v_h": 5.0, "radius": 0.1, "omega_max": 1000.0, "c_one": 0.0,
+                **{f"c_{f}": 0.0 for f in STATE_TERM_FEATURES}}
+    units = {"v_h": "m/s (hover induced velocity)", "radius": "m (rotor radius)", "omega_max": "rad/s",
+             "c_one": "thrust fraction (a constant part, the thrust scale that comes with the shape)",
+             **{f"c_{f}": f"thrust fraction per unit of {STATE_TERM_MEANING[f]}" for f in STATE_TERM_FEATURES}}
+    ranges = {"v_h": (0.1, 100.0), "radius": (1e-3, 10.0), "omega_max": (1.0, 1e5), "c_one": (-0.9, 2.0),
+              **{f"c_{f}": (-10.0, 10.0) for f in STATE_TERM_FEATURES}}
+    description = ("a state-dependent thrust multiplier found by term discovery: every rotor's thrust times "
+                   "1 + c_one + sum_k c_k f_k(state), f_k the normalised features of STATE_TERM_FEATURES "
+                   "(the multiplier clipped to 0.1..3)")
+    rotor_kernel = staticmethod(_k_state_term)
+
+
 EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (LinearDrag, AngularDamping, RotorDrag, BodyDrag, BatterySag, MotorEfficiency,
                 MotorTimeConstant, ActuatorDelay, Mass, ThrustCoefficient, YawMoment, ComOffset,
-                RotorTilt, Wind, GroundEffect, Inertia)
+                RotorTilt, Wind, GroundEffect, Inertia, StateTerm)
 }
 
 

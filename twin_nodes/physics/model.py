@@ -77,6 +77,12 @@ def _module_name(src: str) -> str:
     h = hashlib.sha256(src.encode())
     for mod in (core, effects_mod):
         h.update(inspect.getsource(mod).encode())
+    # kernels may live outside effects.py (the prove suite's plant-only effects): their modules too
+    for line in src.splitlines():
+        if line.startswith("from ") and " import " in line:
+            name = line.split()[1]
+            if name.startswith("twin_nodes.") and name not in (core.__name__, effects_mod.__name__):
+                h.update(inspect.getsource(sys.modules[name]).encode())
     return f"rotortwin_gen_{h.hexdigest()[:16]}"
 
 

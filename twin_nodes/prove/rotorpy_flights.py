@@ -334,8 +334,25 @@ def _rp0() -> Mission:
     return Mission("RP0", pieces, 1.0, 1.0)
 
 
+def _oovr() -> Mission:
+    """OOVR (``prove --source oov``): take-off; twice: a 20 m leg at about 4 m/s, a climb to 9 m, a descent to
+    1.5 m at about 3.5 m/s, the leg back, a climb to 9 m, a descent at about 4.5 m/s; landing (legs and
+    vertical manoeuvres interleaved so that the last 35 % of the flight holds each)."""
+    h, top = 1.5, 9.0
+    o, far = np.array([0.0, 0.0, h]), np.array([20.0, 0.0, h])
+    up, far_up = np.array([0.0, 0.0, top]), np.array([20.0, 0.0, top])
+    pieces = _take_off([0, 0, 0], h, 0.0)
+    for _ in range(2):
+        pieces += [_leg(o, far, 0.0, 0.0, 4.0), _Hold(far, 0.0, 1.5),
+                   _leg(far, far_up, 0.0, 0.0, 3.0), _Hold(far_up, 0.0, 1.0), _leg(far_up, far, 0.0, 0.0, 3.5),
+                   _Hold(far, 0.0, 1.5), _leg(far, o, 0.0, 0.0, 4.0), _Hold(o, 0.0, 1.5),
+                   _leg(o, up, 0.0, 0.0, 3.0), _Hold(up, 0.0, 1.0), _leg(up, o, 0.0, 0.0, 4.5), _Hold(o, 0.0, 1.5)]
+    pieces += _landing(o, 0.0)
+    return Mission("OOVR", pieces, 1.0, 1.0)
+
+
 #: the missions by name
-MISSIONS = {"RP0": _rp0, "RP1": _rp1, "RP2": _rp2}
+MISSIONS = {"RP0": _rp0, "RP1": _rp1, "RP2": _rp2, "OOVR": _oovr}
 
 
 def mission(name: str) -> Mission:
@@ -345,11 +362,12 @@ def mission(name: str) -> Mission:
     return MISSIONS[name]()
 
 
-def fly(case: Case):
+def fly(case: Case, vehicle_cls=None):
     """Fly ``case`` in RotorPy; returns (FlightRecord in ENU/FLU at the control rate, nominal params).
 
     The loop is ``rotorpy.simulate.simulate``'s (wind update, controller on the true state, IMU from
-    ``statedot``, ``Multirotor.step``), with motors stopped outside the armed interval."""
+    ``statedot``, ``Multirotor.step``), with motors stopped outside the armed interval.  ``vehicle_cls``:
+    a subclass of RotorPy's ``Multirotor`` to fly instead (physics in the plant only: ``prove.oov``)."""
     from rotorpy.controllers.quadrotor_control import SE3Control
     from rotorpy.vehicles.multirotor import Multirotor
     from rotorpy.wind.default_winds import ConstantWind, NoWind
@@ -368,7 +386,7 @@ def fly(case: Case):
     start = m.update(0.0)["x"]
     x0 = {"x": np.array([start[0], start[1], 0.0]), "v": np.zeros(3), "q": np.array([0, 0, 0, 1.0]),
           "w": np.zeros(3), "wind": np.zeros(3), "rotor_speeds": np.zeros(n_rot)}
-    vehicle = Multirotor(plant, initial_state=x0, control_abstraction="cmd_motor_speeds", aero=True,
+    vehicle = (vehicle_cls or Multirotor)(plant, initial_state=x0, control_abstraction="cmd_motor_speeds", aero=True,
                          enable_ground=True)
     ctrl = SE3Control(qp)  # the controller believes the vehicle's own (nominal) parameters
     wind = ConstantWind(*case.wind) if case.wind is not None else NoWind()

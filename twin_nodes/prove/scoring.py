@@ -61,9 +61,11 @@ def verdict(effect: dict) -> str:
 
 
 def findings(result: dict) -> list[dict]:
-    """The effects graded ``confirmed`` or ``likely``, confirmed first (discover's order within a grade)."""
+    """The effects graded ``confirmed`` or ``likely``, confirmed first (discover's order within a grade);
+    a term of stage 9 (``state_term``: what the vocabulary's findings leave) after the vocabulary's findings,
+    still a finding (it counts on a no-effect flight)."""
     eff = [e for e in result.get("effects", []) if verdict(e) in FINDING_GRADES]
-    return sorted(eff, key=lambda e: FINDING_GRADES.index(verdict(e)))
+    return sorted(eff, key=lambda e: (e.get("name") == "state_term", FINDING_GRADES.index(verdict(e))))
 
 
 def effect_class(name: str) -> str:

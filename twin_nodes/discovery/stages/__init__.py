@@ -13,4 +13,6 @@ runs them in order:
 7. :mod:`.instrument`: on PX4 logs, the inertia's roll/pitch axes and PX4's rate loop
    (``InstrumentInput`` -> ``Instrumented``)
 8. :mod:`.report`: the JSON-ready result (``ReportInput`` -> ``Report``)
+9. :mod:`.terms`: physics outside the effect list: the structured residual test, a sparse term named,
+   flown and graded (``TermsInput`` -> ``Terms``, adds ``terms`` to the result)
 """

@@ -1,0 +1,193 @@
+"""Stage 9, physics outside the effect list (``TermsInput`` -> ``Terms``): after the accepted effects are
+refitted, the structured residual test and sparse term discovery (:mod:`twin_nodes.discovery.terms`) on
+what the final vehicle leaves in the throttle channel; a term found is named, flown as the ``state_term``
+effect (refitted with the accepted effects), and graded like any other finding: the closed-loop twin
+flown on the held-out part with and without it, the equation error's held-out cut.
+
+It runs on the report's result and adds ``terms`` to it; a term that is kept (``confirmed`` or
+``likely``) also joins ``effects``, ``accepted`` / ``likely`` and ``refit_params``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from twin_nodes.discovery import terms as T
+from twin_nodes.discovery.judging import MIN_REL_IMPROVEMENT, T_CHOICE, T_CRIT, Fit
+from twin_nodes.discovery.residuals import modes, residual_channels
+from twin_nodes.discovery.stages import closed_loop
+from twin_nodes.discovery.stages.prepare import PreparedFlight
+from twin_nodes.discovery.stages.refit import _joint_refit
+from twin_nodes.physics.effects import STATE_TERM_FEATURES, STATE_TERM_MEANING
+from twin_nodes.vehicle.params import VehicleParams
+
+#: a term not significant yet (t in T_CHOICE..T_CRIT) but cutting this much of the held-out residual is ``likely``
+LIKELY_CUT = 0.30
+
+
+@dataclass
+class TermsInput:
+    log: object                       # the FlightLog
+    flight: PreparedFlight
+    accepted: list[Fit]               # the vocabulary's kept effects
+    current: VehicleParams            # the final refitted vehicle
+    result: dict                      # the report's result (changed in place)
+    closed_loop: bool = True
+
+
+@dataclass
+class Terms:
+    result: dict
+
+
+def run(inp: TermsInput) -> Terms:
+    """Test what the refitted vehicle leaves for structure; find, name, fly and grade a term."""
+    S, nominal, current = inp.flight, inp.flight.nominal, inp.current
+    data = S.data
+    norm = T.Normaliser.of(current)
+    y_all, X_all = T.term_regressors(data, current, nominal, norm)
+    feats_all = T.features_on_log(data, current, norm)
+    step = max(int(round(1.0 / (data.dt * T.RATE_HZ))), 1)
+    rows = np.flatnonzero(data.valid)[::step]
+    fit_rows = S.fit_mask[rows]
+    search = T.find_term(y_all[rows], X_all[rows], data.t[rows], fit_rows, feats_all[rows])
+    out = {"method": _method(norm), "normalisation": {k: round(v, 4) for k, v in norm.fixed().items()},
+           "test": _test_json(search), "found": []}
+    out["brief_regimes"] = T.brief_regimes(y_all[rows], X_all[rows], data.t[rows], feats_all[rows], norm.v_h)
+    inp.result["terms"] = out
+    fit = search.best
+    if fit is None or (search.why_none and not _likely(fit)):
+        out["verdict"] = "none"
+        out["why"] = search.why_none or "no feature set beats the constant on held-out blocks"
+        return Terms(inp.result)
+    named = T.name_term(fit, feats_all[rows], current.mass_kg * current.gravity_m_s2, norm.v_h)
+    vp_term, theta = _fly(inp, fit, norm)
+    entry = _grade(inp, fit, named, vp_term, theta, norm)
+    out["found"].append(entry)
+    out["verdict"] = entry["verdict"]
+    if entry["verdict"] in ("confirmed", "likely"):
+        _join(inp.result, entry, vp_term)
+    return Terms(inp.result)
+
+
+def _likely(fit: T.TermFit) -> bool:
+    return T_CHOICE < fit.t_stat <= T_CRIT and fit.cut >= LIKELY_CUT and fit.gain_spread >= T.MIN_GAIN_SPREAD
+
+
+def _fly(inp: TermsInput, fit: T.TermFit, norm: T.Normaliser) -> tuple[VehicleParams, dict]:
+    """The vehicle with the term, its coefficients refitted with the accepted equation-error effects on
+    the fit part (the twin flies exactly this)."""
+    from twin_nodes.discovery.candidates import Candidate
+
+    S = inp.flight
+    names = ("c_one",) + tuple(f"c_{n}" for n in fit.names)
+    theta0 = np.asarray(fit.coef, float)
+    lo = np.array([-0.5] + [-10.0] * (len(names) - 1))
+    hi = np.array([1.0] + [10.0] * (len(names) - 1))
+    theta0 = np.clip(theta0, lo + 1e-9, hi - 1e-9)
+    cand = Candidate("state_term", names, theta0, lo, hi, lambda th: inp.current, norm.fixed(),
+                     lambda th: True, label="state_term")
+    tf = Fit(cand, theta0.copy(), inp.current, 0.0, 0.0, np.zeros(0), fit.t_stat, fit.n_blocks, fit.cut, True)
+    vp = _joint_refit(list(inp.accepted) + [tf], S.data, S.nominal, S.fit_mask)
+    have = dict(vp.effects)
+    for name, params in inp.current.effects:   # what the instrument stages set stays as they set it
+        if name not in have:
+            vp = vp.with_effect(name, **dict(params))
+    return vp, dict(dict(vp.effects)["state_term"])
+
+
+def _grade(inp: TermsInput, fit: T.TermFit, named: dict, vp_term: VehicleParams, theta: dict,
+           norm: T.Normaliser) -> dict:
+    """The term's entry: name, evidence, held-out numbers before/after, the closed-loop twin, verdict."""
+    S, nominal = inp.flight, inp.flight.nominal
+    before = modes(residual_channels(S.data, inp.current, nominal), nominal)[0][S.held_mask, 0]
+    after = modes(residual_channels(S.data, vp_term, nominal), nominal)[0][S.held_mask, 0]
+    rb, ra = float(np.sqrt(np.mean(before ** 2))), float(np.sqrt(np.mean(after ** 2)))
+    entry = {"name": "state_term", "mechanism": named["mechanism"], "label": named["name"],
+             "channel": "throttle", "features": fit.names,
+             "feature_meaning": {n: STATE_TERM_MEANING[n] for n in fit.names},
+             "params": {k: round(float(v), 6) for k, v in theta.items()},
+             "named_evidence": named.get("evidence", ""), "parts": named.get("parts", {}),
+             "heldout_t_stat": round(fit.t_stat, 2), "heldout_blocks": fit.n_blocks,
+             "cv_improvement": round(fit.cut, 4), "gain_spread": round(fit.gain_spread, 4),
+             "heldout_channel": "throttle", "heldout_before": round(rb, 5), "heldout_after": round(ra, 5),
+             "heldout_improvement": round(1.0 - ra / rb, 4) if rb > 0 else 0.0, "residual": "equation"}
+    why = []
+    if inp.closed_loop:
+        m0 = (inp.result.get("after") or {}).get("closed_loop_heldout") or \
+            closed_loop._closed_loop_metrics(inp.log, inp.current, S.t_split, S.t_end)
+        m1 = closed_loop._closed_loop_metrics(inp.log, vp_term, S.t_split, S.t_end)
+        closed_loop.reset()
+        entry["closed_loop_heldout"] = {"before": m0, "after": m1}
+        b, a = m0["throttle_rmse"], m1["throttle_rmse"]
+        entry["closed_loop_throttle_cut"] = round(1.0 - a / b, 4) if b > 0 else 0.0
+        if closed_loop._worse(a, b, b):
+            why.append(f"makes the closed-loop twin worse on the held-out part (throttle RMSE {b:.6f} -> {a:.6f})")
+    if fit.t_stat <= T_CRIT:
+        why.append(f"not significant on held-out blocks (t={fit.t_stat:.1f} over {fit.n_blocks})")
+    if fit.cut < MIN_REL_IMPROVEMENT:
+        why.append(f"explains only {100 * fit.cut:.0f} % of the held-out residual")
+    verdict = "confirmed" if not why else ("likely" if not any("worse" in w for w in why) and _likely(fit)
+                                           else "rejected")
+    entry["verdict"] = verdict
+    entry["accepted"] = verdict == "confirmed"
+    entry["verdict_note"] = "; ".join(why)
+    feats = ", ".join(f"{n} ({STATE_TERM_MEANING[n]})" for n in fit.names)
+    entry["evidence"] = (f"{named['name']}: a thrust multiplier in {feats}; held-out cut {100 * fit.cut:.0f} % "
+                         f"(out-of-fold), t={fit.t_stat:.1f} over {fit.n_blocks} blocks; {named.get('evidence', '')}"
+                         + (f"; {entry['verdict_note']}" if why else ""))
+    return entry
+
+
+def _join(result: dict, entry: dict, vp_term: VehicleParams) -> None:
+    """A kept term is a finding like the others: listed with the effects, accepted or likely, flown."""
+    result["effects"].append(entry)
+    key = "accepted" if entry["verdict"] == "confirmed" else "likely"
+    result.setdefault(key, []).append(f"state_term ({entry['label']})")
+    if entry["verdict"] == "confirmed":
+        result["refit_params"] = vp_term.to_ros_dict()
+        if "closed_loop_heldout" in entry:
+            result.setdefault("after", {})["closed_loop_heldout"] = entry["closed_loop_heldout"]["after"]
+
+
+def _test_json(search: T.TermSearch) -> dict:
+    best = search.best
+    return {"samples": search.n_samples, "null_mse": search.null_mse,
+            "term_sets_tried": [{"features": f.names, "cv_improvement": round(f.cut, 4), "t": round(f.t_stat, 2),
+                                 "blocks": f.n_blocks} for f in sorted(search.tried, key=lambda f: f.cv_mse)[:8]],
+            "chosen": best.names if best else [], "structured": bool(best) and not search.why_none,
+            "why_not": search.why_none}
+
+
+def _method(norm: T.Normaliser) -> str:
+    return (f"structured residual test and sparse term discovery on the throttle channel the refitted model "
+            f"leaves: library {', '.join(STATE_TERM_FEATURES)} (thrust multipliers; v_h {norm.v_h:.2f} m/s from a "
+            f"rotor radius of {norm.radius:.3f} m estimated from the rotor spacing), scikit-learn's LARS-lasso "
+            f"path, least squares cross-validated over {T.GROUP_S:g} s groups ({T.N_FOLDS} folds), the smallest "
+            f"set within one standard error; accepted at t > {T_CRIT:g} over {T.TEST_BLOCK_S:g} s blocks, a "
+            f"held-out cut >= {int(100 * MIN_REL_IMPROVEMENT)} % and a thrust change >= "
+            f"{100 * T.MIN_GAIN_SPREAD:g} % over the flight")
+
+
+def summary_lines(res: dict) -> list[str]:
+    """The terminal summary's lines for ``res['terms']``."""
+    tr = res.get("terms")
+    if not tr:
+        return []
+    brief = [f"    not testable: {b['note']}" for b in tr.get("brief_regimes") or []]
+    if not tr.get("found"):
+        return [f"  physics outside the effect list: none ({tr.get('why', '')})"] + brief
+    lines = ["  physics outside the effect list (structured residual, sparse term):"] + brief
+    for e in tr["found"]:
+        lines.append(f"    {e['verdict'].upper():<9} {e['label']}  EE {100 * e['heldout_improvement']:.1f} % throttle  "
+                     + ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items() if k.startswith("c_")))
+        lines.append(f"              {e['evidence']}")
+        cl = e.get("closed_loop_heldout")
+        if cl:
+            lines.append(f"              closed-loop twin, held-out throttle RMSE {cl['before']['throttle_rmse']:.4f} -> "
+                         f"{cl['after']['throttle_rmse']:.4f} ({100 * e['closed_loop_throttle_cut']:.0f} % lower)")
+    return lines
+
+
+__all__ = ["TermsInput", "Terms", "run", "summary_lines"]
