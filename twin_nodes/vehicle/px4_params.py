@@ -340,7 +340,33 @@ def outer_loop_gains(params: Mapping[str, float], hover_thrust: float,
             sources[key] = f"log parameter {legacy} x g / hover thrust (pre-v1.12 units)"
             continue
         gains[key], sources[key] = param(params, name or names[0], default)
+    gains["airmode"], sources["airmode"], gains["desat_min_effect"], sources["desat_min_effect"] = allocation_kind(params)
     return gains, sources
+
+
+#: PX4's desaturation skips outputs whose share of the direction is below this: 0.2 in the control
+#: allocator (ControlAllocationSequentialDesaturation::computeDesaturationGain), FLT_EPSILON in the mixer
+DESAT_MIN_EFFECT = {"allocator": 0.2, "mixer": 1.1920929e-07}
+
+
+def allocation_kind(params: Mapping[str, float]) -> tuple[float, str, float, str]:
+    """``MC_AIRMODE`` (0 off, 1 roll/pitch, 2 roll/pitch/yaw; anything else read as PX4 reads it: off)
+    and which of PX4's two allocations flew the log: the control allocator where ``SYS_CTRL_ALLOC`` is 1
+    (PX4 1.13) or, without that parameter, where ``CA_ROTOR_COUNT`` is set (PX4 >= 1.14); else the
+    multirotor mixer (PX4 <= 1.13).  Both desaturate in the same sequence; they differ in the skip
+    threshold (``desat_min_effect``)."""
+    am, am_src = param(params, "MC_AIRMODE", 0.0)
+    if am not in (0.0, 1.0, 2.0):
+        am_src, am = f"log parameter MC_AIRMODE {am:g} is not 0/1/2: PX4's default branch, airmode off", 0.0
+    if "SYS_CTRL_ALLOC" in params:
+        kind = "allocator" if float(params["SYS_CTRL_ALLOC"]) == 1.0 else "mixer"
+        why = f"SYS_CTRL_ALLOC {float(params['SYS_CTRL_ALLOC']):g}"
+    else:
+        kind = "allocator" if "CA_ROTOR_COUNT" in params else "mixer"
+        why = "CA_ROTOR_COUNT in the log" if kind == "allocator" else "no CA_ROTOR_COUNT in the log"
+    what = ("PX4 control allocator, sequential desaturation" if kind == "allocator"
+            else "PX4 multirotor mixer desaturation")
+    return am, am_src, DESAT_MIN_EFFECT[kind], f"{what} ({why})"
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,137 @@
+"""PX4's allocation with sequential desaturation (twin_nodes.twin.control.px4_allocate) against cases
+worked by hand through ControlAllocationSequentialDesaturation.cpp (PX4 1.14) / MultirotorMixer.cpp (1.12),
+on PX4's normalised quad X mix (the mixer's own quad_x table: roll/pitch +-0.707107, yaw +-1, thrust 1)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twin_nodes.twin.control import (C_SAT, Controller, ControllerGains, allocation_table, px4_allocate,
+                                     px4_mix_directions)
+from twin_nodes.vehicle.params import shipped
+from twin_nodes.vehicle.px4_params import allocation_kind
+from twin_nodes.physics.model import Multirotor
+
+S = 0.707107
+# PX4 quad X, motors 1..4 (MultirotorMixer mock geometry): columns thrust, roll, pitch, yaw
+MIX = np.array([[1.0, -S, S, 1.0],
+                [1.0, S, -S, 1.0],
+                [1.0, S, S, -1.0],
+                [1.0, -S, -S, -1.0]])
+
+
+def alloc(thrust, roll, pitch, yaw, airmode, eps=0.2):
+    parts = (MIX * np.array([thrust, roll, pitch, yaw])).T.copy()
+    a = np.empty(4)
+    px4_allocate(parts, MIX.T.copy(), 0.0, 1.0, float(airmode), eps, a)
+    return a
+
+
+def moments(a):
+    """Roll, pitch and yaw the outputs give, in the setpoint's units (the mix is orthogonal)."""
+    return MIX[:, 1:].T @ a / np.sum(MIX[:, 1:] ** 2, axis=0)
+
+
+@pytest.mark.parametrize("airmode", [0, 1, 2])
+def test_roll_saturating_at_high_thrust_keeps_roll_and_lowers_thrust(airmode):
+    # thrust 0.8, roll 0.5: outputs 0.8 -+ 0.35355 -> motors 2 and 3 at 1.15355; thrust lowered by 0.15355
+    a = alloc(0.8, 0.5, 0.0, 0.0, airmode)
+    np.testing.assert_allclose(a, [0.8 - 0.353554 - 0.153554, 1.0, 1.0, 0.8 - 0.353554 - 0.153554], atol=1e-6)
+    assert moments(a)[0] == pytest.approx(0.5, abs=1e-6)
+
+
+def test_roll_saturating_at_low_thrust_without_airmode_cuts_roll_and_keeps_thrust():
+    # thrust 0.2, roll 0.5: motors 1 and 4 at -0.15355. Airmode off never raises thrust: the thrust
+    # step is refused (gain +0.15355 > 0), the roll step slides by -0.15355/0.707107 -> roll 0.2828
+    a = alloc(0.2, 0.5, 0.0, 0.0, 0)
+    np.testing.assert_allclose(a, [0.0, 0.4, 0.4, 0.0], atol=1e-6)
+    assert moments(a)[0] == pytest.approx(0.4 / (2 * S), abs=1e-6)
+    assert a.mean() == pytest.approx(0.2, abs=1e-9)      # thrust kept
+
+
+@pytest.mark.parametrize("airmode", [1, 2])
+def test_roll_saturating_at_low_thrust_with_airmode_raises_thrust_and_keeps_roll(airmode):
+    a = alloc(0.2, 0.5, 0.0, 0.0, airmode)
+    np.testing.assert_allclose(a, [0.0, 2 * 0.353554, 2 * 0.353554, 0.0], atol=1e-6)
+    assert moments(a)[0] == pytest.approx(0.5, abs=1e-6)
+
+
+@pytest.mark.parametrize("airmode", [0, 1])
+def test_yaw_beyond_authority_is_given_up_roll_pitch_and_thrust_kept(airmode):
+    # thrust 0.5, roll 0.2, yaw 0.8: roll/pitch fit (0.5 -+ 0.14142); adding yaw gives 1.15858, 1.44142,
+    # -0.15858, -0.44142; the largest yaw step back, -0.44142, brings motor 4 to 0 (motor 2 to 1.0, under
+    # the 1.15 allowed for yaw): yaw 0.35858 kept, roll, pitch and thrust untouched
+    a = alloc(0.5, 0.2, 0.0, 0.8, airmode)
+    np.testing.assert_allclose(a, [0.717157, 1.0, 0.282843, 0.0], atol=1e-6)
+    r, p, y = moments(a)
+    assert r == pytest.approx(0.2, abs=1e-6) and p == pytest.approx(0.0, abs=1e-9)
+    assert y == pytest.approx(0.358579, abs=1e-6)
+    assert a.mean() == pytest.approx(0.5, abs=1e-6)
+
+
+def test_yaw_head_room_above_full_output_then_thrust_lowered():
+    # thrust 0.95, yaw 0.4 (airmode off): yaw may push to 1.15 (MINIMUM_YAW_MARGIN): yaw 0.2, then the
+    # thrust step lowers all by 0.15 so that the CCW pair sits at 1.0 -- PX4's yaw bought with thrust
+    a = alloc(0.95, 0.0, 0.0, 0.4, 0)
+    np.testing.assert_allclose(a, [1.0, 1.0, 0.6, 0.6], atol=1e-6)
+    assert moments(a)[2] == pytest.approx(0.2, abs=1e-6)
+
+
+def test_airmode_yaw_raises_thrust_for_yaw_at_low_thrust():
+    # thrust 0.3, yaw 0.5: CW motors at -0.2. Airmode 2 raises thrust by 0.2 (yaw kept); off/1 cut yaw to 0.3
+    np.testing.assert_allclose(alloc(0.3, 0.0, 0.0, 0.5, 2), [1.0, 1.0, 0.0, 0.0], atol=1e-6)
+    for mode in (0, 1):
+        np.testing.assert_allclose(alloc(0.3, 0.0, 0.0, 0.5, mode), [0.6, 0.6, 0.0, 0.0], atol=1e-6)
+
+
+def test_within_limits_the_allocation_is_the_plain_mix():
+    for mode in (0, 1, 2):
+        np.testing.assert_allclose(alloc(0.5, 0.1, -0.05, 0.1, mode), MIX @ [0.5, 0.1, -0.05, 0.1], atol=1e-12)
+
+
+def test_skip_threshold_ignores_weak_outputs_as_the_allocator_does_but_not_the_mixer():
+    # a direction whose entry on the saturated output is 0.1: PX4's allocator (0.2) does not slide on it
+    # (the output stays saturated), the mixer (FLT_EPSILON) does
+    parts = np.array([[0.0, 0.0], [1.3, 0.5], [0.0, 0.0], [0.0, 0.0]])
+    dirs = np.array([[0.1, 0.0], [0.1, 0.0], [0.1, 0.0], [0.1, 0.0]])
+    a = np.empty(2)
+    px4_allocate(parts, dirs, 0.0, 1.0, 2.0, 0.2, a)
+    np.testing.assert_allclose(a, [1.3, 0.5])
+    px4_allocate(parts, dirs, 0.0, 1.0, 2.0, 1.1920929e-07, a)
+    assert a[0] == pytest.approx(1.0)
+
+
+def test_mix_directions_of_a_quad_x_are_pxs_normalised_mix():
+    vp = shipped("px4_sih_quadx")
+    D = px4_mix_directions(allocation_table(vp)[:, :4])
+    np.testing.assert_allclose(np.abs(D), np.abs(MIX), atol=1e-6)
+
+
+def test_log_parameters_choose_airmode_and_allocation():
+    am, _, eps, src = allocation_kind({"MC_AIRMODE": 1, "CA_ROTOR_COUNT": 4})
+    assert (am, eps) == (1.0, 0.2) and "allocator" in src
+    am, _, eps, src = allocation_kind({"MC_AIRMODE": 2, "SYS_CTRL_ALLOC": 0, "CA_ROTOR_COUNT": 4})
+    assert (am, eps) == (2.0, 1.1920929e-07) and "mixer" in src
+    am, am_src, eps, _ = allocation_kind({"MC_AIRMODE": 7})
+    assert (am, eps) == (0.0, 1.1920929e-07) and "not 0/1/2" in am_src
+    assert allocation_kind({})[0] == 0.0
+
+
+def test_controller_gives_up_yaw_and_stops_integrating_into_it():
+    """The twin's controller at full throttle with a large yaw-rate error: PX4's mix (yaw to 1.15 then
+    thrust lowered: one pair at full output), and the yaw integrator held (PX4's saturation flags)."""
+    vp = shipped("px4_sih_quadx")
+    m = Multirotor(vp)
+    ctrl = Controller(vp)
+    assert ctrl.gains == ControllerGains()
+    x = m.initial_state(position_enu=(0.0, 0.0, 10.0), rotor_state="hover")
+    x[12] = 3.0  # spinning CCW at 3 rad/s, the setpoint is 0: the controller wants all the yaw it can get
+    u, _ = ctrl.update_manual(x, x[6:10].copy(), 0.9, 0.004)
+    assert ctrl.C[C_SAT + 2] == -1.0                 # the negative yaw torque asked for was not given
+    hi = np.abs(u - 1.0) < 1e-9
+    assert hi.sum() == 2 and len(set(np.array(vp.rotors.direction)[hi])) == 1  # one spin direction
+    ri = ctrl.C[3 + 2]
+    for _ in range(50):
+        ctrl.update_manual(x, x[6:10].copy(), 0.9, 0.004)
+    assert ctrl.C[3 + 2] == ri                       # no wind-up into the saturation
