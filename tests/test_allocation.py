@@ -135,3 +135,47 @@ def test_controller_gives_up_yaw_and_stops_integrating_into_it():
     for _ in range(50):
         ctrl.update_manual(x, x[6:10].copy(), 0.9, 0.004)
     assert ctrl.C[3 + 2] == ri                       # no wind-up into the saturation
+
+
+def _spinning_sih(lever_m):
+    """PX4's SIH quad X (T_max 5 N, km 0.02 m, yaw damping 0.025 N m s) with tangentially tilted rotors:
+    a CCW yaw moment of ``lever_m`` per newton of thrust, beyond what the rotors' reaction torque holds."""
+    return shipped("px4_sih_quadx").with_effect("rotor_tilt", lever_m=lever_m)
+
+
+def test_manual_flight_at_high_throttle_spins_and_climbs_as_px4_allocates():
+    """Known truth worked by hand through PX4's mixYaw (airmode off) at throttle 0.9: yaw may push the CCW
+    pair to 1.15 (yaw 0.25), then thrust is lowered by 0.15: CCW pair 1.0, CW pair 0.5.  Rotor yaw moment
+    -0.02 * 5 * (2 - 1) = -0.1 N m against the tilt's 0.01 * 15 N = +0.15 N m: it spins at
+    0.05 / 0.025 = 2.0 rad/s; thrust 15 N against 9.807 N and 1 N/(m/s) drag: it climbs at 5.19 m/s.
+    (The allocation before, yaw cut to fit [0, 1] with the thrust kept: 18 N, 8.2 m/s and 5.6 rad/s.)"""
+    from twin_nodes.base.frames import euler_from_quat
+    vp = _spinning_sih(0.01)
+    m = Multirotor(vp)
+    ctrl = Controller(vp)
+    x = m.initial_state(position_enu=(0.0, 0.0, 500.0), rotor_state="hover")
+    dt, ext = 0.004, np.array([np.nan, 0.0, 0.0, 0.0])
+    for _ in range(int(12.0 / dt)):
+        yaw = euler_from_quat(x[None, 6:10])[0, 2]   # STABILIZED: level, the heading it has, no yaw rate
+        u, _ = ctrl.update_manual(x, np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]), 0.9, dt)
+        x = m.step(x, u, dt / 4, ext, 4)
+    np.testing.assert_allclose(np.sort(u), [0.5, 0.5, 1.0, 1.0], atol=0.02)
+    assert x[12] == pytest.approx(2.0, rel=0.03)
+    assert x[5] == pytest.approx(15.0 - 9.80665, rel=0.03)
+
+
+def test_position_hold_with_too_little_yaw_authority_spins_at_the_closed_form_rate():
+    """fly_closed_loop holding a position with no yaw setpoint: the altitude loop holds the weight
+    (9.807 N) and yaw takes the whole range (CW pair at 0): rotor moment -0.02 * 9.807 N m against the
+    tilt's +0.03 * 9.807: steady spin (0.01 * 9.807) / 0.025 = 3.92 rad/s, the position still held."""
+    from twin_nodes.twin.control import setpoint
+    from twin_nodes.twin.sim import fly_closed_loop
+    vp = _spinning_sih(0.03)
+    x0 = Multirotor(vp).initial_state(position_enu=(0.0, 0.0, 20.0), rotor_state="hover")
+    rec = fly_closed_loop(vp, np.array([0.0]), setpoint(position_enu=(0.0, 0.0, 20.0))[None, :], x0=x0,
+                          t_end=15.0)
+    late = rec.t >= 12.0
+    assert np.mean(rec.x[late, 12]) == pytest.approx(0.01 * 9.80665 / 0.025, rel=0.03)
+    assert np.max(np.abs(rec.x[late, 2] - 20.0)) < 0.3
+    cw = np.array(vp.rotors.direction) < 0
+    assert np.max(rec.u[late][:, cw]) < 0.02                       # the CW pair at idle: yaw given up
