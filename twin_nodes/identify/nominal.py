@@ -45,6 +45,7 @@ from twin_nodes.logs.flyable import check_flyable, read_flight
 from twin_nodes.logs.ulog_io import FlightLog
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 from twin_nodes.vehicle.px4_params import int_param  # noqa: I001 - a log integer, range-checked
+from twin_nodes.identify.fit_mask import fit_mask
 from twin_nodes.vehicle.px4_params import (AIRFRAMES, RateGainsPx4, outer_loop_gains, param, rate_gains_physical,
                                            rotor_layout)
 
@@ -154,11 +155,21 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     ok = np.ones(len(t), bool)
     for key in ("motors", "rates", "q", "v_enu", "f_body"):
         ok &= np.all(np.isfinite(np.asarray(sig[key], float).reshape(len(t), -1)), axis=1)
+    # nor do they hold with a motor at its bound, on the ground or while the land detector changes its mind
+    left_out = fit_mask(log, t, GRID_HZ)
+    src["identification: samples left out"] = left_out.describe()
+    ok &= left_out.keep
     t = t[ok]
     sig = {k: v[ok] for k, v in sig.items()}
     segs = _segments(t, GRID_HZ)
     if not segs:
         raise LogError(log.path, "motors", "expected airborne motor outputs with body rates, found none")
+    # only samples inside a segment go on: the per-segment filters leave the rest undefined (np.empty)
+    inside = np.concatenate([np.arange(sg.start, sg.stop) for sg in segs])
+    if inside.size < t.size:
+        t = t[inside]
+        sig = {k: v[inside] for k, v in sig.items()}
+        segs = _segments(t, GRID_HZ)
 
     def lp(x: np.ndarray) -> np.ndarray:
         return _per_segment(lambda _t, v: lowpass(v, GRID_HZ, cutoff_hz), t, x, segs)
