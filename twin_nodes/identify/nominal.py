@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from twin_nodes.base.errors import LogError
+from twin_nodes.identify.fit_mask import fit_mask
 from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
                                            rotor_states_from_commands, thrust_regressor, translational_regression,
                                            world_to_body)
@@ -45,7 +46,6 @@ from twin_nodes.logs.flyable import check_flyable, read_flight
 from twin_nodes.logs.ulog_io import FlightLog
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 from twin_nodes.vehicle.px4_params import int_param  # noqa: I001 - a log integer, range-checked
-from twin_nodes.identify.fit_mask import fit_mask
 from twin_nodes.vehicle.px4_params import (AIRFRAMES, RateGainsPx4, outer_loop_gains, param, rate_gains_physical,
                                            rotor_layout)
 
@@ -515,7 +515,7 @@ def _hover_command(total_thrust_max_n: float, mass_kg: float, f: float, g: float
 #: change under a running process, which must not file its results under the new code's key)
 _CODE_KEY = b"".join(inspect.getsource(sys.modules[name]).encode() for name in
                      (__name__, "twin_nodes.identify.regression", "twin_nodes.identify.yaw_gain",
-                      "twin_nodes.vehicle.px4_params", "twin_nodes.logs.ulog_io"))
+                      "twin_nodes.vehicle.px4_params", "twin_nodes.logs.ulog_io", "twin_nodes.identify.fit_mask"))
 
 #: PX4 airframes (SYS_AUTOSTART) with a shipped params file: (stem, what it is)
 SHIPPED_AIRFRAMES = {10040: "px4_sih_quadx", 1100: "px4_sih_quadx"}
