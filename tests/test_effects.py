@@ -388,6 +388,7 @@ ACTIVE = {
     "wind": {"vx": 3.0, "vy": -2.0, "gust_std": 0.5},
     "ground_effect": {"coefficient": 0.3, "height_scale": 0.5},
     "inertia": {"ixx": 0.22, "iyy": 0.2, "izz": 0.36},
+    "coaxial": {"efficiency": 0.8, "lower_mask": 12},
 }
 NEUTRAL = {
     "linear_drag": {"k_n_s_m": 0.0},
@@ -406,6 +407,7 @@ NEUTRAL = {
     "wind": {"vx": 0.0, "vy": 0.0, "gust_std": 0.0},
     "ground_effect": {"coefficient": 0.0, "height_scale": 0.5},
     "inertia": {"ixx": 0.179, "iyy": 0.180, "izz": 0.303},
+    "coaxial": {"efficiency": 1.0, "lower_mask": 12},
 }
 
 

@@ -96,6 +96,24 @@ def coaxial_pairs(x: np.ndarray, y: np.ndarray, direction: np.ndarray) -> tuple[
     return tuple(pairs)
 
 
+def lower_rotors(layout: RotorLayout) -> tuple[tuple[int, ...], str]:
+    """The lower rotor of each coaxial pair (0-based) and how it was told: the one lower on the body
+    (smaller FLU z, i.e. larger ``CA_ROTORn_PZ``), else (both at one height in the log) the second of the
+    pair, as PX4's coaxial geometries and airframes list the upper rotor first (ASSUMED)."""
+    lower, assumed = [], 0
+    for i, j in layout.coaxial:
+        zi, zj = layout.z_flu_m[i], layout.z_flu_m[j]
+        if abs(zi - zj) > 1e-6:
+            lower.append(j if zj < zi else i)
+        else:
+            lower.append(j)
+            assumed += 1
+    how = ("by height (CA_ROTORn_PZ / the geometry's z)" if not assumed else
+           f"{assumed} of {len(lower)} pairs at one height in the log: the second of each pair ASSUMED lower "
+           f"(PX4 lists the upper rotor first)")
+    return tuple(sorted(lower)), how
+
+
 def _geometry_layout(key: str, arm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """PX4 geometry ``key`` (FRD, MAIN output order) scaled so its farthest rotor is ``arm`` [m] out."""
     from twin_nodes.vehicle.px4_geometry import GEOMETRIES
