@@ -428,11 +428,13 @@ def identify_regression(log: FlightLog, vp: VehicleParams | None, *, source: str
     segs = []
     for sel in sels:
         block_ = np.column_stack([v["specific_force_flu"][sel], vb[sel], v["body_rates_flu"][sel], acc[sel], tt[sel]])
-        block_[~keep[sel]] = np.nan  # the longest run below is then one the fit may use
         rr = _longest_finite_run(np.all(np.isfinite(block_), axis=1))
         if rr is None or rr.size < min_n:
             continue
-        segs.append((t[sel[rr]], rg.lowpass(block_[rr], rate_hz, lp)))
+        # the runs of it the fit may use (each filtered on its own)
+        for part in np.split(rr, np.flatnonzero(np.diff(keep[sel[rr]].astype(int)) != 0) + 1):
+            if keep[sel[part[0]]] and part.size >= min_n:
+                segs.append((t[sel[part]], rg.lowpass(block_[part], rate_hz, lp)))
     if not segs:
         raise LogError(source, "landed", f"expected airborne data longer than 2 x {trim_s:g} s trim + 2 s")
     data = np.concatenate([s[1] for s in segs])
