@@ -179,3 +179,36 @@ def test_position_hold_with_too_little_yaw_authority_spins_at_the_closed_form_ra
     assert np.max(np.abs(rec.x[late, 2] - 20.0)) < 0.3
     cw = np.array(vp.rotors.direction) < 0
     assert np.max(rec.u[late][:, cw]) < 0.02                       # the CW pair at idle: yaw given up
+
+
+def test_twin_fed_the_log_of_a_spinning_vehicle_spins_too(tmp_path):
+    """A PX4-style mission flown by a quad whose yaw authority runs out (the SIH quad with 0.03 m of tilt
+    lever: more yaw moment at hover than its rotors' reaction torque), written as a ULog; the closed-loop
+    twin of that vehicle flown on the log turns as many times as the logged vehicle (32.8 turns in its
+    first airborne stretch), the twin without the tilt does not turn at all."""
+    from twin_nodes.logs.flyable import read_flight
+    from twin_nodes.logs.ulog_write import write_px4_ulog
+    from twin_nodes.twin.runner import run_twin_on_log
+    from twin_nodes.twin.simflight import Hidden, record_to_topics, simulate_flight
+    from twin_nodes.vehicle.export_px4 import simulated_log_params
+
+    vp = shipped("px4_sih_quadx")
+    rec, battery, sp_hist = simulate_flight(vp, Hidden("rotor_tilt", {"lever_m": 0.03}), seed=5)
+    path = tmp_path / "spin.ulg"
+    write_px4_ulog(str(path), record_to_topics(rec, vp, battery, sp_hist, np.random.default_rng(1)),
+                   simulated_log_params(vp), {"sys_name": "test"})
+    log = read_flight(str(path))
+    a, b = log.airborne_intervals()[0]
+
+    def turns(t, q):
+        k = (t > a + 2.0) & (t < b - 2.0)
+        yaw = np.unwrap(np.arctan2(2 * (q[k, 0] * q[k, 3] + q[k, 1] * q[k, 2]), 1 - 2 * (q[k, 2] ** 2 + q[k, 3] ** 2)))
+        return (yaw[-1] - yaw[0]) / (2 * np.pi)
+
+    att = log.require("attitude_q")
+    real = turns(att.t_s, np.asarray(att.values))
+    assert real > 20.0                                         # the logged vehicle spins
+    spun = run_twin_on_log(log, vp.with_effect("rotor_tilt", lever_m=0.03), mode="closed")
+    assert turns(spun.t, spun.x[:, 6:10]) == pytest.approx(real, rel=0.05)
+    still = run_twin_on_log(log, vp, mode="closed")
+    assert abs(turns(still.t, still.x[:, 6:10])) < 0.1
