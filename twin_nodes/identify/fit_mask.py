@@ -93,8 +93,9 @@ def fit_mask(log, t: np.ndarray, rate_hz: float, min_keep_s: float = MIN_KEEP_S)
                          f"{full.seconds.get(SATURATED, 0.0):.1f} s with a motor at its bound are fitted")
         return part
     everything = FitMask(np.ones(np.asarray(t).size, bool), {}, float(np.asarray(t).size) / rate_hz)
-    everything.fallback = (f"nothing left out: only {kept:.1f} s would remain (< {min_keep_s:g} s) without the "
-                           f"samples below; all airborne samples are fitted ({full.describe()})")
+    everything.fallback = (f"nothing left out: {kept:.1f} s would remain (< {min_keep_s:g} s), "
+                           f"{part.keep.sum() / rate_hz:.1f} s with the saturated samples kept; all airborne samples "
+                           f"are fitted, among them {full._listed()}; and, saturation aside, {part._listed()}")
     return everything
 
 
