@@ -389,6 +389,7 @@ ACTIVE = {
     "ground_effect": {"coefficient": 0.3, "height_scale": 0.5},
     "inertia": {"ixx": 0.22, "iyy": 0.2, "izz": 0.36},
     "state_term": {"v_h": 6.0, "radius": 0.2, "omega_max": 1000.0, "c_ground": 1.0, "c_mu2": 0.2},
+    "coaxial": {"efficiency": 0.8, "lower_mask": 12},
 }
 NEUTRAL = {
     "linear_drag": {"k_n_s_m": 0.0},
@@ -408,6 +409,7 @@ NEUTRAL = {
     "ground_effect": {"coefficient": 0.0, "height_scale": 0.5},
     "inertia": {"ixx": 0.179, "iyy": 0.180, "izz": 0.303},
     "state_term": {"v_h": 6.0, "radius": 0.2, "omega_max": 1000.0},
+    "coaxial": {"efficiency": 1.0, "lower_mask": 12},
 }
 
 

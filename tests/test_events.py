@@ -73,7 +73,8 @@ def test_climb35m_vortex_ring_descent_is_an_event():
     assert e["vz_m_s"][0] < -5.0 and 3 in e["motors_at_full"] and e["height_m"] > 25
     assert "vortex ring" in e["points_to"]
     assert all(x["height_m"] >= 1.0 for x in ev)
-    # pulling out of the earlier drop at the top of the climb (34.7-35.1 s): more thrust than commanded
-    out = [x for x in ev if x["t_start"] < 34.9 < x["t_end"]]
-    assert len(out) == 1 and out[0]["channels"]["throttle"]["mean"] > 0
-    assert out[0]["points_to"].startswith("thrust above the commands while descending")
+    # the top of the climb (34.2-37.0 s), motors at full: four moments the commands do not explain. Pulling out
+    # of the drop at 34.7-35.1 s also showed thrust above the commands (+10 sigma) until 2026-11-27; the
+    # nominal's vertical drag, fitted since without the saturated samples (c_dz 0.115 -> 0.285), explains it
+    top = [x for x in ev if 34.2 <= x["t_start"] and x["t_end"] <= 37.1]
+    assert len(top) == 4 and all(x["motors_at_full"] for x in top)

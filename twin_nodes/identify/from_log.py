@@ -33,6 +33,7 @@ from twin_nodes.identify.delay import estimate_delay
 from twin_nodes.identify.results import (DelayResult, HoverFlight, HoverResult, MotorFit, MotorResult, NoiseResult,
                                          RegressionData, RegressionResult, check_merged)
 from twin_nodes.logs.flyable import check_flyable
+from twin_nodes.identify.fit_mask import fit_mask
 from twin_nodes.logs.ulog_io import FlightLog
 from twin_nodes.vehicle.params import VehicleParams
 
@@ -413,18 +414,27 @@ def identify_regression(log: FlightLog, vp: VehicleParams | None, *, source: str
                  "acceleration and rates, mapped back): the logged commands carry the controller's noise, which "
                  "attenuates plain least squares of the acceleration on them (19-24 % low on PX4 SIH)")
 
-    # Airborne stretches only (ground reaction is not in the model), each filtered on its own.
+    # Airborne stretches only (ground reaction is not in the model), each filtered on its own; samples
+    # with a saturated motor, ground contact or a land-detector transition are left out (fit_mask)
     min_n = max(20, int(2 * rate_hz))
+    sels = [sel for a, b in log.airborne_intervals()
+            if (sel := np.flatnonzero((t >= a + trim_s) & (t <= b - trim_s))).size >= min_n]
+    keep = np.ones(t.size, bool)
+    if sels:
+        air = np.concatenate(sels)
+        left_out = fit_mask(log, t[air], rate_hz)
+        keep[air] = left_out.keep
+        notes.append(f"samples left out: {left_out.describe()}")
     segs = []
-    for a, b in log.airborne_intervals():
-        sel = np.flatnonzero((t >= a + trim_s) & (t <= b - trim_s))
-        if sel.size < min_n:
-            continue
+    for sel in sels:
         block_ = np.column_stack([v["specific_force_flu"][sel], vb[sel], v["body_rates_flu"][sel], acc[sel], tt[sel]])
         rr = _longest_finite_run(np.all(np.isfinite(block_), axis=1))
         if rr is None or rr.size < min_n:
             continue
-        segs.append((t[sel[rr]], rg.lowpass(block_[rr], rate_hz, lp)))
+        # the runs of it the fit may use (each filtered on its own)
+        for part in np.split(rr, np.flatnonzero(np.diff(keep[sel[rr]].astype(int)) != 0) + 1):
+            if keep[sel[part[0]]] and part.size >= min_n:
+                segs.append((t[sel[part]], rg.lowpass(block_[part], rate_hz, lp)))
     if not segs:
         raise LogError(source, "landed", f"expected airborne data longer than 2 x {trim_s:g} s trim + 2 s")
     data = np.concatenate([s[1] for s in segs])

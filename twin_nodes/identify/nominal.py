@@ -37,6 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from twin_nodes.base.errors import LogError
+from twin_nodes.identify.coaxial import ASSUMED as COAX_ASSUMED, LOWPASS_HZ as COAX_LOWPASS_HZ, coaxial_efficiency
+from twin_nodes.identify.fit_mask import fit_mask
 from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
                                            rotor_states_from_commands, thrust_regressor, translational_regression,
                                            world_to_body)
@@ -45,8 +47,8 @@ from twin_nodes.logs.flyable import MIN_HORIZONTAL_FRACTION, check_flyable, read
 from twin_nodes.logs.ulog_io import FlightLog
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 from twin_nodes.vehicle.px4_params import int_param  # noqa: I001 - a log integer, range-checked
-from twin_nodes.vehicle.px4_params import (AIRFRAMES, RateGainsPx4, outer_loop_gains, param, rate_gains_physical,
-                                           rotor_layout)
+from twin_nodes.vehicle.px4_params import (AIRFRAMES, RateGainsPx4, lower_rotors, outer_loop_gains, param,
+                                           rate_gains_physical, rotor_layout)
 
 #: assumed rotor torque / thrust ratio [m] (Q = km T): 0.016 (APC 10x4.7: C_P/(2 pi C_T) D) to 0.024
 #: (Buho Negro's datasheet); PX4's CA_ROTORn_KM (0.05 by default) is an allocation value, not a measurement.
@@ -162,11 +164,21 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     ok = np.ones(len(t), bool)
     for key in ("motors", "rates", "q", "v_enu", "f_body"):
         ok &= np.all(np.isfinite(np.asarray(sig[key], float).reshape(len(t), -1)), axis=1)
+    # nor do they hold with a motor at its bound, on the ground or while the land detector changes its mind
+    left_out = fit_mask(log, t, GRID_HZ)
+    src["identification: samples left out"] = left_out.describe()
+    ok &= left_out.keep
     t = t[ok]
     sig = {k: v[ok] for k, v in sig.items()}
     segs = _segments(t, GRID_HZ)
     if not segs:
         raise LogError(log.path, "motors", "expected airborne motor outputs with body rates, found none")
+    # only samples inside a segment go on: the per-segment filters leave the rest undefined (np.empty)
+    inside = np.concatenate([np.arange(sg.start, sg.stop) for sg in segs])
+    if inside.size < t.size:
+        t = t[inside]
+        sig = {k: v[inside] for k, v in sig.items()}
+        segs = _segments(t, GRID_HZ)
 
     def lp(x: np.ndarray) -> np.ndarray:
         return _per_segment(lambda _t, v: lowpass(v, GRID_HZ, cutoff_hz), t, x, segs)
@@ -183,29 +195,51 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
             s[sg] = rotor_states_from_commands(t[sg], sig["motors"][sg], tau_up_s=tau)
         return lp(thrust_regressor(s, "thrust_factor", f_fac))
 
-    # --- motor time constant: the lag that best explains roll and pitch accelerations
-    cost = []
-    for tau in TAU_SCAN_S:
-        fits = _moment_fits(alpha, rates_lp, thrust_units(float(tau)), geom, 1.0, 1.0)
-        cost.append(sum(1.0 - fits[ax].r2 for ax in ("roll", "pitch")))
-    cost = np.asarray(cost)
-    i_best = int(np.argmin(cost))
-    near = TAU_SCAN_S[cost <= cost[i_best] * 1.02]
-    at_edge = i_best in (0, len(TAU_SCAN_S) - 1)
-    if near.max() - near.min() <= TAU_SPREAD_MAX_S and not at_edge:
-        tau = float(TAU_SCAN_S[i_best])
-        src["rotors.tau_up_s/tau_down_s"] = (f"identified: lag explaining roll/pitch acceleration best, {tau:.3f} s "
-                                             f"(within 2 % of the best residual: {near.min():.2f}-{near.max():.2f} s)")
-    else:
-        tau = TAU_ASSUMED_S
+    # --- motor time constant: the lag that best explains roll and pitch accelerations, with the thrust
+    # units weighted by each rotor's thrust per command (coaxial pairs: the lower rotor's efficiency)
+    def scan_lag(w: np.ndarray) -> tuple[float, str]:
+        cost = []
+        for tau_k in TAU_SCAN_S:
+            fits = _moment_fits(alpha, rates_lp, thrust_units(float(tau_k)) * w, geom, 1.0, 1.0)
+            cost.append(sum(1.0 - fits[ax].r2 for ax in ("roll", "pitch")))
+        cost = np.asarray(cost)
+        i_best = int(np.argmin(cost))
+        near = TAU_SCAN_S[cost <= cost[i_best] * 1.02]
+        at_edge = i_best in (0, len(TAU_SCAN_S) - 1)
+        if near.max() - near.min() <= TAU_SPREAD_MAX_S and not at_edge:
+            tau_b = float(TAU_SCAN_S[i_best])
+            return tau_b, (f"identified: lag explaining roll/pitch acceleration best, {tau_b:.3f} s "
+                           f"(within 2 % of the best residual: {near.min():.2f}-{near.max():.2f} s)")
         why = (f"its best fit sits at the edge of the {TAU_SCAN_S[0]}-{TAU_SCAN_S[-1]} s scan" if at_edge else
                f"residual within 2 % of its best from {near.min():.2f} to {near.max():.2f} s")
-        src["rotors.tau_up_s/tau_down_s"] = (f"ASSUMED {tau} s (typical motor + ESC): the flight does not determine "
-                                             f"it at this log's motor rate ({why})")
-    tt = thrust_units(tau)
+        return TAU_ASSUMED_S, (f"ASSUMED {TAU_ASSUMED_S} s (typical motor + ESC): the flight does not determine "
+                               f"it at this log's motor rate ({why})")
+
+    # coaxial pairs: the lower rotors' thrust per command relative to the upper ones, identified on the
+    # body-z specific force (coaxial.py) or ASSUMED; the lag is scanned with it (again once it is
+    # identified), and from here on the thrust units carry it, so T_max below is an upper rotor's
+    lower, lower_how = lower_rotors(layout) if layout.coaxial else ((), "")
+    w_rot = np.ones(n)
+    w_rot[list(lower)] = COAX_ASSUMED
+    tau, src["rotors.tau_up_s/tau_down_s"] = scan_lag(w_rot)
+    v_body = lp(world_to_body(sig["q"], sig["v_enu"]))
+    coax = None
+    if lower:
+        def slow(x: np.ndarray) -> np.ndarray:
+            return _per_segment(lambda _t, v: lowpass(v, GRID_HZ, COAX_LOWPASS_HZ), t, x, segs)
+
+        def fit_coax():
+            return coaxial_efficiency(slow(thrust_units(tau)), slow(lp(sig["f_body"])[:, 2]), slow(v_body[:, 2]),
+                                      lower)
+        coax = fit_coax()
+        if coax.identified and abs(coax.efficiency - COAX_ASSUMED) > 0.01:
+            w_rot[list(lower)] = coax.efficiency
+            tau, src["rotors.tau_up_s/tau_down_s"] = scan_lag(w_rot)
+            coax = fit_coax()
+        w_rot[list(lower)] = coax.efficiency
+    tt = thrust_units(tau) * w_rot
 
     # --- thrust and drag from the specific force
-    v_body = lp(world_to_body(sig["q"], sig["v_enu"]))
     trans = translational_regression(lp(sig["f_body"]), tt, v_body)
     kt_m, kt_m_se = trans["z"]["kT/m"], trans["z"].se("kT/m")
     if not kt_m > 0:
@@ -295,7 +329,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     if use_drag and drag_h is not None:
         # the horizontal drag as the in-plane rotor H-force, -k_d |omega_i| (hub air speed), at the hubs
         # at the identified height; k_d gives the identified drag at hover
-        w_hover = 1000.0 * math.sqrt(min(m * 9.80665 / (n * t_max), 1.0))
+        w_hover = 1000.0 * math.sqrt(min(m * 9.80665 / (float(w_rot.sum()) * t_max), 1.0))
         k_d = drag / (n * w_hover)
         effects["enabled"].append("rotor_drag")
         effects["rotor_drag"] = {"k_d": k_d}
@@ -330,6 +364,12 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     else:
         src["effects.angular_damping"] = f"not included: roll/pitch damping fit {k_w:.3g} not significant"
 
+    if coax is not None:
+        effects["enabled"].append("coaxial")
+        effects["coaxial"] = {"efficiency": float(coax.efficiency), "lower_mask": float(sum(1 << i for i in lower))}
+        src["effects.coaxial"] = f"{coax.source}; lower rotors (motors) {[i + 1 for i in lower]} {lower_how}"
+        src["rotors.thrust_max_n"] += f"; an upper rotor's (the lower ones x {coax.efficiency:.3g})"
+
     # --- static trims: the mean rotor moments the controller holds in steady flight balance a
     # centre-of-mass offset (roll/pitch) and tangentially tilted rotors (yaw)
     steady = np.linalg.norm(sig["v_enu"], axis=1) < 2.0
@@ -361,14 +401,14 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
         src["effects.rotor_tilt"] = f"not included: yaw trim lever {lever:.3g} m negligible or beyond a 10 deg tilt"
 
     # --- the log's own controller
-    hover_cmd = _hover_command(t_max * n, m, f_fac)
+    hover_cmd = _hover_command(t_max * float(w_rot.sum()), m, f_fac)
     gains, gsrc = outer_loop_gains(p, hover_cmd)
     # the yaw attitude gain the firmware applied (a fork may not divide MC_YAW_P by MC_YAW_WEIGHT)
     k_yaw, src["controller.yaw_p_1_s"] = yaw_gain_for_twin(applied_yaw_gain(log), gains["yaw_p_1_s"],
                                                           gains["yaw_weight"])
     if k_yaw is not None:
         gains["yaw_p_1_s"] = k_yaw
-    slope = t_max * (2 * f_fac * hover_cmd + (1 - f_fac))
+    slope = t_max * float(w_rot.mean()) * (2 * f_fac * hover_cmd + (1 - f_fac))
     rate = rate_gains_physical(RateGainsPx4.from_params(p), np.array(layout.x_flu_m), np.array(layout.y_flu_m),
                                np.array(layout.direction), float(abs(p.get("CA_ROTOR0_KM", 0.05)) or 0.05),
                                slope, tuple(inertia), km_physical_m=km)
@@ -522,7 +562,8 @@ def _hover_command(total_thrust_max_n: float, mass_kg: float, f: float, g: float
 #: change under a running process, which must not file its results under the new code's key)
 _CODE_KEY = b"".join(inspect.getsource(sys.modules[name]).encode() for name in
                      (__name__, "twin_nodes.identify.regression", "twin_nodes.identify.yaw_gain",
-                      "twin_nodes.vehicle.px4_params", "twin_nodes.logs.ulog_io"))
+                      "twin_nodes.vehicle.px4_params", "twin_nodes.logs.ulog_io", "twin_nodes.identify.fit_mask",
+                      "twin_nodes.identify.coaxial"))
 
 #: PX4 airframes (SYS_AUTOSTART) with a shipped params file: (stem, what it is)
 SHIPPED_AIRFRAMES = {10040: "px4_sih_quadx", 1100: "px4_sih_quadx"}

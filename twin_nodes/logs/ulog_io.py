@@ -167,6 +167,7 @@ SERIES_SPEC: dict[str, tuple[str, str, str]] = {
     "offboard_mode": ("-", "flags position, velocity, acceleration, attitude, body_rate, thrust", "previous"),
     "armed": ("-", "bool", "previous"),
     "landed": ("-", "bool", "previous"),
+    "land_detector": ("-", "ground_contact, maybe_landed, landed (bool)", "previous"),
     "esc_rpm": ("rpm", "PX4 motor order", "linear"),
     "hover_thrust": ("-", "-", "linear"),
     "groundtruth_position_enu": ("m", "ENU", "linear"),
@@ -1306,6 +1307,11 @@ def _build_series(
                                 "vehicle_land_detected.landed")
     else:
         missing("vehicle_land_detected", "landed")
+    if ld is not None and ld.has("landed"):
+        flags = [(ld.col(k) != 0) if ld.has(k) else np.zeros(ld.t_s.size, bool)
+                 for k in ("ground_contact", "maybe_landed", "landed")]
+        out["land_detector"] = _series("land_detector", ld.t_s, np.column_stack(flags).astype(float),
+                                       "vehicle_land_detected.ground_contact/maybe_landed/landed")
 
     # --- ESC telemetry, mapped by output function
     esc = get("esc_status")

@@ -240,6 +240,15 @@ def _k_motor_efficiency(p, x, ext, omega, T, Q):
 
 
 @njit(cache=True)
+def _k_coaxial(p, x, ext, omega, T, Q):
+    mask = int(p[1])
+    for i in range(T.shape[0]):
+        if (mask >> i) & 1:
+            T[i] *= p[0]
+            Q[i] *= p[0]
+
+
+@njit(cache=True)
 def _k_ground_effect(p, x, ext, omega, T, Q):
     h = x[2]
     if h < 0.0:
@@ -346,6 +355,29 @@ class MotorEfficiency(Effect):
                 what = f"this vehicle has {n_rotors} rotors" if n_rotors is not None else "1-based PX4 index"
                 return "motor", f"expected an integer motor index 1..{top} ({what}), got {m:g}"
         return bad or super().check_params(params, n_rotors)
+
+
+class Coaxial(Effect):
+    name = "coaxial"
+    param_names = ("efficiency", "lower_mask")
+    defaults = {"efficiency": 0.8, "lower_mask": 0.0}
+    units = {"efficiency": "lower/upper thrust ratio at equal command",
+             "lower_mask": "bit i set: rotor i (0-based, PX4 motor i+1) is the lower rotor of a coaxial pair"}
+    ranges = {"efficiency": (0.1, 1.5), "lower_mask": (0.0, 2.0 ** 31 - 1)}
+    description = ("coaxial pairs: the lower rotor works in the upper one's wake and gives ``efficiency`` of "
+                   "the thrust (and, Q = km T, of the torque) the same command gives the upper one")
+    rotor_kernel = staticmethod(_k_coaxial)
+
+    @classmethod
+    def check_params(cls, params, n_rotors=None):
+        bad = super().check_params(params, n_rotors)
+        if bad is None and "lower_mask" in params:
+            m = float(params["lower_mask"])
+            top = 2 ** int(n_rotors) - 1 if n_rotors is not None else 2 ** 31 - 1
+            if m != int(m) or not 0 <= m <= top:
+                return "lower_mask", (f"expected an integer bit mask of rotors 0..{(n_rotors or 31) - 1} "
+                                      f"(0..{top}), got {m:g}")
+        return bad
 
 
 class GroundEffect(Effect):
@@ -534,7 +566,7 @@ EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (LinearDrag, AngularDamping, RotorDrag, BodyDrag, BatterySag, MotorEfficiency,
                 MotorTimeConstant, ActuatorDelay, Mass, ThrustCoefficient, YawMoment, ComOffset,
-                RotorTilt, Wind, GroundEffect, Inertia, StateTerm)
+                RotorTilt, Wind, GroundEffect, Inertia, StateTerm, Coaxial)
 }
 
 

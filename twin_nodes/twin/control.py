@@ -55,6 +55,10 @@ class ControllerGains:
     yawrate_i_1_s2: float = 2.0
     rate_i_max_rad_s2: float = 10.0
     vel_i_max_m_s2: float = 4.0
+    airmode: float = 0.0                # MC_AIRMODE: 0 off, 1 roll/pitch, 2 roll/pitch/yaw
+    #: desaturation skips rotors whose share of the desaturation direction is below this: 0.2 in PX4's
+    #: control allocator (>= 1.13, ControlAllocationSequentialDesaturation), FLT_EPSILON in the mixer
+    desat_min_effect: float = 0.2
 
     @classmethod
     def from_params(cls, vp: VehicleParams) -> "ControllerGains":
@@ -70,6 +74,10 @@ class ControllerGains:
         g = cls(**{**cls.auto_defaults(vp), **kwargs})
         if g.rate_hz <= 0:
             raise ParamsError(vp.source, "controller.rate_hz", "expected > 0")
+        if g.airmode not in (0.0, 1.0, 2.0):
+            raise ParamsError(vp.source, "controller.airmode", f"expected 0, 1 or 2 (MC_AIRMODE), got {g.airmode:g}")
+        if not 0.0 <= g.desat_min_effect < 1.0:
+            raise ParamsError(vp.source, "controller.desat_min_effect", f"expected 0..1, got {g.desat_min_effect:g}")
         return g
 
     @classmethod
@@ -111,16 +119,21 @@ class ControllerGains:
 _G = {f.name: i for i, f in enumerate(fields(ControllerGains))}
 (G_XY_P, G_Z_P, G_XYV_P, G_XYV_I, G_XYV_D, G_ZV_P, G_ZV_I, G_ZV_D, G_XYV_MAX, G_ZV_UP, G_ZV_DN, G_TILT,
  G_THR_MIN, G_THR_MAX, G_ROLL_P, G_PITCH_P, G_YAW_P, G_YAW_W, G_RR_MAX, G_YR_MAX, G_R_P, G_R_I, G_R_D,
- G_YR_P, G_YR_I, G_R_IMAX, G_V_IMAX) = (
+ G_YR_P, G_YR_I, G_R_IMAX, G_V_IMAX, G_AIRMODE, G_DESAT_EPS) = (
     _G[k] for k in ("xy_p_1_s", "z_p_1_s", "xy_vel_p_1_s", "xy_vel_i_1_s2", "xy_vel_d", "z_vel_p_1_s",
                     "z_vel_i_1_s2", "z_vel_d", "xy_vel_max_m_s", "z_vel_max_up_m_s", "z_vel_max_dn_m_s",
                     "tilt_max_deg", "thr_min", "thr_max", "roll_p_1_s", "pitch_p_1_s", "yaw_p_1_s", "yaw_weight",
                     "rollrate_max_deg_s", "yawrate_max_deg_s", "rate_p_1_s", "rate_i_1_s2", "rate_d",
-                    "yawrate_p_1_s", "yawrate_i_1_s2", "rate_i_max_rad_s2", "vel_i_max_m_s2"))
+                    "yawrate_p_1_s", "yawrate_i_1_s2", "rate_i_max_rad_s2", "vel_i_max_m_s2",
+                    "airmode", "desat_min_effect"))
 
-# Controller memory: vel integrator (3), rate integrator (3), previous velocity (3), previous rates (3), init flag
-C_VI, C_RI, C_VPREV, C_WPREV, C_INIT = 0, 3, 6, 9, 12
-C_SIZE = 13
+# Controller memory: vel integrator (3), rate integrator (3), previous velocity (3), previous rates (3), init flag,
+# the allocation's torque saturation per axis (+1 / -1: the last step could not give more / less; 0: achieved)
+C_VI, C_RI, C_VPREV, C_WPREV, C_INIT, C_SAT = 0, 3, 6, 9, 12, 13
+C_SIZE = 16
+# Columns of the allocation table ``A`` (N, 12) the kernels read: the pseudo-inverse [T, Mx, My, Mz] -> rotor
+# thrust (0:4), PX4's normalised mix columns, the desaturation directions (4:8), the effectiveness B^T (8:12)
+A_DIR, A_EFF = 4, 8
 # Setpoint vector: position (3), velocity (3), acceleration (3), yaw (1), yawspeed (1); NaN = not controlled
 SP_SIZE = 11
 # Info vector: collective throttle, thrust [N], attitude setpoint q (4), rate setpoint (3)
@@ -289,6 +302,76 @@ def controller_update(G, C, P, J, A, x, sp, q_att, dt, u, info):
 
 
 @njit(cache=True)
+def _desat_gain(v, a, lo, hi, eps):
+    """PX4 computeDesaturationGain: the multiple of ``v`` that takes the most saturated output back
+    to its bound (both bounds crossed: the sum, which balances them)."""
+    k_min = 0.0
+    k_max = 0.0
+    for i in range(a.shape[0]):
+        if abs(v[i]) < eps:  # an output the direction hardly moves would ask for a huge gain
+            continue
+        if a[i] < lo:
+            k = (lo - a[i]) / v[i]
+            k_min = min(k_min, k)
+            k_max = max(k_max, k)
+        if a[i] > hi:
+            k = (hi - a[i]) / v[i]
+            k_min = min(k_min, k)
+            k_max = max(k_max, k)
+    return k_min + k_max
+
+
+@njit(cache=True)
+def _desaturate(a, v, lo, hi, eps, reduce_only):
+    """PX4 desaturateActuators / MultirotorMixer::minimize_saturation: slide ``a`` along ``v`` by the
+    desaturation gain, then by half the gain that is left.  ``reduce_only``: only a negative multiple
+    of ``v`` (for the thrust direction: thrust is never raised to unsaturate)."""
+    g = _desat_gain(v, a, lo, hi, eps)
+    if reduce_only and g > 0.0:
+        return
+    for i in range(a.shape[0]):
+        a[i] += g * v[i]
+    g = 0.5 * _desat_gain(v, a, lo, hi, eps)
+    for i in range(a.shape[0]):
+        a[i] += g * v[i]
+
+
+@njit(cache=True)
+def px4_allocate(parts, dirs, lo, hi, airmode, eps, a):
+    """PX4's multirotor allocation with sequential desaturation, into ``a`` (N,), not yet clipped.
+
+    ``parts`` (4, N): each axis's share of the outputs, [thrust, roll, pitch, yaw] (mix column times
+    its setpoint); ``dirs`` (4, N): the same mix columns normalised as PX4 does (thrust positive up),
+    the directions outputs are slid along.  ``lo``/``hi``: the output range.  ``airmode`` (MC_AIRMODE):
+    0 thrust only lowered, then roll and pitch cut, to fit; 1 thrust raised or lowered for roll/pitch;
+    2 the same for yaw too.  In 0 and 1 yaw is mixed last and given up where it does not fit (15 % of
+    the range of head-room above ``hi`` for it, then thrust lowered).  Line for line
+    ControlAllocationSequentialDesaturation (PX4 >= 1.13, ``eps`` 0.2) and MultirotorMixer
+    mix_airmode_* (PX4 <= 1.13, ``eps`` FLT_EPSILON)."""
+    n = a.shape[0]
+    mode = int(airmode)
+    for i in range(n):
+        a[i] = parts[0, i] + parts[1, i] + parts[2, i]
+    if mode == 2:
+        for i in range(n):
+            a[i] += parts[3, i]
+        _desaturate(a, dirs[0], lo, hi, eps, False)
+        _desaturate(a, dirs[3], lo, hi, eps, False)
+        return
+    if mode == 1:
+        _desaturate(a, dirs[0], lo, hi, eps, False)
+    else:
+        _desaturate(a, dirs[0], lo, hi, eps, True)
+        _desaturate(a, dirs[1], lo, hi, eps, False)
+        _desaturate(a, dirs[2], lo, hi, eps, False)
+    # mixYaw / mix_yaw
+    for i in range(n):
+        a[i] += parts[3, i]
+    _desaturate(a, dirs[3], lo, hi + 0.15 * (hi - lo), eps, False)
+    _desaturate(a, dirs[0], lo, hi, eps, True)
+
+
+@njit(cache=True)
 def _attitude_to_motors(G, C, P, J, A, x, thrust, qd, yawspeed, w_sp, dt, u, info):
     """Attitude P -> rate PID -> allocation, for collective ``thrust`` [N] and attitude setpoint ``qd``;
     a finite ``w_sp[0]`` is a body-rate setpoint (FLU, rad/s) that replaces the attitude loop (ACRO)."""
@@ -343,38 +426,45 @@ def _attitude_to_motors(G, C, P, J, A, x, thrust, qd, yawspeed, w_sp, dt, u, inf
         dw = (x[10 + k] - C[C_WPREV + k]) / dt
         C[C_WPREV + k] = x[10 + k]
         alpha[k] = kp * e + C[C_RI + k] - kd * dw
+        # PX4 RateControl::updateIntegral: no integration further into a torque the allocation could not give
+        if C[C_SAT + k] > 0.0:
+            e = min(e, 0.0)
+        elif C[C_SAT + k] < 0.0:
+            e = max(e, 0.0)
         C[C_RI + k] = min(max(C[C_RI + k] + ki * e * dt, -G[G_R_IMAX]), G[G_R_IMAX])
     w = x[10:13]
     Jw = J @ w
     tau = J @ alpha + np.cross(w, Jw)
-    # ---- allocation with yaw de-prioritised on saturation
+    # ---- allocation as PX4 (sequential desaturation: roll/pitch first, then thrust, yaw given up),
+    # in rotor thrust [N] between the idle and the full-command thrust
     tmin_r = _min_rotor_thrust(P)
     tmax_r = _max_rotor_thrust(P)
-    base = np.empty(n)
-    rp = np.empty(n)
-    yw = np.empty(n)
+    parts = np.empty((4, n))
+    dirs = np.empty((4, n))
     for i in range(n):
-        base[i] = A[i, 0] * thrust
-        rp[i] = A[i, 1] * tau[0] + A[i, 2] * tau[1]
-        yw[i] = A[i, 3] * tau[2]
-    # PX4-style desaturation (airmode off): lower the collective until roll/pitch fit
-    cut = 0.0
+        parts[0, i] = A[i, 0] * thrust
+        for k in range(3):
+            parts[1 + k, i] = A[i, 1 + k] * tau[k]
+        for j in range(4):
+            dirs[j, i] = A[i, A_DIR + j]
+    t_rot = np.empty(n)
+    px4_allocate(parts, dirs, tmin_r, tmax_r, G[G_AIRMODE], G[G_DESAT_EPS], t_rot)
+    # what the clipped rotor thrusts give against what was asked: PX4's unallocated torque, whose
+    # sign stops the rate integrators (MulticopterRateControl: control_allocator_status)
+    lever = 0.0
     for i in range(n):
-        if A[i, 0] > 1e-12:
-            cut = max(cut, (base[i] + rp[i] - tmax_r) / A[i, 0])
-    cut = min(cut, thrust)
+        t_rot[i] = min(max(t_rot[i], tmin_r), tmax_r)
+        for k in range(3):
+            lever = max(lever, abs(A[i, A_EFF + 1 + k]))
+    tol = 1e-6 * max(tmax_r, 1e-9) * max(lever, 1e-9)
+    for k in range(3):
+        got = 0.0
+        for i in range(n):
+            got += A[i, A_EFF + 1 + k] * t_rot[i]
+        miss = tau[k] - got
+        C[C_SAT + k] = 1.0 if miss > tol else (-1.0 if miss < -tol else 0.0)
     for i in range(n):
-        base[i] -= cut * A[i, 0]
-    scale_y = 1.0
-    for i in range(n):
-        t = base[i] + rp[i] + yw[i]
-        if t > tmax_r and yw[i] > 0.0:
-            scale_y = min(scale_y, max(0.0, (tmax_r - base[i] - rp[i]) / yw[i]))
-        elif t < tmin_r and yw[i] < 0.0:
-            scale_y = min(scale_y, max(0.0, (tmin_r - base[i] - rp[i]) / yw[i]))
-    for i in range(n):
-        t = base[i] + rp[i] + scale_y * yw[i]
-        u[i] = _thrust_to_cmd(P, min(max(t, 0.0), tmax_r))
+        u[i] = _thrust_to_cmd(P, t_rot[i])
     info[0] = _thrust_to_cmd(P, thrust / n)
     info[1] = thrust
     for k in range(4):
@@ -443,6 +533,40 @@ _NO_Q = np.full(4, np.nan)
 _NO_W = np.full(3, np.nan)
 
 
+def px4_mix_directions(A: np.ndarray) -> np.ndarray:
+    """PX4's normalised mix columns (N, 4: thrust, roll, pitch, yaw) from the allocation ``A`` (N, 4):
+    roll and pitch divided by one scale, the larger ``sqrt(|col|^2 / (n_nonzero / 2))``, yaw by its
+    largest entry, thrust by its mean magnitude, entries below 1e-3 zeroed
+    (ControlAllocationPseudoInverse::updateControlAllocationMatrixScale / normalizeControlAllocationMatrix).
+    Only the desaturation's skip threshold reads their size; their directions are A's."""
+    D = np.array(A[:, :4], dtype=np.float64)
+    scales = []
+    for c in (1, 2):
+        nz = int(np.sum(np.abs(D[:, c]) > 1e-3 * np.max(np.abs(D[:, c]), initial=0.0)))
+        scales.append(float(np.sqrt(D[:, c] @ D[:, c] / (nz / 2.0))) if nz else 1.0)
+    rp = max(scales)
+    if rp > 0:
+        D[:, 1:3] /= rp
+    ymax = float(np.max(D[:, 3]))
+    if ymax > 1e-12:
+        D[:, 3] /= ymax
+    nz = np.abs(D[:, 0]) > 1e-12
+    if nz.any():
+        D[:, 0] /= float(np.mean(np.abs(D[nz, 0])))
+    D[np.abs(D) < 1e-3] = 0.0
+    return D
+
+
+def allocation_table(vp: VehicleParams) -> np.ndarray:
+    """The (N, 12) table the controller kernels allocate with: pseudo-inverse, PX4's normalised mix
+    directions, and the effectiveness B^T (rotor thrust -> [T, Mx, My, Mz], FLU)."""
+    A = allocation_matrix(vp)
+    r = vp.rotors
+    Bt = np.column_stack([np.ones(r.count), np.array(r.y_flu_m), -np.array(r.x_flu_m),
+                          -np.array(r.direction, float) * r.km_m])
+    return np.ascontiguousarray(np.hstack([A, px4_mix_directions(A), Bt]))
+
+
 class Controller:
     """Stateful wrapper: ``u, info = ctrl.update(x_est, setpoint, dt)``."""
 
@@ -454,7 +578,7 @@ class Controller:
         self.G = self.gains.vector()
         self.P = pack(vp)
         self.J = vp.inertia.copy()
-        self.A = np.ascontiguousarray(allocation_matrix(vp))
+        self.A = allocation_table(vp)
         self.C = np.zeros(C_SIZE)
         self.n = vp.rotors.count
 

@@ -96,6 +96,24 @@ def coaxial_pairs(x: np.ndarray, y: np.ndarray, direction: np.ndarray) -> tuple[
     return tuple(pairs)
 
 
+def lower_rotors(layout: RotorLayout) -> tuple[tuple[int, ...], str]:
+    """The lower rotor of each coaxial pair (0-based) and how it was told: the one lower on the body
+    (smaller FLU z, i.e. larger ``CA_ROTORn_PZ``), else (both at one height in the log) the second of the
+    pair, as PX4's coaxial geometries and airframes list the upper rotor first (ASSUMED)."""
+    lower, assumed = [], 0
+    for i, j in layout.coaxial:
+        zi, zj = layout.z_flu_m[i], layout.z_flu_m[j]
+        if abs(zi - zj) > 1e-6:
+            lower.append(j if zj < zi else i)
+        else:
+            lower.append(j)
+            assumed += 1
+    how = ("by height (CA_ROTORn_PZ / the geometry's z)" if not assumed else
+           f"{assumed} of {len(lower)} pairs at one height in the log: the second of each pair ASSUMED lower "
+           f"(PX4 lists the upper rotor first)")
+    return tuple(sorted(lower)), how
+
+
 def _geometry_layout(key: str, arm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """PX4 geometry ``key`` (FRD, MAIN output order) scaled so its farthest rotor is ``arm`` [m] out."""
     from twin_nodes.vehicle.px4_geometry import GEOMETRIES
@@ -342,6 +360,7 @@ def outer_loop_gains(params: Mapping[str, float], hover_thrust: float,
         gains[key], sources[key] = param(params, name or names[0], default)
     if "MC_YAW_WEIGHT" not in params and "MC_YAW_P" in params:
         _old_yaw_law(params, gains, sources)
+    gains["airmode"], sources["airmode"], gains["desat_min_effect"], sources["desat_min_effect"] = allocation_kind(params)
     return gains, sources
 
 
@@ -358,6 +377,31 @@ def _old_yaw_law(params: Mapping[str, float], gains: dict[str, float], sources: 
     gains["yaw_p_1_s"] *= w
     sources["yaw_p_1_s"] = (f"log parameter MC_YAW_P x that yaw weight = {gains['yaw_p_1_s']:.3g} (PX4 < 1.11 "
                             "did not divide the yaw gain by the weight)")
+
+
+#: PX4's desaturation skips outputs whose share of the direction is below this: 0.2 in the control
+#: allocator (ControlAllocationSequentialDesaturation::computeDesaturationGain), FLT_EPSILON in the mixer
+DESAT_MIN_EFFECT = {"allocator": 0.2, "mixer": 1.1920929e-07}
+
+
+def allocation_kind(params: Mapping[str, float]) -> tuple[float, str, float, str]:
+    """``MC_AIRMODE`` (0 off, 1 roll/pitch, 2 roll/pitch/yaw; anything else read as PX4 reads it: off)
+    and which of PX4's two allocations flew the log: the control allocator where ``SYS_CTRL_ALLOC`` is 1
+    (PX4 1.13) or, without that parameter, where ``CA_ROTOR_COUNT`` is set (PX4 >= 1.14); else the
+    multirotor mixer (PX4 <= 1.13).  Both desaturate in the same sequence; they differ in the skip
+    threshold (``desat_min_effect``)."""
+    am, am_src = param(params, "MC_AIRMODE", 0.0)
+    if am not in (0.0, 1.0, 2.0):
+        am_src, am = f"log parameter MC_AIRMODE {am:g} is not 0/1/2: PX4's default branch, airmode off", 0.0
+    if "SYS_CTRL_ALLOC" in params:
+        kind = "allocator" if float(params["SYS_CTRL_ALLOC"]) == 1.0 else "mixer"
+        why = f"SYS_CTRL_ALLOC {float(params['SYS_CTRL_ALLOC']):g}"
+    else:
+        kind = "allocator" if "CA_ROTOR_COUNT" in params else "mixer"
+        why = "CA_ROTOR_COUNT in the log" if kind == "allocator" else "no CA_ROTOR_COUNT in the log"
+    what = ("PX4 control allocator, sequential desaturation" if kind == "allocator"
+            else "PX4 multirotor mixer desaturation")
+    return am, am_src, DESAT_MIN_EFFECT[kind], f"{what} ({why})"
 
 
 @dataclass(frozen=True)
