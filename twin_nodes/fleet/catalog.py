@@ -169,10 +169,14 @@ def catalogued(catalog: str | os.PathLike[str]) -> list[dict]:
     return out
 
 
+#: row statuses that need no rerun: analysed, or recognised as no free flight (ground test, too short, no GPS)
+DONE = ("ok", "not_flight")
+
+
 def is_done(key: dict, row: dict | None) -> bool:
     """Whether the catalog ``row`` of a path covers this version of the file: an ``ok`` row with
     the same content (sha256; size and mtime for rows without a hash)."""
-    if not row or row.get("status") != "ok" or row.get("path") != key["path"]:
+    if not row or row.get("status") not in DONE or row.get("path") != key["path"]:
         return False
     if row.get("content_sha256") and key.get("content_sha256"):
         return row["content_sha256"] == key["content_sha256"]
