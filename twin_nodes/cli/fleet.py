@@ -111,11 +111,15 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from twin_nodes.fleet.report import write_report
 
     s = write_report(args.catalog, args.out)
-    print(f"{s['flights']} flights, {len(s['vehicles'])} vehicles, {len(s['failed'])} failed, "
+    print(f"{s['flights']} flights, {len(s['vehicles'])} vehicles, {len(s['not_flights'])} no free flight, "
+          f"{len(s['failed'])} failed, "
           f"{len(s['duplicates'])} duplicate(s), {len(s['corrupt_files'])} corrupt row file(s)")
     for f in s["failed"]:
         why = f["error"][len(f["path"]) + 2:] if f["error"].startswith(f"{f['path']}: ") else f["error"]
         print(f"FAILED {f['path']} [{f['vehicle_id']}, {f['date']}]: {why}")
+    for f in s["not_flights"]:
+        why = f["reason"][len(f["path"]) + 2:] if f["reason"].startswith(f"{f['path']}: ") else f["reason"]
+        print(f"NO FREE FLIGHT {f['path']} [{f['vehicle_id']}, {f['date']}] ({f['kind']}): {why}")
     for d in s["duplicates"]:
         print(f"DUPLICATE {d['path']}: same content as {d['same_as']} (counted once)")
     for c in s["corrupt_files"]:

@@ -35,8 +35,7 @@ REF_FLIGHTS = 5
 #: values followed for steps: name -> (relative floor of the band, absolute floor of the band)
 TRACKED = {
     "kt_per_mass": (0.03, 0.0),
-    "roll_eff": (0.06, 0.0),
-    "pitch_eff": (0.06, 0.0),
+    "rp_eff": (0.06, 0.0),
     "yaw_eff": (0.06, 0.0),
     "drag_per_mass": (0.15, 0.02),
     "com_dx_m": (0.0, 0.004),
@@ -71,6 +70,23 @@ class Series:
     bands: list[tuple[float, float]] = field(default_factory=list)  # (reference, half-width) per flight
 
 
+#: the most precise value: where it steps, the vehicle changed, and every other value's reference restarts
+PRIMARY = "kt_per_mass"
+
+
+def find_all(values: dict[str, tuple[list[float], list[float]]]) -> dict[str, Series]:
+    """:func:`find_steps` for every value ``{name: (x, se)}`` of one vehicle; the references of the others
+    restart where :data:`PRIMARY` stepped (a payload also moves the effectiveness a little)."""
+    out = {}
+    if PRIMARY in values:
+        out[PRIMARY] = find_steps(PRIMARY, *values[PRIMARY])
+    resets = frozenset(st.first for st in out[PRIMARY].steps) if PRIMARY in out else frozenset()
+    for v, (x, se) in values.items():
+        if v != PRIMARY:
+            out[v] = find_steps(v, x, se, resets)
+    return out
+
+
 def scatter(x: np.ndarray) -> float:
     """Flight-to-flight scatter (sigma) of a series with steps in it: 1.4826 x the median absolute
     difference of consecutive values / sqrt(2) (a step is one large difference, it barely moves this)."""
@@ -85,8 +101,10 @@ def half_width(ref: float, se: float, sigma: float, floors: tuple[float, float])
     return max(BAND_SIGMA * math.sqrt(s2), floors[0] * abs(ref), floors[1])
 
 
-def find_steps(value: str, x: list[float], se: list[float] | None = None) -> Series:
-    """Steps and excursions of one value over a vehicle's flights in date order (NaN: no value there)."""
+def find_steps(value: str, x: list[float], se: list[float] | None = None, resets: set[int] | frozenset = frozenset()
+               ) -> Series:
+    """Steps and excursions of one value over a vehicle's flights in date order (NaN: no value there).
+    ``resets``: flights where the vehicle changed (a step of another value): the reference starts again there."""
     xs = np.asarray(x, float)
     ses = np.asarray(se if se is not None else [math.nan] * len(x), float)
     sig = scatter(xs)
@@ -98,6 +116,8 @@ def find_steps(value: str, x: list[float], se: list[float] | None = None) -> Ser
     k = 0
     while k < len(idx):
         i = idx[k]
+        if i in resets:
+            state = []
         if not state:
             state.append(xs[i])
             k += 1
@@ -112,7 +132,9 @@ def find_steps(value: str, x: list[float], se: list[float] | None = None) -> Ser
         sign = np.sign(xs[i] - ref)
         run = [i]
         for j in idx[k + 1:]:
-            if np.sign(xs[j] - ref) == sign and abs(xs[j] - ref) > half_width(ref, ses[j], sig, floors):
+            level = float(np.median(xs[run]))  # the new state must hold together, not only be off the old one
+            if np.sign(xs[j] - ref) == sign and abs(xs[j] - ref) > half_width(ref, ses[j], sig, floors) \
+                    and abs(xs[j] - level) <= half_width(level, ses[j], sig, floors):
                 run.append(j)
                 out.bands[j] = (ref, half_width(ref, ses[j], sig, floors))
             else:
@@ -151,7 +173,14 @@ def explain(ratios: dict[str, tuple[float, float]], deltas: dict[str, tuple[floa
     return " + ".join(n for n, _ in found), "; ".join(w for _, w in found)
 
 
+def _changed(ratio: tuple[float, float] | None, value: str) -> bool:
+    """A ratio beyond 3 se and beyond the value's relative band floor (:data:`TRACKED`)."""
+    return bool(ratio) and abs(ratio[0] - 1.0) > max(3 * ratio[1], TRACKED.get(value, (0.05, 0.0))[0])
+
+
 def _eff(ratios: dict) -> tuple[float, float] | None:
+    if "rp_eff" in ratios and math.isfinite(ratios["rp_eff"][0]):
+        return ratios["rp_eff"]
     effs = [ratios[k] for k in ("roll_eff", "pitch_eff") if k in ratios and math.isfinite(ratios[k][0])]
     if not effs:
         return None
@@ -166,7 +195,7 @@ def _thrust_or_mass(ratios: dict, pwm) -> tuple[str, str] | None:
         got = f", measured thrust per mass x{kt[0]:.3f} ± {kt[1]:.3f}" if kt else ""
         return "thrust range", (f"motor PWM range {pwm[0]:.0f} -> {pwm[1]:.0f} us in the firmware parameters: the same "
                                 f"command gives up to x{r_pwm:.3f} the thrust{got}")
-    if kt and abs(kt[0] - 1.0) > 2 * max(kt[1], 1e-9):
+    if _changed(kt, "kt_per_mass"):
         r = kt[0]
         if eff is None or eff[1] > abs(r - 1.0) / 2.0:
             why = ("no roll/pitch effectiveness on both sides" if eff is None else
@@ -179,7 +208,7 @@ def _thrust_or_mass(ratios: dict, pwm) -> tuple[str, str] | None:
                             f"({100 * (1 / r - 1):+.0f} %), the thrust is the same")
         return "thrust", (f"thrust per mass x{r:.3f} ± {kt[1]:.3f} and roll/pitch effectiveness x{eff[0]:.3f} ± "
                           f"{eff[1]:.3f} together: the thrust changed (x{r:.3f}), not the mass")
-    if eff is not None and abs(eff[0] - 1.0) > 3 * eff[1]:
+    if _changed(eff, "rp_eff"):
         return "inertia", (f"roll/pitch effectiveness T_max/I x{eff[0]:.3f} ± {eff[1]:.3f} with the thrust per mass "
                            f"unchanged: inertia x{1 / eff[0]:.3f} (mass hung away from the centre of mass?)")
     return None
@@ -188,9 +217,9 @@ def _thrust_or_mass(ratios: dict, pwm) -> tuple[str, str] | None:
 def _yaw(ratios: dict) -> tuple[str, str] | None:
     """The yaw effectiveness T_max km/Izz, where a thrust change does not explain it."""
     y, kt, eff = ratios.get("yaw_eff"), ratios.get("kt_per_mass"), _eff(ratios)
-    if not y or abs(y[0] - 1.0) <= 3 * y[1]:
+    if not _changed(y, "yaw_eff"):
         return None
-    if kt and eff and abs(kt[0] - 1) > 2 * kt[1] and abs(eff[0] - kt[0]) < abs(eff[0] - 1) \
+    if _changed(kt, "kt_per_mass") and eff and abs(eff[0] - kt[0]) < abs(eff[0] - 1) \
             and abs(y[0] - kt[0]) < 3 * math.hypot(y[1], kt[1]):
         return None  # the thrust changed and the yaw moment with it
     return "yaw moment", f"yaw effectiveness x{y[0]:.3f} ± {y[1]:.3f}: the rotors' yaw moment (propellers)"

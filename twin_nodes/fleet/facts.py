@@ -40,6 +40,7 @@ FACTS = {
     "hover_thrust_px4": ("-", "PX4's own hover thrust estimate (median, hover_thrust_estimate)"),
     "roll_eff": ("1/s^2", "roll control effectiveness T_max/Ixx (moment from commands vs angular acceleration)"),
     "pitch_eff": ("1/s^2", "pitch control effectiveness T_max/Iyy"),
+    "rp_eff": ("1/s^2", "roll and pitch control effectiveness together (their mean): tells mass from thrust"),
     "yaw_eff": ("1/s^2", "yaw control effectiveness T_max km/Izz (km assumed 0.02 m: a relative value)"),
     "drag_per_mass": ("1/s", "horizontal linear drag per mass (drag / assumed mass)"),
     "com_dx_m": ("m", "roll/pitch trim as a centre-of-mass offset, body x (forward)"),
@@ -200,6 +201,9 @@ def identified(log: FlightLog, nom=None) -> dict[str, float]:
               "com_dy_m", "yaw_lever_m", "battery_exponent", "battery_exponent_se"):
         if k in f:
             out[k] = f[k]
+    if all(math.isfinite(f.get(k, math.nan)) for k in ("roll_eff", "pitch_eff")):  # the two together: less noise
+        out["rp_eff"] = 0.5 * (f["roll_eff"] + f["pitch_eff"])
+        out["rp_eff_se"] = 0.5 * math.hypot(f["roll_eff_se"], f["pitch_eff_se"])
     out["tau_s"] = f["tau_s"] if not f["tau_at_edge"] and f["tau_near_hi_s"] - f["tau_near_lo_s"] <= 0.08 else math.nan
     out.update({k: v for k, v in f.items() if k.startswith("motor_share_m")})
     steady = _steady_throttle(log)

@@ -284,7 +284,7 @@ def _vehicle_sections(rows: list[dict], out: Path, al: list[Alarm]) -> list[dict
         parts.append("<h3>Changes (beyond the scatter band on two flights in a row)</h3>" + (
             "<ul>" + "".join(f"<li>{e(vr.alarm_message(c))}</li>" for c in res["changes"]) + "</ul>"
             if res["changes"] else "<p>none</p>"))
-        exc = {v: [Path(res["free"][i]["path"]).name for i in sr.excursions]
+        exc = {v: [vr._name(res["free"][i]["path"]) for i in sr.excursions]
                for v, sr in res["series"].items() if getattr(sr, "excursions", None)}
         if exc:
             parts.append("<p>Single-flight excursions (not alarms): " + e("; ".join(

@@ -19,7 +19,8 @@ from twin_nodes.fleet import changes as ch
 from twin_nodes.fleet.facts import FACTS, is_event, param_changes
 
 #: values drawn per vehicle (tracked ones carry steps and alarms; the others are context)
-SHOWN = ("kt_per_mass", "hover_throttle", "hover_thrust_px4", "roll_eff", "pitch_eff", "yaw_eff", "drag_per_mass",
+SHOWN = ("kt_per_mass", "hover_throttle", "hover_thrust_px4", "rp_eff", "roll_eff", "pitch_eff", "yaw_eff",
+         "drag_per_mass",
          "com_dx_m", "com_dy_m", "tau_s", "battery_v_start")
 
 
@@ -33,6 +34,12 @@ class Change:
     values: list[dict] = field(default_factory=list)
     events: list[str] = field(default_factory=list)
     flights: list[str] = field(default_factory=list)
+
+
+def _name(path: str) -> str:
+    """A flight as the report names it: its folder and file name (``23_juni/log_15_...ulg``, ``s07/flight.ulg``)."""
+    p = Path(path)
+    return f"{p.parent.name}/{p.name}"
 
 
 def _f(r: dict, k: str) -> float:
@@ -68,7 +75,7 @@ def events(rows: list[dict]) -> list[dict]:
         pwm = r.get("motor_pwm") or ""
         moved = prev_pwm is not None and pwm != prev_pwm
         if d or moved:
-            out.append({"index": i, "flight": Path(r["path"]).name, "date": r["_utc"], "changes": d,
+            out.append({"index": i, "flight": _name(r["path"]), "date": r["_utc"], "changes": d,
                         "pwm": [prev_pwm, pwm] if moved else None})
         prev, prev_pwm = p, pwm
     return out
@@ -88,12 +95,16 @@ def analyse_vehicle(vid: str, rows: list[dict]) -> dict:
     rows, off = ordered(rows)
     ev = events(rows)
     free = [r for r in rows if r.get("flight_kind") == "free flight" and math.isfinite(_f(r, "fact_kt_per_mass"))]
-    series = {}
+    series, tracked = {}, {}
     for v in SHOWN:
         x = [_f(r, f"fact_{v}") for r in free]
         if sum(math.isfinite(a) for a in x) >= 2:
-            series[v] = ch.find_steps(v, x, [_f(r, f"fact_{v}_se") for r in free]) if v in ch.TRACKED else \
-                ch.Series(v, x, [_f(r, f"fact_{v}_se") for r in free], ch.scatter(np.asarray(x)))
+            if v in ch.TRACKED:
+                tracked[v] = (x, [_f(r, f"fact_{v}_se") for r in free])
+            else:
+                series[v] = ch.Series(v, x, [_f(r, f"fact_{v}_se") for r in free], ch.scatter(np.asarray(x)))
+    series.update(ch.find_all(tracked))
+    series = {v: series[v] for v in SHOWN if v in series}
     starts = sorted({s.first for v, s_ in series.items() for s in s_.steps})
     groups: list[int] = []
     for s in starts:
@@ -138,7 +149,7 @@ def _change(vid: str, free: list[dict], rows: list[dict], series: dict, ev: list
     name, why = ch.explain(ratios, deltas, pwm)
     for s in steps:
         vals.append({"value": s.value, "from": s.ref, "to": s.new, "size": s.size, "size_se": s.size_se,
-                     "band": s.band, "flights": [Path(free[i]["path"]).name for i in range(s.first, s.last + 1)]})
+                     "band": s.band, "flights": [_name(free[i]["path"]) for i in range(s.first, s.last + 1)]})
     evs = []
     for e in at:
         pwm_txt = [f"motor PWM {e['pwm'][0]} -> {e['pwm'][1]}"] if e["pwm"] else []
@@ -148,8 +159,8 @@ def _change(vid: str, free: list[dict], rows: list[dict], series: dict, ev: list
         if pwm_txt or more:
             evs.append(f"{e['flight']}: " + "; ".join(pwm_txt + more))
     r0 = free[first]
-    return Change(vid, Path(r0["path"]).name, r0["_utc"], name, why, vals, evs,
-                  [Path(free[i]["path"]).name for i in new_idx])
+    return Change(vid, _name(r0["path"]), r0["_utc"], name, why, vals, evs,
+                  [_name(free[i]["path"]) for i in new_idx])
 
 
 def alarm_message(c: Change) -> str:

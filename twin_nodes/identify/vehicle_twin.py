@@ -33,7 +33,7 @@ from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 #: header line prefix of the pooled values (JSON after it)
 MARK = "vehicle-twin-facts: "
 #: pooled values: name -> absolute floor of the disagreement threshold (relative floor 5 % for all)
-POOLED = {"kt_per_mass": 0.0, "hover_throttle": 0.0, "roll_eff": 0.0, "pitch_eff": 0.0, "yaw_eff": 0.0,
+POOLED = {"kt_per_mass": 0.0, "hover_throttle": 0.0, "rp_eff": 0.0, "roll_eff": 0.0, "pitch_eff": 0.0, "yaw_eff": 0.0,
           "drag_per_mass": 0.02, "com_dx_m": 0.004, "com_dy_m": 0.004, "yaw_lever_m": 0.002, "tau_s": 0.02,
           "battery_exponent": 0.2, "hover_thrust_px4": 0.0}
 REL_FLOOR = 0.05
@@ -244,7 +244,7 @@ def since_twin(log, path: str, ref: dict) -> dict:
     for k, s in (ref.get("motor_share") or {}).items():
         if k in new and math.isfinite(new[k]) and math.isfinite(s):
             deltas[k] = (new[k] - s, 0.01)
-    name, why = explain({k: r for k, r in ratios.items() if k in differs or k in ("roll_eff", "pitch_eff")}
+    name, why = explain({k: r for k, r in ratios.items() if k in differs or k in ("rp_eff", "roll_eff", "pitch_eff")}
                         if differs or pwm else {}, deltas, pwm)
     if not differs and pwm is None and name in ("unexplained",):
         name, why = "none", "every value within the vehicle twin's flight-to-flight scatter"
