@@ -117,3 +117,56 @@ def test_the_pwm_range_change_of_21_june_is_read_from_the_log():
     after = motor_pwm(read_params(SHARED / "DritterFlugtag/log_70_2023-6-21-09-59-04.ulg"), 4)
     assert (before["min_us"], before["max_us"]) == (1000.0, 2000.0)
     assert (after["min_us"], after["max_us"]) == (1000.0, 2200.0)
+
+
+def test_for_flight_rescales_the_thrust_curve_by_the_pwm_span():
+    from types import SimpleNamespace
+
+    from twin_nodes.identify.vehicle_twin import for_flight
+    from twin_nodes.vehicle.params import shipped
+
+    vp = shipped("px4_sih_quadx").replace_rotors(thr_mdl_fac=0.5)
+    ref = {"pwm": {"text": "AUX5-8 1000-2000 us", "min_us": 1000.0, "max_us": 2000.0}}
+    p = {f"PWM_AUX_FUNC{c}": 96 + c for c in range(5, 9)}
+    p.update({f"PWM_AUX_MIN{c}": 1000.0 for c in range(5, 9)})
+    p.update({f"PWM_AUX_MAX{c}": 2200.0 for c in range(5, 9)})
+    log = SimpleNamespace(params=p, n_motors=4)
+    out, note = for_flight(vp, ref, log)
+    r = 1.2
+    assert out.rotors.thrust_max_n == pytest.approx(vp.rotors.thrust_max_n * (0.5 * r * r + 0.5 * r))
+    assert out.rotors.thr_mdl_fac == pytest.approx(0.5 * r * r / (0.5 * r * r + 0.5 * r))
+    # the same command gives the thrust the old curve gives at r x the command
+    u = 0.4
+    t_new = out.rotors.thrust_max_n * (out.rotors.thr_mdl_fac * u * u + (1 - out.rotors.thr_mdl_fac) * u)
+    t_old = vp.rotors.thrust_max_n * (0.5 * (r * u) ** 2 + 0.5 * r * u)
+    assert t_new == pytest.approx(t_old)
+    assert "span ratio 1.200" in note
+    same = dict(p, **{f"PWM_AUX_MAX{c}": 2000.0 for c in range(5, 9)})
+    assert for_flight(vp, ref, SimpleNamespace(params=same, n_motors=4)) == (vp, "")
+
+
+@need_shared
+def test_vehicle_twin_from_real_flights_and_what_changed_on_an_earlier_flight(tmp_path):
+    """A twin pooled over three 26 Jun flights (PWM 1000-2200 us) carries its values with uncertainties; a
+    7 Jun flight (1000-2000 us) is named a thrust-range change, read from the log's parameters."""
+    from twin_nodes.identify.vehicle_twin import build, read_vehicle_facts, since_twin
+    from twin_nodes.logs.ulog_io import read_ulog
+    from twin_nodes.vehicle.params import load_params, write_params
+
+    real = SHARED.parent / "real"
+    paths = [SHARED / "LetzteTestsGerolfing/log_29_2023-6-26-13-34-56.ulg", real / "real_quadx_v6c_mission_noload.ulg",
+             SHARED / "23_juni/log_11_2023-6-23-10-13-50.ulg"]
+    vt = build([str(p) for p in paths])
+    assert len(vt.used) == 2 and any("ground/bench test" in lo for lo in vt.left_out)
+    assert vt.pwm["max_us"] == 2200.0
+    kt = vt.pooled["kt_per_mass"]
+    assert kt.n == 2 and kt.se > 0 and math.isfinite(kt.scatter)
+    out = tmp_path / "vehicle.yaml"
+    write_params(vt.params, out, vt.header)
+    load_params(out)
+    ref = read_vehicle_facts(out)
+    assert ref["pooled"]["kt_per_mass"]["mean"] == pytest.approx(kt.mean)
+    assert vt.params.rotors.thrust_max_n == pytest.approx(vt.params.mass_kg * kt.mean)
+    old = SHARED / "ZweiterFlugtag/log_30_2023-6-7-12-11-06.ulg"
+    got = since_twin(read_ulog(old), str(old), ref)
+    assert got["name"].startswith("thrust range") and "1200 -> 1000 us" in got["why"], got

@@ -193,8 +193,16 @@ def _thrust_or_mass(ratios: dict, pwm) -> tuple[str, str] | None:
     if pwm is not None and pwm[0] > 0:
         r_pwm = pwm[1] / pwm[0]
         got = f", measured thrust per mass x{kt[0]:.3f} ± {kt[1]:.3f}" if kt else ""
-        return "thrust range", (f"motor PWM range {pwm[0]:.0f} -> {pwm[1]:.0f} us in the firmware parameters: the same "
-                                f"command gives up to x{r_pwm:.3f} the thrust{got}")
+        name, why = "thrust range", (f"motor PWM range {pwm[0]:.0f} -> {pwm[1]:.0f} us in the firmware parameters: the "
+                                     f"same command gives up to x{r_pwm:.3f} the thrust{got}")
+        if kt:  # what the range does not explain: the same reading on the ratios divided by it
+            rest = {"kt_per_mass": (kt[0] / r_pwm, kt[1] / r_pwm)}
+            if eff is not None:
+                rest["rp_eff"] = (eff[0] / r_pwm, eff[1] / r_pwm)
+            more = _thrust_or_mass(rest, None)
+            if more is not None:
+                name, why = f"{name} + {more[0]}", f"{why}; beyond the range: {more[1]}"
+        return name, why
     if _changed(kt, "kt_per_mass"):
         r = kt[0]
         if eff is None or eff[1] > abs(r - 1.0) / 2.0:
