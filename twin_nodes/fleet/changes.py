@@ -160,12 +160,23 @@ def ratio_se(a: float, a_se: float, b: float, b_se: float) -> float:
 
 
 def explain(ratios: dict[str, tuple[float, float]], deltas: dict[str, tuple[float, float]] | None = None,
-            pwm: tuple[float, float] | None = None) -> tuple[str, str]:
+            pwm: tuple[float, float] | None = None, stepped: set[str] | None = None) -> tuple[str, str]:
     """``(name, why)`` of one change from the values' new/old ``ratios`` ``{value: (ratio, se)}`` (only those
     measured on both sides), the trims' ``deltas`` ``{value: (delta, se)}`` and a PWM range ``(old span, new span)``
     [us] when the firmware's motor range changed there.  Names (several joined by " + " when they changed
     together): ``thrust range``, ``mass``, ``thrust``, ``thrust per mass``, ``inertia``, ``yaw moment``,
-    ``centre-of-mass shift``, ``weaker motor <i>``; ``unexplained`` when none fits."""
+    ``centre-of-mass shift``, ``weaker motor <i>``; ``unexplained`` when none fits.  ``stepped``: the values that
+    stepped (beyond their band on two flights in a row); when given, a change is named only from those (the others
+    still tell mass from thrust)."""
+    if stepped is not None:
+        keep = set(stepped) | ({"kt_per_mass"} if pwm else set())
+        if "kt_per_mass" not in keep:
+            ratios = {k: v for k, v in ratios.items() if k != "kt_per_mass"}
+        if not keep & {"rp_eff", "roll_eff", "pitch_eff", "kt_per_mass"}:
+            ratios = {k: v for k, v in ratios.items() if k not in ("rp_eff", "roll_eff", "pitch_eff")}
+        if "yaw_eff" not in keep:
+            ratios = {k: v for k, v in ratios.items() if k != "yaw_eff"}
+        deltas = {k: v for k, v in (deltas or {}).items() if k in keep or k.startswith("motor_share")}
     found = [_thrust_or_mass(ratios, pwm), _yaw(ratios), _motor_or_com(deltas or {})]
     found = [f for f in found if f is not None]
     if not found:

@@ -35,7 +35,8 @@ from twin_nodes.logs.ulog_io import FlightLog
 
 #: value name -> (unit, meaning)
 FACTS = {
-    "kt_per_mass": ("m/s^2", "thrust per mass at full command, per rotor (T_max/m, specific force z)"),
+    "kt_per_mass": ("m/s^2", "thrust per mass at full command, per rotor (T_max/m, specific force z); kept where the "
+                             "thrust/weight it implies is 1.05-10 (TW_RANGE)"),
     "hover_throttle": ("-", "median motor command in steady flight (v < 2 m/s)"),
     "hover_thrust_px4": ("-", "PX4's own hover thrust estimate (median, hover_thrust_estimate)"),
     "roll_eff": ("1/s^2", "roll control effectiveness T_max/Ixx (moment from commands vs angular acceleration)"),
@@ -51,6 +52,14 @@ FACTS = {
     "battery_v_min": ("V", "lowest pack voltage while airborne"),
     "battery_exponent": ("-", "thrust ~ (V/V_ref)^e: the sag exponent, where identified"),
 }
+#: a thrust fit is kept when the thrust/weight at full command it implies is in this range (the vehicle flew, and
+#: no multirotor carries ten times its weight) and the steady throttle is at least HOVER_MIN
+TW_RANGE = (1.05, 10.0)
+HOVER_MIN = 0.05
+#: a control effectiveness is kept when its standard error is below this fraction of it (the yaw one also needs
+#: its fit to explain YAW_R2_MIN of the moment)
+EFF_REL_SE_MAX = 0.25
+YAW_R2_MIN = 0.2
 #: commands that drive actuators on the ground: DO_MOTOR_TEST, DO_SET_ACTUATOR, MAV_CMD_ACTUATOR_TEST
 ACTUATOR_TEST_COMMANDS = {209, 187, 310}
 #: firmware parameters that change how a command becomes thrust or how the vehicle is flown: a change
@@ -195,18 +204,28 @@ def identified(log: FlightLog, nom=None) -> dict[str, float]:
     else:
         f = nom.fits
     m = f["mass_assumed_kg"]
-    out = {"kt_per_mass": f["kT/m"], "kt_per_mass_se": f["kT/m_se"],
-           "drag_per_mass": f["drag_n_s_m"] / m, "drag_per_mass_se": f["drag_n_s_m_se"] / m}
-    for k in ("roll_eff", "pitch_eff", "yaw_eff", "roll_eff_se", "pitch_eff_se", "yaw_eff_se", "com_dx_m",
-              "com_dy_m", "yaw_lever_m", "battery_exponent", "battery_exponent_se"):
+    n = sum(1 for k in f if k.startswith("motor_share_m"))
+    tw = n * f["kT/m"] / 9.80665
+    steady = _steady_throttle(log)
+    if not TW_RANGE[0] <= tw <= TW_RANGE[1] or (steady is not None and steady[0] < HOVER_MIN):
+        raise TwinError(f"{log.path}: specific_force_flu: implausible thrust fit (thrust/weight at full command "
+                        f"{tw:.2f}, expected {TW_RANGE[0]}-{TW_RANGE[1]}; steady throttle "
+                        f"{steady[0] if steady else float('nan'):.3f}): no values kept from this flight")
+    out = {"kt_per_mass": f["kT/m"], "kt_per_mass_se": f["kT/m_se"]}
+    if f["drag_n_s_m"] > 2 * f["drag_n_s_m_se"]:
+        out["drag_per_mass"], out["drag_per_mass_se"] = f["drag_n_s_m"] / m, f["drag_n_s_m_se"] / m
+    for k in ("com_dx_m", "com_dy_m", "yaw_lever_m", "battery_exponent", "battery_exponent_se"):
         if k in f:
             out[k] = f[k]
-    if all(math.isfinite(f.get(k, math.nan)) for k in ("roll_eff", "pitch_eff")):  # the two together: less noise
-        out["rp_eff"] = 0.5 * (f["roll_eff"] + f["pitch_eff"])
-        out["rp_eff_se"] = 0.5 * math.hypot(f["roll_eff_se"], f["pitch_eff_se"])
+    for k, r2 in (("roll_eff", "roll_r2"), ("pitch_eff", "pitch_r2"), ("yaw_eff", "yaw_r2")):
+        ok = math.isfinite(f.get(k, math.nan)) and f[k] > 0 and f[f"{k}_se"] <= EFF_REL_SE_MAX * f[k]
+        if ok and (k != "yaw_eff" or f.get(r2, 0.0) >= YAW_R2_MIN):
+            out[k], out[f"{k}_se"] = f[k], f[f"{k}_se"]
+    if "roll_eff" in out and "pitch_eff" in out:  # the two together: less noise
+        out["rp_eff"] = 0.5 * (out["roll_eff"] + out["pitch_eff"])
+        out["rp_eff_se"] = 0.5 * math.hypot(out["roll_eff_se"], out["pitch_eff_se"])
     out["tau_s"] = f["tau_s"] if not f["tau_at_edge"] and f["tau_near_hi_s"] - f["tau_near_lo_s"] <= 0.08 else math.nan
     out.update({k: v for k, v in f.items() if k.startswith("motor_share_m")})
-    steady = _steady_throttle(log)
     if steady is not None:
         out["hover_throttle"], out["hover_throttle_se"] = steady
     ht = log.get("hover_thrust")

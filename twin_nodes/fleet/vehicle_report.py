@@ -110,16 +110,18 @@ def analyse_vehicle(vid: str, rows: list[dict]) -> dict:
     for s in starts:
         if not groups or s - groups[-1] > 1:
             groups.append(s)
-    out_changes = [_change(vid, free, rows, series, ev, g) for g in groups]
+    out_changes = [_change(vid, free, rows, series, ev, g, groups[k - 1] if k else 0) for k, g in enumerate(groups)]
     return {"vehicle_id": vid, "local_offset_h": off, "rows": rows, "free": free, "series": series,
             "events": ev, "changes": out_changes}
 
 
-def _change(vid: str, free: list[dict], rows: list[dict], series: dict, ev: list[dict], g: int) -> Change:
+def _change(vid: str, free: list[dict], rows: list[dict], series: dict, ev: list[dict], g: int, prev: int) -> Change:
+    """The change whose steps start at flight ``g`` (± 1); ``prev``: the first flight of the previous change
+    (the reference is the state since then, at most :data:`~twin_nodes.fleet.changes.REF_FLIGHTS` flights)."""
     steps = [s for v, sr in series.items() for s in sr.steps if abs(s.first - g) <= 1]
     first = min(s.first for s in steps)
     last = max(s.last for s in steps)
-    ref_idx = list(range(max(0, first - ch.REF_FLIGHTS), first))
+    ref_idx = list(range(max(0, prev if prev < first else 0, first - ch.REF_FLIGHTS), first))
     new_idx = list(range(first, last + 1))
     ratios, deltas, vals = {}, {}, []
     for v in list(ch.TRACKED) + [f"motor_share_m{i}" for i in range(1, 9)]:
@@ -146,7 +148,7 @@ def _change(vid: str, free: list[dict], rows: list[dict], series: dict, ev: list
             a, b = (_span(t or "") for t in e["pwm"])
             if a and b and a != b:
                 pwm = (a, b)
-    name, why = ch.explain(ratios, deltas, pwm)
+    name, why = ch.explain(ratios, deltas, pwm, stepped={st.value for st in steps})
     for s in steps:
         vals.append({"value": s.value, "from": s.ref, "to": s.new, "size": s.size, "size_se": s.size_se,
                      "band": s.band, "flights": [_name(free[i]["path"]) for i in range(s.first, s.last + 1)]})

@@ -244,8 +244,7 @@ def since_twin(log, path: str, ref: dict) -> dict:
     for k, s in (ref.get("motor_share") or {}).items():
         if k in new and math.isfinite(new[k]) and math.isfinite(s):
             deltas[k] = (new[k] - s, 0.01)
-    name, why = explain({k: r for k, r in ratios.items() if k in differs or k in ("rp_eff", "roll_eff", "pitch_eff")}
-                        if differs or pwm else {}, deltas, pwm)
+    name, why = explain(ratios, deltas, pwm, stepped=set(differs))
     if not differs and pwm is None and name in ("unexplained",):
         name, why = "none", "every value within the vehicle twin's flight-to-flight scatter"
     return {"name": name, "why": why, "differs": differs, "pwm": [pwm_ref.get("text"), pwm_new["text"]],
