@@ -188,6 +188,12 @@ def analyse(path: str, mode: str, params: str | None, params_map: dict | None,
         return row
     from twin_nodes.discovery.discover import discover
 
+    from twin_nodes.identify.vehicle_twin import read_vehicle_facts, since_twin
+
+    ref = read_vehicle_facts(pfile)
+    if ref is not None:  # a vehicle twin: what differs on this flight, named (discover's "since the vehicle twin")
+        sv = since_twin(log, path, ref)
+        row.update(since_twin=sv["name"], since_twin_why=sv["why"], since_twin_values=",".join(sorted(sv["differs"])))
     try:
         res = discover(log, vp, closed_loop_metrics=closed_loop_metrics)
     except TwinError as exc:  # discovery refuses this flight (e.g. too little usable airborne data)

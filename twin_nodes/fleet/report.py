@@ -266,7 +266,8 @@ def _vehicle_sections(rows: list[dict], out: Path, al: list[Alarm]) -> list[dict
                  "identified values" + (f"; file-name dates (downloader's local time) corrected by {off:+g} h "
                                         "from the logs with both" if off else "") + "</p>"]
         parts.append("<table border=1 cellpadding=2><tr><th>UTC</th><th>log</th><th>kind</th><th>motor PWM</th>"
-                     "<th>thrust/mass</th><th>hover throttle</th><th>roll/pitch eff.</th><th>battery V</th></tr>")
+                     "<th>thrust/mass</th><th>hover throttle</th><th>roll/pitch eff.</th><th>battery V</th>"
+                     "<th>since the vehicle twin</th></tr>")
         for r in res["rows"]:
             def g(c, fmt="{:.3g}"):
                 v = r.get(c)
@@ -275,7 +276,8 @@ def _vehicle_sections(rows: list[dict], out: Path, al: list[Alarm]) -> list[dict
                          f"<td>{e(r.get('flight_kind') or r.get('status') or '')}</td><td>{e(r.get('motor_pwm') or '')}</td>"
                          f"<td>{g('fact_kt_per_mass')} ± {g('fact_kt_per_mass_se', '{:.2g}')}</td>"
                          f"<td>{g('fact_hover_throttle')}</td><td>{g('fact_roll_eff')} / {g('fact_pitch_eff')}</td>"
-                         f"<td>{g('fact_battery_v_start')}</td></tr>")
+                         f"<td>{g('fact_battery_v_start')}</td>"
+                         f"<td title='{e(str(r.get('since_twin_why') or ''))}'>{e(str(r.get('since_twin') or ''))}</td></tr>")
         parts.append("</table><h3>Firmware parameter changes (events)</h3><ul>" + "".join(
             f"<li>{e(ev['date'][:16])} {e(ev['flight'])}: "
             + e(", ".join([f"motor PWM {ev['pwm'][0]} -> {ev['pwm'][1]}"] if ev["pwm"] else [])

@@ -109,7 +109,7 @@ def build(paths: list[str | os.PathLike[str]], *, mass_kg: float | None = None, 
         except TwinError as exc:
             left_out.append(f"{p}: not identified: {exc}")
             continue
-        flights.append({"path": str(p), "name": Path(p).name, "nom": nom, "facts": identified(log, nom),
+        flights.append({"path": str(p), "name": f"{Path(p).parent.name}/{Path(p).name}", "nom": nom, "facts": identified(log, nom),
                         "pwm": motor_pwm(log.params, int(log.n_motors))})
     if len(ids) > 1:
         raise TwinError("params from-ulog: the logs come from more than one vehicle (sys_uuid, ver_hw, "
