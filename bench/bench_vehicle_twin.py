@@ -5,8 +5,8 @@ flights whole, closed loop, beside each flight's own nominal.
 
 The free flights (:func:`twin_nodes.fleet.facts.flight_kind`) are split by ``--seed`` into a build half and a
 predict half *before* anything is fitted; the twin is pooled over the build half
-(:func:`twin_nodes.identify.vehicle_twin.build`), then every predict flight is flown by it (rescaled to the
-flight's motor PWM range, :func:`~twin_nodes.identify.vehicle_twin.for_flight`) and by its own nominal
+(:func:`twin_nodes.fleet.vehicle_twin.build`), then every predict flight is flown by it (rescaled to the
+flight's motor PWM range, :func:`~twin_nodes.fleet.vehicle_twin.for_flight`) and by its own nominal
 (:func:`twin_nodes.identify.nominal.params_for_log`).  Prints one markdown row per predict flight, as it came
 out, and writes ``DIR/vehicle_twin.yaml`` and ``DIR/prediction.json``.
 """
@@ -43,7 +43,7 @@ def main(argv=None) -> int:
     from twin_nodes.fleet.facts import actuator_tests, flight_kind
     from twin_nodes.fleet.run import find_flights
     from twin_nodes.identify.nominal import params_for_log
-    from twin_nodes.identify.vehicle_twin import build, for_flight, read_vehicle_facts
+    from twin_nodes.fleet.vehicle_twin import build, for_flight, read_vehicle_facts
     from twin_nodes.logs.ulog_io import read_ulog
     from twin_nodes.twin.compare import compare_log
     from twin_nodes.vehicle.params import load_params, write_params

@@ -12,7 +12,7 @@ import pytest
 
 from twin_nodes.fleet import changes as ch
 from twin_nodes.fleet.facts import flight_kind, motor_pwm, param_changes
-from twin_nodes.identify.vehicle_twin import pool
+from twin_nodes.fleet.vehicle_twin import pool
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "flightlogs" / "fleet_quadx_v6c"
 need_shared = pytest.mark.skipif(not SHARED.is_dir() and os.environ.get("CI") != "true",
@@ -122,7 +122,7 @@ def test_the_pwm_range_change_of_21_june_is_read_from_the_log():
 def test_for_flight_rescales_the_thrust_curve_by_the_pwm_span():
     from types import SimpleNamespace
 
-    from twin_nodes.identify.vehicle_twin import for_flight
+    from twin_nodes.fleet.vehicle_twin import for_flight
     from twin_nodes.vehicle.params import shipped
 
     vp = shipped("px4_sih_quadx").replace_rotors(thr_mdl_fac=0.5)
@@ -149,7 +149,7 @@ def test_for_flight_rescales_the_thrust_curve_by_the_pwm_span():
 def test_vehicle_twin_from_real_flights_and_what_changed_on_an_earlier_flight(tmp_path):
     """A twin pooled over three 26 Jun flights (PWM 1000-2200 us) carries its values with uncertainties; a
     7 Jun flight (1000-2000 us) is named a thrust-range change, read from the log's parameters."""
-    from twin_nodes.identify.vehicle_twin import build, read_vehicle_facts, since_twin
+    from twin_nodes.fleet.vehicle_twin import build, read_vehicle_facts, since_twin
     from twin_nodes.logs.ulog_io import read_ulog
     from twin_nodes.vehicle.params import load_params, write_params
 

@@ -89,7 +89,7 @@ def _discover(args) -> int:
         res["confirmation"] = confirm(res, read_ulog(args.confirm), vp)
     print(summary_text(res))
     print(finding_line(res))
-    from twin_nodes.identify.vehicle_twin import read_vehicle_facts, since_twin
+    from twin_nodes.fleet.vehicle_twin import read_vehicle_facts, since_twin
 
     ref = read_vehicle_facts(params_file)
     if ref is not None:  # a vehicle twin: name what differs on this flight

@@ -66,7 +66,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             raise TwinError("--mcap needs the ROS graph; drop --offline")
         if args.foxglove is not None:
             raise TwinError("--foxglove needs the ROS graph; drop --offline")
-        from twin_nodes.identify.vehicle_twin import for_flight, read_vehicle_facts
+        from twin_nodes.fleet.vehicle_twin import for_flight, read_vehicle_facts
 
         ref = read_vehicle_facts(params_file)
         vp, note = for_flight(load_params(params_file), ref, log)

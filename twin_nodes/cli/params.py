@@ -147,7 +147,7 @@ def _cmd_from_ulog(args: argparse.Namespace) -> int:
     from twin_nodes.logs.ulog_io import read_ulog
 
     if len(args.ulog) > 1:
-        from twin_nodes.identify.vehicle_twin import build
+        from twin_nodes.fleet.vehicle_twin import build
 
         vt = build(args.ulog, mass_kg=args.mass_kg, arm_m=args.arm_m, name=args.name)
         print(vt.header)

@@ -188,7 +188,7 @@ def analyse(path: str, mode: str, params: str | None, params_map: dict | None,
         return row
     from twin_nodes.discovery.discover import discover
 
-    from twin_nodes.identify.vehicle_twin import read_vehicle_facts, since_twin
+    from twin_nodes.fleet.vehicle_twin import read_vehicle_facts, since_twin
 
     ref = read_vehicle_facts(pfile)
     if ref is not None:  # a vehicle twin: what differs on this flight, named (discover's "since the vehicle twin")
