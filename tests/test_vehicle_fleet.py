@@ -170,3 +170,36 @@ def test_vehicle_twin_from_real_flights_and_what_changed_on_an_earlier_flight(tm
     old = SHARED / "ZweiterFlugtag/log_30_2023-6-7-12-11-06.ulg"
     got = since_twin(read_ulog(old), str(old), ref)
     assert got["name"].startswith("thrust range") and "1200 -> 1000 us" in got["why"], got
+
+
+def test_vehicle_report_names_a_payload_and_a_pwm_range_change_at_their_flights():
+    """A synthetic vehicle: 14 flights, a payload (+20 % mass) on flights 4-7, the motor PWM range raised from
+    2000 to 2200 us at flight 10 (the same command then gives x1.2 the thrust); one flight dated by its file name
+    in local time (+2 h) sorts where its UTC time puts it."""
+    import json as _json
+
+    from twin_nodes.fleet import vehicle_report as vr
+
+    rng = np.random.default_rng(7)
+    rows = []
+    for k in range(14):
+        kt = 5.0 * (1 / 1.2 if 4 <= k <= 7 else 1.0) * (1.2 if k >= 10 else 1.0) * (1 + rng.normal(0, 0.005))
+        eff = 200.0 * (1.2 if k >= 10 else 1.0) * (1 + rng.normal(0, 0.02))
+        hi = 2200.0 if k >= 10 else 2000.0
+        p = {f"PWM_MAIN_FUNC{c}": 100 + c for c in range(1, 5)}
+        p.update({f"PWM_MAIN_MIN{c}": 1000.0 for c in range(1, 5)})
+        p.update({f"PWM_MAIN_MAX{c}": hi for c in range(1, 5)})
+        t = f"2023-06-{10 + k:02d}T10:00:00"
+        rows.append({"path": f"/d/f{k:02d}.ulg", "status": "ok", "flight_kind": "free flight",
+                     "flight_time_utc": t + "+00:00", "date_source": "gps", "file_name_time": "",
+                     "params_json": _json.dumps(p), "motor_pwm": motor_pwm(p, 4)["text"],
+                     "fact_kt_per_mass": kt, "fact_kt_per_mass_se": 0.01, "fact_rp_eff": eff, "fact_rp_eff_se": 3.0})
+    rows[3].update(date_source="file_name", flight_time_utc="2023-06-13T12:00:00", file_name_time="2023-06-13T12:00:00")
+    rows[2].update(file_name_time="2023-06-12T12:00:00")  # both dates: the local offset is +2 h
+    res = vr.analyse_vehicle("v", rows)
+    assert res["local_offset_h"] == 2.0
+    assert [r["_utc"][:13] for r in res["rows"]][3] == "2023-06-13T10"
+    got = [(c.flight, c.name) for c in res["changes"]]
+    assert got == [("d/f04.ulg", "mass"), ("d/f08.ulg", "mass"), ("d/f10.ulg", "thrust range")], got
+    assert "x1.200" in res["changes"][2].why
+    assert [e["flight"] for e in res["events"]] == ["d/f10.ulg"]
