@@ -273,3 +273,42 @@ def for_flight(vp: VehicleParams, ref: dict | None, log) -> tuple[VehicleParams,
     out = vp.replace_rotors(thrust_max_n=float(vp.rotors.thrust_max_n) * scale, thr_mdl_fac=float(f_new))
     return out, (f"motor PWM range {old.get('text')} in the twin, {new['text']} in this log: thrust curve rescaled "
                  f"by the span ratio {r:.3f} (T_max x{scale:.3f})")
+
+
+#: whole-flight metrics shown for a vehicle twin beside a flight's own nominal
+WHOLE = ("throttle_rmse", "motor_p75_mean", "xy_rmse_m", "z_rmse_m")
+
+
+def beside_own_nominal(path: str, params_file: str) -> dict:
+    """The whole flight flown closed loop by the vehicle twin (rescaled to the log's PWM range) and by the flight's
+    own nominal: ``{"twin": {metric: value}, "own_nominal": {...}, "note"}`` (:data:`WHOLE`)."""
+    from twin_nodes.identify.nominal import params_for_log
+    from twin_nodes.logs.flyable import read_flight
+    from twin_nodes.twin.compare import compare_log
+    from twin_nodes.vehicle.params import load_params
+
+    log = read_flight(path)
+    vp, note = for_flight(load_params(params_file), read_vehicle_facts(params_file), log)
+    own, _ = params_for_log(path, None, log=log)
+    mt = compare_log(log, vp, mode="closed").metrics
+    mo = compare_log(log, load_params(own), mode="closed").metrics
+    return {"twin": {k: mt.get(k) for k in WHOLE}, "own_nominal": {k: mo.get(k) for k in WHOLE}, "note": note}
+
+
+def beside_table(rows: list[dict]) -> str:
+    """Markdown: per flight, the vehicle twin's whole-flight metrics beside its own nominal's."""
+    out = ["| flight | vehicle twin: throttle RMSE % | per-motor P75 % (mean) | XY RMSE m | Z RMSE m | own nominal: "
+           "throttle | P75 | XY | Z |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        w = r.get("whole_flight")
+        if not w:
+            continue
+        if "error" in w:
+            out.append(f"| {r['flight']} | failed: {w['error']} | | | | | | | |")
+            continue
+        t, o = w["twin"], w["own_nominal"]
+        f = lambda d, k, s: f"{d[k] * s:.1f}" if isinstance(d.get(k), float) and d[k] == d[k] else "n/a"  # noqa: E731
+        out.append(f"| {r['flight']} | {f(t, 'throttle_rmse', 100)} | {f(t, 'motor_p75_mean', 100)} | "
+                   f"{f(t, 'xy_rmse_m', 1)} | {f(t, 'z_rmse_m', 1)} | {f(o, 'throttle_rmse', 100)} | "
+                   f"{f(o, 'motor_p75_mean', 100)} | {f(o, 'xy_rmse_m', 1)} | {f(o, 'z_rmse_m', 1)} |")
+    return "\n".join(out)
