@@ -1,7 +1,9 @@
 """The flight catalog: one Parquet file per flight in a folder, read back with DuckDB.
 
 A row holds the flight's file key (path, size, mtime), its vehicle identity and date from the
-ULog header, its duration, the status (``ok`` / ``failed`` with the one-line error), the Table-2
+ULog header, its duration, the status (``ok``; ``not_flight`` for a ground/bench test, a flight too short or
+without GPS, with its kind and reason; ``failed`` with the one-line error), the flight's kind, motor PWM range,
+firmware parameters and identified values (``fact_*``, :mod:`twin_nodes.fleet.facts`), the Table-2
 closed-loop metrics when discovery computed them, and every effect with its verdict and
 parameters (flat ``effect_<name>_<param>`` columns for the accepted ones plus ``effects_json``
 with all of them).  Each file is written to a temporary name and renamed, so a killed worker
