@@ -68,8 +68,9 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             raise TwinError("--foxglove needs the ROS graph; drop --offline")
         from twin_nodes.fleet.vehicle_twin import for_flight, read_vehicle_facts
 
+        vp = load_params(params_file)  # a bad params file: its one-line error first
         ref = read_vehicle_facts(params_file)
-        vp, note = for_flight(load_params(params_file), ref, log)
+        vp, note = for_flight(vp, ref, log)
         if note:
             print(f"rotortwin: {note}", file=sys.stderr)
         res = compare_log(log, vp, mode=args.mode, horizon_s=args.horizon, progress=True)

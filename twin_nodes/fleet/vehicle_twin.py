@@ -192,6 +192,8 @@ def read_vehicle_facts(path: str | os.PathLike[str]) -> dict | None:
     """The pooled values a vehicle twin's params file carries (:data:`MARK`), None for other params files."""
     try:
         text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError:  # not text: no vehicle twin (load_params names what is wrong with it)
+        return None
     except OSError as exc:
         raise ParamsError(str(path), "<file>", f"a readable params file ({exc.strerror or exc})") from None
     for line in text.splitlines():
