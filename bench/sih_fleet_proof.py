@@ -5,8 +5,10 @@ what the manifest declared before it was flown (issue 25, part 6).
 
 A *declared change* is a flight whose SIH parameters differ from the previous flight's (a change made or undone);
 it is *found* when a ``change`` alarm starts within one flight of it and names every parameter group that changed
-there (SIH_MASS -> mass, SIH_T_MAX -> thrust, SIH_IXX/IYY -> inertia, SIH_Q_MAX -> yaw moment).  Any other alarm
-is a *false alarm*.  Prints one line per declared change and per alarm, then the totals.
+there (SIH_MASS -> mass, SIH_T_MAX -> thrust, SIH_IXX/IYY -> inertia, SIH_Q_MAX -> yaw moment).  A discovered-effect
+alarm (payload, threshold, new_effect) is *true* when every flight it names carries the matching SIH change (mass ->
+SIH_MASS, thrust_coefficient -> SIH_T_MAX, inertia -> SIH_IXX/IYY/IZZ, yaw_moment -> SIH_Q_MAX).  Any other alarm is a
+*false alarm*.  Prints one line per declared change and per alarm, then the totals.
 """
 
 from __future__ import annotations
@@ -21,6 +23,16 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 NAMES = {"SIH_MASS": "mass", "SIH_T_MAX": "thrust", "SIH_IXX": "inertia", "SIH_IYY": "inertia", "SIH_IZZ": "inertia",
          "SIH_Q_MAX": "yaw moment"}
+
+
+EFFECT_SIH = {"mass": {"SIH_MASS"}, "thrust_coefficient": {"SIH_T_MAX"}, "inertia": {"SIH_IXX", "SIH_IYY", "SIH_IZZ"},
+              "yaw_moment": {"SIH_Q_MAX"}}
+
+
+def sih_of(prefix: str = "s") -> dict[str, dict]:
+    man = yaml.safe_load((ROOT / "missions/sih_effects/manifest.yaml").read_text())
+    return {k: {n: v[-1] for n, v in (f.get("sih") or {}).items()} for k, f in man["flights"].items()
+            if k.startswith(prefix) and k[len(prefix):].isdigit()}
 
 
 def declared(prefix: str = "s") -> tuple[list[str], list[dict]]:
@@ -57,6 +69,17 @@ def main(argv=None) -> int:
         used.update(hit)
         at = f"{alarms[hit[0]]['fid']} ({alarms[hit[0]]['effect']})" if hit else "not found"
         print(f"declared {d['flight']}: {', '.join(d['expect'])} (SIH now {d['sih'] or 'defaults'}) -> {at}")
+    sih = sih_of(a.prefix)
+    effect_ok = 0
+    for k, al in enumerate(alarms):
+        if al["kind"] == "change" or k in used:
+            continue
+        want = EFFECT_SIH.get(al["effect"].rsplit("_m", 1)[0] if al["effect"][-1:].isdigit() else al["effect"])
+        fids = [f.split("/")[0] for f in al.get("flights") or []]
+        if want and fids and all(want & set(sih.get(f, {})) for f in fids):
+            used.add(k)
+            effect_ok += 1
+            print(f"effect alarm [{al['kind']}] {al['effect']} on {', '.join(fids)}: all carry {sorted(want)} (true)")
     false = [al for k, al in enumerate(alarms) if k not in used]
     for al in false:
         print(f"FALSE ALARM [{al['kind']}] {al['message'][:200]}")

@@ -47,6 +47,8 @@ class Trend:
     nominal: float | None = None
     #: per flight: discovery ran against a vehicle twin (params given or mapped), not the flight's own nominal
     vehicle_twin: list[bool] = field(default_factory=list)
+    #: per flight: what differs since the vehicle twin, as the flight's values name it ('' where not compared)
+    since: list[str] = field(default_factory=list)
 
     @property
     def label(self) -> str:
@@ -82,6 +84,23 @@ def _against_twin(r: dict) -> bool:
     return note == "given" or note.startswith("params map")
 
 
+#: effect -> the words of a since-the-vehicle-twin name that agree with it (mass and thrust look alike in hover:
+#: a finding of one where the flight's values name the other backs nothing)
+AGREES = {"mass": ("mass", "thrust per mass"), "thrust_coefficient": ("thrust",),
+          "motor_efficiency": ("weaker motor", "thrust"), "yaw_moment": ("yaw",), "inertia": ("inertia",)}
+
+
+def agrees(t: Trend, i: int) -> bool:
+    """Whether flight ``i``'s finding agrees with what its values name since the vehicle twin (True where the
+    flight was not compared, or the effect has no counterpart there)."""
+    name = t.effect.rpartition("_m")[0] if t.effect.rpartition("_m")[2].isdigit() else t.effect
+    since = t.since[i] if i < len(t.since) else ""
+    words = AGREES.get(name)
+    if not since or since in ("not compared",) or words is None:
+        return True
+    return any(w in since for w in words)
+
+
 def backed(t: Trend, idx: list[int]) -> tuple[bool, str]:
     """Whether findings at ``idx`` back an alarm, and how: confirmed by discovery against a vehicle twin on
     one of them, or found on at least two flights in a row whose values agree within 30 %."""
@@ -104,6 +123,9 @@ def trends(rows: list[dict]) -> list[Trend]:
     out = []
     for vid, rs in sorted(by_v.items()):
         rs.sort(key=lambda r: (r.get("flight_time_utc") or "", r["path"]))
+        plain = [Path(r["path"]).name for r in rs]  # folder/file where file names repeat (PX4's flight.ulg...)
+        names = {r["path"]: (f"{Path(r['path']).parent.name}/{n}" if plain.count(n) > 1 else n)
+                 for r, n in zip(rs, plain)}
         found: dict[tuple[str, str], dict] = {}
         for r in rs:
             for e in _effects(r):
@@ -123,11 +145,12 @@ def trends(rows: list[dict]) -> list[Trend]:
                 elif rule and rule[0] == p:
                     t.nominal = rule[3]
                 val = float(hit["params"][p]) if hit else t.nominal
-                t.flights.append(Path(r["path"]).name)
+                t.flights.append(names[r["path"]])
                 t.dates.append(r.get("flight_time_utc") or "")
                 t.values.append(float("nan") if val is None else val)
                 t.verdicts.append(hit["verdict"] if hit else "not found")
                 t.vehicle_twin.append(_against_twin(r))
+                t.since.append(str(r.get("since_twin") or ""))
             out.append(t)
     return out
 
@@ -144,19 +167,21 @@ def alarms(rows: list[dict], tr: list[Trend] | None = None) -> list[Alarm]:
             continue
         _, kind, limit, _nom = rule
         if kind == "below":
-            idx = [i for i, v in enumerate(t.values) if v < limit and t.verdicts[i] in PRESENT + ("likely",)]
+            idx = [i for i, v in enumerate(t.values) if v < limit and t.verdicts[i] in PRESENT + ("likely",)
+                   and agrees(t, i)]
             ok, how = backed(t, idx)
             if idx and ok:
                 i = idx[0]
                 out.append(Alarm(t.vehicle_id, "threshold", t.effect,
-                                 f"{t.label} {t.values[0]:.2f} -> {t.values[-1]:.2f}: below {limit:.2f} since "
+                                 f"{t.label} {t.nominal if t.nominal is not None else t.values[0]:.2f} -> "
+                                 f"{t.values[idx[-1]]:.2f}: below {limit:.2f} since "
                                  f"{t.flights[i]} ({t.dates[i][:10]}, {t.values[i]:.3f}); {how}",
                                  flight=t.flights[i], flights=[t.flights[j] for j in idx],
                                  dates=[t.dates[j] for j in idx]))
                 fired.add((t.vehicle_id, t.effect))
         elif kind == "relative" and t.nominal:
             idx = [i for i, v in enumerate(t.values)
-                   if abs(v / t.nominal - 1) > limit and t.verdicts[i] in PRESENT + ("likely",)]
+                   if abs(v / t.nominal - 1) > limit and t.verdicts[i] in PRESENT + ("likely",) and agrees(t, i)]
             ok, how = backed(t, idx)
             if idx and ok:
                 days = sorted({t.dates[j][:10] for j in idx})
@@ -173,7 +198,7 @@ def alarms(rows: list[dict], tr: list[Trend] | None = None) -> list[Alarm]:
         if (t.vehicle_id, t.effect) in fired or (t.vehicle_id, t.effect) in seen:
             continue
         seen.add((t.vehicle_id, t.effect))
-        present = [i for i, v in enumerate(t.verdicts) if v in PRESENT]
+        present = [i for i, v in enumerate(t.verdicts) if v in PRESENT and agrees(t, i)]
         ok, how = backed(t, present)
         if len(present) >= NEW_EFFECT_MIN_FLIGHTS and present[0] > 0 and t.verdicts[0] not in PRESENT and ok:
             i = present[0]
