@@ -203,3 +203,22 @@ def test_vehicle_report_names_a_payload_and_a_pwm_range_change_at_their_flights(
     assert got == [("d/f04.ulg", "mass"), ("d/f08.ulg", "mass"), ("d/f10.ulg", "thrust range")], got
     assert "x1.200" in res["changes"][2].why
     assert [e["flight"] for e in res["events"]] == ["d/f10.ulg"]
+
+
+def test_a_thrust_finding_on_a_flight_whose_values_name_a_mass_backs_no_alarm():
+    """Discovery against the vehicle twin confirms kt_scale 0.85 on a payload flight (mass and thrust look alike in
+    hover); the flight's values since the twin name a mass there, so only the flights that agree back an alarm."""
+    import json as _json
+
+    from twin_nodes.fleet.report import alarms
+
+    def row(k, kt, since):
+        eff = [{"name": "thrust_coefficient", "verdict": "confirmed", "params": {"kt_scale": kt}}] if kt else []
+        return {"path": f"/f{k}.ulg", "status": "ok", "vehicle_id": "v", "flight_time_utc": f"2026-06-{k + 1:02d}",
+                "nominal_mass_kg": 1.0, "params_is_vehicle_twin": True, "since_twin": since,
+                "effects_json": _json.dumps(eff)}
+
+    rows = [row(0, None, "none"), row(1, 0.85, "mass"), row(2, None, "none"), row(3, 0.88, "thrust")]
+    [a] = alarms(rows)
+    assert a.kind == "threshold" and a.flight == "f3.ulg" and a.flights == ["f3.ulg"]
+    assert alarms(rows[:3]) == []
