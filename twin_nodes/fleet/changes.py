@@ -147,6 +147,9 @@ def find_steps(value: str, x: list[float], se: list[float] | None = None, resets
         s = sig if math.isfinite(sig) else float(np.nanmean(ses[run]))
         size_se = s * math.sqrt(1.0 / len(run) + 1.0 / min(len(state), REF_FLIGHTS))
         out.steps.append(Step(value, run[0], run[-1], ref, new, new - ref, size_se, h))
+        for j in run:  # drawn around the new state (the step's first flight keeps the old band it left)
+            if j != run[0]:
+                out.bands[j] = (new, half_width(new, ses[j], sig, floors))
         state = [float(xs[j]) for j in run]
         k += len(run)
     return out
