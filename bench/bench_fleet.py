@@ -6,7 +6,8 @@
     .venv/bin/python bench/bench_fleet.py --synthetic [--n 8] [--task-s 3]  # a CPU-bound stand-in task
 
 Each run writes a fresh catalog (nothing skipped) on an embedded LocalCluster (one-thread worker
-processes); the time includes starting the cluster.  Prints flights/min per worker count and the
+processes) with an empty cache of its own (``ROTORTWIN_CACHE``; ``--warm`` shares the user's); the time includes
+starting the cluster.  Prints flights/min per worker count and the
 2-worker / 1-worker scaling ratio (both measured in the same run), and the flight-minutes analysed (the logs'
 durations, from the catalog rows) per wall-minute per worker core.  Without ``--params`` each flight flies the
 params ``fleet discover`` picks for it (the shipped file for its airframe, else the nominal built from the log).  ``--synthetic`` measures the
@@ -54,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--params", default=None, help="one params file for every flight (default: per flight)")
     ap.add_argument("--no-closed-loop", action="store_true")
     ap.add_argument("--workers", default="1,2")
+    ap.add_argument("--warm", action="store_true", help="share the user's cache between the runs (default: each run "
+                    "starts with an empty cache, so the second does not reuse the nominals the first built)")
     a = ap.parse_args(argv)
     if not a.flights and not a.synthetic:
         print("bench_fleet: no FLIGHTS_DIR given: the synthetic task (--synthetic)", flush=True)
@@ -79,7 +82,11 @@ def main(argv: list[str] | None = None) -> int:
     else:
         ap.error("give FLIGHTS_DIR or --synthetic")
     rate = {}
+    import os
+
     for w in [int(x) for x in a.workers.split(",")]:
+        if not a.warm:  # each worker count starts cold, as a user's first run: its own empty cache (numba, nominals)
+            os.environ["ROTORTWIN_CACHE"] = str(tmp / f"cache_w{w}")
         t0 = time.perf_counter()
         res = run_fleet(flights, tmp / f"cat_w{w}", workers=w, progress=False, **kw)
         dt = time.perf_counter() - t0
