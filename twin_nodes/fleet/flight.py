@@ -187,7 +187,6 @@ def analyse(path: str, mode: str, params: str | None, params_map: dict | None,
         row.update(metric_columns("closed", compare_log(log, vp, mode="closed").metrics))
         return row
     from twin_nodes.discovery.discover import discover
-
     from twin_nodes.fleet.vehicle_twin import read_vehicle_facts, since_twin
 
     ref = read_vehicle_facts(pfile)
