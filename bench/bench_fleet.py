@@ -2,12 +2,15 @@
 
 ::
 
-    .venv/bin/python bench/bench_fleet.py FLIGHTS_DIR [--no-closed-loop]   # real discovery on those flights
+    .venv/bin/python bench/bench_fleet.py FLIGHTS_OR_DIRS... [--no-closed-loop] [--params P]  # real discovery
     .venv/bin/python bench/bench_fleet.py --synthetic [--n 8] [--task-s 3]  # a CPU-bound stand-in task
 
 Each run writes a fresh catalog (nothing skipped) on an embedded LocalCluster (one-thread worker
-processes); the time includes starting the cluster.  Prints flights/min per worker count and the
-2-worker / 1-worker scaling ratio (both measured in the same run).  ``--synthetic`` measures the
+processes) with an empty cache of its own (``ROTORTWIN_CACHE``; ``--warm`` shares the user's); the time includes
+starting the cluster.  Prints flights/min per worker count and the
+2-worker / 1-worker scaling ratio (both measured in the same run), and the flight-minutes analysed (the logs'
+durations, from the catalog rows) per wall-minute per worker core.  Without ``--params`` each flight flies the
+params ``fleet discover`` picks for it (the shipped file for its airframe, else the nominal built from the log).  ``--synthetic`` measures the
 runner's own overhead and scaling with a task that burns ``--task-s`` seconds of CPU and writes a
 catalog row, no discovery; it is what runs without arguments (``make bench``).
 ``ROTORTWIN_BENCH_SMOKE=1``: a smoke run (synthetic, 2 flights of 0.2 s; the numbers mean nothing).
@@ -44,14 +47,16 @@ def burn_task(path, catalog, mode, params, params_map, closed_loop_metrics):
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("flights", nargs="?", help="folder of .ulg flights (real discovery)")
+    ap.add_argument("flights", nargs="*", help=".ulg flights or folders of them (real discovery)")
     ap.add_argument("--synthetic", action="store_true")
     from _smoke import SMOKE as smoke  # bench/ is on sys.path when a bench runs as a script
     ap.add_argument("--n", type=int, default=2 if smoke else 8, help="synthetic flights")
     ap.add_argument("--task-s", type=float, default=0.2 if smoke else 3.0, help="synthetic CPU seconds per flight")
-    ap.add_argument("--params", default=str(Path(__file__).resolve().parents[1] / "params/px4_sih_quadx.yaml"))
+    ap.add_argument("--params", default=None, help="one params file for every flight (default: per flight)")
     ap.add_argument("--no-closed-loop", action="store_true")
     ap.add_argument("--workers", default="1,2")
+    ap.add_argument("--warm", action="store_true", help="share the user's cache between the runs (default: each run "
+                    "starts with an empty cache, so the second does not reuse the nominals the first built)")
     a = ap.parse_args(argv)
     if not a.flights and not a.synthetic:
         print("bench_fleet: no FLIGHTS_DIR given: the synthetic task (--synthetic)", flush=True)
@@ -72,19 +77,28 @@ def main(argv: list[str] | None = None) -> int:
             flights.append(f)
         kw["task"] = burn_task
     elif a.flights:
-        flights = find_flights([a.flights])
+        flights = find_flights(a.flights)
         kw.update(params=a.params, closed_loop_metrics=not a.no_closed_loop)
     else:
         ap.error("give FLIGHTS_DIR or --synthetic")
     rate = {}
+    import os
+
     for w in [int(x) for x in a.workers.split(",")]:
+        if not a.warm:  # each worker count starts cold, as a user's first run: its own empty cache (numba, nominals)
+            os.environ["ROTORTWIN_CACHE"] = str(tmp / f"cache_w{w}")
         t0 = time.perf_counter()
         res = run_fleet(flights, tmp / f"cat_w{w}", workers=w, progress=False, **kw)
         dt = time.perf_counter() - t0
         ok = sum(d["status"] == "ok" for d in res["done"])
         rate[w] = len(flights) / dt * 60
-        print(f"workers={w}: {len(flights)} flights ({ok} ok) in {dt:.1f} s -> {rate[w]:.2f} flights/min",
-              flush=True)
+        fmin = 0.0
+        if not a.synthetic:
+            from twin_nodes.fleet.catalog import load
+            fmin = sum(float(r.get("duration_s") or 0.0) for r in load(tmp / f"cat_w{w}")) / 60.0
+        print(f"workers={w}: {len(flights)} flights ({ok} ok) in {dt:.1f} s -> {rate[w]:.2f} flights/min"
+              + (f"; {fmin:.1f} flight-minutes of logs -> {fmin / (dt / 60.0) / w:.1f} flight-min per wall-min "
+                 f"per core" if fmin else ""), flush=True)
     if 1 in rate and 2 in rate:
         print(f"scaling 2 workers / 1 worker: {rate[2] / rate[1]:.2f}x")
     return 0

@@ -28,6 +28,7 @@ def _row(path: Path, vehicle: str, day: int, effects: list[dict], status="ok", e
     return {**cat.file_key(path), "mode": "discover", "status": status, "error": error, "vehicle_id": vehicle,
             "vehicle_id_source": "sys_uuid", "flight_time_utc": DAY.format(day + 1), "date_source": "time_ref_utc",
             "duration_s": 130.0, "nominal_mass_kg": 1.0, "effects_json": json.dumps(effects),
+            "params_is_vehicle_twin": True,  # discovery against the given params (the vehicle twin), as simulated
             **cat.effect_columns(effects)}
 
 
@@ -91,6 +92,11 @@ def test_report_names_degrading_motor_payload_days_and_nothing_on_healthy(tmp_pa
     assert "2026-06-02" in pay["message"] and "2026-06-05" in pay["message"]
     html = (tmp_path / "rep" / "index.html").read_text()
     assert "quad-00_d03.ulg" in html and len(list((tmp_path / "rep").glob("trend_*.png"))) >= 2
+    # issue 25: against each flight's own nominal, two payload flights that are not in a row back nothing;
+    # the weakening motor (found on consecutive flights with agreeing values) still raises its alarm
+    own = [dict(r, params_is_vehicle_twin=False) for r in rows]
+    kinds = {(a.vehicle_id, a.kind) for a in alarms(own)}
+    assert kinds == {("uuid-00", "threshold")}
 
 
 def test_new_effect_alarm_needs_repeat():

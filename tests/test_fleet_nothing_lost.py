@@ -44,7 +44,8 @@ def test_failed_real_flight_keeps_vehicle_and_date(tmp_path):
     log = shared_log(V6C, LOG61)
     s = process_flight(str(log), str(tmp_path / "cat"), params=PARAMS, closed_loop_metrics=False)
     [row] = cat.load(tmp_path / "cat")
-    assert s["status"] == row["status"] == "failed"
+    # never airborne: recognised as a ground/bench test (issue 25), a row with its kind and reason, not a failure
+    assert s["status"] == row["status"] == "not_flight" and row["flight_kind"] == "ground/bench test"
     assert row["vehicle_id"] == UUID and row["vehicle_id_source"] == "sys_uuid"
     # no time_ref_utc, no GPS fix: the date and time of the file name (QGC's download name, local time)
     assert row["flight_time_utc"] == "2023-06-21T08:32:12" and row["date_source"] == "file_name"
@@ -273,18 +274,25 @@ def test_cli_discover_counts_failed_on_rerun_and_report_lists_them(tmp_path, cap
     bad.write_bytes(b"not a ulog at all")
     argv = ["fleet", "discover", str(log), str(bad), "--catalog", str(tmp_path / "cat"), "--workers", "1",
             "--params", PARAMS, "--no-closed-loop"]
-    for _ in range(2):  # the rerun retries both failed flights and still exits 1
+    # the log that never flew is recognised (a ground/bench test: a row, done); the unreadable file fails,
+    # and the rerun retries it alone and still exits 1
+    for k in range(2):
         assert main(argv) == 1
         out, err = capsys.readouterr()
-        assert "2 flights: 0 done, 2 failed" in out and "0 already in" in out
-        assert f"{log.resolve()}: " in err and "airborne" in err and f"{bad}: <header>" in err
-        assert "rotortwin: 2 flight(s) still failed" in err
+        if k == 0:
+            assert "2 flights: 0 done, 1 no free flight (ground/bench test 1), 1 failed" in out, out
+            assert f"not a flight (ground/bench test): {log.resolve()}: " in out and "airborne" in out
+        else:
+            assert "2 flights: 0 done, 0 no free flight (none), 1 failed" in out and "1 already in" in out, out
+        assert f"{bad}: <header>" in err
+        assert "rotortwin: 1 flight(s) still failed" in err
     assert main(["fleet", "report", str(tmp_path / "cat"), "--out", str(tmp_path / "rep")]) == 0
     out, _ = capsys.readouterr()
-    assert "2 flights, 2 vehicles, 2 failed" in out
-    assert f"FAILED {log.resolve()} [{UUID}, 2023-06-21]:" in out
+    assert "2 flights, 2 vehicles, 1 no free flight, 1 failed" in out
+    assert f"NO FREE FLIGHT {log.resolve()} [{UUID}, 2023-06-21] (ground/bench test):" in out
+    assert f"FAILED {bad}" in out
     s = json.loads((tmp_path / "rep" / "report.json").read_text())
-    assert s["vehicles"][UUID]["failed"] == 1 and s["vehicles"]["folder:quad-07"]["failed"] == 1
+    assert s["vehicles"][UUID]["not_flight"] == 1 and s["vehicles"]["folder:quad-07"]["failed"] == 1
     html = (tmp_path / "rep" / "index.html").read_text()
     assert "airborne" in html and UUID in html
 

@@ -91,6 +91,15 @@ def _discover(args) -> int:
         res["confirmation"] = confirm(res, read_ulog(args.confirm), vp)
     print(summary_text(res))
     print(finding_line(res))
+    from twin_nodes.fleet.vehicle_twin import read_vehicle_facts, since_twin
+
+    ref = read_vehicle_facts(params_file)
+    if ref is not None:  # a vehicle twin: name what differs on this flight
+        res["since_vehicle_twin"] = since_twin(log, args.flight, ref)
+        sv = res["since_vehicle_twin"]
+        print(f"since the vehicle twin ({len(ref.get('flights') or [])} flights): {sv['name']}: {sv['why']}")
+        for v, d in sv["differs"].items():
+            print(f"  {v}: flight {d['flight']:.4g}, twin {d['twin']:.4g} (band ± {d['band']:.2g})")
     if args.plan_dir:
         from twin_nodes.discovery.plans import write_plans
         for path in write_plans(res, args.plan_dir, args.flight):

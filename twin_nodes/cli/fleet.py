@@ -69,14 +69,25 @@ def _cmd_run(args: argparse.Namespace) -> int:
     pmap = load_params_map(args.params_map)
     res = run_fleet(flights, args.catalog, mode=args.mode, scheduler=args.scheduler, workers=args.workers,
                     params=args.params, params_map=pmap, closed_loop_metrics=not args.no_closed_loop)
-    failed = [d for d in res["done"] if d["status"] != "ok"]
+    failed = [d for d in res["done"] if d["status"] not in ("ok", "not_flight")]
+    nf = [d for d in res["done"] if d["status"] == "not_flight"]
+    for d in nf:
+        print(f"not a flight ({d.get('flight_kind') or '?'}): {d['error']}")
+    for d in res["done"]:
+        if d.get("discover_error"):
+            print(f"values identified, {args.mode} refused: {d['discover_error']}")
     for d in failed:
         print(f"rotortwin: {d['error']}", file=sys.stderr)
     for d in res["lost"]:
         print(f"rotortwin: {d['path']}: not finished ({d['error']}); rerun to complete the catalog", file=sys.stderr)
     for d in res["duplicates"]:
         print(f"duplicate: {d['path']}: same content as {d['same_as']} (counted once)")
-    print(f"fleet {args.mode}: {len(flights)} flights: {len(res['done']) - len(failed)} done, {len(failed)} failed, "
+    kinds = {}
+    for d in nf:
+        kinds[d.get("flight_kind") or "?"] = kinds.get(d.get("flight_kind") or "?", 0) + 1
+    print(f"fleet {args.mode}: {len(flights)} flights: {len(res['done']) - len(failed) - len(nf)} done, "
+          f"{len(nf)} no free flight ({', '.join(f'{k} {v}' for k, v in sorted(kinds.items())) or 'none'}), "
+          f"{len(failed)} failed, "
           f"{len(res['lost'])} not finished, {len(res['duplicates'])} duplicate(s), "
           f"{res['skipped']} already in {args.catalog}")
     if failed or res["lost"]:
@@ -100,11 +111,15 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from twin_nodes.fleet.report import write_report
 
     s = write_report(args.catalog, args.out)
-    print(f"{s['flights']} flights, {len(s['vehicles'])} vehicles, {len(s['failed'])} failed, "
+    print(f"{s['flights']} flights, {len(s['vehicles'])} vehicles, {len(s['not_flights'])} no free flight, "
+          f"{len(s['failed'])} failed, "
           f"{len(s['duplicates'])} duplicate(s), {len(s['corrupt_files'])} corrupt row file(s)")
     for f in s["failed"]:
         why = f["error"][len(f["path"]) + 2:] if f["error"].startswith(f"{f['path']}: ") else f["error"]
         print(f"FAILED {f['path']} [{f['vehicle_id']}, {f['date']}]: {why}")
+    for f in s["not_flights"]:
+        why = f["reason"][len(f["path"]) + 2:] if f["reason"].startswith(f"{f['path']}: ") else f["reason"]
+        print(f"NO FREE FLIGHT {f['path']} [{f['vehicle_id']}, {f['date']}] ({f['kind']}): {why}")
     for d in s["duplicates"]:
         print(f"DUPLICATE {d['path']}: same content as {d['same_as']} (counted once)")
     for c in s["corrupt_files"]:

@@ -69,10 +69,25 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             raise TwinError("--mcap needs the ROS graph; drop --offline")
         if args.foxglove is not None:
             raise TwinError("--foxglove needs the ROS graph; drop --offline")
-        res = compare_log(log, load_params(params_file), mode=args.mode, horizon_s=args.horizon,
-                          progress=True)
+        from twin_nodes.fleet.vehicle_twin import for_flight, read_vehicle_facts
+
+        vp = load_params(params_file)  # a bad params file: its one-line error first
+        ref = read_vehicle_facts(params_file)
+        vp, note = for_flight(vp, ref, log)
+        if note:
+            print(f"rotortwin: {note}", file=sys.stderr)
+        res = compare_log(log, vp, mode=args.mode, horizon_s=args.horizon, progress=True)
         metrics, aligned = res.metrics, res.aligned
         metrics["source"] = "offline (twin_nodes.twin.compare.compare_log)"
+        if ref is not None:  # a vehicle twin: the flight's own nominal beside it
+            from twin_nodes.identify.nominal import params_for_log
+
+            own, _ = params_for_log(args.flight, None, log=log)
+            mo = compare_log(log, load_params(own), mode=args.mode, horizon_s=args.horizon).metrics
+            metrics["own_nominal"] = {k: mo[k] for k in ("throttle_rmse", "motor_p75_mean", "xy_rmse_m", "z_rmse_m")
+                                      if k in mo}
+            print("vehicle twin vs the flight's own nominal: " + ", ".join(
+                f"{k} {metrics.get(k, float('nan')):.3g} vs {v:.3g}" for k, v in metrics["own_nominal"].items()))
     else:
         del log  # the replay node loads it again in its own process
         bag = bag_dir(args.mcap) if args.mcap else None

@@ -57,7 +57,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     f = sub.add_parser("from-ulog", help="build the params of the vehicle that flew a PX4 log, from the log itself")
     io = declare(f)
-    io.input("ulog", help="PX4 flight log (.ulg)")
+    io.input("ulog", nargs="+", help="PX4 flight log(s) (.ulg); several logs of one vehicle: the vehicle twin "
+             "pooled over its free flights, each value with its uncertainty and flight-to-flight scatter")
     io.output("--out", required=True, help="write the params YAML here")
     f.add_argument("--mass-kg", type=MASS_KG, help="take-off mass [kg] (else the airframe's typical mass, stated)")
     f.add_argument("--arm-m", type=finite_float(0.01, 100.0, unit="m"), help="centre-to-rotor distance [m] for logs whose layout is normalised")
@@ -145,7 +146,19 @@ def _cmd_from_ulog(args: argparse.Namespace) -> int:
     from twin_nodes.identify.nominal import nominal_from_log
     from twin_nodes.logs.ulog_io import read_ulog
 
-    nom = nominal_from_log(read_ulog(args.ulog), mass_kg=args.mass_kg, arm_m=args.arm_m, name=args.name)
+    if len(args.ulog) > 1:
+        from twin_nodes.fleet.vehicle_twin import build
+
+        vt = build(args.ulog, mass_kg=args.mass_kg, arm_m=args.arm_m, name=args.name)
+        print(vt.header)
+        print()
+        print(_summary(vt.params))
+        try:
+            write_params(vt.params, args.out, vt.header)
+        except OSError as exc:
+            raise ParamsError(args.out, "<output>", f"cannot write ({exc.strerror or exc})") from None
+        return 0
+    nom = nominal_from_log(read_ulog(args.ulog[0]), mass_kg=args.mass_kg, arm_m=args.arm_m, name=args.name)
     print(nom.header())
     print()
     print(_summary(nom.params))

@@ -68,6 +68,17 @@ def _cmd_survey(args: argparse.Namespace) -> int:
         print(f"rotortwin: {len(failed)} of {len(rows)} flights failed (each is a row of the table with its reason)",
               file=sys.stderr)
     table = markdown_table(rows)
+    from twin_nodes.fleet.vehicle_twin import beside_own_nominal, beside_table, read_vehicle_facts
+
+    if args.params and read_vehicle_facts(args.params) is not None:  # a vehicle twin: beside each own nominal
+        for r in rows:
+            if r.get("status") == "ok":
+                try:
+                    r["whole_flight"] = beside_own_nominal(r["path"], args.params)
+                except TwinError as exc:
+                    r["whole_flight"] = {"error": str(exc)}
+        table += "\n\nWhole flight, closed loop: the vehicle twin beside each flight's own nominal\n\n" + \
+            beside_table(rows)
     print(table)
     if args.md:
         atomic_write_text(args.md, table + "\n")

@@ -1,7 +1,9 @@
 """The flight catalog: one Parquet file per flight in a folder, read back with DuckDB.
 
 A row holds the flight's file key (path, size, mtime), its vehicle identity and date from the
-ULog header, its duration, the status (``ok`` / ``failed`` with the one-line error), the Table-2
+ULog header, its duration, the status (``ok``; ``not_flight`` for a ground/bench test, a flight too short or
+without GPS, with its kind and reason; ``failed`` with the one-line error), the flight's kind, motor PWM range,
+firmware parameters and identified values (``fact_*``, :mod:`twin_nodes.fleet.facts`), the Table-2
 closed-loop metrics when discovery computed them, and every effect with its verdict and
 parameters (flat ``effect_<name>_<param>`` columns for the accepted ones plus ``effects_json``
 with all of them).  Each file is written to a temporary name and renamed, so a killed worker
@@ -169,10 +171,14 @@ def catalogued(catalog: str | os.PathLike[str]) -> list[dict]:
     return out
 
 
+#: row statuses that need no rerun: analysed, or recognised as no free flight (ground test, too short, no GPS)
+DONE = ("ok", "not_flight")
+
+
 def is_done(key: dict, row: dict | None) -> bool:
     """Whether the catalog ``row`` of a path covers this version of the file: an ``ok`` row with
     the same content (sha256; size and mtime for rows without a hash)."""
-    if not row or row.get("status") != "ok" or row.get("path") != key["path"]:
+    if not row or row.get("status") not in DONE or row.get("path") != key["path"]:
         return False
     if row.get("content_sha256") and key.get("content_sha256"):
         return row["content_sha256"] == key["content_sha256"]

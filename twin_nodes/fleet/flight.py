@@ -54,6 +54,8 @@ def identity(path: str | os.PathLike[str]) -> dict:
         t, src = float(ref), "time_ref_utc"
     else:
         t, src = _gps_time(path), "gps"
+    named, nsrc = file_date(path)
+    out["file_name_time"] = named if nsrc == "file_name" else ""  # local time of the downloader: see report
     if t is None:
         out["flight_time_utc"], out["date_source"] = file_date(path)
     else:
@@ -95,7 +97,8 @@ def fallback_identity(path: str | os.PathLike[str]) -> dict:
     p = Path(path).resolve()
     when, src = file_date(p)
     return {"sys_uuid": "", "ver_hw": "", "sys_name": "", "vehicle_id": f"folder:{p.parent.name}",
-            "vehicle_id_source": "folder", "flight_time_utc": when, "date_source": src}
+            "vehicle_id_source": "folder", "flight_time_utc": when, "date_source": src,
+            "file_name_time": when if src == "file_name" else ""}
 
 
 def _gps_time(path) -> float | None:
@@ -147,27 +150,54 @@ def metric_columns(prefix: str, m: dict | None) -> dict:
     return out
 
 
+class NotAFlight(Exception):
+    """The log is no free flight (a ground/bench test, too short, no GPS): its row so far, kind and reason."""
+
+    def __init__(self, row: dict):
+        super().__init__(row.get("kind_reason", ""))
+        self.row = row
+
+
 def analyse(path: str, mode: str, params: str | None, params_map: dict | None,
             closed_loop_metrics: bool, ident: dict | None = None) -> dict:
     """The row of one flight (raises TwinError on a bad flight); ``ident`` as :func:`identity`
     returns it, read here when not given."""
-    from twin_nodes.logs.flyable import read_flight
+    from twin_nodes.fleet.facts import flight_facts
+    from twin_nodes.logs.flyable import check_flyable
+    from twin_nodes.logs.ulog_io import read_ulog
     from twin_nodes.vehicle.params import load_params
 
     ident = identity(path) if ident is None else ident
-    log = read_flight(path)  # loaded once; no usable flight: a failed row with the reason
-    pfile, note = resolve_params(path, ident["vehicle_id"], params, params_map, log=log)
-    vp = load_params(pfile)
-    row = {**ident, "duration_s": float(log.duration_s), "params_file": str(pfile), "params_note": note,
-           "nominal_mass_kg": float(vp.mass_kg)}
+    log = read_ulog(path)  # loaded once
+    row = {**ident, "duration_s": float(log.duration_s), **flight_facts(path, log)}
+    if row["flight_kind"] != "free flight":  # a ground test, too short, no GPS: a row saying so, not a failure
+        raise NotAFlight(row)
+    try:
+        check_flyable(log)
+        pfile, note = resolve_params(path, ident["vehicle_id"], params, params_map, log=log)
+        vp = load_params(pfile)
+    except TwinError as exc:  # a free flight the twin cannot fly (too little usable data, no nominal): its
+        row["discover_error"] = str(exc)  # identified values are kept, the row is ok, the reason is recorded
+        return row
+    row.update({"params_file": str(pfile), "params_note": note, "nominal_mass_kg": float(vp.mass_kg),
+                "params_is_vehicle_twin": bool(params or (params_map and ident["vehicle_id"] in params_map))})
     if mode == "compare":
         from twin_nodes.twin.compare import compare_log
 
         row.update(metric_columns("closed", compare_log(log, vp, mode="closed").metrics))
         return row
     from twin_nodes.discovery.discover import discover
+    from twin_nodes.fleet.vehicle_twin import read_vehicle_facts, since_twin
 
-    res = discover(log, vp, closed_loop_metrics=closed_loop_metrics)
+    ref = read_vehicle_facts(pfile)
+    if ref is not None:  # a vehicle twin: what differs on this flight, named (discover's "since the vehicle twin")
+        sv = since_twin(log, path, ref)
+        row.update(since_twin=sv["name"], since_twin_why=sv["why"], since_twin_values=",".join(sorted(sv["differs"])))
+    try:
+        res = discover(log, vp, closed_loop_metrics=closed_loop_metrics)
+    except TwinError as exc:  # discovery refuses this flight (e.g. too little usable airborne data)
+        row["discover_error"] = str(exc)
+        return row
     effects = [{"name": e.get("name"), "verdict": verdict(e), "params": e.get("params") or {},
                 "evidence": e.get("evidence", "")} for e in res.get("effects", [])]
     row["effects_json"] = json.dumps(effects, default=float)
@@ -193,6 +223,8 @@ def process_flight(path: str, catalog: str, mode: str = "discover", params: str 
         row.update(ident)
         try:
             row.update(analyse(path, mode, params, params_map, closed_loop_metrics, ident))
+        except NotAFlight as nf:  # recognised, recorded with its kind and reason; done (not retried)
+            row.update(nf.row, status="not_flight", error=nf.row.get("kind_reason", ""))
         except Exception as exc:  # a bad flight, or a bug on one flight: recorded, one line; the fleet goes on
             row.update(status="failed", error=reason(path, exc))
     row["elapsed_s"] = round(time.time() - t0, 2)
@@ -200,4 +232,5 @@ def process_flight(path: str, catalog: str, mode: str = "discover", params: str 
     write_row(catalog, row)
     return {"path": key["path"], "status": row["status"], "error": row["error"], "vehicle_id": row["vehicle_id"],
             "flight_time_utc": row["flight_time_utc"], "elapsed_s": row["elapsed_s"],
-            "effects": row.get("effects_present", "")}
+            "effects": row.get("effects_present", ""), "flight_kind": row.get("flight_kind", ""),
+            "discover_error": row.get("discover_error", "")}

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Callable
 
 from twin_nodes.base.errors import TwinError, one_line
-from twin_nodes.fleet.catalog import catalogued, file_key, is_done
+from twin_nodes.fleet.catalog import DONE, catalogued, file_key, is_done
 from twin_nodes.fleet.flight import process_flight
 
 
@@ -103,7 +103,7 @@ def plan(keys: list[dict], rows: list[dict]) -> tuple[list[dict], list[dict], li
     by_path = {r["path"]: r for r in rows}
     ok_by_hash: dict[str, str] = {}
     for r in rows:
-        if r.get("status") == "ok" and r.get("content_sha256"):
+        if r.get("status") in DONE and r.get("content_sha256"):
             ok_by_hash.setdefault(r["content_sha256"], r["path"])
     groups: dict[str, list[dict]] = {}
     for k in keys:

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin_nodes.base.errors import LogError
+from twin_nodes.base.errors import LogError, ParamsError
 from twin_nodes.identify.coaxial import ASSUMED as COAX_ASSUMED, LOWPASS_HZ as COAX_LOWPASS_HZ, coaxial_efficiency
 from twin_nodes.identify.fit_mask import fit_mask
 from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
@@ -446,13 +446,18 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
                         "izz_kg_m2": inertia[2], "ixy_kg_m2": 0.0, "ixz_kg_m2": 0.0, "iyz_kg_m2": 0.0,
                         "gravity_m_s2": 9.80665},
             "rotors": rotors, "effects": effects, "controller": gains, "simulation": {"dt_s": 0.002}}
-    vp = from_ros_dict(data, log.path)
-    for k in ("BAT1_N_CELLS", "BAT1_V_CHARGED", "BAT1_V_EMPTY", "IMU_GYRO_CUTOFF", "IMU_DGYRO_CUTOFF"):
-        if k in p:
-            src[f"log {k}"] = f"{p[k]:g} (recorded, not modelled)"
     fits = {"tau_s": tau, "kT/m": kt_m, "kT/m_se": kt_m_se, "hover_command": hover_cmd,
             "drag_n_s_m": drag, "angular_damping": k_w, "roll_r2": rot["roll"].r2, "pitch_r2": rot["pitch"].r2,
             "yaw_r2": rot["yaw"].r2, "z_r2": trans["z"].r2}
+    fits.update(_vehicle_fits(rot, t_max, km, m, drag_se, near, at_edge, battery, dx, dy, lever, tt[steady]))
+    try:
+        vp = from_ros_dict(data, log.path)
+    except ParamsError as exc:  # e.g. rotors that cannot lift the assumed mass: the fits stay readable
+        exc.fits = fits
+        raise
+    for k in ("BAT1_N_CELLS", "BAT1_V_CHARGED", "BAT1_V_EMPTY", "IMU_GYRO_CUTOFF", "IMU_DGYRO_CUTOFF"):
+        if k in p:
+            src[f"log {k}"] = f"{p[k]:g} (recorded, not modelled)"
     return Nominal(vp, log.path, src, fits)
 
 
@@ -474,6 +479,29 @@ def _horizontal_drag(t, sig, lp, f_lp, v_body, m, src):
         src["effects.wind"] = (f"not included: no steady wind separable from the accelerometer biases (heading "
                                f"change, > 3 sigma, {WIND_MIN_M_S}-15 m/s)")
     return m * hfit["kd/m"], m * hfit.se("kd/m"), wind, east_b, north_b
+
+
+def _vehicle_fits(rot: dict, t_max: float, km: float, m: float, drag_se: float, near, at_edge: bool, battery,
+                  dx: float, dy: float, lever: float, tt_steady: np.ndarray) -> dict:
+    """The values a vehicle twin pools over flights, each with its standard error where the fit gives one
+    (``<name>_se``): the control effectiveness T_max/I per axis [1/(s^2)] (1 / the moment fit's I/T_max:
+    independent of the assumed mass), the lag's near-best range, the drag's se, the static trims and each
+    motor's share of the steady-flight thrust (mean 1)."""
+    out: dict[str, float] = {"mass_assumed_kg": m, "drag_n_s_m_se": float(drag_se),
+                             "tau_near_lo_s": float(near.min()), "tau_near_hi_s": float(near.max()),
+                             "tau_at_edge": float(at_edge), "com_dx_m": dx, "com_dy_m": dy, "yaw_lever_m": lever}
+    for ax, scale in (("roll", t_max), ("pitch", t_max), ("yaw", t_max * km)):
+        i_over, se = rot[ax]["I"] / scale, rot[ax].se("I") / scale
+        ok = i_over > 0 and math.isfinite(i_over)
+        out[f"{ax}_eff"] = 1.0 / i_over if ok else math.nan
+        out[f"{ax}_eff_se"] = se / i_over ** 2 if ok else math.nan
+    if battery is not None:
+        out["battery_exponent"], out["battery_exponent_se"] = float(battery[3]), float(battery[4])
+    share = np.median(tt_steady, axis=0)
+    share = share / share.mean() if share.mean() > 0 else share * math.nan
+    for i, x in enumerate(share):
+        out[f"motor_share_m{i + 1}"] = float(x)
+    return out
 
 
 def _moment_fits(alpha: np.ndarray, rates: np.ndarray, thrust_units: np.ndarray, geom: RotorGeometry,

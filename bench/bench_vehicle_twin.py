@@ -1,0 +1,104 @@
+"""Cross-flight prediction (issue 25): a vehicle twin built from some flights of one vehicle flies its other
+flights whole, closed loop, beside each flight's own nominal.
+
+    python bench/bench_vehicle_twin.py FLIGHTS_OR_DIRS... [--seed 25] [--out DIR]
+
+The free flights (:func:`twin_nodes.fleet.facts.flight_kind`) are split by ``--seed`` into a build half and a
+predict half *before* anything is fitted; the twin is pooled over the build half
+(:func:`twin_nodes.fleet.vehicle_twin.build`), then every predict flight is flown by it (rescaled to the
+flight's motor PWM range, :func:`~twin_nodes.fleet.vehicle_twin.for_flight`) and by its own nominal
+(:func:`twin_nodes.identify.nominal.params_for_log`).  Prints one markdown row per predict flight, as it came
+out, and writes ``DIR/vehicle_twin.yaml`` and ``DIR/prediction.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+#: the issue's bar per metric (whole flight, closed loop)
+BAR = {"throttle_rmse": 0.04, "motor_p75_max": 0.06, "xy_rmse_m": 1.0, "z_rmse_m": 0.5}
+
+
+def _metrics(m: dict) -> dict:
+    p75 = [v for v in m.get("motor_p75", []) if isinstance(v, float) and math.isfinite(v)]
+    return {"throttle_rmse": m.get("throttle_rmse", math.nan), "motor_p75_max": max(p75) if p75 else math.nan,
+            "xy_rmse_m": m.get("xy_rmse_m", math.nan), "z_rmse_m": m.get("z_rmse_m", math.nan)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("flights", nargs="+")
+    ap.add_argument("--seed", type=int, default=25)
+    ap.add_argument("--out", default="out/vehicle_twin")
+    a = ap.parse_args(argv)
+    from twin_nodes.fleet.facts import actuator_tests, flight_kind
+    from twin_nodes.fleet.run import find_flights
+    from twin_nodes.identify.nominal import params_for_log
+    from twin_nodes.fleet.vehicle_twin import build, for_flight, read_vehicle_facts
+    from twin_nodes.logs.ulog_io import read_ulog
+    from twin_nodes.twin.compare import compare_log
+    from twin_nodes.vehicle.params import load_params, write_params
+
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    free = []
+    for p in sorted(map(str, find_flights(a.flights))):
+        kind, _ = flight_kind(read_ulog(p), actuator_tests(p))
+        if kind == "free flight":
+            free.append(p)
+    perm = np.random.default_rng(a.seed).permutation(len(free))
+    half = len(free) // 2
+    build_set = sorted(free[i] for i in perm[:half])
+    predict_set = sorted(free[i] for i in perm[half:])
+    print(f"{len(free)} free flights; seed {a.seed}: build {len(build_set)}, predict {len(predict_set)}")
+    vt = build(build_set)
+    yaml_path = out / "vehicle_twin.yaml"
+    write_params(vt.params, yaml_path, vt.header)
+    ref = read_vehicle_facts(yaml_path)
+    vp = load_params(yaml_path)
+    print(f"twin: {yaml_path} ({len(vt.used)} flights used; left out: {len(vt.left_out)})")
+    for lo in vt.left_out:
+        print(f"  left out: {lo}")
+    rows = []
+    print("| flight | twin: throttle RMSE | motor P75 (max) | XY RMSE m | Z RMSE m | own nominal: throttle | "
+          "motor P75 | XY | Z | note |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for p in predict_set:
+        log = read_ulog(p)
+        t0 = time.time()
+        try:
+            v, note = for_flight(vp, ref, log)
+            mt = _metrics(compare_log(log, v, mode="closed").metrics)
+            own, _ = params_for_log(p, None, log=log)
+            mo = _metrics(compare_log(log, load_params(own), mode="closed").metrics)
+            err = ""
+        except Exception as exc:  # one flight's failure is a row, the others go on
+            mt, mo, note, err = {k: math.nan for k in BAR}, {k: math.nan for k in BAR}, "", f"{type(exc).__name__}: {exc}"
+        row = {"flight": p, "twin": mt, "own_nominal": mo, "note": note, "error": err, "wall_s": time.time() - t0,
+               "passes": {k: bool(mt[k] <= BAR[k]) for k in BAR}}
+        rows.append(row)
+        f = lambda d, k, s=100: f"{d[k] * s:.1f}" if math.isfinite(d[k]) else "n/a"  # noqa: E731
+        print(f"| {Path(p).parent.name}/{Path(p).name} | {f(mt, 'throttle_rmse')} % | {f(mt, 'motor_p75_max')} % | "
+              f"{f(mt, 'xy_rmse_m', 1)} | {f(mt, 'z_rmse_m', 1)} | {f(mo, 'throttle_rmse')} % | "
+              f"{f(mo, 'motor_p75_max')} % | {f(mo, 'xy_rmse_m', 1)} | {f(mo, 'z_rmse_m', 1)} | {note or err} |",
+              flush=True)
+    n = len(rows)
+    summary = {k: sum(r["passes"][k] for r in rows) for k in BAR}
+    print("passing the bar (of " + str(n) + "): " + ", ".join(f"{k} <= {v:g}: {summary[k]}" for k, v in BAR.items()))
+    (out / "prediction.json").write_text(json.dumps({"seed": a.seed, "build": build_set, "predict": predict_set,
+                                                     "rows": rows, "passing": summary, "bar": BAR},
+                                                    indent=1, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,224 @@
+"""One twin per vehicle across its flights (issue 25): steps beyond the scatter band, what a step means,
+flight kinds and PWM ranges read from real logs, the pooled vehicle twin."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from twin_nodes.fleet import changes as ch
+from twin_nodes.fleet.facts import flight_kind, motor_pwm, param_changes
+from twin_nodes.fleet.vehicle_twin import pool
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "flightlogs" / "fleet_quadx_v6c"
+need_shared = pytest.mark.skipif(not SHARED.is_dir() and os.environ.get("CI") != "true",
+                                 reason="../shared/flightlogs/fleet_quadx_v6c not present")
+
+
+def _noisy(n, level, sigma, seed):
+    return list(level + np.random.default_rng(seed).normal(0.0, sigma, n))
+
+
+def test_a_step_on_two_flights_is_found_at_its_first_flight_a_single_excursion_is_not():
+    x = _noisy(6, 5.0, 0.03, 1) + _noisy(5, 5.0 / 1.2, 0.03, 2) + _noisy(6, 5.0, 0.03, 3)
+    x[3] = 4.0  # one flight off, the next one back: an excursion, no step
+    s = ch.find_steps("kt_per_mass", x)
+    assert [st.first for st in s.steps] == [6, 11]
+    assert s.steps[0].ratio == pytest.approx(1 / 1.2, rel=0.02)
+    assert s.steps[1].new == pytest.approx(5.0, rel=0.02)
+    assert s.excursions == [3]
+
+
+def test_no_step_on_an_unchanged_vehicle():
+    for seed in range(20):
+        assert ch.find_steps("kt_per_mass", _noisy(30, 5.0, 0.05, seed)).steps == []
+
+
+def test_scatter_is_robust_to_a_step():
+    x = np.array(_noisy(20, 1.0, 0.01, 4) + _noisy(20, 2.0, 0.01, 5))
+    assert ch.scatter(x) == pytest.approx(0.01, rel=0.4)
+
+
+@pytest.mark.parametrize("ratios,name", [
+    ({"kt_per_mass": (0.833, 0.01), "roll_eff": (1.01, 0.03), "pitch_eff": (0.99, 0.03)}, "mass"),
+    ({"kt_per_mass": (0.90, 0.01), "roll_eff": (0.90, 0.02), "pitch_eff": (0.91, 0.02)}, "thrust"),
+    ({"kt_per_mass": (1.00, 0.01), "roll_eff": (0.77, 0.02), "pitch_eff": (0.77, 0.02)}, "inertia"),
+    ({"kt_per_mass": (1.00, 0.01), "roll_eff": (1.0, 0.02), "yaw_eff": (1.4, 0.02)}, "yaw moment"),
+    ({"kt_per_mass": (0.85, 0.01), "roll_eff": (0.9, 0.3)}, "thrust per mass"),
+    ({"kt_per_mass": (0.85, 0.01)}, "thrust per mass"),
+])
+def test_explain_tells_mass_from_thrust_by_the_control_effectiveness(ratios, name):
+    got, why = ch.explain(ratios)
+    assert got == name, why
+
+
+def test_explain_names_a_pwm_range_change_and_a_weak_motor_and_a_com_shift():
+    name, why = ch.explain({"kt_per_mass": (1.19, 0.02)}, pwm=(1000.0, 1200.0))
+    assert name == "thrust range" and "x1.200" in why
+    shares = {"motor_share_m1": (0.0, 0.01), "motor_share_m2": (0.004, 0.01), "motor_share_m3": (0.15, 0.01),
+              "motor_share_m4": (-0.01, 0.01)}
+    assert ch.explain({"kt_per_mass": (1.0, 0.01)}, shares)[0] == "weaker motor 3"
+    assert ch.explain({"kt_per_mass": (1.0, 0.01)}, {"com_dx_m": (0.02, 0.002)})[0] == "centre-of-mass shift"
+
+
+def test_file_name_dates_are_corrected_by_the_vehicles_local_offset():
+    rows = [{"file_name_time": "2023-06-21T09:59:04", "date_source": "gps", "flight_time_utc": "2023-06-21T07:58:29+00:00"},
+            {"file_name_time": "2023-06-21T08:28:14", "date_source": "file_name", "flight_time_utc": "2023-06-21T08:28:14"}]
+    off = ch.local_offset_h(rows)
+    assert off == 2.0
+    assert ch.when_utc(rows[1], off) == "2023-06-21T06:28:14+00:00"
+
+
+def test_motor_pwm_reads_the_outputs_assigned_to_motors():
+    p = {"PWM_MAIN_FUNC1": 101, "PWM_MAIN_FUNC2": 102, "PWM_AUX_FUNC5": 101, "PWM_AUX_FUNC6": 102,
+         "PWM_MAIN_MIN1": 1000, "PWM_MAIN_MAX1": 2000, "PWM_MAIN_MIN2": 1000, "PWM_MAIN_MAX2": 2000,
+         "PWM_AUX_MIN5": 1000, "PWM_AUX_MAX5": 2200, "PWM_AUX_MIN6": 1000, "PWM_AUX_MAX6": 2200, "PWM_AUX_FUNC1": 430}
+    m = motor_pwm(p, 2)
+    assert m["text"] == "AUX5-6 1000-2200 us; MAIN1-2 1000-2000 us"
+    assert math.isnan(m["max_us"])
+    p2 = {k: v for k, v in p.items() if not k.startswith("PWM_MAIN")}
+    assert motor_pwm(p2, 2)["max_us"] == 2200.0
+    assert param_changes({"A": 1.0, "CAL_X": 1}, {"A": 2.0, "CAL_X": 2, "B": 3.0}) == {"A": [1.0, 2.0], "B": [None, 3.0]}
+
+
+def test_pool_names_a_disagreeing_flight_and_leaves_it_out():
+    names = [f"f{i}" for i in range(6)]
+    x = [5.0, 5.05, 4.97, 5.02, 4.15, 4.99]
+    p = pool("kt_per_mass", names, x, [0.01] * 6)
+    assert p.n == 5 and p.disagreeing and p.disagreeing[0].startswith("f4 ")
+    assert p.mean == pytest.approx(np.mean([5.0, 5.05, 4.97, 5.02, 4.99]))
+    assert p.scatter == pytest.approx(np.std([5.0, 5.05, 4.97, 5.02, 4.99], ddof=1))
+
+
+@need_shared
+@pytest.mark.parametrize("rel,kind", [
+    ("23_juni/log_11_2023-6-23-10-13-50.ulg", "ground/bench test"),   # never airborne
+    ("23_juni/log_14_2023-6-23-10-20-00.ulg", "too short"),           # 4 s airborne
+    ("DritterFlugtag/log_65_2023-6-21-08-36-08.ulg", "no GPS"),
+    ("ZweiterFlugtag/log_30_2023-6-7-12-11-06.ulg", "free flight"),
+])
+def test_flight_kinds_of_the_real_fleet(rel, kind):
+    from twin_nodes.fleet.facts import actuator_tests
+    from twin_nodes.logs.ulog_io import read_ulog
+
+    p = SHARED / rel
+    assert flight_kind(read_ulog(p), actuator_tests(str(p)))[0] == kind
+
+
+@need_shared
+def test_the_pwm_range_change_of_21_june_is_read_from_the_log():
+    from twin_nodes.logs.ulog_io import read_params
+
+    before = motor_pwm(read_params(SHARED / "DritterFlugtag/log_65_2023-6-21-08-36-08.ulg"), 4)
+    after = motor_pwm(read_params(SHARED / "DritterFlugtag/log_70_2023-6-21-09-59-04.ulg"), 4)
+    assert (before["min_us"], before["max_us"]) == (1000.0, 2000.0)
+    assert (after["min_us"], after["max_us"]) == (1000.0, 2200.0)
+
+
+def test_for_flight_rescales_the_thrust_curve_by_the_pwm_span():
+    from types import SimpleNamespace
+
+    from twin_nodes.fleet.vehicle_twin import for_flight
+    from twin_nodes.vehicle.params import shipped
+
+    vp = shipped("px4_sih_quadx").replace_rotors(thr_mdl_fac=0.5)
+    ref = {"pwm": {"text": "AUX5-8 1000-2000 us", "min_us": 1000.0, "max_us": 2000.0}}
+    p = {f"PWM_AUX_FUNC{c}": 96 + c for c in range(5, 9)}
+    p.update({f"PWM_AUX_MIN{c}": 1000.0 for c in range(5, 9)})
+    p.update({f"PWM_AUX_MAX{c}": 2200.0 for c in range(5, 9)})
+    log = SimpleNamespace(params=p, n_motors=4)
+    out, note = for_flight(vp, ref, log)
+    r = 1.2
+    assert out.rotors.thrust_max_n == pytest.approx(vp.rotors.thrust_max_n * (0.5 * r * r + 0.5 * r))
+    assert out.rotors.thr_mdl_fac == pytest.approx(0.5 * r * r / (0.5 * r * r + 0.5 * r))
+    # the same command gives the thrust the old curve gives at r x the command
+    u = 0.4
+    t_new = out.rotors.thrust_max_n * (out.rotors.thr_mdl_fac * u * u + (1 - out.rotors.thr_mdl_fac) * u)
+    t_old = vp.rotors.thrust_max_n * (0.5 * (r * u) ** 2 + 0.5 * r * u)
+    assert t_new == pytest.approx(t_old)
+    assert "span ratio 1.200" in note
+    same = dict(p, **{f"PWM_AUX_MAX{c}": 2000.0 for c in range(5, 9)})
+    assert for_flight(vp, ref, SimpleNamespace(params=same, n_motors=4)) == (vp, "")
+
+
+@need_shared
+def test_vehicle_twin_from_real_flights_and_what_changed_on_an_earlier_flight(tmp_path):
+    """A twin pooled over three 26 Jun flights (PWM 1000-2200 us) carries its values with uncertainties; a
+    7 Jun flight (1000-2000 us) is named a thrust-range change, read from the log's parameters."""
+    from twin_nodes.fleet.vehicle_twin import build, read_vehicle_facts, since_twin
+    from twin_nodes.logs.ulog_io import read_ulog
+    from twin_nodes.vehicle.params import load_params, write_params
+
+    real = SHARED.parent / "real"
+    paths = [SHARED / "LetzteTestsGerolfing/log_29_2023-6-26-13-34-56.ulg", real / "real_quadx_v6c_mission_noload.ulg",
+             SHARED / "23_juni/log_11_2023-6-23-10-13-50.ulg"]
+    vt = build([str(p) for p in paths])
+    assert len(vt.used) == 2 and any("ground/bench test" in lo for lo in vt.left_out)
+    assert vt.pwm["max_us"] == 2200.0
+    kt = vt.pooled["kt_per_mass"]
+    assert kt.n == 2 and kt.se > 0 and math.isfinite(kt.scatter)
+    out = tmp_path / "vehicle.yaml"
+    write_params(vt.params, out, vt.header)
+    load_params(out)
+    ref = read_vehicle_facts(out)
+    assert ref["pooled"]["kt_per_mass"]["mean"] == pytest.approx(kt.mean)
+    assert vt.params.rotors.thrust_max_n == pytest.approx(vt.params.mass_kg * kt.mean)
+    old = SHARED / "ZweiterFlugtag/log_30_2023-6-7-12-11-06.ulg"
+    got = since_twin(read_ulog(old), str(old), ref)
+    assert got["name"].startswith("thrust range") and "1200 -> 1000 us" in got["why"], got
+
+
+def test_vehicle_report_names_a_payload_and_a_pwm_range_change_at_their_flights():
+    """A synthetic vehicle: 14 flights, a payload (+20 % mass) on flights 4-7, the motor PWM range raised from
+    2000 to 2200 us at flight 10 (the same command then gives x1.2 the thrust); one flight dated by its file name
+    in local time (+2 h) sorts where its UTC time puts it."""
+    import json as _json
+
+    from twin_nodes.fleet import vehicle_report as vr
+
+    rng = np.random.default_rng(7)
+    rows = []
+    for k in range(14):
+        kt = 5.0 * (1 / 1.2 if 4 <= k <= 7 else 1.0) * (1.2 if k >= 10 else 1.0) * (1 + rng.normal(0, 0.005))
+        eff = 200.0 * (1.2 if k >= 10 else 1.0) * (1 + rng.normal(0, 0.02))
+        hi = 2200.0 if k >= 10 else 2000.0
+        p = {f"PWM_MAIN_FUNC{c}": 100 + c for c in range(1, 5)}
+        p.update({f"PWM_MAIN_MIN{c}": 1000.0 for c in range(1, 5)})
+        p.update({f"PWM_MAIN_MAX{c}": hi for c in range(1, 5)})
+        t = f"2023-06-{10 + k:02d}T10:00:00"
+        rows.append({"path": f"/d/f{k:02d}.ulg", "status": "ok", "flight_kind": "free flight",
+                     "flight_time_utc": t + "+00:00", "date_source": "gps", "file_name_time": "",
+                     "params_json": _json.dumps(p), "motor_pwm": motor_pwm(p, 4)["text"],
+                     "fact_kt_per_mass": kt, "fact_kt_per_mass_se": 0.01, "fact_rp_eff": eff, "fact_rp_eff_se": 3.0})
+    rows[3].update(date_source="file_name", flight_time_utc="2023-06-13T12:00:00", file_name_time="2023-06-13T12:00:00")
+    rows[2].update(file_name_time="2023-06-12T12:00:00")  # both dates: the local offset is +2 h
+    res = vr.analyse_vehicle("v", rows)
+    assert res["local_offset_h"] == 2.0
+    assert [r["_utc"][:13] for r in res["rows"]][3] == "2023-06-13T10"
+    got = [(c.flight, c.name) for c in res["changes"]]
+    assert got == [("d/f04.ulg", "mass"), ("d/f08.ulg", "mass"), ("d/f10.ulg", "thrust range")], got
+    assert "x1.200" in res["changes"][2].why
+    assert [e["flight"] for e in res["events"]] == ["d/f10.ulg"]
+
+
+def test_a_thrust_finding_on_a_flight_whose_values_name_a_mass_backs_no_alarm():
+    """Discovery against the vehicle twin confirms kt_scale 0.85 on a payload flight (mass and thrust look alike in
+    hover); the flight's values since the twin name a mass there, so only the flights that agree back an alarm."""
+    import json as _json
+
+    from twin_nodes.fleet.report import alarms
+
+    def row(k, kt, since):
+        eff = [{"name": "thrust_coefficient", "verdict": "confirmed", "params": {"kt_scale": kt}}] if kt else []
+        return {"path": f"/f{k}.ulg", "status": "ok", "vehicle_id": "v", "flight_time_utc": f"2026-06-{k + 1:02d}",
+                "nominal_mass_kg": 1.0, "params_is_vehicle_twin": True, "since_twin": since,
+                "effects_json": _json.dumps(eff)}
+
+    rows = [row(0, None, "none"), row(1, 0.85, "mass"), row(2, None, "none"), row(3, 0.88, "thrust")]
+    [a] = alarms(rows)
+    assert a.kind == "threshold" and a.flight == "f3.ulg" and a.flights == ["f3.ulg"]
+    assert alarms(rows[:3]) == []

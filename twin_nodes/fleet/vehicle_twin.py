@@ -1,0 +1,316 @@
+"""One twin per vehicle: the identification pooled over several of its flights (issue 25).
+
+``rotortwin params from-ulog A.ulg B.ulg ... --out vehicle.yaml``: every log is classified
+(:func:`twin_nodes.fleet.facts.flight_kind`); each free flight gets its nominal
+(:func:`twin_nodes.identify.nominal.nominal_from_log`, one mass for all: the one given, else the airframe's
+assumed mass) and its values (:func:`twin_nodes.fleet.facts.identified`).  Per value:
+
+- a flight whose motor PWM range differs from the majority's is left out of every value (named: the same
+  command is another thrust there);
+- a flight beyond ``max(3 x 1.4826 MAD, 3 se, floor)`` of the median is *disagreeing*: named, not averaged in;
+- the pooled value is the mean of the others, its uncertainty the scatter / sqrt(n) (at least the mean se),
+  and the flight-to-flight scatter is reported beside it.
+
+The params are those of the flight closest to the pooled thrust per mass, with the pooled thrust, inertia,
+lag, drag and trims put in; the header lists every value with its uncertainty, scatter and the flights it
+came from, and one machine-readable line (:data:`MARK`) that ``discover --params`` reads back
+(:func:`read_vehicle_facts`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from twin_nodes.base.errors import ParamsError, TwinError
+from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
+
+#: header line prefix of the pooled values (JSON after it)
+MARK = "vehicle-twin-facts: "
+#: pooled values: name -> absolute floor of the disagreement threshold (relative floor 5 % for all)
+POOLED = {"kt_per_mass": 0.0, "hover_throttle": 0.0, "rp_eff": 0.0, "roll_eff": 0.0, "pitch_eff": 0.0, "yaw_eff": 0.0,
+          "drag_per_mass": 0.02, "com_dx_m": 0.004, "com_dy_m": 0.004, "yaw_lever_m": 0.002, "tau_s": 0.02,
+          "battery_exponent": 0.2, "hover_thrust_px4": 0.0}
+REL_FLOOR = 0.05
+
+
+@dataclass
+class Pooled:
+    value: str
+    mean: float
+    se: float
+    scatter: float
+    n: int
+    flights: list[str] = field(default_factory=list)
+    disagreeing: list[str] = field(default_factory=list)  # "name (value)"
+
+
+@dataclass
+class VehicleTwin:
+    params: VehicleParams
+    pooled: dict[str, Pooled]
+    used: list[str]
+    left_out: list[str]  # "path: why"
+    pwm: dict
+    header: str
+
+
+def pool(value: str, names: list[str], x: list[float], se: list[float]) -> Pooled | None:
+    """Pool one value over flights (see the module docstring); None with fewer than one finite value."""
+    x_ = np.asarray(x, float)
+    se_ = np.asarray(se, float)
+    ok = np.isfinite(x_)
+    if not ok.any():
+        return None
+    med = float(np.median(x_[ok]))
+    mad = 1.4826 * float(np.median(np.abs(x_[ok] - med)))
+    out = Pooled(value, math.nan, math.nan, math.nan, 0)
+    keep = []
+    for i in np.flatnonzero(ok):
+        lim = max(3 * mad, 3 * (se_[i] if math.isfinite(se_[i]) else 0.0), REL_FLOOR * abs(med),
+                  POOLED.get(value, 0.0))
+        if abs(x_[i] - med) > lim and ok.sum() >= 3:
+            out.disagreeing.append(f"{names[i]} ({x_[i]:.4g} vs {med:.4g})")
+        else:
+            keep.append(i)
+    v = x_[keep]
+    out.mean = float(v.mean())
+    out.scatter = float(v.std(ddof=1)) if v.size > 1 else math.nan
+    mean_se = float(np.nanmean(se_[keep])) if np.isfinite(se_[keep]).any() else 0.0
+    out.se = max(out.scatter / math.sqrt(v.size) if v.size > 1 else math.nan, mean_se / math.sqrt(v.size)) \
+        if v.size > 1 else (mean_se or math.nan)
+    out.n = int(v.size)
+    out.flights = [names[i] for i in keep]
+    return out
+
+
+def build(paths: list[str | os.PathLike[str]], *, mass_kg: float | None = None, arm_m: float | None = None,
+          name: str | None = None) -> VehicleTwin:
+    """The vehicle twin of the free flights among ``paths`` (see the module docstring)."""
+    from twin_nodes.fleet.facts import actuator_tests, flight_kind, identified, motor_pwm
+    from twin_nodes.identify.nominal import nominal_from_log
+    from twin_nodes.logs.ulog_io import read_ulog
+
+    flights, left_out, ids = [], [], set()
+    for p in paths:
+        log = read_ulog(p)
+        ids.add((log.info.get("sys_uuid") or "", log.info.get("ver_hw") or "", log.params.get("SYS_AUTOSTART")))
+        kind, why = flight_kind(log, actuator_tests(p))
+        if kind != "free flight":
+            left_out.append(f"{p}: {kind}: {why}")
+            continue
+        try:
+            nom = nominal_from_log(log, mass_kg=mass_kg, arm_m=arm_m, name=name)
+        except TwinError as exc:
+            left_out.append(f"{p}: not identified: {exc}")
+            continue
+        flights.append({"path": str(p), "name": f"{Path(p).parent.name}/{Path(p).name}", "nom": nom, "facts": identified(log, nom),
+                        "pwm": motor_pwm(log.params, int(log.n_motors))})
+    if len(ids) > 1:
+        raise TwinError("params from-ulog: the logs come from more than one vehicle (sys_uuid, ver_hw, "
+                        f"SYS_AUTOSTART): {sorted(map(str, ids))}; pool the flights of one vehicle")
+    if not flights:
+        raise TwinError("params from-ulog: no free flight among the logs to identify on: "
+                        + " | ".join(left_out))
+    counts: dict[str, int] = {}
+    for f in flights:
+        counts[f["pwm"]["text"]] = counts.get(f["pwm"]["text"], 0) + 1
+    pwm_text = max(counts, key=lambda k: (counts[k], k))
+    for f in [f for f in flights if f["pwm"]["text"] != pwm_text]:
+        left_out.append(f"{f['path']}: motor PWM range {f['pwm']['text']}, the twin's is {pwm_text} (the same "
+                        "command is another thrust)")
+    flights = [f for f in flights if f["pwm"]["text"] == pwm_text]
+    pooled = {}
+    for v in POOLED:
+        res = pool(v, [f["name"] for f in flights], [f["facts"].get(v, math.nan) for f in flights],
+                   [f["facts"].get(f"{v}_se", math.nan) for f in flights])
+        if res is not None:
+            pooled[v] = res
+    pwm = next(f["pwm"] for f in flights)
+    vp = _params(flights, pooled)
+    return VehicleTwin(vp, pooled, [f["path"] for f in flights], left_out, pwm,
+                       _header(vp, pooled, flights, left_out, pwm))
+
+
+def _params(flights: list[dict], pooled: dict[str, Pooled]) -> VehicleParams:
+    kt = pooled["kt_per_mass"].mean
+    rep = min(flights, key=lambda f: abs(f["facts"]["kt_per_mass"] - kt))["nom"]
+    d = rep.params.to_ros_dict()
+    m = float(d["vehicle"]["mass_kg"])
+    t_max = m * kt
+    d["rotors"]["thrust_max_n"] = t_max
+    for ax, key in (("roll_eff", "ixx_kg_m2"), ("pitch_eff", "iyy_kg_m2")):
+        if ax in pooled and pooled[ax].mean > 0:
+            i = t_max / pooled[ax].mean
+            arm = float(np.median(np.hypot(d["rotors"]["x_flu_m"], d["rotors"]["y_flu_m"])))
+            if 0.05 * m * arm ** 2 <= i <= 0.6 * m * arm ** 2:  # the rigid-frame range nominal_from_log accepts
+                d["vehicle"][key] = float(i)
+    if "tau_s" in pooled and math.isfinite(pooled["tau_s"].mean):
+        d["rotors"]["tau_up_s"] = d["rotors"]["tau_down_s"] = pooled["tau_s"].mean
+    eff = d["effects"]
+    if "linear_drag" in eff and "drag_per_mass" in pooled:
+        eff["linear_drag"]["k_n_s_m"] = pooled["drag_per_mass"].mean * m
+    if "com_offset" in eff and "com_dx_m" in pooled and "com_dy_m" in pooled:
+        eff["com_offset"] = {"dx": pooled["com_dx_m"].mean, "dy": pooled["com_dy_m"].mean}
+    d["vehicle"]["name"] = f"vehicle_twin_{len(flights)}_flights"
+    return from_ros_dict(d, "<vehicle twin>")
+
+
+def _header(vp: VehicleParams, pooled: dict[str, Pooled], flights: list[dict], left_out: list[str],
+            pwm: dict) -> str:
+    lines = [f"Vehicle twin pooled over {len(flights)} free flight(s) by 'rotortwin params from-ulog'.",
+             f"Motor PWM range of these flights: {pwm['text']}.",
+             f"Mass {vp.mass_kg:g} kg (given or the airframe's assumed mass; thrust and inertia scale with it).",
+             "Pooled values (mean ± uncertainty, flight-to-flight scatter, flights):"]
+    for v, p in pooled.items():
+        lines.append(f"  {v}: {p.mean:.5g} ± {p.se:.2g}, scatter {p.scatter:.2g}, n {p.n}"
+                     + (f"; disagreeing, not averaged in: {', '.join(p.disagreeing)}" if p.disagreeing else ""))
+    lines.append("Flights: " + ", ".join(f["path"] for f in flights))
+    for lo in left_out:
+        lines.append(f"Left out: {lo}")
+    lines.append("Params of the flight closest to the pooled thrust per mass, with the pooled thrust, inertia, "
+                 "lag, drag and trims. Its own sources:")
+    rep = min(flights, key=lambda f: abs(f["facts"]["kt_per_mass"] - pooled["kt_per_mass"].mean))["nom"]
+    lines += [f"  {k}: {s}" for k, s in rep.sources.items()]
+    facts = {v: {"mean": p.mean, "se": p.se, "scatter": p.scatter, "n": p.n} for v, p in pooled.items()}
+    lines.append(MARK + json.dumps({"pooled": facts, "pwm": pwm, "flights": [f["path"] for f in flights],
+                                    "motor_share": _shares(flights)}, default=float, allow_nan=True))
+    return "\n".join(lines)
+
+
+def _shares(flights: list[dict]) -> dict[str, float]:
+    keys = sorted({k for f in flights for k in f["facts"] if k.startswith("motor_share_m")})
+    return {k: float(np.nanmedian([f["facts"].get(k, math.nan) for f in flights])) for k in keys}
+
+
+def read_vehicle_facts(path: str | os.PathLike[str]) -> dict | None:
+    """The pooled values a vehicle twin's params file carries (:data:`MARK`), None for other params files."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError:  # not text: no vehicle twin (load_params names what is wrong with it)
+        return None
+    except OSError as exc:
+        raise ParamsError(str(path), "<file>", f"a readable params file ({exc.strerror or exc})") from None
+    for line in text.splitlines():
+        if line.startswith("# " + MARK):
+            try:
+                return json.loads(line[2 + len(MARK):])
+            except ValueError:
+                raise ParamsError(str(path), MARK.strip(), "expected the JSON line written by params from-ulog") from None
+        if not line.startswith("#"):
+            break
+    return None
+
+
+#: a value differs from the vehicle twin beyond this many sigmas (scatter and the flight's se together)
+DIFF_SIGMA = 3.0
+
+
+def since_twin(log, path: str, ref: dict) -> dict:
+    """What differs on the flight ``log`` from the vehicle twin's pooled values ``ref`` (as
+    :func:`read_vehicle_facts` returns them): ``{"name", "why", "differs": {value: {...}}, "pwm": [...]}``,
+    named by :func:`twin_nodes.fleet.changes.explain`; ``name`` is ``none`` when nothing differs."""
+    from twin_nodes.fleet.changes import TRACKED, explain, half_width
+    from twin_nodes.fleet.facts import actuator_tests, flight_kind, identified, motor_pwm
+
+    kind, why = flight_kind(log, actuator_tests(path))
+    if kind != "free flight":
+        return {"name": "not compared", "why": f"{kind}: {why}", "differs": {}, "pwm": None}
+    new = identified(log)
+    pwm_new = motor_pwm(log.params, int(log.n_motors))
+    pwm_ref = ref.get("pwm") or {}
+    pwm = None
+    if pwm_ref.get("text") and pwm_new["text"] != pwm_ref["text"]:
+        a, b = (pwm_ref.get("max_us", math.nan) - pwm_ref.get("min_us", math.nan),
+                pwm_new["max_us"] - pwm_new["min_us"])
+        pwm = (a, b) if math.isfinite(a) and math.isfinite(b) and a != b else None
+    ratios, deltas, differs = {}, {}, {}
+    for v, p in (ref.get("pooled") or {}).items():
+        x = new.get(v)
+        if x is None or not math.isfinite(x) or not math.isfinite(p.get("mean", math.nan)):
+            continue
+        sc = p["scatter"] if math.isfinite(p.get("scatter", math.nan)) else 0.0
+        se = math.hypot(sc, new.get(f"{v}_se", 0.0) if math.isfinite(new.get(f"{v}_se", math.nan)) else 0.0)
+        h = half_width(p["mean"], se, 0.0, TRACKED.get(v, (0.05, 0.0))) * DIFF_SIGMA / 3.0
+        if v.startswith("com_"):
+            deltas[v] = (x - p["mean"], se)
+        elif p["mean"]:
+            ratios[v] = (x / p["mean"], se / abs(p["mean"]))
+        if abs(x - p["mean"]) > h and v in TRACKED:
+            differs[v] = {"twin": p["mean"], "flight": x, "band": h}
+    for k, s in (ref.get("motor_share") or {}).items():
+        if k in new and math.isfinite(new[k]) and math.isfinite(s):
+            deltas[k] = (new[k] - s, 0.01)
+    name, why = explain(ratios, deltas, pwm, stepped=set(differs))
+    if not differs and pwm is None and name in ("unexplained",):
+        name, why = "none", "every value within the vehicle twin's flight-to-flight scatter"
+    return {"name": name, "why": why, "differs": differs, "pwm": [pwm_ref.get("text"), pwm_new["text"]],
+            "values": {k: v for k, v in new.items() if not k.endswith("_se")}}
+
+
+def for_flight(vp: VehicleParams, ref: dict | None, log) -> tuple[VehicleParams, str]:
+    """The vehicle twin ``vp`` as it flies ``log``: where the log's motor PWM range differs from the twin's
+    (``ref["pwm"]``), the same command reaches another PWM, so the thrust curve is rescaled by the span ratio
+    ``r``: T(u) = T_max (f (r u)^2 + (1 - f) r u), i.e. ``thrust_max_n`` x (f r^2 + (1 - f) r) and ``thr_mdl_fac``
+    f r^2 / (f r^2 + (1 - f) r).  Returns the params and a one-line note ('' when unchanged)."""
+    from twin_nodes.fleet.facts import motor_pwm
+
+    if not ref or not ref.get("pwm"):
+        return vp, ""
+    new = motor_pwm(log.params, int(log.n_motors))
+    old = ref["pwm"]
+    a = old.get("max_us", math.nan) - old.get("min_us", math.nan)
+    b = new["max_us"] - new["min_us"]
+    if new["text"] == old.get("text") or not (math.isfinite(a) and math.isfinite(b)) or a == b:
+        return vp, ""
+    r = b / a
+    f = float(vp.rotors.thr_mdl_fac)
+    scale = f * r * r + (1 - f) * r
+    f_new = f * r * r / scale if scale > 0 else f
+    out = vp.replace_rotors(thrust_max_n=float(vp.rotors.thrust_max_n) * scale, thr_mdl_fac=float(f_new))
+    return out, (f"motor PWM range {old.get('text')} in the twin, {new['text']} in this log: thrust curve rescaled "
+                 f"by the span ratio {r:.3f} (T_max x{scale:.3f})")
+
+
+#: whole-flight metrics shown for a vehicle twin beside a flight's own nominal
+WHOLE = ("throttle_rmse", "motor_p75_mean", "xy_rmse_m", "z_rmse_m")
+
+
+def beside_own_nominal(path: str, params_file: str) -> dict:
+    """The whole flight flown closed loop by the vehicle twin (rescaled to the log's PWM range) and by the flight's
+    own nominal: ``{"twin": {metric: value}, "own_nominal": {...}, "note"}`` (:data:`WHOLE`)."""
+    from twin_nodes.identify.nominal import params_for_log
+    from twin_nodes.logs.flyable import read_flight
+    from twin_nodes.twin.compare import compare_log
+    from twin_nodes.vehicle.params import load_params
+
+    log = read_flight(path)
+    vp, note = for_flight(load_params(params_file), read_vehicle_facts(params_file), log)
+    own, _ = params_for_log(path, None, log=log)
+    mt = compare_log(log, vp, mode="closed").metrics
+    mo = compare_log(log, load_params(own), mode="closed").metrics
+    return {"twin": {k: mt.get(k) for k in WHOLE}, "own_nominal": {k: mo.get(k) for k in WHOLE}, "note": note}
+
+
+def beside_table(rows: list[dict]) -> str:
+    """Markdown: per flight, the vehicle twin's whole-flight metrics beside its own nominal's."""
+    out = ["| flight | vehicle twin: throttle RMSE % | per-motor P75 % (mean) | XY RMSE m | Z RMSE m | own nominal: "
+           "throttle | P75 | XY | Z |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        w = r.get("whole_flight")
+        if not w:
+            continue
+        if "error" in w:
+            out.append(f"| {r['flight']} | failed: {w['error']} | | | | | | | |")
+            continue
+        t, o = w["twin"], w["own_nominal"]
+        f = lambda d, k, s: f"{d[k] * s:.1f}" if isinstance(d.get(k), float) and d[k] == d[k] else "n/a"  # noqa: E731
+        out.append(f"| {r['flight']} | {f(t, 'throttle_rmse', 100)} | {f(t, 'motor_p75_mean', 100)} | "
+                   f"{f(t, 'xy_rmse_m', 1)} | {f(t, 'z_rmse_m', 1)} | {f(o, 'throttle_rmse', 100)} | "
+                   f"{f(o, 'motor_p75_mean', 100)} | {f(o, 'xy_rmse_m', 1)} | {f(o, 'z_rmse_m', 1)} |")
+    return "\n".join(out)
