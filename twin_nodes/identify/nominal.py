@@ -197,6 +197,8 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
 
     # --- motor time constant: the lag that best explains roll and pitch accelerations, with the thrust
     # units weighted by each rotor's thrust per command (coaxial pairs: the lower rotor's efficiency)
+    lag_scan: dict = {}
+
     def scan_lag(w: np.ndarray) -> tuple[float, str]:
         cost = []
         for tau_k in TAU_SCAN_S:
@@ -206,6 +208,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
         i_best = int(np.argmin(cost))
         near = TAU_SCAN_S[cost <= cost[i_best] * 1.02]
         at_edge = i_best in (0, len(TAU_SCAN_S) - 1)
+        lag_scan.update(near=near, at_edge=at_edge)
         if near.max() - near.min() <= TAU_SPREAD_MAX_S and not at_edge:
             tau_b = float(TAU_SCAN_S[i_best])
             return tau_b, (f"identified: lag explaining roll/pitch acceleration best, {tau_b:.3f} s "
@@ -449,7 +452,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     fits = {"tau_s": tau, "kT/m": kt_m, "kT/m_se": kt_m_se, "hover_command": hover_cmd,
             "drag_n_s_m": drag, "angular_damping": k_w, "roll_r2": rot["roll"].r2, "pitch_r2": rot["pitch"].r2,
             "yaw_r2": rot["yaw"].r2, "z_r2": trans["z"].r2}
-    fits.update(_vehicle_fits(rot, t_max, km, m, drag_se, near, at_edge, battery, dx, dy, lever, tt[steady]))
+    fits.update(_vehicle_fits(rot, t_max, km, m, drag_se, lag_scan["near"], lag_scan["at_edge"], battery, dx, dy, lever, tt[steady]))
     try:
         vp = from_ros_dict(data, log.path)
     except ParamsError as exc:  # e.g. rotors that cannot lift the assumed mass: the fits stay readable
