@@ -105,6 +105,7 @@ import contextlib
 import io
 import logging
 import os
+import warnings as _pywarnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
@@ -979,13 +980,25 @@ def _count_moving(topics: dict[tuple[str, int], _Topic], t: np.ndarray, c: np.nd
     armed = _armed_at(topics, t)
     if armed is not None and armed.any():
         c = c[armed]
-    if c.shape[0] < 2:
-        return 0
-    with np.errstate(invalid="ignore"):
-        finite = np.isfinite(c)
-        spread = np.array([np.ptp(c[finite[:, j], j]) if finite[:, j].sum() > 1 else 0.0
-                           for j in range(c.shape[1])])
-    return int(np.sum(spread > thr))
+    return int(np.sum(_keeps_moving(c, thr)))
+
+
+# A motor output follows the controller: while armed it changes on most samples.  A servo or gimbal
+# channel stepped to its centre (0 -> 1500 us) and held there changes on one sample (C8).
+MOTOR_CHANGE_FRACTION = 0.2
+
+
+def _keeps_moving(c: np.ndarray, thr: float) -> np.ndarray:
+    """Per column of ``c`` (samples x channels, armed samples): True where the finite values range over
+    more than ``thr`` and change (by more than thr/10) on at least MOTOR_CHANGE_FRACTION of the
+    consecutive finite samples."""
+    out = np.zeros(c.shape[1], bool)
+    for j in range(c.shape[1]):
+        v = c[np.isfinite(c[:, j]), j]
+        if v.size < 3 or np.ptp(v) <= thr:
+            continue
+        out[j] = np.mean(np.abs(np.diff(v)) > thr / 10.0) >= MOTOR_CHANGE_FRACTION
+    return out
 
 
 def _channels_vary(tp: _Topic, chans: list[int], topics: dict[tuple[str, int], _Topic]) -> bool:
@@ -995,12 +1008,16 @@ def _channels_vary(tp: _Topic, chans: list[int], topics: dict[tuple[str, int], _
     armed = _armed_at(topics, tp.t_s)
     if armed is not None and armed.any():
         o = o[armed]
-    return bool(o.shape[0] > 1 and np.all(np.nanstd(o, axis=0) > 5.0))
+    return bool(o.shape[0] > 1 and np.all(_keeps_moving(o, 5.0)))
 
 
 def _guess_motor_channels(
     aos: dict[int, _Topic], n: int, topics: dict[tuple[str, int], _Topic], floor: float = 800.0
 ) -> tuple[int | None, list[int]]:
+    """The mixer era's motor channels: in the first ``actuator_outputs`` instance that has ``n`` of them,
+    the first ``n`` channels that keep moving while armed (:func:`_keeps_moving`), stay at or above
+    ``floor`` while armed and rest, while disarmed, at or below their armed range (the disarmed/idle
+    value: 900 or 1000 us PWM_DISARMED, 1190 us on tap_esc; any value, not a fixed threshold)."""
     for inst in sorted(aos):
         tp = aos[inst]
         if not tp.has("output[15]"):
@@ -1010,10 +1027,15 @@ def _guess_motor_channels(
         if armed is None:
             armed = np.ones(o.shape[0], bool)
         oa = o[armed] if armed.any() else o
-        varies = np.nanstd(oa, axis=0) > 5.0 if oa.shape[0] > 1 else np.zeros(16, bool)
-        in_range = np.nanmin(oa, axis=0) >= floor if oa.size else np.zeros(16, bool)
-        low_when_disarmed = (np.nanmin(o, axis=0) <= 1000.0) | ((~armed).sum() == 0)  # PWM_DISARMED 900 or 1000
-        good = np.flatnonzero(varies & in_range & low_when_disarmed)
+        od = o[~armed]
+        with np.errstate(invalid="ignore"), _pywarnings.catch_warnings():
+            _pywarnings.simplefilter("ignore", RuntimeWarning)
+            moving = _keeps_moving(oa, 5.0)
+            in_range = np.nanmin(oa, axis=0) >= floor if oa.size else np.zeros(16, bool)
+            armed_low = np.nanpercentile(oa, 5, axis=0) if oa.size else np.full(16, np.nan)
+            rest_high = np.nanmax(od, axis=0) if od.shape[0] else np.full(16, -np.inf)
+            rests_low = ~(rest_high > armed_low + 5.0)
+        good = np.flatnonzero(moving & in_range & rests_low)
         if good.size >= n:
             return inst, [int(c) for c in good[:n]]
     return None, []
