@@ -85,27 +85,41 @@ def test_normalised_layout_of_an_unknown_airframe_gets_the_class_arm_and_says_as
     assert lay.direction == lay2.direction == (1, 1, -1, -1)
 
 
+START_US = 20_000_000
+
+
 @pytest.fixture(scope="module")
-def normalised_sih_log(tmp_path_factory):
-    """A simulated SIH quad flight logged as PX4 >= 1.14 logs an airframe outside the table: CA_ROTORn
-    normalised to +-1, SYS_AUTOSTART 4003."""
-    from twin_nodes.logs.flyable import read_flight
-    from twin_nodes.logs.ulog_write import write_px4_ulog
+def sim_flight():
+    """A simulated SIH quad flight's PX4 topics and parameters."""
     from twin_nodes.twin.simflight import Hidden, record_to_topics, simulate_flight, simulated_log_params
     from twin_nodes.vehicle.params import shipped
 
     vp = shipped("px4_sih_quadx")
     rec, battery, sp_hist = simulate_flight(vp, Hidden("none", {}), seed=3)
-    topics = record_to_topics(rec, vp, battery, sp_hist, np.random.default_rng(10), start_us=20_000_000)
-    params = simulated_log_params(vp)
+    topics = record_to_topics(rec, vp, battery, sp_hist, np.random.default_rng(10), start_us=START_US)
+    return topics, simulated_log_params(vp)
+
+
+def _write(path, topics, params):
+    from twin_nodes.logs.flyable import read_flight
+    from twin_nodes.logs.ulog_write import write_px4_ulog
+
+    write_px4_ulog(str(path), topics, params, {"sys_name": "test"}, start_us=START_US)
+    return read_flight(str(path))
+
+
+@pytest.fixture(scope="module")
+def normalised_sih_log(sim_flight, tmp_path_factory):
+    """The flight logged as PX4 >= 1.14 logs an airframe outside the table: CA_ROTORn normalised to +-1,
+    SYS_AUTOSTART 4003."""
+    topics, params = sim_flight
+    params = dict(params)
     r = max(np.hypot(params[f"CA_ROTOR{i}_PX"], params[f"CA_ROTOR{i}_PY"]) for i in range(4))
     for i in range(4):
         for ax in "XYZ":
             params[f"CA_ROTOR{i}_P{ax}"] *= np.sqrt(2.0) / r
     params["SYS_AUTOSTART"] = 4003
-    path = tmp_path_factory.mktemp("c7") / "normalised.ulg"
-    write_px4_ulog(str(path), topics, params, {"sys_name": "test"}, start_us=20_000_000)
-    return read_flight(str(path))
+    return _write(tmp_path_factory.mktemp("c7") / "normalised.ulg", topics, params)
 
 
 def test_the_assumed_arm_is_absorbed_by_the_identified_inertia(normalised_sih_log):
@@ -130,3 +144,82 @@ def test_the_assumed_arm_is_absorbed_by_the_identified_inertia(normalised_sih_lo
     assert abs(m1["motor_p75_mean"] - m2["motor_p75_mean"]) < 0.005
     assert abs(m1["xy_rmse_m"] - m2["xy_rmse_m"]) < 0.1
     assert abs(m1["z_rmse_m"] - m2["z_rmse_m"]) < 0.1
+
+
+DRIFT = (40.0, 55.0)  # the estimate walks away (x accelerating at 0.5 m/s^2) while the vehicle hovers on
+REF = (47.39, 8.55)   # the EKF origin [deg]
+
+
+def _with_gps(topics):
+    """The flight's topics with the EKF origin and a GPS receiver (5 Hz, 3D fix) that sees the true track."""
+    out = dict(topics)
+    lp = {k: np.array(v, copy=True) for k, v in topics["vehicle_local_position"].items()}
+    n = lp["timestamp"].size
+    lp["ref_lat"], lp["ref_lon"] = np.full(n, REF[0]), np.full(n, REF[1])
+    out["vehicle_local_position"] = lp
+    k = np.arange(0, n, 5)
+    r = 6371000.0
+    out["vehicle_gps_position"] = {
+        "timestamp": lp["timestamp"][k],
+        "lat": np.round((REF[0] + np.degrees(lp["x"][k] / r)) * 1e7).astype(np.int32),
+        "lon": np.round((REF[1] + np.degrees(lp["y"][k] / (r * np.cos(np.radians(REF[0]))))) * 1e7).astype(np.int32),
+        "fix_type": np.full(k.size, 3, np.uint8)}
+    return out
+
+
+def test_a_diverging_estimate_with_valid_flags_is_found_and_left_out(sim_flight, tmp_path):
+    """C9: the position estimate accelerates away (0.5 m/s^2 north for 15 s: 56 m) while its valid flags
+    stay up and the IMU says nothing of it: the GPS receiver's own fix disagrees by more than 5 m from
+    4.5 s into the drift; those seconds (and no others) are found, and controlled_axes leaves them out
+    of xy and z.  The unedited flight, with and without GPS: nothing found."""
+    from twin_nodes.twin.estimate_check import estimate_failures
+    from twin_nodes.twin.runner import controlled_axes
+
+    topics, params = sim_flight
+    assert estimate_failures(_write(tmp_path / "clean.ulg", topics, params))[0] == []
+    topics = _with_gps(topics)
+    clean = _write(tmp_path / "clean_gps.ulg", topics, params)
+    iv, how = estimate_failures(clean)
+    assert iv == [] and "GPS" in how and "IMU" in how
+    lp = {k: np.array(v, copy=True) for k, v in topics["vehicle_local_position"].items()}
+    s = (lp["timestamp"].astype(np.int64) - START_US) * 1e-6
+    tau = np.clip(s - DRIFT[0], 0.0, DRIFT[1] - DRIFT[0])
+    lp["x"] = lp["x"] + 0.25 * tau ** 2     # NED north
+    lp["vx"] = lp["vx"] + 0.5 * tau * (s < DRIFT[1])
+    log = _write(tmp_path / "drift.ulg", {**topics, "vehicle_local_position": lp}, params)
+    iv, how = estimate_failures(log)
+    assert iv and DRIFT[0] + 3.5 <= iv[0][0] <= DRIFT[0] + 5.0, iv
+    assert all(a >= DRIFT[0] for a, _ in iv)
+    assert sum(b - a for a, b in iv) >= DRIFT[1] - DRIFT[0] - 5.0, iv
+    t = np.arange(DRIFT[0] + 5.0, DRIFT[1], 0.1)
+    xy, z, how = controlled_axes(log, t)
+    assert not xy.any() and not z.any() and "estimate failed" in how
+    xy0, _, _ = controlled_axes(log, np.arange(10.0, DRIFT[0], 0.1))
+    xyc, _, _ = controlled_axes(clean, np.arange(10.0, DRIFT[0], 0.1))
+    assert np.array_equal(xy0, xyc)
+
+
+#: PX4's vehicle_status.msg NAVIGATION_STATE_* (main, 2026; 16 was RATTITUDE up to 1.11, 6/8/9/7 were
+#: AUTO_RCRECOVER/LANDENGFAIL/LANDGPSFAIL/RTGS in older releases): what the twin flies in each
+PX4_NAV_STATES = {0: "MANUAL", 1: "ALTCTL", 2: "POSCTL", 3: "AUTO_MISSION", 4: "AUTO_LOITER", 5: "AUTO_RTL",
+                  6: "POSITION_SLOW", 7: "FREE5", 8: "ALTITUDE_CRUISE", 9: "FREE3", 10: "ACRO", 11: "FREE2",
+                  12: "DESCEND", 13: "TERMINATION", 14: "OFFBOARD", 15: "STAB", 16: "FREE1/RATTITUDE",
+                  17: "AUTO_TAKEOFF", 18: "AUTO_LAND", 19: "AUTO_FOLLOW_TARGET", 20: "AUTO_PRECLAND", 21: "ORBIT",
+                  22: "AUTO_VTOL_TAKEOFF", **{k: f"EXTERNAL{k - 22}" for k in range(23, 31)}}
+
+
+@pytest.mark.parametrize("nav", sorted(PX4_NAV_STATES))
+def test_every_px4_nav_state_is_flown_as_px4_flies_it(nav):
+    """C10: the sticks' modes fly PX4's attitude (MANUAL, STAB, RATTITUDE) or rate (ACRO) setpoint; every
+    other nav_state runs mc_pos_control on the logged trajectory_setpoint (FOLLOW_TARGET 19, ORBIT 21 and
+    the external modes as any AUTO mode)."""
+    from twin_nodes.twin.runner import TwinRunner
+    from twin_nodes.vehicle.params import shipped
+
+    r = TwinRunner(shipped("px4_sih_quadx"), "closed", 2.0)
+    r.px4_mode(nav, 0.5)
+    r.att_q = np.array([1.0, 0.0, 0.0, 0.0])
+    r.rates_sp = np.zeros(3)
+    r.sp[0:3] = [1.0, 2.0, 3.0]
+    expected = {0: "attitude", 15: "attitude", 16: "attitude", 10: "rates"}.get(nav, "cascade")
+    assert r._fly_mode() == expected, PX4_NAV_STATES[nav]

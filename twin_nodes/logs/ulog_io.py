@@ -171,6 +171,8 @@ SERIES_SPEC: dict[str, tuple[str, str, str]] = {
     "land_detector": ("-", "ground_contact, maybe_landed, landed (bool)", "previous"),
     "esc_rpm": ("rpm", "PX4 motor order", "linear"),
     "hover_thrust": ("-", "-", "linear"),
+    "estimator_test_ratios": ("-", "vel, pos, hgt innovation test ratios (> 1: rejected)", "previous"),
+    "gps_position_enu": ("m", "ENU, from the receiver's lat/lon about the EKF origin; NaN without a 3D fix", "linear"),
     "groundtruth_position_enu": ("m", "ENU", "linear"),
     "groundtruth_velocity_enu": ("m/s", "ENU", "linear"),
     "groundtruth_attitude_q": ("-", "q_wxyz FLU->ENU", "slerp"),
@@ -203,6 +205,8 @@ TOPICS = (
     "vehicle_land_detected",
     "esc_status",
     "hover_thrust_estimate",
+    "estimator_status",
+    "vehicle_gps_position",
     "vehicle_local_position_groundtruth",
     "vehicle_attitude_groundtruth",
     "vehicle_angular_velocity_groundtruth",
@@ -1041,6 +1045,37 @@ def _guess_motor_channels(
     return None, []
 
 
+_EARTH_R_M = 6371000.0
+
+
+def _gps_enu(gp: _Topic | None, lpos: _Topic | None) -> Series | None:
+    """``vehicle_gps_position`` lat/lon (1e-7 deg ints, or ``latitude_deg``/``longitude_deg`` in PX4 >= 1.15)
+    as east/north metres about ``vehicle_local_position.ref_lat/ref_lon`` (the EKF origin at each fix's time;
+    equirectangular, < 0.1 % off within 10 km); up is NaN (the EKF's height is baro-referenced); NaN
+    without a 3D fix (``fix_type`` < 3)."""
+    if gp is None or lpos is None or not lpos.has("ref_lat", "ref_lon") or len(gp.t_us) < 2:
+        return None
+    if gp.has("latitude_deg", "longitude_deg"):
+        lat, lon, src = gp.col("latitude_deg"), gp.col("longitude_deg"), "latitude_deg, longitude_deg"
+    elif gp.has("lat", "lon"):
+        lat, lon, src = gp.col("lat") * 1e-7, gp.col("lon") * 1e-7, "lat, lon"
+    else:
+        return None
+    ref_ok = (lpos.col("ref_lat") != 0.0) | (lpos.col("ref_lon") != 0.0)
+    if not ref_ok.any():
+        return None
+    lt, rl = lpos.t_s[ref_ok], lpos.subset(ref_ok)
+    rlat = time_sync.interp_to(lt, rl.col("ref_lat"), gp.t_s, kind="previous")
+    rlon = time_sync.interp_to(lt, rl.col("ref_lon"), gp.t_s, kind="previous")
+    north = np.radians(lat - rlat) * _EARTH_R_M
+    east = np.radians(lon - rlon) * _EARTH_R_M * np.cos(np.radians(rlat))
+    fix = gp.col("fix_type") >= 3 if gp.has("fix_type") else np.ones(len(lat), bool)
+    ok = fix & np.isfinite(north) & np.isfinite(east) & (np.abs(north) < 1e6) & (np.abs(east) < 1e6)
+    v = np.column_stack([np.where(ok, east, np.nan), np.where(ok, north, np.nan), np.full(len(lat), np.nan)])
+    return _series("gps_position_enu", gp.t_s, v, f"vehicle_gps_position.{src} about vehicle_local_position."
+                                                  "ref_lat/ref_lon (fix_type >= 3)")
+
+
 def _lpos_series(tp: _Topic, prefix: str, out: dict[str, Series], warnings: list[str],
                  source: str) -> None:
     t = tp.t_s
@@ -1362,6 +1397,18 @@ def _build_series(
         out["hover_thrust"] = _series("hover_thrust", hte.t_s, h,
                                       "hover_thrust_estimate.hover_thrust (NaN when not valid)")
 
+    # --- the estimator's own innovation test ratios (> 1: the measurement was rejected; C9)
+    es = get("estimator_status")
+    if es is not None and es.has("vel_test_ratio", "pos_test_ratio", "hgt_test_ratio"):
+        out["estimator_test_ratios"] = _series(
+            "estimator_test_ratios", es.t_s, es.cols(["vel_test_ratio", "pos_test_ratio", "hgt_test_ratio"]),
+            "estimator_status.vel_test_ratio, pos_test_ratio, hgt_test_ratio")
+
+    # --- the GPS receiver's own position about the estimator's origin (C9: an independent check)
+    gps = _gps_enu(get("vehicle_gps_position"), lpos)
+    if gps is not None:
+        out["gps_position_enu"] = gps
+
     # --- SITL ground truth
     gl = get("vehicle_local_position_groundtruth")
     if gl is not None:
@@ -1406,7 +1453,8 @@ _QUAT_SERIES = ("attitude_q", "groundtruth_attitude_q")
 _QUAT_NORM_TOL = 0.1
 #: series no twin needs (a log without them flies): when corrupt they are left out with a warning, not
 #: refused (PX4 1.13.2 logs battery_status.current_a = -inf without a current sensor)
-_OPTIONAL_SERIES = ("battery_v", "battery_a", "esc_rpm", "height_agl", "hover_thrust")
+_OPTIONAL_SERIES = ("battery_v", "battery_a", "esc_rpm", "height_agl", "hover_thrust", "estimator_test_ratios",
+                    "gps_position_enu")
 #: more than this fraction of a series' samples corrupt: the series is refused, not repaired
 _MAX_BAD_FRACTION = 0.5
 

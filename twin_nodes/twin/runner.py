@@ -533,4 +533,24 @@ def controlled_axes(log, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
             running &= (ns != OFFBOARD_NAV_STATE) | traj_flag
         xy &= running
         z &= running
+    bad, bad_how = estimate_failed(log, t)
+    if bad.any():
+        xy &= ~bad
+        z &= ~bad
+        how += f"; not where the vehicle's own position estimate failed ({bad_how})"
     return xy, z, how
+
+
+def estimate_failed(log, t: np.ndarray) -> tuple[np.ndarray, str]:
+    """True at the times ``t`` where the vehicle's position estimate failed
+    (:func:`twin_nodes.twin.estimate_check.estimate_failures`, computed once per log), and how it was checked."""
+    from twin_nodes.twin.estimate_check import estimate_failures, failed_at
+
+    cached = getattr(log, "_estimate_failures", None)
+    if cached is None:
+        cached = estimate_failures(log)
+        try:
+            log._estimate_failures = cached
+        except AttributeError:  # a log type without attributes: recomputed each call
+            pass
+    return failed_at(cached[0], t), cached[1]
