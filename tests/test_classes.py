@@ -223,3 +223,18 @@ def test_every_px4_nav_state_is_flown_as_px4_flies_it(nav):
     r.sp[0:3] = [1.0, 2.0, 3.0]
     expected = {0: "attitude", 15: "attitude", 16: "attitude", 10: "rates"}.get(nav, "cascade")
     assert r._fly_mode() == expected, PX4_NAV_STATES[nav]
+
+
+def test_a_log_that_starts_in_the_air_is_measured_from_its_touchdown():
+    """A log started while flying (the Mantis follow flights: armed and airborne from the first sample)
+    has no take-off height: the rise is measured from the lower of its first and last height (8.5 m here,
+    not 0.25 m from the first sample); a hop that never rose stays a hop."""
+    from twin_nodes.logs.flyable import _max_rise
+    from twin_nodes.logs.ulog_io import Series
+
+    t = np.linspace(0.0, 100.0, 1001)
+    z = np.where(t < 95.0, 8.5 + 0.25 * np.sin(t), 8.5 * (100.0 - t) / 5.0)
+    pos = Series(t, np.column_stack([0 * t, 0 * t, z]), "m", "ENU", "test", "linear")
+    assert _max_rise(pos, [(0.0, 100.0)]) == pytest.approx(8.75, abs=0.01)
+    hop = Series(t, np.column_stack([0 * t, 0 * t, 0.2 * np.sin(np.pi * t / 100.0)]), "m", "ENU", "test", "linear")
+    assert _max_rise(hop, [(0.0, 100.0)]) == pytest.approx(0.2, abs=0.01)

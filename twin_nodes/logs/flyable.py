@@ -52,8 +52,9 @@ def _airborne_source(log: FlightLog) -> tuple[str, str]:
 
 
 def _max_rise(pos, intervals: list[tuple[float, float]]) -> float | None:
-    """Highest rise [m] above the take-off height (the height at each interval's start) over the airborne
-    intervals; None when the height is unknown there."""
+    """Highest rise [m] above the ground over the airborne intervals: the lower of the take-off and
+    touchdown heights (each interval's first and last height; a log that starts in the air has no
+    take-off height, its touchdown gives the ground); None when the height is unknown there."""
     best = None
     for a, b in intervals:
         inside = (pos.t_s >= a) & (pos.t_s <= b)
@@ -61,7 +62,7 @@ def _max_rise(pos, intervals: list[tuple[float, float]]) -> float | None:
         z = z[np.isfinite(z)]
         if z.size < 2:
             continue
-        r = float(z.max() - z[0])
+        r = float(z.max() - min(z[0], z[-1]))
         best = r if best is None else max(best, r)
     return best
 
@@ -105,7 +106,8 @@ def check_flyable(log: FlightLog, *, airborne: bool = True, horizontal: bool = T
     if rise is not None and rise < MIN_RISE_M:
         raise LogError(path, "vehicle_local_position.z",
                        f"never left the ground: expected it to rise at least {MIN_RISE_M:g} m above where it took "
-                       f"off, it rose {rise:.2f} m in the {air:.1f} s '{_airborne_source(log)[0]}' calls airborne "
+                       f"off or landed, it rose {rise:.2f} m in the {air:.1f} s '{_airborne_source(log)[0]}' calls "
+                       f"airborne "
                        f"(a hop in ground effect, a held or tethered vehicle, a bench test, or a height estimate that "
                        f"never moved)")
     if not horizontal:
