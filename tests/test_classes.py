@@ -238,3 +238,23 @@ def test_a_log_that_starts_in_the_air_is_measured_from_its_touchdown():
     assert _max_rise(pos, [(0.0, 100.0)]) == pytest.approx(8.75, abs=0.01)
     hop = Series(t, np.column_stack([0 * t, 0 * t, 0.2 * np.sin(np.pi * t / 100.0)]), "m", "ENU", "test", "linear")
     assert _max_rise(hop, [(0.0, 100.0)]) == pytest.approx(0.2, abs=0.01)
+
+
+def test_tap_esc_outputs_are_scaled_by_tap_esc_range():
+    """C3's H480/Mantis outputs are tap_esc's: 1200..1900 is the mixer's 0..1 (drv_tap_esc.h), rest at 1190;
+    the log has no PWM limits.  Known by the 1190 rest, the ESC_* parameters or the airframe; a log with
+    PWM limits is PWM whatever it rests at."""
+    from twin_nodes.logs import legacy_topics as L
+
+    rest = np.full((20, 4), 1190.0)
+    assert L.tap_esc({"SYS_AUTOSTART": 6021}, rest).startswith("outputs rest at")
+    assert L.tap_esc({"ESC_FW_VER": 205}, rest[:0]).startswith("tap_esc parameters")
+    assert L.tap_esc({"SYS_AUTOSTART": 4061}, rest[:0]) == "SYS_AUTOSTART 4061 is a tap_esc airframe"
+    assert L.tap_esc({"SYS_AUTOSTART": 4001}, np.full((20, 4), 1000.0)) is None
+    assert L.tap_esc({"PWM_MIN": 1075, "SYS_AUTOSTART": 6021}, rest) is None
+    topics = _flight(1190.0, servo=False)
+    series = U._motors_from_pwm(topics, {"SYS_AUTOSTART": 6021}, 4, [])
+    pwm = topics[("actuator_outputs", 0)].arr("output", 4)
+    armed = U._armed_at(topics, topics[("actuator_outputs", 0)].t_s)
+    assert np.allclose(series.values[armed], np.clip((pwm[armed] - 1200.0) / 700.0, 0, 1))
+    assert "tap_esc RPMMIN-RPMMAX 1200-1900" in series.source

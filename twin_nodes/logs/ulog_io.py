@@ -913,6 +913,10 @@ def _motors_from_pwm(
         o = aos[inst].arr("output", 16)[:, chans]
         # the mixer era's limits: PWM per PX4 version, or UAVCAN/DShot units
         lo, hi, how = legacy_topics.output_limits(params, bank, chans, o[armed] if armed is not None else o)
+        tap = legacy_topics.tap_esc(params, o[~armed] if armed is not None else o[:0])
+        if tap is not None and how.startswith("PX4 default"):
+            lo, hi = (np.full(len(chans), v) for v in legacy_topics.TAP_ESC_RANGE)
+            how = f"tap_esc RPMMIN-RPMMAX 1200-1900 ({tap})"
         why = (f"output-function parameters map only {len(mapping)} of {n} motors" if mapping
                else "no output-function parameters")
         warnings.append(f"motors: {why}; channels {chans} of actuator_outputs[{inst}] chosen "
