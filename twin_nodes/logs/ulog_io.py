@@ -991,21 +991,24 @@ def _count_moving(topics: dict[tuple[str, int], _Topic], t: np.ndarray, c: np.nd
     return int(np.sum(_keeps_moving(c, thr)))
 
 
-# A motor output follows the controller: while armed it changes on most samples.  A servo or gimbal
-# channel stepped to its centre (0 -> 1500 us) and held there changes on one sample (C8).
-MOTOR_CHANGE_FRACTION = 0.2
+# A motor output follows the controller: while armed it keeps changing (a motor pinned at a bound for most
+# of a saturated flight still changes on a few % of the samples).  A servo or gimbal channel stepped to its
+# centre (0 -> 1500 us) and held there changes on one sample (C8).
+MOTOR_CHANGE_FRACTION = 0.02
+MOTOR_MIN_CHANGES = 10
 
 
 def _keeps_moving(c: np.ndarray, thr: float) -> np.ndarray:
     """Per column of ``c`` (samples x channels, armed samples): True where the finite values range over
-    more than ``thr`` and change (by more than thr/10) on at least MOTOR_CHANGE_FRACTION of the
-    consecutive finite samples."""
+    more than ``thr`` and change (by more than thr/10) at least MOTOR_MIN_CHANGES times and on at least
+    MOTOR_CHANGE_FRACTION of the consecutive finite samples."""
     out = np.zeros(c.shape[1], bool)
     for j in range(c.shape[1]):
         v = c[np.isfinite(c[:, j]), j]
         if v.size < 3 or np.ptp(v) <= thr:
             continue
-        out[j] = np.mean(np.abs(np.diff(v)) > thr / 10.0) >= MOTOR_CHANGE_FRACTION
+        ch = np.abs(np.diff(v)) > thr / 10.0
+        out[j] = ch.sum() >= MOTOR_MIN_CHANGES and ch.mean() >= MOTOR_CHANGE_FRACTION
     return out
 
 
