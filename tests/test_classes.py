@@ -238,6 +238,10 @@ def test_a_log_that_starts_in_the_air_is_measured_from_its_touchdown():
     assert _max_rise(pos, [(0.0, 100.0)]) == pytest.approx(8.75, abs=0.01)
     hop = Series(t, np.column_stack([0 * t, 0 * t, 0.2 * np.sin(np.pi * t / 100.0)]), "m", "ENU", "test", "linear")
     assert _max_rise(hop, [(0.0, 100.0)]) == pytest.approx(0.2, abs=0.01)
+    # a take-off in the log: its height is the ground (a bench log whose baro drifts down 1 m stays a hop)
+    drift = Series(t, np.column_stack([0 * t, 0 * t, -t / 100.0]), "m", "ENU", "test", "linear")
+    assert _max_rise(drift, [(5.0, 100.0)]) == pytest.approx(0.0, abs=0.01)
+    assert _max_rise(drift, [(0.0, 100.0)]) == pytest.approx(1.0, abs=0.01)
 
 
 def test_tap_esc_outputs_are_scaled_by_tap_esc_range():
