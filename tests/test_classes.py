@@ -262,3 +262,23 @@ def test_tap_esc_outputs_are_scaled_by_tap_esc_range():
     armed = U._armed_at(topics, topics[("actuator_outputs", 0)].t_s)
     assert np.allclose(series.values[armed], np.clip((pwm[armed] - 1200.0) / 700.0, 0, 1))
     assert "tap_esc RPMMIN-RPMMAX 1200-1900" in series.source
+
+
+def test_px4_18_velocity_only_axes_keep_their_velocity_setpoint():
+    """PX4 1.8's vehicle_local_position_setpoint: where an axis has no position setpoint (z NaN in AUTO
+    land, vz = MPC_LAND_SPEED 0.8) its vz is the setpoint itself; on position-held axes the feed-forward
+    is vx - (x - position) * MPC_XY_P (the H480 RTL descent flew at 0.8 m/s; the twin got NaN)."""
+    from twin_nodes.logs import legacy_topics as L
+
+    t = np.arange(0.0, 2.0, 0.1)
+    n = t.size
+    sp = U._Topic("vehicle_local_position_setpoint", 0, (t * 1e6).astype(np.int64),
+                  {"x": np.full(n, 1.0), "y": np.zeros(n), "z": np.full(n, np.nan),
+                   "vx": np.full(n, 0.95), "vy": np.zeros(n), "vz": np.full(n, 0.8)})
+    lp = U._Topic("vehicle_local_position", 0, (t * 1e6).astype(np.int64),
+                  {"x": np.full(n, 0.5), "y": np.zeros(n), "z": np.full(n, -10.0)})
+    out = L.setpoint_arrays(sp, "vehicle_local_position_setpoint", lp, {"MPC_XY_P": 0.9, "MPC_Z_P": 1.0})
+    v = out["velocity"][0]
+    assert np.allclose(v[:, 2], 0.8)
+    assert np.allclose(v[:, 0], 0.95 - 0.5 * 0.9)
+    assert np.isnan(out["position"][0][:, 2]).all()

@@ -156,9 +156,12 @@ def setpoint_arrays(tp: Any, name: str, lpos: Any, params: dict[str, float]
     from twin_nodes.logs import time_sync
 
     p_real = time_sync.interp_to(lpos.t_s, lpos.cols(["x", "y", "z"]), tp.t_s, kind="linear")
-    ff = vel - (pos - p_real) * np.array([kxy, kxy, kz])
+    # an axis without a position setpoint (NaN: AUTO land's descent at MPC_LAND_SPEED, the sticks in
+    # POSCTL/ALTCTL) is velocity-controlled: its vx..vz is the setpoint itself, no position term to take out
+    term = (pos - p_real) * np.array([kxy, kxy, kz])
+    ff = vel - np.where(np.isfinite(pos), term, 0.0)
     out["velocity"] = (ff, f"{name}.vx,vy,vz - (x,y,z - position) * MPC_XY_P/MPC_Z_P "
-                           "(the feed-forward, NED)")
+                           "(the feed-forward, NED; as logged on axes without a position setpoint)")
     return out
 
 
