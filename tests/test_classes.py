@@ -282,3 +282,21 @@ def test_px4_18_velocity_only_axes_keep_their_velocity_setpoint():
     assert np.allclose(v[:, 2], 0.8)
     assert np.allclose(v[:, 0], 0.95 - 0.5 * 0.9)
     assert np.isnan(out["position"][0][:, 2]).all()
+
+
+def test_setpoint_gaps_longer_than_a_second_are_bridged_and_short_ones_held():
+    """C10: the Mantis follow flights' trajectory_setpoint has logging gaps of up to 4.4 s while the
+    target moved 9 m: across a gap > 1 s the twin flies the straight line between the logged samples
+    (what PX4's 50 Hz setpoint did, near enough), not the old sample then a jump; a 0.4 s gap is held."""
+    from twin_nodes.twin.runner import bridge_setpoint_gaps
+
+    ts = np.array([0.0, 0.4, 4.4, 4.8])
+    vals = np.array([[0.0, 0.0, 5.0], [0.0, 0.0, 5.0], [8.0, -4.0, np.nan], [8.0, -4.0, 5.0]])
+    grid = np.arange(0.0, 4.8, 0.1)
+    k = np.searchsorted(ts, grid, side="right") - 1
+    held = vals[k]
+    out = bridge_setpoint_gaps(ts, vals, grid, held)
+    mid = np.isclose(grid, 2.4)
+    assert np.allclose(out[mid, :2], [[4.0, -2.0]])
+    assert np.allclose(out[mid, 2], 5.0)                  # an axis NaN at one end: held
+    assert np.allclose(out[grid < 0.4], held[grid < 0.4])  # the 0.4 s gap: held
