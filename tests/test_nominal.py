@@ -158,12 +158,14 @@ def test_normalised_mix_matches_px4_quad_x():
     assert np.all(np.sign(mix[:, 0]) == np.sign([-a, a, a, -a]))
 
 
-def test_normalised_layout_needs_an_arm():
+def test_normalised_layout_of_an_unknown_airframe_takes_the_class_arm():
+    """(issue 24 C7; was: asks for --arm-m) the quad class's ASSUMED arm, said; --arm-m wins."""
     params = {"SYS_AUTOSTART": 4321, "CA_ROTOR_COUNT": 4}
     for i, (x, y) in enumerate([(1, 1), (-1, -1), (1, -1), (-1, 1)]):
         params.update({f"CA_ROTOR{i}_PX": x, f"CA_ROTOR{i}_PY": y})
-    with pytest.raises(Exception, match="--arm-m"):
-        rotor_layout(params, "x.ulg")
+    lay = rotor_layout(params, "x.ulg")
+    assert math.hypot(lay.x_flu_m[0], lay.y_flu_m[0]) == pytest.approx(0.25)
+    assert "ASSUMED 0.25 m arm" in lay.source
     lay = rotor_layout(params, "x.ulg", arm_m=0.3)
     assert math.hypot(lay.x_flu_m[0], lay.y_flu_m[0]) == pytest.approx(0.3)
 

@@ -26,7 +26,7 @@ TARGETS = {"throttle_rmse": 0.03, "motor_p75_mean": 0.05, "xy_rmse_m": 1.0, "z_r
 THROTTLE_HF_FACTOR = 1.25
 #: the metrics a row carries from the closed-loop held-out run
 ROW_KEYS = ("throttle_rmse", "motor_p75_mean", "xy_rmse_m", "z_rmse_m", "throttle_real_hf_rms", "controlled_s",
-            "divergence")
+            "divergence", "estimate_failed_s")
 #: a LogError naming one of these is a flight left out (no flight to fit), not a failure
 LEFT_OUT_KINDS = ("never airborne", "never left the ground", "too short")
 
@@ -152,7 +152,9 @@ def meets_targets(m: dict) -> dict[str, bool]:
 
 def _axes(m: dict) -> str:
     cs = m.get("controlled_s") or {}
-    return ", ".join(f"{k} {v:.0f}" for k, v in cs.items() if v) or "none"
+    axes = ", ".join(f"{k} {v:.0f}" for k, v in cs.items() if v) or "none"
+    ef = m.get("estimate_failed_s") or 0.0
+    return axes + (f"; estimate failed {ef:.0f} s, not scored" if ef else "")
 
 
 def _div(m: dict) -> str:

@@ -51,9 +51,15 @@ def _airborne_source(log: FlightLog) -> tuple[str, str]:
     return "vehicle_local_position.z", "never more than 1 m above its lowest point"
 
 
+#: an airborne interval starting this close to the log's first height sample started before the log [s]
+LOG_START_S = 1.0
+
+
 def _max_rise(pos, intervals: list[tuple[float, float]]) -> float | None:
-    """Highest rise [m] above the take-off height (the height at each interval's start) over the airborne
-    intervals; None when the height is unknown there."""
+    """Highest rise [m] above the ground over the airborne intervals: above the take-off height (each
+    interval's first height), or, for an interval the log starts in (within LOG_START_S of the first
+    height sample: no take-off in the log), above its touchdown height (its last); None when the height
+    is unknown there."""
     best = None
     for a, b in intervals:
         inside = (pos.t_s >= a) & (pos.t_s <= b)
@@ -61,7 +67,8 @@ def _max_rise(pos, intervals: list[tuple[float, float]]) -> float | None:
         z = z[np.isfinite(z)]
         if z.size < 2:
             continue
-        r = float(z.max() - z[0])
+        ground = z[-1] if a <= float(pos.t_s[0]) + LOG_START_S else z[0]
+        r = float(z.max() - ground)
         best = r if best is None else max(best, r)
     return best
 
@@ -105,7 +112,9 @@ def check_flyable(log: FlightLog, *, airborne: bool = True, horizontal: bool = T
     if rise is not None and rise < MIN_RISE_M:
         raise LogError(path, "vehicle_local_position.z",
                        f"never left the ground: expected it to rise at least {MIN_RISE_M:g} m above where it took "
-                       f"off, it rose {rise:.2f} m in the {air:.1f} s '{_airborne_source(log)[0]}' calls airborne "
+                       f"off (or landed, for a log started in the air), it rose {rise:.2f} m in the {air:.1f} s "
+                       f"'{_airborne_source(log)[0]}' calls "
+                       f"airborne "
                        f"(a hop in ground effect, a held or tethered vehicle, a bench test, or a height estimate that "
                        f"never moved)")
     if not horizontal:

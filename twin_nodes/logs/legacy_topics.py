@@ -156,9 +156,12 @@ def setpoint_arrays(tp: Any, name: str, lpos: Any, params: dict[str, float]
     from twin_nodes.logs import time_sync
 
     p_real = time_sync.interp_to(lpos.t_s, lpos.cols(["x", "y", "z"]), tp.t_s, kind="linear")
-    ff = vel - (pos - p_real) * np.array([kxy, kxy, kz])
+    # an axis without a position setpoint (NaN: AUTO land's descent at MPC_LAND_SPEED, the sticks in
+    # POSCTL/ALTCTL) is velocity-controlled: its vx..vz is the setpoint itself, no position term to take out
+    term = (pos - p_real) * np.array([kxy, kxy, kz])
+    ff = vel - np.where(np.isfinite(pos), term, 0.0)
     out["velocity"] = (ff, f"{name}.vx,vy,vz - (x,y,z - position) * MPC_XY_P/MPC_Z_P "
-                           "(the feed-forward, NED)")
+                           "(the feed-forward, NED; as logged on axes without a position setpoint)")
     return out
 
 
@@ -207,6 +210,31 @@ def output_protocol(params: dict[str, float]) -> str:
     if (_param(params, "DSHOT_CONFIG") or 0) > 0 or any(-5 <= v <= -2 for v in tim):
         return "dshot"
     return "pwm"
+
+
+#: PX4's tap_esc driver (Yuneec Typhoon H480, ATL Mantis EDU): ``drv_tap_esc.h`` RPMMIN 1200, RPMMAX 1900,
+#: RPMSTOPPED = RPMMIN - 10; the mixer's 0..1 is written as 1200..1900 in ``actuator_outputs``
+TAP_ESC_RANGE = (1200.0, 1900.0)
+TAP_ESC_STOPPED = 1190.0
+#: airframes built on tap_esc boards (TAP_V2 H480 6021, Mantis EDU 4061): their logs carry no PWM limits
+TAP_ESC_AIRFRAMES = (4061, 6021)
+
+
+def tap_esc(params: dict[str, float], disarmed: np.ndarray) -> str | None:
+    """Why this log's motor outputs are tap_esc's (``TAP_ESC_RANGE``), or None: no PWM limit parameter in
+    the log and either the channels rest at RPMSTOPPED 1190 while disarmed (``disarmed``: their values
+    then, any shape), the tap_esc parameters ``ESC_FW_VER``/``ESC_BL_VER`` or a tap_esc airframe."""
+    if any(k.startswith(("PWM_MIN", "PWM_MAX", "PWM_MAIN_MIN", "PWM_MAIN_MAX")) for k in params):
+        return None
+    d = disarmed[np.isfinite(disarmed)]
+    if d.size and np.mean(np.abs(d - TAP_ESC_STOPPED) < 0.5) > 0.5:
+        return "outputs rest at tap_esc's RPMSTOPPED 1190 while disarmed"
+    if "ESC_FW_VER" in params or "ESC_BL_VER" in params:
+        return "tap_esc parameters ESC_FW_VER/ESC_BL_VER"
+    a = _param(params, "SYS_AUTOSTART")
+    if a is not None and int(a) in TAP_ESC_AIRFRAMES:
+        return f"SYS_AUTOSTART {int(a)} is a tap_esc airframe"
+    return None
 
 
 def armed_floor(params: dict[str, float]) -> float:

@@ -105,6 +105,7 @@ import contextlib
 import io
 import logging
 import os
+import warnings as _pywarnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
@@ -170,6 +171,8 @@ SERIES_SPEC: dict[str, tuple[str, str, str]] = {
     "land_detector": ("-", "ground_contact, maybe_landed, landed (bool)", "previous"),
     "esc_rpm": ("rpm", "PX4 motor order", "linear"),
     "hover_thrust": ("-", "-", "linear"),
+    "estimator_test_ratios": ("-", "vel, pos, hgt innovation test ratios (> 1: rejected)", "previous"),
+    "gps_position_enu": ("m", "ENU, from the receiver's lat/lon about the EKF origin; NaN without a 3D fix", "linear"),
     "groundtruth_position_enu": ("m", "ENU", "linear"),
     "groundtruth_velocity_enu": ("m/s", "ENU", "linear"),
     "groundtruth_attitude_q": ("-", "q_wxyz FLU->ENU", "slerp"),
@@ -202,6 +205,8 @@ TOPICS = (
     "vehicle_land_detected",
     "esc_status",
     "hover_thrust_estimate",
+    "estimator_status",
+    "vehicle_gps_position",
     "vehicle_local_position_groundtruth",
     "vehicle_attitude_groundtruth",
     "vehicle_angular_velocity_groundtruth",
@@ -908,6 +913,10 @@ def _motors_from_pwm(
         o = aos[inst].arr("output", 16)[:, chans]
         # the mixer era's limits: PWM per PX4 version, or UAVCAN/DShot units
         lo, hi, how = legacy_topics.output_limits(params, bank, chans, o[armed] if armed is not None else o)
+        tap = legacy_topics.tap_esc(params, o[~armed] if armed is not None else o[:0])
+        if tap is not None and how.startswith("PX4 default"):
+            lo, hi = (np.full(len(chans), v) for v in legacy_topics.TAP_ESC_RANGE)
+            how = f"tap_esc RPMMIN-RPMMAX 1200-1900 ({tap})"
         why = (f"output-function parameters map only {len(mapping)} of {n} motors" if mapping
                else "no output-function parameters")
         warnings.append(f"motors: {why}; channels {chans} of actuator_outputs[{inst}] chosen "
@@ -979,13 +988,28 @@ def _count_moving(topics: dict[tuple[str, int], _Topic], t: np.ndarray, c: np.nd
     armed = _armed_at(topics, t)
     if armed is not None and armed.any():
         c = c[armed]
-    if c.shape[0] < 2:
-        return 0
-    with np.errstate(invalid="ignore"):
-        finite = np.isfinite(c)
-        spread = np.array([np.ptp(c[finite[:, j], j]) if finite[:, j].sum() > 1 else 0.0
-                           for j in range(c.shape[1])])
-    return int(np.sum(spread > thr))
+    return int(np.sum(_keeps_moving(c, thr)))
+
+
+# A motor output follows the controller: while armed it keeps changing (a motor pinned at a bound for most
+# of a saturated flight still changes on a few % of the samples).  A servo or gimbal channel stepped to its
+# centre (0 -> 1500 us) and held there changes on one sample (C8).
+MOTOR_CHANGE_FRACTION = 0.02
+MOTOR_MIN_CHANGES = 10
+
+
+def _keeps_moving(c: np.ndarray, thr: float) -> np.ndarray:
+    """Per column of ``c`` (samples x channels, armed samples): True where the finite values range over
+    more than ``thr`` and change (by more than thr/10) at least MOTOR_MIN_CHANGES times and on at least
+    MOTOR_CHANGE_FRACTION of the consecutive finite samples."""
+    out = np.zeros(c.shape[1], bool)
+    for j in range(c.shape[1]):
+        v = c[np.isfinite(c[:, j]), j]
+        if v.size < 3 or np.ptp(v) <= thr:
+            continue
+        ch = np.abs(np.diff(v)) > thr / 10.0
+        out[j] = ch.sum() >= MOTOR_MIN_CHANGES and ch.mean() >= MOTOR_CHANGE_FRACTION
+    return out
 
 
 def _channels_vary(tp: _Topic, chans: list[int], topics: dict[tuple[str, int], _Topic]) -> bool:
@@ -995,12 +1019,16 @@ def _channels_vary(tp: _Topic, chans: list[int], topics: dict[tuple[str, int], _
     armed = _armed_at(topics, tp.t_s)
     if armed is not None and armed.any():
         o = o[armed]
-    return bool(o.shape[0] > 1 and np.all(np.nanstd(o, axis=0) > 5.0))
+    return bool(o.shape[0] > 1 and np.all(_keeps_moving(o, 5.0)))
 
 
 def _guess_motor_channels(
     aos: dict[int, _Topic], n: int, topics: dict[tuple[str, int], _Topic], floor: float = 800.0
 ) -> tuple[int | None, list[int]]:
+    """The mixer era's motor channels: in the first ``actuator_outputs`` instance that has ``n`` of them,
+    the first ``n`` channels that keep moving while armed (:func:`_keeps_moving`), stay at or above
+    ``floor`` while armed and rest, while disarmed, at or below their armed range (the disarmed/idle
+    value: 900 or 1000 us PWM_DISARMED, 1190 us on tap_esc; any value, not a fixed threshold)."""
     for inst in sorted(aos):
         tp = aos[inst]
         if not tp.has("output[15]"):
@@ -1010,13 +1038,49 @@ def _guess_motor_channels(
         if armed is None:
             armed = np.ones(o.shape[0], bool)
         oa = o[armed] if armed.any() else o
-        varies = np.nanstd(oa, axis=0) > 5.0 if oa.shape[0] > 1 else np.zeros(16, bool)
-        in_range = np.nanmin(oa, axis=0) >= floor if oa.size else np.zeros(16, bool)
-        low_when_disarmed = (np.nanmin(o, axis=0) <= 1000.0) | ((~armed).sum() == 0)  # PWM_DISARMED 900 or 1000
-        good = np.flatnonzero(varies & in_range & low_when_disarmed)
+        od = o[~armed]
+        with np.errstate(invalid="ignore"), _pywarnings.catch_warnings():
+            _pywarnings.simplefilter("ignore", RuntimeWarning)
+            moving = _keeps_moving(oa, 5.0)
+            in_range = np.nanmin(oa, axis=0) >= floor if oa.size else np.zeros(16, bool)
+            armed_low = np.nanpercentile(oa, 5, axis=0) if oa.size else np.full(16, np.nan)
+            rest_high = np.nanmax(od, axis=0) if od.shape[0] else np.full(16, -np.inf)
+            rests_low = ~(rest_high > armed_low + 5.0)
+        good = np.flatnonzero(moving & in_range & rests_low)
         if good.size >= n:
             return inst, [int(c) for c in good[:n]]
     return None, []
+
+
+_EARTH_R_M = 6371000.0
+
+
+def _gps_enu(gp: _Topic | None, lpos: _Topic | None) -> Series | None:
+    """``vehicle_gps_position`` lat/lon (1e-7 deg ints, or ``latitude_deg``/``longitude_deg`` in PX4 >= 1.15)
+    as east/north metres about ``vehicle_local_position.ref_lat/ref_lon`` (the EKF origin at each fix's time;
+    equirectangular, < 0.1 % off within 10 km); up is NaN (the EKF's height is baro-referenced); NaN
+    without a 3D fix (``fix_type`` < 3)."""
+    if gp is None or lpos is None or not lpos.has("ref_lat", "ref_lon") or len(gp.t_us) < 2:
+        return None
+    if gp.has("latitude_deg", "longitude_deg"):
+        lat, lon, src = gp.col("latitude_deg"), gp.col("longitude_deg"), "latitude_deg, longitude_deg"
+    elif gp.has("lat", "lon"):
+        lat, lon, src = gp.col("lat") * 1e-7, gp.col("lon") * 1e-7, "lat, lon"
+    else:
+        return None
+    ref_ok = (lpos.col("ref_lat") != 0.0) | (lpos.col("ref_lon") != 0.0)
+    if not ref_ok.any():
+        return None
+    lt, rl = lpos.t_s[ref_ok], lpos.subset(ref_ok)
+    rlat = time_sync.interp_to(lt, rl.col("ref_lat"), gp.t_s, kind="previous")
+    rlon = time_sync.interp_to(lt, rl.col("ref_lon"), gp.t_s, kind="previous")
+    north = np.radians(lat - rlat) * _EARTH_R_M
+    east = np.radians(lon - rlon) * _EARTH_R_M * np.cos(np.radians(rlat))
+    fix = gp.col("fix_type") >= 3 if gp.has("fix_type") else np.ones(len(lat), bool)
+    ok = fix & np.isfinite(north) & np.isfinite(east) & (np.abs(north) < 1e6) & (np.abs(east) < 1e6)
+    v = np.column_stack([np.where(ok, east, np.nan), np.where(ok, north, np.nan), np.full(len(lat), np.nan)])
+    return _series("gps_position_enu", gp.t_s, v, f"vehicle_gps_position.{src} about vehicle_local_position."
+                                                  "ref_lat/ref_lon (fix_type >= 3)")
 
 
 def _lpos_series(tp: _Topic, prefix: str, out: dict[str, Series], warnings: list[str],
@@ -1340,6 +1404,18 @@ def _build_series(
         out["hover_thrust"] = _series("hover_thrust", hte.t_s, h,
                                       "hover_thrust_estimate.hover_thrust (NaN when not valid)")
 
+    # --- the estimator's own innovation test ratios (> 1: the measurement was rejected; C9)
+    es = get("estimator_status")
+    if es is not None and es.has("vel_test_ratio", "pos_test_ratio", "hgt_test_ratio"):
+        out["estimator_test_ratios"] = _series(
+            "estimator_test_ratios", es.t_s, es.cols(["vel_test_ratio", "pos_test_ratio", "hgt_test_ratio"]),
+            "estimator_status.vel_test_ratio, pos_test_ratio, hgt_test_ratio")
+
+    # --- the GPS receiver's own position about the estimator's origin (C9: an independent check)
+    gps = _gps_enu(get("vehicle_gps_position"), lpos)
+    if gps is not None:
+        out["gps_position_enu"] = gps
+
     # --- SITL ground truth
     gl = get("vehicle_local_position_groundtruth")
     if gl is not None:
@@ -1384,7 +1460,8 @@ _QUAT_SERIES = ("attitude_q", "groundtruth_attitude_q")
 _QUAT_NORM_TOL = 0.1
 #: series no twin needs (a log without them flies): when corrupt they are left out with a warning, not
 #: refused (PX4 1.13.2 logs battery_status.current_a = -inf without a current sensor)
-_OPTIONAL_SERIES = ("battery_v", "battery_a", "esc_rpm", "height_agl", "hover_thrust")
+_OPTIONAL_SERIES = ("battery_v", "battery_a", "esc_rpm", "height_agl", "hover_thrust", "estimator_test_ratios",
+                    "gps_position_enu")
 #: more than this fraction of a series' samples corrupt: the series is refused, not repaired
 _MAX_BAD_FRACTION = 0.5
 

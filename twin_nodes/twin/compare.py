@@ -33,7 +33,7 @@ import numpy as np
 from twin_nodes.logs import time_sync
 from twin_nodes.twin.metrics import Aligned, flight_metrics
 from twin_nodes.twin import divergence
-from twin_nodes.twin.runner import TwinRun, controlled_axes, run_twin_on_log
+from twin_nodes.twin.runner import TwinRun, controlled_axes, estimate_failed, run_twin_on_log
 
 __all__ = ["align", "compare_log", "load_flight", "CompareResult", "OPEN_LOOP_NOTE", "DEFAULT_RATE_HZ", "mask_from_intervals",
            "streams_to_log_and_run", "metrics_from_streams"]
@@ -167,6 +167,11 @@ def align(run: TwinRun, log: Any, rate_hz: float = DEFAULT_RATE_HZ, t0: float | 
     notes: list[str] = []
     if not xy_c.all() or not z_c.all():
         notes.append(f"xy and z scored only where PX4 controlled them ({how})")
+    est_bad = estimate_failed(log, t)[0]
+    if est_bad.any():
+        notes.append(f"ESTIMATE FAILED: {est_bad.sum() / rate_hz:.1f} s where the vehicle's own position estimate is "
+                     "inconsistent with its IMU or with itself, or its estimator rejected its measurements, left out "
+                     "of xy and z (the real position there is not known)")
     if airborne_only:
         iv = log.airborne_intervals()
         if iv:
@@ -192,7 +197,8 @@ def align(run: TwinRun, log: Any, rate_hz: float = DEFAULT_RATE_HZ, t0: float | 
                          "it describe another flight")
     return Aligned(t=t, xy_twin=x_twin[:, :2], xy_real=p_real[:, :2], z_twin=x_twin[:, 2], z_real=p_real[:, 2],
                    throttle_twin=thr_twin, throttle_real=thr_real, motors_twin=m_twin, motors_real=m_real,
-                   mask=mask, mode=run.mode, notes=notes, xy_mask=xy_mask, z_mask=z_mask, divergence=div)
+                   mask=mask, mode=run.mode, notes=notes, xy_mask=xy_mask, z_mask=z_mask, divergence=div,
+                   estimate_failed=est_bad)
 
 
 def compare_log(log: Any, vp: Any, mode: str = "closed", horizon_s: float = 2.0, airborne_only: bool = True,

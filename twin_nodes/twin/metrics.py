@@ -183,6 +183,8 @@ class Aligned:
     z_mask: np.ndarray | None = None
     #: the twin's divergence from the real flight (``{"t_s", "cause", "detail"}``; None: none found)
     divergence: dict | None = None
+    #: True where the vehicle's own position estimate failed (left out of xy_mask/z_mask; None: not checked)
+    estimate_failed: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = np.asarray(self.t).shape[0]
@@ -300,6 +302,8 @@ def flight_metrics(al: Aligned) -> dict[str, Any]:
         out["controlled_s"][ax] = round(float(on.sum()) * dt, 2)
         out["controlled_when"][ax] = _intervals(t, on, dt)[:20]
     out["controlled_axes"] = [ax for ax in ("xy", "z") if out["controlled_s"][ax] > 0]
+    ef = np.zeros(mask.shape, bool) if al.estimate_failed is None else np.asarray(al.estimate_failed, bool)
+    out["estimate_failed_s"] = round(float((mask & ef).sum()) * dt, 2)
     out["throttle_real_hf_rms"] = highpass_rms(t, al.throttle_real, mask, HF_CUTOFF_HZ)
     out["divergence"] = dict(al.divergence) if al.divergence else None
     out["definitions"] = ("errors are twin minus real on a common grid over the masked (airborne) samples; "

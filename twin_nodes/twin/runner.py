@@ -389,6 +389,9 @@ def log_inputs(log, rate_hz: float, t0: float | None = None, t1: float | None = 
     present = names + [n for n in optional if log.get(n) is not None]
     grid, data = log.resample(present, rate_hz, t0, t1)
     data["t"] = grid
+    sp = log.get("setpoint_position_enu")
+    if sp is not None and len(sp) > 1 and "setpoint_position_enu" in data:
+        data["setpoint_position_enu"] = bridge_setpoint_gaps(sp.t_s, sp.values, grid, data["setpoint_position_enu"])
     # PX4's own attitude/rate setpoints and offboard flags, for the modes without a position
     # controller: on the same grid (they do not shorten it), NaN before their first sample
     for n in MODE_INPUTS:
@@ -396,6 +399,30 @@ def log_inputs(log, rate_hz: float, t0: float | None = None, t1: float | None = 
         if s is not None and len(s):
             data[n] = time_sync.interp_to(s.t_s, s.values, grid, kind=s.interp)
     return data
+
+
+#: a gap between two logged position setpoints longer than this [s] is bridged linearly (PX4 published the
+#: setpoint at 50 Hz; a logger that dropped it for seconds, as on the Mantis follow flights' 4.4 s gaps
+#: with the target 9 m on, would have the twin hold the old one and then jump)
+SETPOINT_GAP_S = 1.0
+
+
+def bridge_setpoint_gaps(ts: np.ndarray, values: np.ndarray, grid: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """``held`` (the position setpoint on ``grid``, held from each logged sample) with every gap longer than
+    SETPOINT_GAP_S between two logged samples finite in an axis replaced there by the straight line between
+    them; shorter gaps and everything else unchanged."""
+    out = np.array(held, float, copy=True).reshape(len(grid), -1)
+    gaps = np.flatnonzero(np.diff(ts) > SETPOINT_GAP_S)
+    for i in gaps:
+        a, b = ts[i], ts[i + 1]
+        inside = (grid > a) & (grid < b)
+        if not inside.any():
+            continue
+        w = ((grid[inside] - a) / (b - a))[:, None]
+        line = values[i] * (1.0 - w) + values[i + 1] * w
+        ok = np.isfinite(values[i]) & np.isfinite(values[i + 1])
+        out[inside] = np.where(ok[None, :], line, out[inside])
+    return out
 
 
 #: the series the modes without a position controller fly (:meth:`TwinRunner._fly_mode`)
@@ -533,4 +560,24 @@ def controlled_axes(log, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
             running &= (ns != OFFBOARD_NAV_STATE) | traj_flag
         xy &= running
         z &= running
+    bad, bad_how = estimate_failed(log, t)
+    if bad.any():
+        xy &= ~bad
+        z &= ~bad
+        how += f"; not where the vehicle's own position estimate failed ({bad_how})"
     return xy, z, how
+
+
+def estimate_failed(log, t: np.ndarray) -> tuple[np.ndarray, str]:
+    """True at the times ``t`` where the vehicle's position estimate failed
+    (:func:`twin_nodes.twin.estimate_check.estimate_failures`, computed once per log), and how it was checked."""
+    from twin_nodes.twin.estimate_check import estimate_failures, failed_at
+
+    cached = getattr(log, "_estimate_failures", None)
+    if cached is None:
+        cached = estimate_failures(log)
+        try:
+            log._estimate_failures = cached
+        except AttributeError:  # a log type without attributes: recomputed each call
+            pass
+    return failed_at(cached[0], t), cached[1]

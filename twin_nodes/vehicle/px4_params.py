@@ -222,15 +222,15 @@ def rotor_layout(params: Mapping[str, float], path: str = "<log>", arm_m: float 
                               "a rotor position away from the centre (CA_ROTOR_COUNT is set but the positions "
                               "are missing or zero); supply a params file with --params")
         if np.allclose(radius, radius[0]) and abs(radius[0] - math.sqrt(2.0)) < 1e-6:
-            target = arm_m if arm_m is not None else (airframe.arm_m if airframe else None)
-            if target is None:
-                raise ParamsError(path, "CA_ROTOR0_PX",
-                                  f"a metric rotor layout (the log's is normalised to +-1 and SYS_AUTOSTART "
-                                  f"{autostart} is not a known airframe); give the arm length with --arm-m")
+            if arm_m is not None or airframe is None:
+                # an airframe outside the table (e.g. 1.14+ ids such as 4003): the class's ASSUMED arm; the
+                # inertia identified on the flight is relative to it (tests/test_classes.py)
+                target, how = _arm(arm_m, n)
+            else:
+                target, how = airframe.arm_m, airframe.source
             scale = target / radius[0]
             px, py, pz = px * scale, py * scale, pz * scale
-            source += (f", normalised +-1 layout scaled to a {target:.3f} m arm "
-                       f"({'--arm-m' if arm_m is not None else airframe.source})")
+            source += f", normalised +-1 layout scaled to a {target:.3f} m arm ({how})"
         span = rotor_span_m(px, py)
         if not span >= LIMITS["span_m"]:
             raise ParamsError(path, "CA_ROTOR0_PX",
