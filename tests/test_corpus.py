@@ -1,0 +1,72 @@
+"""The held-out corpus list (docs/corpus_flights.csv, docs/corpus.md) and its cache.
+
+The list checks run always.  The cache check needs the flights fetched by ``tools/corpus_fetch.py``
+(outside the repo) and skips with one line when they are absent.
+"""
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+import corpus_fetch as cf  # noqa: E402
+
+ROWS = cf.read_list()
+REAL = [r for r in ROWS if r["kind"] == "real"]
+HEX40 = re.compile(r"^[0-9a-f]{40}$")
+
+
+def test_list_is_well_formed():
+    ids = [r["id"] for r in ROWS]
+    blobs = [r["blob"] for r in ROWS]
+    assert len(set(ids)) == len(ids), "duplicate ids"
+    assert len(set(blobs)) == len(blobs), "duplicate blobs"
+    for r in ROWS:
+        assert HEX40.match(r["blob"]) and HEX40.match(r["commit"]), r["id"]
+        assert re.match(r"^[\w.-]+/[\w.-]+$", r["repository"]), r["id"]
+        assert r["kind"] in ("real", "sitl") and r["airborne"] in ("yes", "no"), r["id"]
+        assert r["half"] in cf.HALVES and r["vehicle"] and r["path"].endswith((".ulg", ".ulog")), r["id"]
+
+
+def test_halves_follow_the_seeded_rule_and_are_non_empty():
+    want = cf.split(ROWS)
+    assert {r["id"]: r["half"] for r in ROWS} == want
+    for half in cf.HALVES:
+        assert any(r["half"] == half for r in REAL), f"no real flight in the {half} half"
+    # the kept-aside vehicles of issue 24 are never tuned on
+    assert all(r["half"] == "judging" for r in ROWS if r["holdout_suspect"] == "1")
+
+
+def test_split_rule_deals_each_vehicle_into_both_halves():
+    rows = [{"id": f"f{i}", "vehicle": f"v{i % 3}", "holdout_suspect": "0"} for i in range(12)]
+    rows.append({"id": "h", "vehicle": "vh", "holdout_suspect": "1"})
+    half = cf.split(rows)
+    assert half["h"] == "judging"
+    for v in ("v0", "v1", "v2"):
+        assert {half[r["id"]] for r in rows if r["vehicle"] == v} == set(cf.HALVES)
+    assert sum(h == "tuning" for h in half.values()) == 6
+
+
+@pytest.mark.xfail(strict=True, reason="corpus has 14 real flights of 7 vehicles (docs/corpus.md: files of 4 MiB "
+                                       "and more are absent from the mirrors); issue 24 item 6 asks 40 of 8")
+def test_corpus_meets_the_size_of_issue_24():
+    assert len(REAL) >= 40
+    assert len({r["vehicle"] for r in REAL}) >= 8
+    for half in cf.HALVES:
+        assert len({r["vehicle"] for r in REAL if r["half"] == half}) >= 4, half
+
+
+def test_git_blob_sha_is_gits():
+    # `printf 'hello\n' | git hash-object --stdin`
+    assert cf.git_blob_sha(b"hello\n") == "ce013625030ba8dba906f756967f9e9ca394464a"
+
+
+def test_cached_files_match_their_blob():
+    cached = [(r, cf.cache_path(r)) for r in ROWS if cf.cache_path(r).is_file()]
+    if not cached:
+        pytest.skip(f"corpus cache absent ({cf.cache_root()}): run tools/corpus_fetch.py")
+    for r, p in cached:
+        assert cf.git_blob_sha(p.read_bytes()) == r["blob"], f"{p}: sha differs from {r['blob']}"
