@@ -48,6 +48,10 @@ def _armed_span(ulog):
 
 
 def _moving_outputs(ulog, t0, t1):
+    """Motor outputs: channels that vary while armed and idle at the disarmed value (``PWM_DISARMED``,
+    else below 1000 us) -- servos and RC passthrough channels rest at 1000-1500 us."""
+    p = ulog.initial_parameters
+    disarmed = float(p.get("PWM_DISARMED", p.get("PWM_MAIN_DISARM", p.get("PWM_MAIN_DIS1", 1000))))
     am = _topic(ulog, "actuator_motors")
     if am is not None:
         keys = [k for k in am if k.startswith("control[")]
@@ -63,7 +67,8 @@ def _moving_outputs(ulog, t0, t1):
         sel = (ao["timestamp"] >= (t0 or 0)) & (ao["timestamp"] <= (t1 or 2**63))
         if not sel.any():
             continue
-        n = sum(1 for k in ao if k.startswith("output[") and np.std(ao[k][sel]) > 5 and np.max(ao[k][sel]) > 1000)
+        n = sum(1 for k in ao if k.startswith("output[") and np.std(ao[k][sel]) > 5 and np.max(ao[k][sel]) > 1000
+                and np.min(ao[k]) <= max(disarmed, 1000))
         if n > best[0]:
             best = (n, f"actuator_outputs[{multi}]")
     return best
@@ -95,6 +100,8 @@ def describe(path: str) -> dict:
         if st is not None and "nav_state" in st else []
     n_moving, source = _moving_outputs(u, t0, t1)
     rotors = int(p["CA_ROTOR_COUNT"]) if "CA_ROTOR_COUNT" in p else None
+    # a MAV_TYPE that names a rotor count caps the moving outputs (servo/RC channels also move)
+    n_moving = min(n_moving, {2: 4, 13: 6, 14: 8}.get(int(p.get("MAV_TYPE", -1)), n_moving))
     return {
         "file": path, "ver_hw": info.get("ver_hw", ""), "sys_uuid": str(info.get("sys_uuid", "")),
         "sys_name": info.get("sys_name", ""), "SYS_AUTOSTART": int(p.get("SYS_AUTOSTART", -1)),
