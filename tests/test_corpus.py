@@ -6,6 +6,7 @@ The list checks run always.  The cache check needs the flights fetched by ``tool
 from __future__ import annotations
 
 import re
+import subprocess
 import sys
 from pathlib import Path
 
@@ -70,3 +71,22 @@ def test_cached_files_match_their_blob():
         pytest.skip(f"corpus cache absent ({cf.cache_root()}): run tools/corpus_fetch.py")
     for r, p in cached:
         assert cf.git_blob_sha(p.read_bytes()) == r["blob"], f"{p}: sha differs from {r['blob']}"
+
+
+def test_fetch_extracts_by_blob_and_names_a_missing_mirror(tmp_path, monkeypatch):
+    data = b"ULog\x01\x12\x35 not a real flight, just bytes"
+    git = tmp_path / "mirrors" / "owner+name" / "repo" / ".git"
+    subprocess.run(["git", "init", "-q", str(git.parent)], check=True)
+    blob = subprocess.run(["git", f"--git-dir={git}", "hash-object", "-w", "--stdin"], input=data,
+                          capture_output=True, check=True).stdout.decode().strip()
+    assert blob == cf.git_blob_sha(data)
+    monkeypatch.setenv("ROTORTWIN_MIRRORS", str(tmp_path / "mirrors"))
+    monkeypatch.setenv("ROTORTWIN_CORPUS", str(tmp_path / "cache"))
+    row = {"id": "x1", "repository": "owner/name", "blob": blob, "half": "tuning"}
+    assert cf._extract(row).startswith("ok x1")
+    assert (tmp_path / "cache" / "tuning" / "x1.ulg").read_bytes() == data
+    assert cf._extract(row).startswith("ok (cached) x1")
+    missing = cf._extract({**row, "id": "x3", "repository": "nobody/there"})
+    assert "fetch github:nobody/there" in missing and "\n" not in missing
+    bad = cf._extract({**row, "id": "x2", "blob": "0" * 40})
+    assert bad.startswith("MISSING blob")
