@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
@@ -90,3 +91,26 @@ def test_fetch_extracts_by_blob_and_names_a_missing_mirror(tmp_path, monkeypatch
     assert "fetch github:nobody/there" in missing and "\n" not in missing
     bad = cf._extract({**row, "id": "x2", "blob": "0" * 40})
     assert bad.startswith("MISSING blob")
+
+
+def test_throttle_floor_is_the_rms_above_half_a_hertz():
+    import corpus_measures as cm
+    t = np.arange(0.0, 60.0, 0.02)                      # 50 Hz, 60 s
+    fast = 0.04 * np.sin(2 * np.pi * 3.0 * t)            # 3 Hz: all of it above 0.5 Hz
+    slow = 0.2 * np.sin(2 * np.pi * 0.05 * t)            # 0.05 Hz: none of it
+    assert cm.high_freq_rms(t, 0.5 + slow + fast) == pytest.approx(0.04 / np.sqrt(2), rel=0.03)
+    assert cm.high_freq_rms(t, 0.5 + slow) < 0.002
+    assert np.isnan(cm.high_freq_rms(t[:10], fast[:10]))
+
+
+def test_controlled_axes_follow_nav_state():
+    import corpus_measures as cm
+    t_nav = np.array([0.0, 10.0, 20.0])
+    nav = np.array([15.0, 1.0, 2.0])                     # STAB, then ALTCTL, then POSCTL
+    assert cm.held_fraction(t_nav, nav, 0.0, 30.0, cm.XY_HELD) == pytest.approx(1 / 3, abs=0.01)
+    assert cm.held_fraction(t_nav, nav, 0.0, 30.0, cm.Z_HELD) == pytest.approx(2 / 3, abs=0.01)
+    m = {"throttle_rmse": 0.05, "motor_p75_mean": 0.04, "xy_rmse_m": 12.0, "z_rmse_m": 0.3}
+    # XY not held: 12 m is not scored; throttle 5 % is within 1.25 x a 4.4 % floor
+    assert cm.verdict({"floor": 0.044, "xy_held": 0.0, "z_held": 1.0}, m) == (True, [])
+    ok, fails = cm.verdict({"floor": 0.01, "xy_held": 1.0, "z_held": 1.0}, m)
+    assert not ok and len(fails) == 2
