@@ -59,7 +59,7 @@ def _moving_outputs(ulog, t0, t1):
         moving = [k for k in keys if np.nanmax(np.abs(am[k][sel]), initial=0) > 0.05
                   and np.nanstd(am[k][sel]) > 1e-3] if sel.any() else []
         return len(moving), "actuator_motors"
-    best = (0, "")
+    best = (0, True, "")  # (count, idles at the disarmed value, source): most channels win, then idling ones
     for multi in range(4):
         ao = _topic(ulog, "actuator_outputs", multi)
         if ao is None:
@@ -67,11 +67,17 @@ def _moving_outputs(ulog, t0, t1):
         sel = (ao["timestamp"] >= (t0 or 0)) & (ao["timestamp"] <= (t1 or 2**63))
         if not sel.any():
             continue
-        n = sum(1 for k in ao if k.startswith("output[") and np.std(ao[k][sel]) > 5 and np.max(ao[k][sel]) > 1000
-                and np.min(ao[k]) <= max(disarmed, 1000))
-        if n > best[0]:
-            best = (n, f"actuator_outputs[{multi}]")
-    return best
+        varying = [k for k in ao if k.startswith("output[") and np.nanstd(ao[k][sel]) > 5
+                   and np.nanmax(ao[k][sel]) > 1000]
+        idling = [k for k in varying if np.nanmin(ao[k]) <= max(disarmed, 1000)]
+        cand = (len(idling), True, f"actuator_outputs[{multi}]")
+        # a log that starts armed (or ESCs idling above PWM_DISARMED) never shows the disarmed value:
+        # then the channels that vary while armed count, when they all idle above it together
+        if not idling and varying and min(np.nanmin(ao[k][sel]) for k in varying) > max(disarmed, 1000):
+            cand = (len(varying), False, f"actuator_outputs[{multi}] (no disarmed idle in the log)")
+        if cand[:2] > best[:2]:
+            best = cand
+    return best[0], best[2]
 
 
 def _airborne(ulog, t0, t1):

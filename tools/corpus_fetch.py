@@ -1,7 +1,7 @@
 """The held-out flight corpus (docs/corpus.md): split it, and fetch it into a cache outside the repo.
 
-    python tools/corpus_fetch.py --split          # compute the tuning/judging halves; write them into
-                                                   # an unsplit list, else check the list's halves match
+    python tools/corpus_fetch.py --split          # compute the tuning/judging halves; write those of the
+                                                   # rows without one (a new batch), check all the others
     python tools/corpus_fetch.py [--half H]       # extract every listed flight by its git blob id from
                                                    # the repository mirrors into the cache, checking each sha
     python tools/corpus_fetch.py --check          # only check the cached files' shas
@@ -16,6 +16,10 @@ The split rule (fixed; docs/corpus.md): seed 24.  Flights of a vehicle flagged `
 ordered by sha256("24|" + vehicle); within each vehicle the flights are ordered by sha256("24|" + id);
 going through that order, flights are dealt alternately to tuning and judging, the alternation carried
 from one vehicle to the next, so each vehicle with two or more flights lands in both halves.
+
+Batches: the list grows in batches (column ``batch``; a row without one is batch 1).  The rule is
+applied to each batch on its own, the alternation starting afresh, so flights added later never move
+an earlier flight from the half it was surveyed in.
 """
 from __future__ import annotations
 
@@ -42,8 +46,11 @@ def _h(text: str) -> str:
     return hashlib.sha256(f"{SEED}|{text}".encode()).hexdigest()
 
 
-def split(rows: list[dict]) -> dict[str, str]:
-    """id -> half, by the fixed rule in the module docstring."""
+def batch_of(row: dict) -> str:
+    return row.get("batch") or "1"
+
+
+def _split_batch(rows: list[dict]) -> dict[str, str]:
     half: dict[str, str] = {}
     by_vehicle: dict[str, list[dict]] = {}
     for r in rows:
@@ -56,6 +63,14 @@ def split(rows: list[dict]) -> dict[str, str]:
         for r in sorted(by_vehicle[vehicle], key=lambda r: _h(r["id"])):
             half[r["id"]] = HALVES[turn % 2]
             turn += 1
+    return half
+
+
+def split(rows: list[dict]) -> dict[str, str]:
+    """id -> half, by the fixed rule in the module docstring, applied to each batch on its own."""
+    half: dict[str, str] = {}
+    for b in sorted({batch_of(r) for r in rows}):
+        half.update(_split_batch([r for r in rows if batch_of(r) == b]))
     return half
 
 
@@ -116,9 +131,9 @@ def _check(rows: list[dict]) -> int:
 def _split_cmd(path: Path) -> int:
     rows = read_list(path)
     want = split(rows)
-    if all(not r["half"] for r in rows):
+    if any(not r["half"] for r in rows):  # a new batch: fill its halves, the others are checked
         for r in rows:
-            r["half"] = want[r["id"]]
+            r["half"] = r["half"] or want[r["id"]]
         with open(path, "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=list(rows[0]))
             w.writeheader()
@@ -138,7 +153,8 @@ def _split_cmd(path: Path) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--list", type=Path, default=CSV_PATH, help="the corpus list (default docs/corpus_flights.csv)")
-    ap.add_argument("--split", action="store_true", help="compute the halves (write into an unsplit list, else check)")
+    ap.add_argument("--split", action="store_true",
+                    help="compute the halves (write those of rows without one, check the others)")
     ap.add_argument("--check", action="store_true", help="only check the shas of cached files")
     ap.add_argument("--half", choices=HALVES, help="only this half")
     a = ap.parse_args(argv)
