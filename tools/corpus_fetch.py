@@ -2,7 +2,7 @@
 
     python tools/corpus_fetch.py --split          # compute the tuning/judging halves; write those of the
                                                    # rows without one (a new batch), check all the others
-    python tools/corpus_fetch.py [--half H]       # extract every listed flight by its git blob id from
+    python tools/corpus_fetch.py [--half H] [--batch B]  # extract every listed flight by its git blob id from
                                                    # the repository mirrors into the cache, checking each sha
     python tools/corpus_fetch.py --check          # only check the cached files' shas
 
@@ -157,10 +157,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="compute the halves (write those of rows without one, check the others)")
     ap.add_argument("--check", action="store_true", help="only check the shas of cached files")
     ap.add_argument("--half", choices=HALVES, help="only this half")
+    ap.add_argument("--batch", help="only this batch (column batch; e.g. 2 to survey a new batch on its own)")
     a = ap.parse_args(argv)
     if a.split:
         return _split_cmd(a.list)
-    rows = [r for r in read_list(a.list) if a.half in (None, r["half"])]
+    rows = [r for r in read_list(a.list) if a.half in (None, r["half"]) and a.batch in (None, batch_of(r))]
     if any(not r["half"] for r in rows):
         print(f"{a.list}: no halves yet; run --split first")
         return 2
