@@ -1,7 +1,7 @@
 """The declared PX4 SIH grid (issue 26): every SIH parameter that changes the physics at 2 magnitudes, 10
 two-parameter combinations, 10 no-effect flights, on missions beyond M3/M4 and both logging profiles.
 
-:func:`write_manifest` writes ``missions/sih_grid/manifest.yaml`` (the PX4 section of
+``tools/declare_sih_grid.py`` writes ``missions/sih_grid/manifest.yaml`` (the PX4 section of
 ``missions/sih_effects/manifest.yaml``, so that ``launch_scripts/fly_sih.sh --manifest`` flies it the same way,
 the missions, and the flights with their tuning/judging half drawn per stratum by :data:`GRID_SEED`).  The file in
 the repository is the declaration; prove reads the halves from it.
@@ -78,39 +78,8 @@ def declare(seed: int = GRID_SEED) -> list[dict]:
     return rows
 
 
-def write_manifest(path: str | Path = GRID_PATH, seed: int = GRID_SEED) -> Path:
-    import yaml
-
-    from twin_nodes.mavlink.sih_flight import SIH_DEFAULTS, truth_effects
-
-    base = yaml.safe_load(BASE.read_text())
-    flights = {}
-    for r in declare(seed):
-        flights[r["id"]] = {"mission": r["mission"], "mission_kind": MISSIONS[r["mission"]]["kind"],
-                            "group": r["group"], "sih": {k: [SIH_DEFAULTS[k], v] for k, v in r["sih"].items()},
-                            "truth": truth_effects(r["sih"]), "logging": r["logging"], "seed": r["seed"],
-                            "half": r["half"]}
-    doc = {"grid": "px4sih", "issue": 26, "seed": seed, "generator": "twin_nodes/prove/grid_sih.py",
-           "declared": "before any tuning; halves drawn per stratum by the seed",
-           "px4": base["px4"],
-           "fly": "launch_scripts/fly_sih.sh --px4 PX4 --manifest missions/sih_grid/manifest.yaml --out DIR "
-                  "--instance 1 --flight sNNN ... (tools/fly_grid_sih.sh flies them all, one at a time)",
-           "missions": {k: {"plan_file": v["plan_file"], "note": v["kind"]} for k, v in MISSIONS.items()},
-           "flights": flights}
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text("# Declared PX4 SIH grid of issue 26, written by `python -m twin_nodes.prove.grid_sih` before\n"
-                 "# any tuning. Do not edit by hand: prove reads the halves from here. Flights live outside the\n"
-                 "# repository (e.g. ~/.cache/rotortwin/grids/sih/<id>/flight.ulg).\n"
-                 + yaml.safe_dump(doc, sort_keys=False, width=140))
-    return p
-
-
 def load_grid(path: str | Path = GRID_PATH) -> dict:
     import yaml
 
     return yaml.safe_load(Path(path).read_text())["flights"]
 
-
-if __name__ == "__main__":
-    print(write_manifest())
