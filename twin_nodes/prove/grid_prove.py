@@ -122,7 +122,7 @@ def table(rows: list[dict], not_flown: list[str]) -> str:
     for name, rs in sorted(by_mission.items()):
         lines.append("  [mission " + summary_line(name, summarize(rs)) + "]")
     if not_flown:
-        lines.append(f"declared but not flown (not scored): {', '.join(not_flown)}")
+        lines.append("declared, not scored: " + "; ".join(not_flown))
     return "\n".join(lines)
 
 
@@ -182,7 +182,9 @@ def _sih_truths(fl: dict, nominal) -> list[Truth]:
     return out
 
 
-def run_one(job) -> dict:
+def run_one(job, reuse: Path | None = None) -> dict:
+    """Discover blind on one grid flight and score it; ``reuse``: a result JSON of this flight written by an
+    earlier run of the same code, re-scored instead of discovered again."""
     source, spec, path = job
     from twin_nodes.discovery.discover import discover
     from twin_nodes.logs.ulog_io import read_ulog
@@ -210,20 +212,52 @@ def run_one(job) -> dict:
         truths = _sih_truths(fl, vp)
         name = f"{fid} {fl['mission']} {fl['logging'][:4]}"
         facts = {"mission_kind": MISSIONS[fl["mission"]]["kind"], "logging": fl["logging"], "id": fid}
-    res = discover(log, vp, closed_loop_metrics=False)
-    res.pop("_series", None)
+    if reuse is not None and reuse.is_file():
+        res = json.loads(reuse.read_text())
+    else:
+        res = discover(log, vp, closed_loop_metrics=False)
+        res.pop("_series", None)
     drag = DragContext.from_log(log, vp) if any(effect_class(t.hidden.name) == "drag" or t.hidden.name == "wind"
                                                  for t in truths) else None
     return score_grid_flight(name, truths, res, vp, drag, **facts), res
 
 
-def run(source: str, half: str, out: Path, cache: Path = CACHE, progress: bool = True) -> dict:
+#: a RotorPy grid flight whose airborne tracking is worse than this did not fly its mission (RotorPy's SE(3)
+#: controller lost control: on the ground, tumbling): declared, flown, not scored, listed with its numbers
+LOST_CONTROL = {"z_tracking_rmse_m": 0.5, "xy_tracking_rmse_m": 2.0}
+
+
+def lost_control(meta_path: Path) -> str | None:
+    facts = json.loads(meta_path.read_text()).get("facts") or {}
+    bad = [f"{k} {facts[k]:.2f} > {v}" for k, v in LOST_CONTROL.items() if not facts.get(k, 0.0) <= v]
+    return ", ".join(bad) or None
+
+
+def sih_unfinished(flight_dir: Path) -> str | None:
+    md = (flight_dir / "MANIFEST.md").read_text() if (flight_dir / "MANIFEST.md").is_file() else ""
+    return None if "| mission finished | True" in md else "mission not finished (MANIFEST.md)"
+
+
+def run(source: str, half: str, out: Path, cache: Path = CACHE, progress: bool = True, reuse: bool = False) -> dict:
+    from twin_nodes.base.errors import TwinError
+
     out.mkdir(parents=True, exist_ok=True)
     jobs, missing = (rotorpy_jobs(half, cache / "rotorpy") if source == "rotorpy" else sih_jobs(half, cache / "sih"))
     rows = []
     for j in jobs:
         key = j[1].id if source == "rotorpy" else j[1][0]
-        row, res = run_one(j)
+        why = (lost_control(cache / "rotorpy" / f"{key}.meta.json") if source == "rotorpy"
+               else sih_unfinished(cache / "sih" / key))
+        if why is None:
+            try:
+                row, res = run_one(j, out / f"{key}.json" if reuse else None)
+            except TwinError as exc:
+                why = f"discover refused it: {exc}"
+        if why is not None:
+            missing.append(f"{key} (flown, not scored: {why})")
+            if progress:
+                print(f"{key}: not scored: {why}", flush=True)
+            continue
         write_result(out / f"{key}.json", res)
         rows.append(row)
         if progress:
@@ -244,8 +278,9 @@ def main(argv=None) -> int:
     ap.add_argument("--half", choices=["tuning", "judging", "all"], required=True)
     ap.add_argument("--out", required=True)
     ap.add_argument("--cache", default=str(CACHE))
+    ap.add_argument("--reuse", action="store_true", help="re-score a flight's result already in --out")
     a = ap.parse_args(argv)
-    r = run(a.source, a.half, Path(a.out), Path(a.cache))
+    r = run(a.source, a.half, Path(a.out), Path(a.cache), reuse=a.reuse)
     print(r["table"])
     return 0
 

@@ -451,11 +451,16 @@ def main(argv=None) -> int:
     ap.add_argument("command", choices=["declare", "fly"])
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "rotortwin" / "grids" / "rotorpy"))
     ap.add_argument("--half", choices=["tuning", "judging", "all"], default="all")
+    ap.add_argument("--ids", nargs="*", help="only these flights, in this order")
     a = ap.parse_args(argv)
     if a.command == "declare":
         print(write_manifest())
         return 0
-    for f in load_grid():
+    grid = load_grid()
+    if a.ids:
+        by_id = {f.id: f for f in grid}
+        grid = [by_id[i] for i in a.ids if i in by_id]
+    for f in grid:
         if a.half != "all" and f.half != a.half:
             continue
         t0 = time.time()
