@@ -71,6 +71,13 @@ def run(inp: GradeInput) -> Verdicts:
                                                   -f.rel_improvement if f.verdict != "rejected"
                                                   else rank.get(f.candidate.label, 99)))
     effects_out = [_effect_json(f, names, base_held) for f in ranked]
+    for f, e in zip(ranked, effects_out):
+        if f in accepted and len(accepted) > 1:
+            # each effect's own held-out contribution: its cross-validated cut on top of those accepted before
+            # it (the residual it was judged against already had them in)
+            i = accepted.index(f)
+            e["heldout_contribution"] = {"cut": round(float(f.rel_improvement), 4), "residual": f.kind,
+                                         "on_top_of": [g.candidate.name for g in accepted[:i]]}
     _instrumented_views(S, ranked, effects_out)
     return Verdicts(ranked, effects_out, acc_labels)
 
