@@ -68,7 +68,8 @@ def run(inp: SelectionInput) -> Selection:
             energy_1 = energy
         cs = candidates.run(candidates.CandidateQuery(current, data, rounds, done,
                                                       _rescaled_gain(r1_gain, energy_1, energy)))
-        cs.first += [c for c in wind_with_drag(current, data) if c.label not in done]
+        cs.first += [c for c in wind_with_drag(current, data) + nominal_refits(S.nominal, current)
+                     if c.label not in done]
 
         def fit_all(batch, all_oe=False, R0=R0, R0_oe=R0_oe, current=current, rounds=rounds):
             j = judge.run(judge.JudgeQuery(S, current, batch, R0, R0_oe, rounds, oe_gain, all_oe, pbar))
@@ -273,3 +274,36 @@ def wind_with_drag(vp: VehicleParams, data) -> list[Candidate]:
     return [_JointWind("wind", ("vx", "vy", "k_n_s_m"), np.array([0.0, 0.0, k_floor]),
                        np.array([-20.0, -20.0, 0.0]), np.array([20.0, 20.0, 200 * k_floor]), build,
                        {"gust_std": 0.0}, floor, WIND_WITH_DRAG)]
+
+
+# ---------------------------------------------------------------- a nominal law's own size refitted
+#
+# The library never offers an effect the nominal already models ("the user's nominal, not missing physics").
+# But a nominal law of the wrong size is missing physics too: PX4 SIH's SIH_KDW (angular damping) changed had
+# no candidate at all (issue 26's SIH grid: found as nothing, or as a yaw moment), and a changed SIH_KDV only
+# through a body drag standing in for the linear one.  The laws with one size parameter are offered refitted.
+
+#: nominal laws offered with their size refitted: effect -> its parameter
+REFITTABLE = {"linear_drag": "k_n_s_m", "angular_damping": "k_nm_s_rad"}
+#: a refit must move the size by this fraction to be resolvable
+REFIT_FLOOR = 0.10
+
+
+def nominal_refits(nominal: VehicleParams, current: VehicleParams) -> list[Candidate]:
+    """One candidate per :data:`REFITTABLE` law of ``nominal`` still at its nominal size in ``current``."""
+    out = []
+    now = {name: dict(p) for name, p in current.effects}
+    for name, p in nominal.effects:
+        key = REFITTABLE.get(name)
+        if key is None or name not in now:
+            continue
+        k0 = float(dict(p)[key])
+        if k0 <= 0 or now[name][key] != k0:
+            continue
+
+        def build(theta, name=name, key=key, base=current):
+            return base.with_effect(name, **{key: float(theta[0])})
+
+        out.append(Candidate(name, (key,), np.array([k0]), np.array([0.2 * k0]), np.array([5.0 * k0]), build, {},
+                             lambda th, k0=k0: abs(th[0] - k0) > REFIT_FLOOR * k0, f"{name} (nominal refitted)"))
+    return out
