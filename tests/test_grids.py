@@ -205,3 +205,18 @@ def test_veto_compares_with_its_own_noise_and_needs_standing():
     assert not vetoed and why.startswith("not vetoed") and "another controller" in why
     # better: no veto, nothing to say
     assert closed_loop._veto(_run(0.5 * base, t), before, before, (True, "")) == (False, None)
+
+
+def test_nominal_law_refitted_only_where_the_nominal_has_it():
+    vp = shipped("px4_sih_quadx")               # linear_drag 1.0 and angular_damping 0.025 (SIH_KDV, SIH_KDW)
+    cands = {c.name: c for c in selection.nominal_refits(vp, vp)}
+    assert set(cands) == {"linear_drag", "angular_damping"}
+    c = cands["angular_damping"]
+    assert c.x0[0] == pytest.approx(0.025) and c.upper[0] == pytest.approx(0.125)
+    v = c.build(np.array([0.05]))
+    assert dict(dict(v.effects)["angular_damping"])["k_nm_s_rad"] == pytest.approx(0.05)
+    assert c.floor(np.array([0.05])) and not c.floor(np.array([0.026]))
+    # once refitted (accepted), not offered again
+    assert {c.name for c in selection.nominal_refits(vp, v)} == {"linear_drag"}
+    bare = vp.replace(effects=())
+    assert selection.nominal_refits(bare, bare) == []
