@@ -191,7 +191,10 @@ def test_discover_same_result_as_before():
     import json
     cmp = json.loads(out.read_text())["comparison"]
     assert cmp["same"], cmp
-    assert cmp["param_rel_all"] < 1e-6 and cmp["closed_loop_rel"] < 1e-9
+    # kept effects exactly; a rejected candidate refitted in a later round (issue 26: a round-1 cut is read
+    # against the residual left before pruning, so body_drag is refitted on top of the demo's weak motor) to
+    # the least-squares tolerance of its flat direction (c_dy 0.000746116 vs 0.000746085, 4.2e-5)
+    assert cmp["param_rel_kept"] < 1e-9 and cmp["param_rel_all"] < 1e-4 and cmp["closed_loop_rel"] < 1e-9
 
 
 def test_fold_fit_evaluates_each_theta_once_and_reuses_it_exactly():

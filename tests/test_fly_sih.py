@@ -190,8 +190,11 @@ def test_truth_json_is_the_shared_format():
         ours = sf.truth_json({"SIH_Q_MAX": 0.14}, "M3", "x")
         assert set(ours) == set(theirs) and ours["sih_changes"] == theirs["sih_changes"]
         assert ours["effects"][0]["params"] == pytest.approx(theirs["effects"][0]["params"])
-    with pytest.raises(TwinError, match="one parameter group per flight"):
-        sf.truth_effects({"SIH_MASS": 1.2, "SIH_KDV": 2.0})
+    # two parameter groups at once (issue 26's SIH grid): one effect per group, in the groups' order
+    two = sf.truth_effects({"SIH_MASS": 1.2, "SIH_KDV": 2.0})
+    assert [e["name"] for e in two] == ["mass", "body_drag"] and two[0]["params"] == {"mass": 1.2}
+    with pytest.raises(TwinError, match="parameter groups"):
+        sf.truth_effects({"SIH_MASS": 1.2, "SIH_NOT_A_PARAM": 2.0})
 
 
 @pytest.mark.parametrize("items, match", [

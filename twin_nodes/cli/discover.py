@@ -56,6 +56,13 @@ def register(sub) -> None:
                         "launch_scripts/fly_sih.sh writes them); repeatable")
     qio.output("--cache", kind="update", default="out/cache/rotorpy",
                help="rotorpy: where the simulated flights are kept (reused across runs)")
+    q.add_argument("--grid", choices=("rotorpy", "px4sih"),
+                   help="issue 26's declared grid of that source instead of --source (twin_nodes/prove/grids/"
+                        "rotorpy_grid.yaml, missions/sih_grid/manifest.yaml), flights read from --grid-cache")
+    q.add_argument("--half", choices=("tuning", "judging", "all"), default="tuning",
+                   help="--grid: the half declared in the manifest (default tuning)")
+    qio.input("--grid-cache", default=str(Path.home() / ".cache" / "rotortwin" / "grids"),
+              help="--grid: where tools/fly_grids.sh put the flights (rotorpy/<id>.ulg, sih/<id>/flight.ulg)")
     q.set_defaults(func=_prove)
 
     s = sub.add_parser("simulate", help="fly the shipped mission with our simulator (optionally with a hidden "
@@ -153,6 +160,15 @@ def _finding(args) -> int:
 def _prove(args) -> int:
     from twin_nodes.prove.scoring import format_table, summary_line
     from twin_nodes.prove.sources import SOURCES, run_sources
+
+    if args.grid:
+        from twin_nodes.prove import grid_prove
+
+        out = Path(args.out) / f"grid_{args.grid}_{args.half}"
+        r = grid_prove.run(args.grid, args.half, out, Path(args.grid_cache))
+        print(r["table"])
+        print(f"per-flight results, table, summary: {out}/")
+        return 0
 
     sources = SOURCES if args.source == "all" else (args.source,)
     out = Path(args.out)

@@ -170,8 +170,23 @@ def truth_effects(sih: dict[str, float]) -> list[dict]:
         return [{"name": "angular_damping", "params": {"k_nm_s_rad": sih["SIH_KDW"]}}]
     if names <= {"SIH_L_ROLL", "SIH_L_PITCH"}:
         return [{"name": "arm_length", "params": {k[4:].lower() + "_m": v for k, v in sorted(sih.items())}}]
-    raise TwinError(f"SIH changes {sorted(names)}: one parameter group per flight (mass, T_MAX, Q_MAX, T_TAU, "
+    groups = [g for g in _SIH_GROUPS if names & g]
+    if len(groups) > 1 and set().union(*groups) >= names:
+        # several groups at once (issue 26's two-parameter flights): each group's effect, in the groups' order
+        out = []
+        for g in groups:
+            eff = truth_effects({k: v for k, v in sih.items() if k in g})
+            if g == {"SIH_Q_MAX"}:  # km = Q_MAX / T_MAX with the flight's T_MAX
+                eff[0]["params"]["km"] = sih["SIH_Q_MAX"] / t_max
+            out += eff
+        return out
+    raise TwinError(f"SIH changes {sorted(names)}: parameter groups (mass, T_MAX, Q_MAX, T_TAU, "
                     "inertia, KDV, KDW, arm lengths)")
+
+
+#: the SIH parameter groups a flight's truth is stated by (one effect each)
+_SIH_GROUPS = ({"SIH_MASS"}, {"SIH_T_MAX"}, {"SIH_Q_MAX"}, {"SIH_T_TAU"}, {"SIH_IXX", "SIH_IYY", "SIH_IZZ"},
+               {"SIH_KDV"}, {"SIH_KDW"}, {"SIH_L_ROLL", "SIH_L_PITCH"})
 
 
 def truth_json(sih: dict[str, float], mission: str, ver_sw: str, logging: dict | None = None) -> dict:

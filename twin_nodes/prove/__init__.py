@@ -10,4 +10,6 @@ Discovery (the method) never imports this package; ``tests/test_layout.py`` fail
 - :mod:`.rotorpy_flights` flights flown in RotorPy (its vehicle, aerodynamics, wind and SE(3) controller)
 - :mod:`.scoring` the rules every source is scored by, one row per flight, the tables
 - :mod:`.sources` ``rotortwin prove --source``: each source in turn
+- :mod:`.grid_rotorpy`, :mod:`.grid_missions`, :mod:`.grid_sih` issue 26's declared grids (RotorPy, PX4 SIH)
+  and :mod:`.grid_prove` their scoring with one or two effects per flight (``rotortwin prove --grid``)
 """

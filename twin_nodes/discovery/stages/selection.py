@@ -11,7 +11,7 @@ from typing import Callable
 import numpy as np
 
 from twin_nodes.discovery.blocktest import _block_test
-from twin_nodes.discovery.candidates import SYMMETRIC_LAG
+from twin_nodes.discovery.candidates import SYMMETRIC_LAG, Candidate
 from twin_nodes.discovery.judging import (ALT_FRACTION, MAX_EFFECTS, MIN_REL_IMPROVEMENT, OE_MIN_CHANGE, T_CHOICE,
                                           T_CRIT, Fit, _summary)
 from twin_nodes.discovery.stages import candidates, judge
@@ -53,6 +53,7 @@ def run(inp: SelectionInput) -> Selection:
     oe_gain: dict[str, float] = {}   # round-1 output-error gain, to skip hopeless refits later
     r1_gain: dict[str, float] = {}   # round-1 best gain per candidate
     rounds = 0
+    energy_1 = None
     pbar = None
     if inp.progress:
         from tqdm import tqdm
@@ -62,7 +63,13 @@ def run(inp: SelectionInput) -> Selection:
         R0 = eq.residual(current)
         R0_oe = oe.residual(current) if oe else None
         done = {f.candidate.label for f in accepted}
-        cs = candidates.run(candidates.CandidateQuery(current, data, rounds, done, r1_gain))
+        energy = _energy(R0, R0_oe)
+        if rounds == 1:
+            energy_1 = energy
+        cs = candidates.run(candidates.CandidateQuery(current, data, rounds, done,
+                                                      _rescaled_gain(r1_gain, energy_1, energy)))
+        cs.first += [c for c in wind_with_drag(current, data) + nominal_refits(S.nominal, current)
+                     if c.label not in done]
 
         def fit_all(batch, all_oe=False, R0=R0, R0_oe=R0_oe, current=current, rounds=rounds):
             j = judge.run(judge.JudgeQuery(S, current, batch, R0, R0_oe, rounds, oe_gain, all_oe, pbar))
@@ -88,6 +95,32 @@ def run(inp: SelectionInput) -> Selection:
     if pbar is not None:
         pbar.close()
     return Selection(accepted, current, last, first_rank)
+
+
+def _energy(R0: np.ndarray, R0_oe: np.ndarray | None) -> tuple[float, float]:
+    """Mean square of the current equation error (and output error): what a relative cut is relative to."""
+    eq = float(np.nanmean(R0 ** 2)) if R0.size else 0.0
+    oe = float(np.nanmean(R0_oe ** 2)) if R0_oe is not None and R0_oe.size else 0.0
+    return eq, oe
+
+
+def _rescaled_gain(first_gain: dict[str, float], energy_1: tuple[float, float] | None,
+                   energy: tuple[float, float]) -> dict[str, float]:
+    """Round 1's cut of each candidate as it would read against the residual left now.
+
+    A cut is relative to the whole residual (``1 - rms_after / rms_before``).  On a flight with two effects,
+    the second's round-1 cut is small beside the first's residual (battery sag with rotor drag: the sag's
+    throttle error dwarfs the drag's horizontal one) and was pruned below ``PRUNE_GAIN`` before it could be
+    judged on what is left.  The energy it explained, ``1 - (1 - g)^2`` of round 1's mean square, is the same
+    share of a smaller residual now: ``e1 * E1 / Ek``, read back as a cut (the larger over both residuals)."""
+    if energy_1 is None:
+        return dict(first_gain)
+    ratio = max((a / b) if b > 0 else 1.0 for a, b in zip(energy_1, energy) if a > 0) if any(energy_1) else 1.0
+    out = {}
+    for lab, g in first_gain.items():
+        e1 = 1.0 - (1.0 - min(max(g, 0.0), 1.0)) ** 2
+        out[lab] = float(1.0 - np.sqrt(max(1.0 - min(e1 * max(ratio, 1.0), 1.0), 0.0))) if g > 0 else g
+    return out
 
 
 def _one_per_entry(per_label: dict[str, list[Fit]], blocks: dict[str, list[np.ndarray]]) -> list[Fit]:
@@ -204,3 +237,73 @@ def _pick(fits: list[Fit]) -> Fit:
     best = max(fits, key=key)
     best.by_kind = {f.kind: f for f in fits}
     return best
+
+
+# ---------------------------------------------------------------- wind and drag as the pair they are
+#
+# A wind acts only through a drag law.  Where the vehicle has none (nominal and accepted so far), the wind
+# candidate of the library is not offered (it would move nothing), and a steady wind was found by nothing
+# (issue 26: 5.6 m/s, no candidate at all).  Offered here jointly: the wind and an isotropic linear drag fitted
+# together, reported as the wind with the drag it needs (``drag_k_n_s_m``).
+
+WIND_WITH_DRAG = "wind(+linear_drag)"
+_DRAGS = ("linear_drag", "rotor_drag", "body_drag")
+
+
+class _JointWind(Candidate):
+    def params_dict(self, theta):
+        return {"vx": float(theta[0]), "vy": float(theta[1]), "gust_std": 0.0, "drag_k_n_s_m": float(theta[2])}
+
+
+def wind_with_drag(vp: VehicleParams, data) -> list[Candidate]:
+    """The joint wind + linear drag candidate where ``vp`` has no drag law (else nothing)."""
+    if any(name in _DRAGS for name, _ in vp.effects):
+        return []
+    speed = np.linalg.norm(data.v[data.valid], axis=1)
+    v_typ = float(np.percentile(speed, 90)) if speed.size else 0.0
+    weight = vp.mass_kg * vp.gravity_m_s2
+    k_floor = 0.01 * weight / max(v_typ, 1.0)
+
+    def build(theta, vp=vp):
+        return vp.with_effect("linear_drag", k_n_s_m=float(theta[2])).with_effect(
+            "wind", vx=float(theta[0]), vy=float(theta[1]), gust_std=0.0)
+
+    def floor(theta, k_floor=k_floor):
+        # the wind must push by 1 % of the weight through the fitted drag
+        return float(np.hypot(theta[0], theta[1]) * theta[2]) > 0.01 * weight and theta[2] > k_floor
+    return [_JointWind("wind", ("vx", "vy", "k_n_s_m"), np.array([0.0, 0.0, k_floor]),
+                       np.array([-20.0, -20.0, 0.0]), np.array([20.0, 20.0, 200 * k_floor]), build,
+                       {"gust_std": 0.0}, floor, WIND_WITH_DRAG)]
+
+
+# ---------------------------------------------------------------- a nominal law's own size refitted
+#
+# The library never offers an effect the nominal already models ("the user's nominal, not missing physics").
+# But a nominal law of the wrong size is missing physics too: PX4 SIH's SIH_KDW (angular damping) changed had
+# no candidate at all (issue 26's SIH grid: found as nothing, or as a yaw moment), and a changed SIH_KDV only
+# through a body drag standing in for the linear one.  The laws with one size parameter are offered refitted.
+
+#: nominal laws offered with their size refitted: effect -> its parameter
+REFITTABLE = {"linear_drag": "k_n_s_m", "angular_damping": "k_nm_s_rad"}
+#: a refit must move the size by this fraction to be resolvable
+REFIT_FLOOR = 0.10
+
+
+def nominal_refits(nominal: VehicleParams, current: VehicleParams) -> list[Candidate]:
+    """One candidate per :data:`REFITTABLE` law of ``nominal`` still at its nominal size in ``current``."""
+    out = []
+    now = {name: dict(p) for name, p in current.effects}
+    for name, p in nominal.effects:
+        key = REFITTABLE.get(name)
+        if key is None or name not in now:
+            continue
+        k0 = float(dict(p)[key])
+        if k0 <= 0 or now[name][key] != k0:
+            continue
+
+        def build(theta, name=name, key=key, base=current):
+            return base.with_effect(name, **{key: float(theta[0])})
+
+        out.append(Candidate(name, (key,), np.array([k0]), np.array([0.2 * k0]), np.array([5.0 * k0]), build, {},
+                             lambda th, k0=k0: abs(th[0] - k0) > REFIT_FLOOR * k0, f"{name} (nominal refitted)"))
+    return out

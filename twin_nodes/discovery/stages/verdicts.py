@@ -71,6 +71,13 @@ def run(inp: GradeInput) -> Verdicts:
                                                   -f.rel_improvement if f.verdict != "rejected"
                                                   else rank.get(f.candidate.label, 99)))
     effects_out = [_effect_json(f, names, base_held) for f in ranked]
+    for f, e in zip(ranked, effects_out):
+        if f in accepted and len(accepted) > 1:
+            # each effect's own held-out contribution: its cross-validated cut on top of those accepted before
+            # it (the residual it was judged against already had them in)
+            i = accepted.index(f)
+            e["heldout_contribution"] = {"cut": round(float(f.rel_improvement), 4), "residual": f.kind,
+                                         "on_top_of": [g.candidate.name for g in accepted[:i]]}
     _instrumented_views(S, ranked, effects_out)
     return Verdicts(ranked, effects_out, acc_labels)
 
@@ -170,6 +177,12 @@ def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:
         out["held_at_nominal"] = dict(f.candidate.held)
     if f.closed_loop:
         out["closed_loop"] = f.closed_loop
+    if getattr(f, "closed_loop_note", None):
+        out["closed_loop_note"] = f.closed_loop_note
+    if f.verdict in ("confirmed", "likely"):
+        pair = not_told_apart(out)
+        if pair is not None:
+            out["not_told_apart"] = pair
     if f.other is not None:
         out["residuals"][f.other["residual"]] = f.other
     if f.kind == "equation":
@@ -183,3 +196,70 @@ def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:
     else:
         out["heldout_all_channels_improvement"] = round(float(f.heldout_cut), 4)
     return out
+
+
+# ---------------------------------------------------------------- pairs the flight does not tell apart
+#
+# Issue 26: where two candidates explain the same residual (a steady wind and a drag in steady flight, a motor
+# lag and a pure delay), the finding names both and the manoeuvre that separates them, with its plan
+# (discovery.plans), instead of silently picking one.
+
+#: one class of drag (scoring calls them one class): an alternative within it is not a different effect
+_DRAG = {"linear_drag", "rotor_drag", "body_drag"}
+#: the manoeuvre that separates two effects (by the set of their names; drags as "drag")
+SEPARATING = {
+    frozenset({"wind", "drag"}): ("fast_legs", "legs in four directions at two speeds: a wind adds a force fixed "
+                                               "in the world, a drag opposes each leg's own airspeed"),
+    frozenset({"motor_time_constant", "actuator_delay"}): (
+        "rate_doublets", "hard stops and sharp corners: a delay shifts the response, a lag rounds it"),
+    frozenset({"battery_sag", "mass"}): ("vertical_steps", "collective steps: the sag follows the load's voltage "
+                                                           "drop, a mass does not"),
+    frozenset({"battery_sag", "thrust_coefficient"}): ("vertical_steps", "collective steps: the sag follows the "
+                                                                         "voltage, a thrust coefficient does not"),
+    frozenset({"ground_effect", "mass"}): ("low_hover", "hovering low and high: a ground effect fades with height"),
+    frozenset({"ground_effect", "thrust_coefficient"}): ("low_hover", "hovering low and high: a ground effect "
+                                                                      "fades with height"),
+    frozenset({"yaw_moment", "inertia"}): ("yaw_sweeps", "yaw turns in place at several rates"),
+}
+
+
+def _kind(name: str) -> str:
+    return "drag" if name in _DRAG else name
+
+
+def not_told_apart(effect: dict) -> dict | None:
+    """The first alternative of another kind than ``effect`` (``effect["alternatives"]``), as a pair with the
+    manoeuvre that separates the two and that manoeuvre's plan; ``plan_flyable``: the plan passes the
+    mission schema's checks (:func:`twin_nodes.mavlink.mission.plan_from_mapping`).  None: no such rival."""
+    from twin_nodes.discovery.plans import manoeuvre
+
+    for alt in effect.get("alternatives") or []:
+        a, b = _kind(effect["name"]), _kind(alt.get("name", ""))
+        if a == b or {a, b} == {"mass", "thrust_coefficient"}:
+            continue
+        kind, why = SEPARATING.get(frozenset({a, b}), ("rate_doublets", "hard stops and sharp corners"))
+        reps = {"fast_legs": 2, "rate_doublets": 6, "vertical_steps": 4, "low_hover": 4, "yaw_sweeps": 12}[kind]
+        plan = {"mission": {"name": f"separate_{a}_{b}", "speed_m_s": 3.0, "acceptance_radius_m": 1.0,
+                            "fly_through": False, "rtl_after": True, "waypoints": manoeuvre(kind, reps)}}
+        return {"with": {"name": alt["name"], "params": alt.get("params") or {}},
+                "manoeuvre": kind, "why": why, "plan": plan, "plan_flyable": _flyable(plan)}
+    return None
+
+
+def _flyable(plan: dict) -> bool:
+    """The plan's waypoints are within what a multirotor mission flies: finite, 0.5-120 m above home, within
+    500 m of it, 0 < speed <= 30 m/s, at most 500 items (the limits of the mission schema,
+    ``twin_nodes.mavlink.mission``, which discovery does not import; tests check the two agree)."""
+    import math
+
+    wps = plan.get("mission", {}).get("waypoints") or []
+    if not 0 < len(wps) <= 500:
+        return False
+    for w in wps:
+        vals = [w.get("north_m"), w.get("east_m"), w.get("alt_m"), w.get("speed_m_s")]
+        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in vals):
+            return False
+        if not (0.5 <= w["alt_m"] <= 120.0 and math.hypot(w["north_m"], w["east_m"]) <= 500.0
+                and 0.0 < w["speed_m_s"] <= 30.0):
+            return False
+    return True

@@ -1,0 +1,222 @@
+"""Issue 26: the declared grids, two-effect scoring, and the discovery changes (second-round pruning, the
+closed-loop veto's standing and noise, pairs not told apart, wind with drag)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from twin_nodes.discovery.stages import closed_loop, selection, verdicts
+from twin_nodes.prove import grid_prove, grid_rotorpy, grid_sih
+from twin_nodes.prove.scoring import Truth
+from twin_nodes.twin.simflight import Hidden
+from twin_nodes.vehicle.params import shipped
+
+rotorpy = pytest.importorskip("rotorpy", reason="RotorPy (dev dependency) not installed")
+
+
+# ------------------------------------------------------------------ the grids as declared
+
+
+def test_rotorpy_grid_manifest_is_the_declaration():
+    declared = grid_rotorpy.declare()
+    assert grid_rotorpy.load_grid() == declared          # the committed manifest is what the seed declares
+    assert len(declared) >= 80
+    strata = Counter(f.stratum for f in declared)
+    assert strata["two effects"] >= 20 and strata["none"] == 10
+    for e in grid_rotorpy.EFFECTS:                         # every effect at 3 magnitudes
+        assert {lv for f in declared for n, lv in f.effects if n == e} == {0, 1, 2}
+    assert set(f.mission for f in declared) == set(grid_rotorpy.MISSION_KINDS)
+    assert set(f.vehicle for f in declared) == set(grid_rotorpy.VEHICLES)
+    for name in strata:                                    # halves per stratum: sizes differ by at most one
+        h = Counter(f.half for f in declared if f.stratum == name)
+        assert abs(h["tuning"] - h["judging"]) <= 1
+    pairs = {tuple(n for n, _ in f.effects) for f in declared if len(f.effects) == 2}
+    assert set(grid_rotorpy.ISSUE_PAIRS) <= pairs
+
+
+def test_rotorpy_grid_truths_in_physical_units():
+    qp = grid_rotorpy.rf.rotorpy_params("crazyflie")
+    lag = grid_rotorpy.plant_change("motor_time_constant", 2, qp, 1)
+    assert lag["plant"]["tau_m"] == pytest.approx(2.0 * qp["tau_m"])
+    com = grid_rotorpy.plant_change("com_offset", 1, qp, 3)
+    d = np.hypot(com["hidden"].params["dx"], com["hidden"].params["dy"])
+    assert d == pytest.approx(0.09 * grid_rotorpy._arm(qp))
+    # every rotor moved by -d (rotor positions are measured from the centre of mass)
+    r0, r1 = qp["rotor_pos"]["r1"], com["plant"]["rotor_pos"]["r1"]
+    assert r1[0] - r0[0] == pytest.approx(-com["hidden"].params["dx"])
+    me = grid_rotorpy.plant_change("motor_efficiency", 0, qp, 6)
+    assert me["hidden"].params == {"motor": 3.0, "efficiency": 0.92}   # seed 6 -> rotor index 2 -> motor 3
+    assert grid_rotorpy.pack_voltage(0.0, 60.0, 0.0) == pytest.approx(16.8)
+    assert grid_rotorpy.pack_voltage(60.0, 60.0, 1.0) == pytest.approx(16.8 - 1.4 - 0.9)
+
+
+def test_sih_grid_manifest_is_the_declaration():
+    rows = grid_sih.declare()
+    flights = grid_sih.load_grid()
+    assert [r["id"] for r in rows] == list(flights)
+    assert all(flights[r["id"]]["half"] == r["half"] for r in rows)
+    assert len(rows) >= 60
+    groups = Counter(r["group"] for r in rows)
+    assert sum(1 for g in groups if "+" in g) == 10 and groups["none"] == 10
+    assert {r["logging"] for r in rows} == {"default", "highrate"}
+    assert {"M1", "M2", "M5", "M6"} <= {r["mission"] for r in rows}
+
+
+def test_sih_truths_of_two_groups():
+    from twin_nodes.mavlink.sih_flight import truth_effects
+
+    eff = truth_effects({"SIH_T_MAX": 4.6, "SIH_Q_MAX": 0.13})
+    assert [e["name"] for e in eff] == ["thrust_coefficient", "yaw_moment"]
+    assert eff[1]["params"]["km"] == pytest.approx(0.13 / 4.6)
+    vp = shipped("px4_sih_quadx")
+    tr = grid_prove._sih_truths({"sih": {"SIH_MASS": [1.0, 1.15], "SIH_KDV": [1.0, 1.5]}}, vp)
+    assert [t.hidden.name for t in tr] == ["mass", "linear_drag"]
+    tr = grid_prove._sih_truths({"sih": {"SIH_IXX": [0.025, 0.0325], "SIH_IYY": [0.025, 0.0325],
+                                         "SIH_Q_MAX": [0.1, 0.13]}}, vp)
+    assert [t.hidden.name for t in tr] == ["inertia", "yaw_moment"]
+
+
+def test_separating_plan_passes_the_mission_schema():
+    from twin_nodes.mavlink.mission import plan_from_mapping
+
+    for a, b in (("wind", "rotor_drag"), ("motor_time_constant", "actuator_delay"), ("battery_sag", "mass"),
+                 ("ground_effect", "thrust_coefficient"), ("yaw_moment", "inertia"), ("com_offset", "inertia")):
+        pair = verdicts.not_told_apart({"name": a, "alternatives": [{"name": b, "params": {"x": 1.0}}]})
+        assert pair["with"]["name"] == b and pair["plan_flyable"]
+        plan_from_mapping(pair["plan"], "<test>")              # no error: the schema agrees it is flyable
+    # drags among themselves, mass with thrust: one class, not a pair
+    assert verdicts.not_told_apart({"name": "body_drag", "alternatives": [{"name": "rotor_drag"}]}) is None
+    assert verdicts.not_told_apart({"name": "mass", "alternatives": [{"name": "thrust_coefficient"}]}) is None
+    bad = {"mission": {"waypoints": [{"north_m": 0.0, "east_m": 0.0, "alt_m": 300.0, "speed_m_s": 3.0}]}}
+    assert not verdicts._flyable(bad)
+
+
+# ------------------------------------------------------------------ scoring two effects and pairs
+
+
+def _eff(name, params, verdict="confirmed", pair=None):
+    e = {"name": name, "params": params, "verdict": verdict, "heldout_channel": "throttle",
+         "heldout_improvement": 0.8, "residual": "equation"}
+    if pair:
+        e["not_told_apart"] = pair
+    return e
+
+
+def test_two_effect_scoring():
+    vp = shipped("px4_sih_quadx")
+    truths = [Truth(Hidden("mass", {"mass": 1.2})), Truth(Hidden("yaw_moment", {"km": 0.03}))]
+    both = {"effects": [_eff("mass", {"mass": 1.19}), _eff("yaw_moment", {"km": 0.0305}, "likely")]}
+    r = grid_prove.score_grid_flight("f", truths, both, vp)
+    assert r["right_class"] and r["n_named"] == 2 and r["passed"]
+    one = {"effects": [_eff("mass", {"mass": 1.19})]}
+    r = grid_prove.score_grid_flight("f", truths, one, vp)
+    assert r["right_class"] and r["n_named"] == 1 and not r["passed"]
+    off = {"effects": [_eff("mass", {"mass": 1.4}), _eff("yaw_moment", {"km": 0.0305})]}
+    r = grid_prove.score_grid_flight("f", truths, off, vp)
+    assert r["n_named"] == 2 and not r["params_ok"] and not r["passed"]     # 16.7 % off on mass
+
+
+def test_pair_scoring_needs_the_truth_in_it_and_a_flyable_plan():
+    vp = shipped("px4_sih_quadx")
+    truth = [Truth(Hidden("actuator_delay", {"delay": 0.04}))]
+    pair = {"with": {"name": "actuator_delay", "params": {"delay": 0.041}}, "plan_flyable": True}
+    res = {"effects": [_eff("motor_time_constant", {"tau_up": 0.1, "tau_down": 0.1}, pair=pair)]}
+    r = grid_prove.score_grid_flight("f", truth, res, vp)
+    assert r["right_class"] and r["right_by_pair"] and r["param_errors"]["actuator_delay"] == pytest.approx(0.025)
+    res["effects"][0]["not_told_apart"] = dict(pair, plan_flyable=False)
+    assert not grid_prove.score_grid_flight("f", truth, res, vp)["right_class"]
+    none = grid_prove.score_grid_flight("f", [Truth(Hidden("none", {}))], res, vp)
+    assert not none["passed"]
+
+
+# ------------------------------------------------------------------ discovery: the second round's pruning
+
+
+def test_round_one_cut_rescaled_to_the_residual_left():
+    # a cut of 1 % of round 1's residual is 1.99 % of its energy; with a tenth of the energy left it is
+    # 19.9 % of it: a cut of 1 - sqrt(0.801) = 10.5 %, above PRUNE_GAIN (2 %)
+    g = selection._rescaled_gain({"rotor_drag": 0.01, "x": 0.0}, (10.0, 0.0), (1.0, 0.0))
+    assert g["rotor_drag"] == pytest.approx(1 - np.sqrt(1 - 0.0199 * 10), rel=1e-6)
+    assert g["x"] == 0.0
+    assert selection._rescaled_gain({"a": 0.3}, None, (1.0, 1.0)) == {"a": 0.3}
+    assert selection._rescaled_gain({"a": 0.5}, (1.0, 1.0), (0.1, 0.1))["a"] == pytest.approx(1.0)
+
+
+def test_wind_offered_with_a_drag_only_where_the_vehicle_has_none():
+    vp = shipped("px4_sih_quadx")
+    has_drag = any(n in ("linear_drag", "rotor_drag", "body_drag") for n, _ in vp.effects)
+    data = SimpleNamespace(v=np.tile([[5.0, 0.0, 0.0]], (100, 1)), valid=np.ones(100, bool))
+    c = selection.wind_with_drag(vp, data)
+    assert bool(c) == (not has_drag)
+    bare = vp.replace(effects=tuple(e for e in vp.effects if e[0] not in ("linear_drag", "rotor_drag", "body_drag")))
+    (c,) = selection.wind_with_drag(bare, data)
+    v = c.build(np.array([3.0, -2.0, 0.5]))
+    assert dict(dict(v.effects)["wind"])["vx"] == 3.0 and dict(dict(v.effects)["linear_drag"])["k_n_s_m"] == 0.5
+    assert c.params_dict(np.array([3.0, -2.0, 0.5]))["drag_k_n_s_m"] == 0.5
+    weight = bare.mass_kg * bare.gravity_m_s2
+    assert c.floor(np.array([3.0, 0.0, 0.02 * weight])) and not c.floor(np.array([0.1, 0.0, 0.02 * weight]))
+
+
+# ------------------------------------------------------------------ discovery: the closed-loop veto
+
+
+def _log(**info):
+    return SimpleNamespace(info=info)
+
+
+def test_who_flew_the_log():
+    assert closed_loop.controller_of(_log(ver_hw="ROTORTWIN_SIM")) == "twin"
+    assert closed_loop.controller_of(_log(ver_hw="ROTORPY_SIM", sys_name="rotorpy")) == "other"
+    assert closed_loop.controller_of(_log(ver_hw="PX4_SITL", ver_sw="02e73e3b")) == "px4"
+    ok = {"throttle_rmse": 0.01, "xy_rmse_m": 0.5}
+    assert closed_loop.veto_standing(_log(ver_sw="x", ver_hw="PX4_SITL"), ok)[0]
+    assert not closed_loop.veto_standing(_log(ver_sw="x", ver_hw="PX4_SITL"), dict(ok, throttle_rmse=0.2))[0]
+    assert not closed_loop.veto_standing(_log(ver_hw="ROTORPY_SIM"), ok)[0]
+
+
+def _run(err, t):
+    return {"throttle_rmse": float(np.sqrt(np.mean(err ** 2))), "_throttle_err": (t, err)}
+
+
+def test_veto_compares_with_its_own_noise_and_needs_standing():
+    rng = np.random.default_rng(1)
+    t = np.arange(0, 20, 0.02)
+    base = 0.0086 * rng.standard_normal(t.size)
+    before = _run(base, t)
+    # a rise of 1 % in RMSE that one part of the held-out flight makes and another takes back: beyond the
+    # relative tolerance, not beyond the bootstrap's scatter
+    wobble = _run(base * (1 + 0.2 * np.sin(2 * np.pi * t / 4.0)), t)
+    assert wobble["throttle_rmse"] > (1 + closed_loop.CLOSED_LOOP_TOL_REL) * before["throttle_rmse"]
+    rise, se = closed_loop.rise_significance(wobble, before)
+    assert rise == pytest.approx(np.mean(wobble["_throttle_err"][1] ** 2 - base ** 2))
+    assert 0 < rise < closed_loop.VETO_Z * se
+    vetoed, why = closed_loop._veto(wobble, before, before, (True, "the twin's controller flew this flight"))
+    assert not vetoed and "within the run's own scatter" in why
+    # a real worsening: a 0.5 % throttle bias on every sample
+    worse = _run(base + 0.005, t)
+    vetoed, why = closed_loop._veto(worse, before, before, (True, "the twin's controller flew this flight"))
+    assert vetoed and "block bootstrap" in why
+    # the same worsening on a flight another controller flew: the open-loop residuals decide
+    vetoed, why = closed_loop._veto(worse, before, before, (False, "another controller"))
+    assert not vetoed and why.startswith("not vetoed") and "another controller" in why
+    # better: no veto, nothing to say
+    assert closed_loop._veto(_run(0.5 * base, t), before, before, (True, "")) == (False, None)
+
+
+def test_nominal_law_refitted_only_where_the_nominal_has_it():
+    vp = shipped("px4_sih_quadx")               # linear_drag 1.0 and angular_damping 0.025 (SIH_KDV, SIH_KDW)
+    cands = {c.name: c for c in selection.nominal_refits(vp, vp)}
+    assert set(cands) == {"linear_drag", "angular_damping"}
+    c = cands["angular_damping"]
+    assert c.x0[0] == pytest.approx(0.025) and c.upper[0] == pytest.approx(0.125)
+    v = c.build(np.array([0.05]))
+    assert dict(dict(v.effects)["angular_damping"])["k_nm_s_rad"] == pytest.approx(0.05)
+    assert c.floor(np.array([0.05])) and not c.floor(np.array([0.026]))
+    # once refitted (accepted), not offered again
+    assert {c.name for c in selection.nominal_refits(vp, v)} == {"linear_drag"}
+    bare = vp.replace(effects=())
+    assert selection.nominal_refits(bare, bare) == []

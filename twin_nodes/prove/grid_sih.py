@@ -1,0 +1,85 @@
+"""The declared PX4 SIH grid (issue 26): every SIH parameter that changes the physics at 2 magnitudes, 10
+two-parameter combinations, 10 no-effect flights, on missions beyond M3/M4 and both logging profiles.
+
+``tools/declare_sih_grid.py`` writes ``missions/sih_grid/manifest.yaml`` (the PX4 section of
+``missions/sih_effects/manifest.yaml``, so that ``launch_scripts/fly_sih.sh --manifest`` flies it the same way,
+the missions, and the flights with their tuning/judging half drawn per stratum by :data:`GRID_SEED`).  The file in
+the repository is the declaration; prove reads the halves from it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+GRID_SEED = 2626
+GRID_PATH = REPO / "missions" / "sih_grid" / "manifest.yaml"
+BASE = REPO / "missions" / "sih_effects" / "manifest.yaml"
+#: each SIH parameter group that changes the physics, at two magnitudes (PX4 SIH defaults in sih_flight.SIH_DEFAULTS)
+GROUPS = {
+    "MASS": ({"SIH_MASS": 1.15}, {"SIH_MASS": 1.30}),
+    "T_MAX": ({"SIH_T_MAX": 4.6}, {"SIH_T_MAX": 4.2}),
+    "Q_MAX": ({"SIH_Q_MAX": 0.13}, {"SIH_Q_MAX": 0.17}),
+    "T_TAU": ({"SIH_T_TAU": 0.08}, {"SIH_T_TAU": 0.13}),
+    "IXX_IYY": ({"SIH_IXX": 0.0325, "SIH_IYY": 0.0325}, {"SIH_IXX": 0.04, "SIH_IYY": 0.04}),
+    "IZZ": ({"SIH_IZZ": 0.039}, {"SIH_IZZ": 0.048}),
+    "KDV": ({"SIH_KDV": 1.5}, {"SIH_KDV": 2.2}),
+    "KDW": ({"SIH_KDW": 0.05}, {"SIH_KDW": 0.10}),
+    "L_ROLL": ({"SIH_L_ROLL": 0.17}, {"SIH_L_ROLL": 0.15}),
+    "L_PITCH": ({"SIH_L_PITCH": 0.17}, {"SIH_L_PITCH": 0.15}),
+}
+#: two-parameter combinations (first magnitude of each; mass with thrust left out: one force, one class)
+COMBOS = (("MASS", "T_TAU"), ("T_MAX", "Q_MAX"), ("T_TAU", "KDV"), ("MASS", "KDV"), ("IXX_IYY", "Q_MAX"),
+          ("IZZ", "T_TAU"), ("KDW", "MASS"), ("L_ROLL", "T_MAX"), ("KDV", "Q_MAX"), ("L_PITCH", "KDW"))
+MISSIONS = {
+    "M1": {"plan_file": "missions/triangle.plan.yaml", "kind": "triangle"},
+    "M2": {"plan_file": "missions/grid.plan.yaml", "kind": "survey grid"},
+    "M3": {"plan_file": "missions/sih_effects/M3_yaw_square.plan.yaml", "kind": "yaw square"},
+    "M4": {"plan_file": "missions/sih_effects/M4_steps_zigzag.plan.yaml", "kind": "steps zigzag"},
+    "M5": {"plan_file": "missions/sih_grid/M5_takeoff_land.plan.yaml", "kind": "take-off and land"},
+    "M6": {"plan_file": "missions/sih_grid/M6_orbit.plan.yaml", "kind": "orbit"},
+}
+#: the missions the grid cycles through (M3/M4 once in six)
+CYCLE = ("M1", "M2", "M5", "M6", "M1", "M2", "M5", "M6", "M3", "M4")
+
+
+def declare(seed: int = GRID_SEED) -> list[dict]:
+    """40 single-group flights (each group x 2 magnitudes x 2 (mission, logging) pairs), 10 combinations, 10
+    no-effect flights; halves drawn per stratum (group, 'two parameters', 'none')."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    k = 0
+    for g, mags in GROUPS.items():
+        for m_i, sih in enumerate(mags):
+            for rep in range(2):
+                rows.append({"group": g, "sih": dict(sih), "mission": CYCLE[k % len(CYCLE)],
+                             "logging": "highrate" if (m_i + rep) % 2 else "default"})
+                k += 1
+    for j, (a, b) in enumerate(COMBOS):
+        rows.append({"group": f"{a}+{b}", "sih": {**GROUPS[a][0], **GROUPS[b][0]}, "mission": CYCLE[(k + j) % 10],
+                     "logging": "highrate" if j % 2 else "default"})
+    for j in range(10):
+        rows.append({"group": "none", "sih": {}, "mission": ("M1", "M2", "M5", "M6", "M3")[j % 5],
+                     "logging": "highrate" if j >= 5 else "default"})
+    strata: dict[str, list[int]] = {}
+    for i, r in enumerate(rows):
+        strata.setdefault("two parameters" if "+" in r["group"] else r["group"], []).append(i)
+    half = ["judging"] * len(rows)
+    for name in sorted(strata):
+        idx = strata[name]
+        for i in rng.permutation(idx)[: len(idx) // 2]:
+            half[int(i)] = "tuning"
+    for i, r in enumerate(rows):
+        r["id"] = f"s{i + 1:03d}"
+        r["half"] = half[i]
+        r["seed"] = int(seed * 100 + i + 1)
+    return rows
+
+
+def load_grid(path: str | Path = GRID_PATH) -> dict:
+    import yaml
+
+    return yaml.safe_load(Path(path).read_text())["flights"]
+
