@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twin_nodes.base.yamlio import read_yaml_file
 from twin_nodes.prove import rotorpy_flights as rf
 from twin_nodes.twin.simflight import Hidden
 
@@ -151,9 +152,8 @@ def write_manifest(path: str | Path = GRID_PATH, seed: int = GRID_SEED) -> Path:
 
 def load_grid(path: str | Path = GRID_PATH) -> list[GridFlight]:
     """The declared grid from its manifest."""
-    import yaml
 
-    doc = yaml.safe_load(Path(path).read_text())
+    doc = read_yaml_file(path, "grid manifest")
     return [GridFlight(d["id"], d["vehicle"], d["mission"], tuple((n, int(lv)) for n, lv in d["effects"]),
                        int(d["seed"]), d["half"]) for d in doc["flights"]]
 

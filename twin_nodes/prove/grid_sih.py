@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from twin_nodes.base.yamlio import read_yaml_file
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
@@ -79,7 +80,6 @@ def declare(seed: int = GRID_SEED) -> list[dict]:
 
 
 def load_grid(path: str | Path = GRID_PATH) -> dict:
-    import yaml
 
-    return yaml.safe_load(Path(path).read_text())["flights"]
+    return read_yaml_file(path, "grid manifest")["flights"]
 

@@ -20,6 +20,7 @@ import json
 import math
 from pathlib import Path
 
+from twin_nodes.base.yamlio import read_yaml_file
 import numpy as np
 
 MANIFEST = Path(__file__).with_name("oov_manifest.yaml")
@@ -28,12 +29,11 @@ GENERATOR_VERSION = 1
 
 def load_manifest(path: str | Path = MANIFEST) -> list[dict]:
     """The declared flights (checked: generator, mechanism, split, mission)."""
-    import yaml
 
     from twin_nodes.base.errors import TwinError
     from twin_nodes.prove.oov_physics import PLANT_EFFECTS
 
-    doc = yaml.safe_load(Path(path).read_text())
+    doc = read_yaml_file(path, "manifest")
     flights = doc.get("flights") if isinstance(doc, dict) else None
     if not isinstance(flights, list) or not flights:
         raise TwinError(f"{path}: flights: expected a list of flights")

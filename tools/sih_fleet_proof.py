@@ -1,7 +1,7 @@
 """Score a fleet report of the one-vehicle SIH fleet (missions/sih_effects/manifest.yaml, flights s01-s32) against
 what the manifest declared before it was flown (issue 25, part 6).
 
-    python bench/sih_fleet_proof.py REPORT_DIR/report.json [--prefix s]
+    python tools/sih_fleet_proof.py REPORT_DIR/report.json [--prefix s]
 
 A *declared change* is a flight whose SIH parameters differ from the previous flight's (a change made or undone);
 it is *found* when a ``change`` alarm starts within one flight of it and names every parameter group that changed

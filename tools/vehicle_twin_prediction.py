@@ -1,7 +1,7 @@
 """Cross-flight prediction (issue 25): a vehicle twin built from some flights of one vehicle flies its other
 flights whole, closed loop, beside each flight's own nominal.
 
-    python bench/bench_vehicle_twin.py FLIGHTS_OR_DIRS... [--seed 25] [--out DIR]
+    python tools/vehicle_twin_prediction.py FLIGHTS_OR_DIRS... [--seed 25] [--out DIR]
 
 The free flights (:func:`twin_nodes.fleet.facts.flight_kind`) are split by ``--seed`` into a build half and a
 predict half *before* anything is fitted; the twin is pooled over the build half
