@@ -40,7 +40,12 @@ OFFBOARD_NAV_STATE = 14.0
 #: how a closed-loop control step was flown: PX4's attitude setpoint (MANUAL/STAB, offboard attitude),
 #: its rate setpoint (ACRO), the real attitude (a manual mode in a log without an attitude setpoint),
 #: the position/velocity cascade (ALTCTL/POSCTL/AUTO/offboard trajectories), or not at all (disarmed)
-FLOWN_AS = ("attitude", "rates", "real_attitude", "cascade", "disarmed")
+FLOWN_AS = ("attitude", "rates", "real_attitude", "cascade", "grounded", "disarmed")
+#: a logged collective thrust setpoint at or below this (0..1) in PX4's position-controlled modes: PX4
+#: commands no thrust, which it does only before its take-off ramp (``TakeoffHandling`` state below
+#: ``rampup``) or with ground contact after a touchdown (``mc_pos_control``: ``not_taken_off ||
+#: flying_but_ground_contact``: zero thrust, integrators reset); in flight its thrust is at least MPC_THR_MIN
+GROUNDED_THRUST = 0.02
 __all__ = ["MANUAL_NAV_STATES", "MODES", "FLOWN_AS", "controlled_axes", "TwinSample", "TwinRunner", "TwinRun",
            "run_twin_on_log", "log_inputs"]
 
@@ -285,6 +290,8 @@ class TwinRunner:
             self.throttle = float(mean_u)
         else:
             how = self._fly_mode() if self.is_armed else "disarmed"
+            if how == "cascade" and self._px4_grounded():
+                how = "grounded"
             thr = self.real_throttle if math.isfinite(self.real_throttle) else self.att_thrust
             if how == "attitude":
                 # PX4 MANUAL/STAB (or offboard attitude): no position controller; PX4's attitude
@@ -305,6 +312,10 @@ class TwinRunner:
                     sp = sp.copy()
                     sp[10] = self.att_yawrate
                 u, info = self.ctrl.update(self.x[:13], sp, self.dt_c, q_att=q_att)
+            elif how == "grounded":
+                # PX4 before its take-off ramp or with ground contact: zero thrust, integrators reset
+                self.ctrl.reset()
+                u, info = np.zeros(self.n), np.zeros(1)
             else:
                 self.ctrl.reset()
                 u, info = np.full(self.n, np.nan), np.full(1, np.nan)
@@ -315,7 +326,37 @@ class TwinRunner:
         # the runner's own arrays (float64, checked shapes): the model's unchecked entry point
         self.x = self.model.step_unchecked(self.x, applied, self.dt, self.ext, self.nsub)
         self.t += self.dt_c
+        if self.mode != "open" and self.flown_as in ("grounded", "disarmed") and self.real_x is not None:
+            self._hold_on_ground()
         return resynced, applied
+
+    def _px4_grounded(self) -> bool:
+        """PX4's position controller commands no thrust (see :data:`GROUNDED_THRUST`): its logged
+        collective thrust setpoint, or where none is logged the real motors, at zero."""
+        thr = self.real_throttle
+        if math.isfinite(thr):
+            return thr <= GROUNDED_THRUST
+        u = self.real_u
+        return bool(u.shape == (self.n,) and np.isfinite(u).all() and float(np.max(u)) <= GROUNDED_THRUST)
+
+    def _hold_on_ground(self) -> None:
+        """Disarmed, or armed with PX4 commanding no thrust: the vehicle is not flying (it stands on the
+        ground, or a hand holds it), so the twin is where the real vehicle is, at rest on a ground plane
+        at its height; a later take-off starts the twin from there, as PX4 starts its ramp from the
+        ground with reset integrators (a second take-off in one log: a touch-and-go, a payload set down
+        at a spot higher or lower than the first, the EKF's height drifted while landed)."""
+        shift = float(self.real_x[2])  # the real height above the twin's ground plane
+        if shift != 0.0:
+            # the ground plane moves to the real height (a touchdown elsewhere, the EKF's height drifting)
+            self.ground_z += shift
+            self.real_x[2] = 0.0
+            if self._sp_ground_z is not None:
+                self.sp = self.sp.copy()
+                self.sp[2] -= shift
+                self._sp_ground_z = self.ground_z
+        self.x[:13] = self.real_x
+        self.x[2] = max(self.x[2], 0.0)
+        self.x[NX_BODY:] = self.params.rotors.reference_from_command(np.nan_to_num(self.u))
 
     def _carried_setpoint(self) -> np.ndarray:
         """The position setpoint carried along by the velocity and acceleration setpoints since the
@@ -494,14 +535,16 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
                 _, applied = runner._step()
                 flown[runner.flown_as] = flown.get(runner.flown_as, 0) + 1
                 out.add(runner.t, runner.x, runner.u, runner.throttle,
-                        model.specific_force_unchecked(runner.x, applied, runner.ext))
-    out_t, out_x, out_u, out_thr, out_sf = out.arrays()
+                        model.specific_force_unchecked(runner.x, applied, runner.ext), runner.ground_z)
+    out_t, out_x, out_u, out_thr, out_sf, out_ground = out.arrays()
     if len(out_x):
-        # the twin's ground is at the real frame's take-off height (set once, before the first step)
-        out_x[:, 2] += runner.ground_z
+        # the twin's ground at each step, in the real frame (the take-off height; it moves only while the
+        # vehicle is held on the ground, see TwinRunner._hold_on_ground)
+        out_x[:, 2] += out_ground
     return TwinRun(t=out_t, x=out_x, motors=out_u, throttle=out_thr, specific_force=out_sf, mode=mode,
                    info={"rate_hz": runner.rate_hz, "horizon_s": horizon_s, "params": vp.name,
-                         "ground_z": runner.ground_z,
+                         "ground_z": float(out_ground[0]) if len(out_ground) else runner.ground_z,
+                         "ground_z_t": out_ground,
                          "flown_as_s": {k: v / runner.rate_hz for k, v in flown.items() if k}})
 
 
@@ -511,7 +554,7 @@ class _Rows:
 
     def __init__(self, n_steps: int, nx: int, n: int):
         self.k = 0
-        self.cols = (None, nx, n, None, 3)
+        self.cols = (None, nx, n, None, 3, None)
         self.a = [np.empty((max(n_steps, 1),) + ((c,) if c else ())) for c in self.cols]
 
     def add(self, *row) -> None:
