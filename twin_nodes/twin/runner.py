@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from twin_nodes.twin.control import SP_SIZE, Controller
+from twin_nodes.twin.control import G_ZV_P, G_ZV_UP, SP_SIZE, Controller
 from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.model import Multirotor
@@ -46,6 +46,10 @@ FLOWN_AS = ("attitude", "rates", "real_attitude", "cascade", "grounded", "disarm
 #: ``rampup``) or with ground contact after a touchdown (``mc_pos_control``: ``not_taken_off ||
 #: flying_but_ground_contact``: zero thrust, integrators reset); in flight its thrust is at least MPC_THR_MIN
 GROUNDED_THRUST = 0.02
+#: PX4's take-off ramp (``MPC_TKO_RAMP_T``, 3 s by default since PX4 1.12): from the end of a grounded
+#: phase the upward velocity limit goes from -g / MPC_Z_VEL_P_ACC (zero thrust) to MPC_Z_VEL_MAX_UP
+TAKEOFF_RAMP_S = 3.0
+G_ACC = 9.80665
 __all__ = ["MANUAL_NAV_STATES", "MODES", "FLOWN_AS", "controlled_axes", "TwinSample", "TwinRunner", "TwinRun",
            "run_twin_on_log", "log_inputs"]
 
@@ -119,6 +123,10 @@ class TwinRunner:
         self.att_yawrate = float("nan")
         self.rates_sp = np.full(3, np.nan)
         self.offboard_flags = np.full(6, np.nan)
+        #: PX4's take-off ramp (``Takeoff::updateRamp``): its length [s] (the log's MPC_TKO_RAMP_T) and
+        #: progress 0..1 (1: flying; set to 0 by a grounded phase, so a log started in the air has none)
+        self.takeoff_ramp_s = TAKEOFF_RAMP_S
+        self.ramp = 1.0
         #: how the last control step was flown (:data:`FLOWN_AS`)
         self.flown_as = ""
 
@@ -311,10 +319,14 @@ class TwinRunner:
                     # feeds the stick's yaw rate forward, logged as the attitude setpoint's yaw_sp_move_rate
                     sp = sp.copy()
                     sp[10] = self.att_yawrate
-                u, info = self.ctrl.update(self.x[:13], sp, self.dt_c, q_att=q_att)
+                if self.ramp < 1.0:
+                    u, info = self._ramped_update(sp, q_att)
+                else:
+                    u, info = self.ctrl.update(self.x[:13], sp, self.dt_c, q_att=q_att)
             elif how == "grounded":
                 # PX4 before its take-off ramp or with ground contact: zero thrust, integrators reset
                 self.ctrl.reset()
+                self.ramp = 0.0
                 u, info = np.zeros(self.n), np.zeros(1)
             else:
                 self.ctrl.reset()
@@ -329,6 +341,26 @@ class TwinRunner:
         if self.mode != "open" and self.flown_as in ("grounded", "disarmed") and self.real_x is not None:
             self._hold_on_ground()
         return resynced, applied
+
+    def _ramped_update(self, sp: np.ndarray, q_att) -> tuple[np.ndarray, np.ndarray]:
+        """A cascade step during PX4's take-off ramp (``Takeoff::updateRamp``, ``mc_pos_control``): the
+        upward velocity limit, the trajectory's own upward velocity included, ramps from -g / Kp_vz (the
+        velocity loop asks for zero thrust) to MPC_Z_VEL_MAX_UP over MPC_TKO_RAMP_T; no acceleration
+        feed-forward while it ramps."""
+        G = self.ctrl.G
+        up = float(G[G_ZV_UP])
+        self.ramp = min(self.ramp + self.dt_c / max(self.takeoff_ramp_s, self.dt_c), 1.0)
+        v0 = -G_ACC / max(float(G[G_ZV_P]), 0.01)
+        lim = v0 + self.ramp * (up - v0)
+        sp = sp.copy()
+        sp[8] = np.nan
+        if math.isfinite(sp[5]):
+            sp[5] = min(sp[5], lim)
+        G[G_ZV_UP] = lim
+        try:
+            return self.ctrl.update(self.x[:13], sp, self.dt_c, q_att=q_att)
+        finally:
+            G[G_ZV_UP] = up
 
     def _px4_grounded(self) -> bool:
         """PX4's position controller commands no thrust (see :data:`GROUNDED_THRUST`): its logged
@@ -485,6 +517,9 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
                     t0: float | None = None, t1: float | None = None, progress: bool = False) -> TwinRun:
     """Run the twin beside a whole log (offline), returning its outputs on the control grid."""
     runner = TwinRunner(vp, mode, horizon_s)
+    ramp_s = (getattr(log, "params", None) or {}).get("MPC_TKO_RAMP_T")
+    if ramp_s is not None and math.isfinite(float(ramp_s)) and float(ramp_s) >= 0.0:
+        runner.takeoff_ramp_s = float(ramp_s)
     data = log_inputs(log, runner.rate_hz, t0, t1)
     t = data["t"]
     n = len(t)
