@@ -185,6 +185,10 @@ def detect(run: Any, log: Any, xy_controlled=None, z_controlled=None, t0: float 
     if pos is not None and len(pos):
         p_real = pos.at(t, "linear")
         p_twin = twin(range(3))
+        g_t = run.info.get("ground_z_t") if isinstance(run.info, dict) else None
+        if g_t is not None and len(g_t) == len(run.t) and len(g_t):
+            # the twin's ground plane where it moved (a second take-off from another height)
+            z_ground = np.interp(t, run.t, g_t)
         h_twin = p_twin[:, 2] - z_ground
         h_real = p_real[:, 2] - z_ground
         ts = _first_sustained(t, air & (h_twin < CRASH_H_M) & (h_real > CRASH_REAL_H_M), CRASH_SUSTAIN_S)

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from twin_nodes.twin.control import SP_SIZE, Controller
+from twin_nodes.twin.control import G_ZV_P, G_ZV_UP, SP_SIZE, Controller
 from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.model import Multirotor
@@ -40,7 +40,16 @@ OFFBOARD_NAV_STATE = 14.0
 #: how a closed-loop control step was flown: PX4's attitude setpoint (MANUAL/STAB, offboard attitude),
 #: its rate setpoint (ACRO), the real attitude (a manual mode in a log without an attitude setpoint),
 #: the position/velocity cascade (ALTCTL/POSCTL/AUTO/offboard trajectories), or not at all (disarmed)
-FLOWN_AS = ("attitude", "rates", "real_attitude", "cascade", "disarmed")
+FLOWN_AS = ("attitude", "rates", "real_attitude", "cascade", "grounded", "disarmed")
+#: a logged collective thrust setpoint at or below this (0..1) in PX4's position-controlled modes: PX4
+#: commands no thrust, which it does only before its take-off ramp (``TakeoffHandling`` state below
+#: ``rampup``) or with ground contact after a touchdown (``mc_pos_control``: ``not_taken_off ||
+#: flying_but_ground_contact``: zero thrust, integrators reset); in flight its thrust is at least MPC_THR_MIN
+GROUNDED_THRUST = 0.02
+#: PX4's take-off ramp (``MPC_TKO_RAMP_T``, 3 s by default since PX4 1.12): from the end of a grounded
+#: phase the upward velocity limit goes from -g / MPC_Z_VEL_P_ACC (zero thrust) to MPC_Z_VEL_MAX_UP
+TAKEOFF_RAMP_S = 3.0
+G_ACC = 9.80665
 __all__ = ["MANUAL_NAV_STATES", "MODES", "FLOWN_AS", "controlled_axes", "TwinSample", "TwinRunner", "TwinRun",
            "run_twin_on_log", "log_inputs"]
 
@@ -114,6 +123,10 @@ class TwinRunner:
         self.att_yawrate = float("nan")
         self.rates_sp = np.full(3, np.nan)
         self.offboard_flags = np.full(6, np.nan)
+        #: PX4's take-off ramp (``Takeoff::updateRamp``): its length [s] (the log's MPC_TKO_RAMP_T) and
+        #: progress 0..1 (1: flying; set to 0 by a grounded phase, so a log started in the air has none)
+        self.takeoff_ramp_s = TAKEOFF_RAMP_S
+        self.ramp = 1.0
         #: how the last control step was flown (:data:`FLOWN_AS`)
         self.flown_as = ""
 
@@ -285,6 +298,8 @@ class TwinRunner:
             self.throttle = float(mean_u)
         else:
             how = self._fly_mode() if self.is_armed else "disarmed"
+            if how == "cascade" and self._px4_grounded():
+                how = "grounded"
             thr = self.real_throttle if math.isfinite(self.real_throttle) else self.att_thrust
             if how == "attitude":
                 # PX4 MANUAL/STAB (or offboard attitude): no position controller; PX4's attitude
@@ -304,7 +319,15 @@ class TwinRunner:
                     # feeds the stick's yaw rate forward, logged as the attitude setpoint's yaw_sp_move_rate
                     sp = sp.copy()
                     sp[10] = self.att_yawrate
-                u, info = self.ctrl.update(self.x[:13], sp, self.dt_c, q_att=q_att)
+                if self.ramp < 1.0:
+                    u, info = self._ramped_update(sp, q_att)
+                else:
+                    u, info = self.ctrl.update(self.x[:13], sp, self.dt_c, q_att=q_att)
+            elif how == "grounded":
+                # PX4 before its take-off ramp or with ground contact: zero thrust, integrators reset
+                self.ctrl.reset()
+                self.ramp = 0.0
+                u, info = np.zeros(self.n), np.zeros(1)
             else:
                 self.ctrl.reset()
                 u, info = np.full(self.n, np.nan), np.full(1, np.nan)
@@ -315,7 +338,57 @@ class TwinRunner:
         # the runner's own arrays (float64, checked shapes): the model's unchecked entry point
         self.x = self.model.step_unchecked(self.x, applied, self.dt, self.ext, self.nsub)
         self.t += self.dt_c
+        if self.mode != "open" and self.flown_as in ("grounded", "disarmed") and self.real_x is not None:
+            self._hold_on_ground()
         return resynced, applied
+
+    def _ramped_update(self, sp: np.ndarray, q_att) -> tuple[np.ndarray, np.ndarray]:
+        """A cascade step during PX4's take-off ramp (``Takeoff::updateRamp``, ``mc_pos_control``): the
+        upward velocity limit, the trajectory's own upward velocity included, ramps from -g / Kp_vz (the
+        velocity loop asks for zero thrust) to MPC_Z_VEL_MAX_UP over MPC_TKO_RAMP_T; no acceleration
+        feed-forward while it ramps."""
+        G = self.ctrl.G
+        up = float(G[G_ZV_UP])
+        self.ramp = min(self.ramp + self.dt_c / max(self.takeoff_ramp_s, self.dt_c), 1.0)
+        v0 = -G_ACC / max(float(G[G_ZV_P]), 0.01)
+        lim = v0 + self.ramp * (up - v0)
+        sp = sp.copy()
+        sp[8] = np.nan
+        if math.isfinite(sp[5]):
+            sp[5] = min(sp[5], lim)
+        G[G_ZV_UP] = lim
+        try:
+            return self.ctrl.update(self.x[:13], sp, self.dt_c, q_att=q_att)
+        finally:
+            G[G_ZV_UP] = up
+
+    def _px4_grounded(self) -> bool:
+        """PX4's position controller commands no thrust (see :data:`GROUNDED_THRUST`): its logged
+        collective thrust setpoint, or where none is logged the real motors, at zero."""
+        thr = self.real_throttle
+        if math.isfinite(thr):
+            return thr <= GROUNDED_THRUST
+        u = self.real_u
+        return bool(u.shape == (self.n,) and np.isfinite(u).all() and float(np.max(u)) <= GROUNDED_THRUST)
+
+    def _hold_on_ground(self) -> None:
+        """Disarmed, or armed with PX4 commanding no thrust: the vehicle is not flying (it stands on the
+        ground, or a hand holds it), so the twin is where the real vehicle is, at rest on a ground plane
+        at its height; a later take-off starts the twin from there, as PX4 starts its ramp from the
+        ground with reset integrators (a second take-off in one log: a touch-and-go, a payload set down
+        at a spot higher or lower than the first, the EKF's height drifted while landed)."""
+        shift = float(self.real_x[2])  # the real height above the twin's ground plane
+        if shift != 0.0:
+            # the ground plane moves to the real height (a touchdown elsewhere, the EKF's height drifting)
+            self.ground_z += shift
+            self.real_x[2] = 0.0
+            if self._sp_ground_z is not None:
+                self.sp = self.sp.copy()
+                self.sp[2] -= shift
+                self._sp_ground_z = self.ground_z
+        self.x[:13] = self.real_x
+        self.x[2] = max(self.x[2], 0.0)
+        self.x[NX_BODY:] = self.params.rotors.reference_from_command(np.nan_to_num(self.u))
 
     def _carried_setpoint(self) -> np.ndarray:
         """The position setpoint carried along by the velocity and acceleration setpoints since the
@@ -444,6 +517,9 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
                     t0: float | None = None, t1: float | None = None, progress: bool = False) -> TwinRun:
     """Run the twin beside a whole log (offline), returning its outputs on the control grid."""
     runner = TwinRunner(vp, mode, horizon_s)
+    ramp_s = (getattr(log, "params", None) or {}).get("MPC_TKO_RAMP_T")
+    if ramp_s is not None and math.isfinite(float(ramp_s)) and float(ramp_s) >= 0.0:
+        runner.takeoff_ramp_s = float(ramp_s)
     data = log_inputs(log, runner.rate_hz, t0, t1)
     t = data["t"]
     n = len(t)
@@ -494,14 +570,16 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
                 _, applied = runner._step()
                 flown[runner.flown_as] = flown.get(runner.flown_as, 0) + 1
                 out.add(runner.t, runner.x, runner.u, runner.throttle,
-                        model.specific_force_unchecked(runner.x, applied, runner.ext))
-    out_t, out_x, out_u, out_thr, out_sf = out.arrays()
+                        model.specific_force_unchecked(runner.x, applied, runner.ext), runner.ground_z)
+    out_t, out_x, out_u, out_thr, out_sf, out_ground = out.arrays()
     if len(out_x):
-        # the twin's ground is at the real frame's take-off height (set once, before the first step)
-        out_x[:, 2] += runner.ground_z
+        # the twin's ground at each step, in the real frame (the take-off height; it moves only while the
+        # vehicle is held on the ground, see TwinRunner._hold_on_ground)
+        out_x[:, 2] += out_ground
     return TwinRun(t=out_t, x=out_x, motors=out_u, throttle=out_thr, specific_force=out_sf, mode=mode,
                    info={"rate_hz": runner.rate_hz, "horizon_s": horizon_s, "params": vp.name,
-                         "ground_z": runner.ground_z,
+                         "ground_z": float(out_ground[0]) if len(out_ground) else runner.ground_z,
+                         "ground_z_t": out_ground,
                          "flown_as_s": {k: v / runner.rate_hz for k, v in flown.items() if k}})
 
 
@@ -511,7 +589,7 @@ class _Rows:
 
     def __init__(self, n_steps: int, nx: int, n: int):
         self.k = 0
-        self.cols = (None, nx, n, None, 3)
+        self.cols = (None, nx, n, None, 3, None)
         self.a = [np.empty((max(n_steps, 1),) + ((c,) if c else ())) for c in self.cols]
 
     def add(self, *row) -> None:
