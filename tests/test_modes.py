@@ -235,3 +235,75 @@ def test_altctl_without_a_trajectory_setpoint_holds_the_real_height(tmp_path):
     assert abs(run.x[k1, 2] - z_real) < 0.15
     xy, z, _ = controlled_axes(log, np.array([STEP_S]))
     assert not xy[0] and z[0]
+
+
+# ---------------------------------------------------------------------------------------- pilot stand-in
+
+@pytest.fixture(scope="module")
+def hover_log(tmp_path_factory):
+    """STABILIZED, level, the logged collective thrust constant at the SIH quad's hover throttle (0.4903); the
+    real vehicle climbs to 3 m at 2-5 s, holds until 30 s, lands (``small_topics``)."""
+    vp = load_params(PARAMS)
+    hov = vp.hover_command
+
+    def edit(topics):
+        _status(15)(topics)
+        _attitude_setpoint(topics, thrust=hov)
+        topics["vehicle_attitude_setpoint"]["thrust_body"][:, 2] = -hov
+        topics["vehicle_thrust_setpoint"]["xyz"][:, 2] = -hov
+    return read_ulog(C.edited_flight(tmp_path_factory.mktemp("pilot") / "stab_hover.ulg", edit, dur_s=35.0))
+
+
+def _strong(vp, factor: float):
+    import dataclasses
+    return dataclasses.replace(vp, rotors=dataclasses.replace(vp.rotors, thrust_max_n=vp.rotors.thrust_max_n * factor))
+
+
+def test_pilot_stand_in_holds_the_height_and_shows_the_thrust_model_error(hover_log):
+    """A twin whose thrust is 10 % too strong (SIH_T_MAX 5.5 N instead of 5.0, thrust linear in the command).
+    Without the stand-in it flies the logged hover throttle and climbs away (0.98 m/s^2 up against 1 /s of drag:
+    ~1 m/s).  With it the height follows the real one, and the twin's throttle settles where 1.1 T(thr) = m g:
+    thr = 0.4903 / 1.1 = 0.4458, i.e. a throttle error of 0.4903 (1 - 1/1.1) = 0.0446 against the real logged
+    one -- the model's error, where it read 0.0 by construction before."""
+    vp = load_params(PARAMS)
+    strong = _strong(vp, 1.1)
+    expected = vp.hover_command * (1.0 - 1.0 / 1.1)
+    assert abs(expected - 0.04458) < 1e-4
+    bare = run_twin_on_log(hover_log, strong, mode="closed", pilot=False)
+    run = run_twin_on_log(hover_log, strong, mode="closed")
+    assert run.info["flown_as_s"].get("attitude", 0) > 30.0
+    for r in (bare, run):
+        r.z_real = hover_log.get("position_enu").at(r.t)[:, 2]
+        r.thr_real = hover_log.get("throttle").at(r.t)[:, 0]
+    k20 = np.searchsorted(bare.t, 20.0)
+    assert bare.x[k20, 2] - bare.z_real[k20] > 10.0          # climbed away
+    assert np.allclose(bare.throttle[(bare.t > 5.0) & (bare.t < 30.0)], vp.hover_command, atol=1e-6)  # 0 throttle error by construction
+    err = np.abs(run.x[:, 2] - run.z_real)
+    # the climb at 2-5 s, which the logged constant throttle does not explain, plus the model's 0.98 m/s^2 of bias:
+    # a transient of 0.99 m at ~8 s (the loop's triple pole at 0.5 rad/s settles in ~15 s), then the real height
+    assert err[(run.t > 5.0) & (run.t < 30.0)].max() < 1.1
+    assert err[(run.t > 20.0) & (run.t < 30.0)].max() < 0.15
+    hold = (run.t > 20.0) & (run.t < 28.0)
+    rmse = float(np.sqrt(np.mean((run.throttle[hold] - run.thr_real[hold]) ** 2)))
+    assert abs(rmse - expected) < 0.004, rmse
+    assert abs(run.info["pilot"]["s"] - 31.5) < 0.5
+    # the scored throttle (whole airborne flight) says the same, and the notes say the stand-in flew
+    m = flight_metrics(align(run, hover_log))
+    assert abs(m["throttle_rmse"] - expected) < 0.006, m["throttle_rmse"]
+    assert any(n.startswith("manual modes: a pilot stand-in held the real height, 31.5 s; its mean correction -")
+               for n in m["notes"]), m["notes"]
+
+
+def test_pilot_stand_in_is_idle_with_a_correct_model(hover_log):
+    """The twin's own model: in the hold the correction is ~0 (the climb, which the constant logged throttle
+    does not explain, is what it corrects there); without the stand-in that same twin stays on the ground."""
+    vp = load_params(PARAMS)
+    run = run_twin_on_log(hover_log, vp, mode="closed")
+    thr_real = hover_log.get("throttle").at(run.t)[:, 0]
+    hold = (run.t > 20.0) & (run.t < 28.0)
+    assert np.abs(run.throttle[hold] - thr_real[hold]).max() < 0.003
+    assert abs(run.info["pilot"]["mean_correction_of_hover"]) < 0.01
+    z_real = hover_log.get("position_enu").at(run.t)[:, 2]
+    assert np.abs(run.x[hold, 2] - z_real[hold]).max() < 0.15
+    bare = run_twin_on_log(hover_log, vp, mode="closed", pilot=False)
+    assert bare.x[np.searchsorted(bare.t, 20.0), 2] < 0.05  # never left the ground: the crash divergence

@@ -186,6 +186,11 @@ def align(run: TwinRun, log: Any, rate_hz: float = DEFAULT_RATE_HZ, t0: float | 
             notes.append("no airborne interval found: the whole overlap is compared")
     if run.mode == "open":
         notes.append(OPEN_LOOP_NOTE)
+    pilot = (run.info or {}).get("pilot") or {}
+    if pilot.get("s", 0.0) > 0.0:
+        notes.append(f"manual modes: a pilot stand-in held the real height, {pilot['s']:.1f} s; its mean correction "
+                     f"{100.0 * pilot['mean_correction_of_hover']:+.1f} % of hover (the collective the model lacks: "
+                     "the throttle there is scored as logged + correction)")
     div = None
     if run.mode == "closed" and run.x.shape[1] >= 13 and check_divergence:
         iv_air = log.airborne_intervals()

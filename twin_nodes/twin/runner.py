@@ -29,6 +29,7 @@ from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.model import Multirotor
 from twin_nodes.twin.sim import DelayLine
+from twin_nodes.twin.pilot import PilotStandIn
 from twin_nodes.logs import time_sync
 from twin_nodes.logs.ulog_io import MANUAL_NAV_STATES
 
@@ -73,7 +74,7 @@ class TwinRunner:
     """Streaming twin.  Feed inputs in time order, call ``advance_to(t)``."""
 
     def __init__(self, vp: VehicleParams, mode: str = "closed", horizon_s: float = 2.0,
-                 rate_hz: float | None = None):
+                 rate_hz: float | None = None, pilot: bool = True):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         self.params = vp
@@ -129,6 +130,8 @@ class TwinRunner:
         self.ramp = 1.0
         #: how the last control step was flown (:data:`FLOWN_AS`)
         self.flown_as = ""
+        #: the pilot stand-in for the vertical axis in PX4's manual modes (None: the logged thrust alone)
+        self.pilot = PilotStandIn(self.model.params.hover_command, vp.gravity_m_s2) if pilot else None
 
     # ---------------------------------------------------------------- inputs
     def real_state(self, t: float, p_enu, v_enu, q_wxyz, w_flu) -> None:
@@ -301,6 +304,7 @@ class TwinRunner:
             if how == "cascade" and self._px4_grounded():
                 how = "grounded"
             thr = self.real_throttle if math.isfinite(self.real_throttle) else self.att_thrust
+            thr = self._piloted(how, thr)
             if how == "attitude":
                 # PX4 MANUAL/STAB (or offboard attitude): no position controller; PX4's attitude
                 # setpoint (the pilot's sticks) and collective thrust through the attitude and rate loops
@@ -310,7 +314,7 @@ class TwinRunner:
                 u, info = self.ctrl.update_manual(self.x[:13], None, thr, self.dt_c, rates=self.rates_sp)
             elif how == "real_attitude":
                 # a manual mode in a log without an attitude setpoint: the real attitude stands for it
-                u, info = self.ctrl.update_manual(self.x[:13], self.real_x[6:10], self.real_throttle, self.dt_c)
+                u, info = self.ctrl.update_manual(self.x[:13], self.real_x[6:10], thr, self.dt_c)
             elif how == "cascade":
                 q_att = self.att_q if np.isfinite(self.att_q).all() else None
                 sp = self._effective_setpoint()
@@ -341,6 +345,18 @@ class TwinRunner:
         if self.mode != "open" and self.flown_as in ("grounded", "disarmed") and self.real_x is not None:
             self._hold_on_ground()
         return resynced, applied
+
+    def _piloted(self, how: str, thr: float) -> float:
+        """The collective thrust a pilot would give the twin: in PX4's manual modes the logged thrust plus the
+        stand-in's slow correction holding the real vehicle's height (:mod:`twin_nodes.twin.pilot`)."""
+        p = self.pilot
+        if p is None:
+            return thr
+        if how not in ("attitude", "rates", "real_attitude") or self.nav_state not in MANUAL_NAV_STATES \
+                or not math.isfinite(thr):
+            p.reset()
+            return thr
+        return thr + p.update(self.x[2], self.x[5], self.real_x[2], self.real_x[5], self.dt_c)
 
     def _ramped_update(self, sp: np.ndarray, q_att) -> tuple[np.ndarray, np.ndarray]:
         """A cascade step during PX4's take-off ramp (``Takeoff::updateRamp``, ``mc_pos_control``): the
@@ -514,9 +530,11 @@ def _setpoints(data: dict[str, np.ndarray], n: int) -> np.ndarray:
 
 
 def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: float = 2.0,
-                    t0: float | None = None, t1: float | None = None, progress: bool = False) -> TwinRun:
-    """Run the twin beside a whole log (offline), returning its outputs on the control grid."""
-    runner = TwinRunner(vp, mode, horizon_s)
+                    t0: float | None = None, t1: float | None = None, progress: bool = False,
+                    pilot: bool = True) -> TwinRun:
+    """Run the twin beside a whole log (offline), returning its outputs on the control grid (``pilot``: the
+    vertical pilot stand-in in manual modes, :mod:`twin_nodes.twin.pilot`)."""
+    runner = TwinRunner(vp, mode, horizon_s, pilot=pilot)
     ramp_s = (getattr(log, "params", None) or {}).get("MPC_TKO_RAMP_T")
     if ramp_s is not None and math.isfinite(float(ramp_s)) and float(ramp_s) >= 0.0:
         runner.takeoff_ramp_s = float(ramp_s)
@@ -580,7 +598,8 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
                    info={"rate_hz": runner.rate_hz, "horizon_s": horizon_s, "params": vp.name,
                          "ground_z": float(out_ground[0]) if len(out_ground) else runner.ground_z,
                          "ground_z_t": out_ground,
-                         "flown_as_s": {k: v / runner.rate_hz for k, v in flown.items() if k}})
+                         "flown_as_s": {k: v / runner.rate_hz for k, v in flown.items() if k},
+                         "pilot": runner.pilot.summary() if runner.pilot is not None else None})
 
 
 class _Rows:
