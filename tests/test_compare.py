@@ -103,7 +103,7 @@ def test_runner_flies_px4_manual_modes_and_the_params_wind():
     assert TwinRunner(vp).ext[1:4].tolist() == [0.0, 0.0, 0.0]
     assert MANUAL_NAV_STATES == (0.0, 10.0, 15.0, 16.0)  # 16: RATTITUDE (PX4 <= 1.11)
 
-    r = TwinRunner(vp)
+    r = TwinRunner(vp, pilot=False)           # the logged thrust alone (no pilot stand-in, see below)
     q = [1.0, 0.0, 0.0, 0.0]
     r.real_state(0.0, [0.0, 0.0, 30.0], [0.5, 0.0, 0.0], q, [0.0, 0.0, 0.0])   # airborne, moving: ground at 0
     r.armed(True)
@@ -117,6 +117,21 @@ def test_runner_flies_px4_manual_modes_and_the_params_wind():
     assert out[-1].x[5] < -2.0
     r.px4_mode(0.0, float("nan"))             # no throttle in the log: back to the cascade
     assert not r.manual
+    # with the pilot stand-in (the default) the real vehicle held 30 m while the logged 8 % would drop the twin:
+    # the stand-in adds its correction, at most 30 % of the hover throttle, and the twin falls less
+    vz = {}
+    for pilot in (True, False):
+        r2 = TwinRunner(vp, pilot=pilot)
+        r2.real_state(0.0, [0.0, 0.0, 30.0], [0.5, 0.0, 0.0], q, [0.0, 0.0, 0.0])
+        r2.armed(True)
+        r2.px4_mode(0.0, 0.08)
+        out2 = r2.advance_to(1.0)
+        vz[pilot] = out2[-1].x[5]
+        if pilot:
+            lim = 0.3 * vp.hover_command
+            assert all(0.08 <= s.throttle <= 0.08 + lim + 1e-9 for s in out2)
+            assert out2[-1].throttle == pytest.approx(0.08 + lim)   # metres below the real height by then: limited
+    assert vz[False] < vz[True] < 0.0, vz
 
 
 def test_twin_turns_with_the_logged_yaw_rate_feed_forward(tmp_path):
