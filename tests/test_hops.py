@@ -86,3 +86,34 @@ def test_the_twin_flies_both_hops_from_where_the_vehicle_stands(tmp_path):
     # the twin's collective rises from zero over the ramp rather than jumping to a climb
     thr = np.interp([16.0 + 0.02, 16.0 + 0.1 * RAMP_S], run.t, run.throttle)
     assert thr[0] < 0.15 and thr[0] < thr[1], thr  # MPC_THR_MIN (0.12), rising  # 10-16 s and the 0.5 s between arming and hop 1
+
+
+def _below_takeoff(topics, hover: float) -> None:
+    """One flight that takes off, climbs 2 m and descends to 3 m below its take-off spot (a hillside,
+    a baro drifting down), flying throughout after take-off."""
+    lp = topics["vehicle_local_position"]
+    s = C._seconds(lp)
+    h = np.interp(s, [0, 2, 6, 10, 20, 30], [0, 0, 2, 2, -3, -3])
+    lp["x"], lp["vx"] = np.zeros(s.size), np.zeros(s.size)
+    lp["z"], lp["vz"] = -h, -np.gradient(h, s)
+    air = s > 2.0
+    topics["actuator_motors"]["control"][:, :4] = np.where(air, hover, 0.0)[:, None]
+    topics["vehicle_thrust_setpoint"]["xyz"][:, 2] = -np.where(air, hover, 0.0)
+    tp = topics["trajectory_setpoint"]
+    tp["position"][:, 2] = -np.interp(C._seconds(tp), [0, 2, 6, 10, 20, 30], [0, 0, 2, 2, -3, -3])
+    topics["vehicle_land_detected"] = {
+        "timestamp": (C.T0_US + np.array([0.0, 2.5]) * 1e6).astype(np.uint64), "landed": np.array([True, False])}
+
+
+def test_the_twin_follows_a_vehicle_below_its_take_off_height(tmp_path):
+    """The ground plane is below wherever the real vehicle flies: before, the twin sat on the take-off
+    height while the vehicle flew on down (a corpus flight: Z 3.1 m, throttle 27 % on its held-out part)."""
+    vp = load_params(PARAMS)
+    p = C.edited_flight(tmp_path / "below.ulg", lambda t: _below_takeoff(t, vp.hover_command), dur_s=DUR_S,
+                        params={"MPC_TKO_RAMP_T": RAMP_S})
+    log = read_ulog(p)
+    run = run_twin_on_log(log, vp, mode="closed")
+    real = log.get("position_enu")
+    for t in (24.0, 28.0):  # 3 m below the take-off spot, held
+        assert abs(_z(run, t) - real.at(np.array([t]))[0, 2]) < 0.3, (t, _z(run, t))
+    assert run.info["ground_z_t"][-1] < run.info["ground_z_t"][0] - 2.9

@@ -47,6 +47,8 @@ FLOWN_AS = ("attitude", "rates", "real_attitude", "cascade", "grounded", "disarm
 #: ``rampup``) or with ground contact after a touchdown (``mc_pos_control``: ``not_taken_off ||
 #: flying_but_ground_contact``: zero thrust, integrators reset); in flight its thrust is at least MPC_THR_MIN
 GROUNDED_THRUST = 0.02
+#: ... entered only with the real vehicle within this height [m] of the twin's ground plane
+GROUNDED_ENTER_M = 0.5
 #: PX4's take-off ramp (``MPC_TKO_RAMP_T``, 3 s by default since PX4 1.12): from the end of a grounded
 #: phase the upward velocity limit goes from -g / MPC_Z_VEL_P_ACC (zero thrust) to MPC_Z_VEL_MAX_UP
 TAKEOFF_RAMP_S = 3.0
@@ -157,6 +159,14 @@ class TwinRunner:
             # that height is the ground (not the arming state: its message may come first or last)
             self.ground_z = float(x[2])
         x[2] -= self.ground_z
+        if self._initialised and x[2] < 0.0:
+            # the real vehicle below the twin's ground plane (terrain lower than the take-off spot, the
+            # baro or EKF height drifting down): the ground is below wherever the vehicle flies, so the
+            # plane goes down to it and the twin, flying, keeps its own height
+            shift = float(x[2])
+            self.ground_z += shift
+            x[2] = 0.0
+            self.x[2] -= shift  # (the setpoint is taken again in the new frame: _sp_ground_z differs)
         self.real_x = x
         if not self._initialised:
             self._start(t)
@@ -381,6 +391,13 @@ class TwinRunner:
     def _px4_grounded(self) -> bool:
         """PX4's position controller commands no thrust (see :data:`GROUNDED_THRUST`): its logged
         collective thrust setpoint, or where none is logged the real motors, at zero."""
+        # a grounded phase starts on the ground: a zero thrust setpoint in the air (an idle descent of
+        # PX4's old mixer, a logging glitch) is flown, not held; once on the ground it lasts while the
+        # thrust stays at zero (the EKF's height may drift, a hand may lift the vehicle)
+        if self.flown_as not in ("grounded", "disarmed") and self.real_x is not None:
+            h = float(self.real_x[2])
+            if math.isfinite(h) and h > GROUNDED_ENTER_M:
+                return False
         thr = self.real_throttle
         if math.isfinite(thr):
             return thr <= GROUNDED_THRUST
