@@ -307,3 +307,17 @@ def test_pilot_stand_in_is_idle_with_a_correct_model(hover_log):
     assert np.abs(run.x[hold, 2] - z_real[hold]).max() < 0.15
     bare = run_twin_on_log(hover_log, vp, mode="closed", pilot=False)
     assert bare.x[np.searchsorted(bare.t, 20.0), 2] < 0.05  # never left the ground: the crash divergence
+
+
+def test_a_twin_that_climbs_away_in_a_manual_mode_is_a_divergence(hover_log):
+    """Z is not PX4's in STABILIZED, so the position run-away check does not look at it; the pilot held it.
+    The 10 %-too-strong twin without the stand-in climbs > 10 m away: a height run-away (limit 5 m for 2 s,
+    reached at ~13 s: ~1 m/s from 5 s, after the climb it does not follow); with the stand-in, none."""
+    strong = _strong(load_params(PARAMS), 1.1)
+
+    def detect(run):
+        return divergence.detect(run, hover_log, xy_controlled=lambda tt: controlled_axes(hover_log, tt)[0],
+                                 z_controlled=lambda tt: controlled_axes(hover_log, tt)[1])
+    d = detect(run_twin_on_log(hover_log, strong, mode="closed", pilot=False))
+    assert d is not None and d["cause"] == "height run-away" and 8.0 < d["t_s"] < 20.0, d
+    assert detect(run_twin_on_log(hover_log, strong, mode="closed")) is None

@@ -14,6 +14,8 @@ finds the first such divergence on the airborne part of the flight and names its
   motors in that window span less than :data:`REAL_SPAN_MAX` (a twin limit cycle, not the vehicle's);
 - ``crash``: the twin within :data:`CRASH_H_M` of its ground (the take-off height) for
   :data:`CRASH_SUSTAIN_S` while the real vehicle is more than :data:`CRASH_REAL_H_M` above it;
+- ``height run-away``: the height error above :data:`RUNAWAY_Z_PILOT_M` where the pilot, not PX4, held
+  the height (manual modes, flown with the pilot stand-in), for :data:`RUNAWAY_SUSTAIN_S`;
 - ``position run-away``: the horizontal error above :data:`RUNAWAY_XY_M` where PX4 controlled the
   horizontal position, or the height error above :data:`RUNAWAY_Z_M` where it controlled the height,
   for :data:`RUNAWAY_SUSTAIN_S`;
@@ -48,6 +50,8 @@ CRASH_REAL_H_M = 1.0
 CRASH_SUSTAIN_S = 0.5
 RUNAWAY_XY_M = 10.0
 RUNAWAY_Z_M = 5.0
+#: the height error where PX4 did not control the height but the pilot did (manual modes) [m]
+RUNAWAY_Z_PILOT_M = 5.0
 RUNAWAY_SUSTAIN_S = 2.0
 #: the grid the checks run on [Hz]
 RATE_HZ = 50.0
@@ -201,6 +205,16 @@ def detect(run: Any, log: Any, xy_controlled=None, z_controlled=None, t0: float 
         cz = np.ones(t.shape, bool) if z_controlled is None else z_controlled(t)
         with np.errstate(invalid="ignore"):
             run_away = air & ((cxy & (exy > RUNAWAY_XY_M)) | (cz & (ez > RUNAWAY_Z_M)))
+            # where the pilot held the height (manual modes: the twin's pilot stand-in holds the real
+            # height), a twin that climbs or falls away beyond the stand-in's authority has left too
+            run_away_pilot = air & ~cz & (ez > RUNAWAY_Z_PILOT_M)
+        tp = _first_sustained(t, run_away_pilot, RUNAWAY_SUSTAIN_S)
+        if tp is not None:
+            k = np.searchsorted(t, tp)
+            found.append((tp, "height run-away",
+                          f"twin {ez[k]:.1f} m from the vehicle's height where the pilot held it (a manual mode: "
+                          f"the pilot stand-in could not hold it; limit {RUNAWAY_Z_PILOT_M:g} m for "
+                          f"{RUNAWAY_SUSTAIN_S:g} s)"))
         ts = _first_sustained(t, run_away, RUNAWAY_SUSTAIN_S)
         if ts is not None:
             k = np.searchsorted(t, ts)
