@@ -245,9 +245,7 @@ def fly(f: GridFlight):
     from rotorpy.controllers.quadrotor_control import SE3Control
     from rotorpy.vehicles.multirotor import Multirotor
     from rotorpy.wind.default_winds import NoWind
-    from scipy.spatial.transform import Rotation
 
-    from twin_nodes.base import frames
     from twin_nodes.twin.sim import FlightRecord
     from twin_nodes.twin.simflight import EstimateNoise
 
@@ -316,18 +314,8 @@ def fly(f: GridFlight):
         s0 = Multirotor._pack_state(state)
         w_cmd = np.clip(vehicle.get_cmd_motor_speeds(state, used), vehicle.rotor_speed_min, vehicle.rotor_speed_max)
         k1 = vehicle._s_dot_fn(0.0, s0, w_cmd)
-        sdot = {"vdot": k1[3:6]}
-        R = Rotation.from_quat(state["q"]).as_matrix()
-        X[k, 0:3], X[k, 3:6] = state["x"], state["v"]
-        X[k, 6:10] = frames.quat_from_rotmat(R)
-        X[k, 10:13], X[k, 13:] = state["w"], state["rotor_speeds"]
-        SF[k] = R.T @ (np.asarray(sdot["vdot"]) + np.array([0.0, 0.0, vehicle.g]))
-        EXT[k, 1:4] = state["wind"]
-        if armed:
-            U[k] = (cmd - w_min) / (w_max - w_min)
-            thr[k] = float(np.clip(control["cmd_thrust"] / tmax_total, 0.0, 1.0))
-        SP[k, 0:3], SP[k, 3:6], SP[k, 6:9] = flat["x"], flat["x_dot"], flat["x_ddot"]
-        SP[k, 9], SP[k, 10] = flat["yaw"], flat["yaw_dot"]
+        rf.record_row(k, (X, SF, EXT, U, thr, SP), state, k1[3:6], vehicle.g, control, flat,
+                      cmd if armed else None, (w_min, w_max), tmax_total)
         state = _rk4_step(vehicle, s0, k1, w_cmd, dt)
         if not np.all(np.isfinite(state["x"])) or np.linalg.norm(state["v"]) > 50:
             raise RuntimeError(f"RotorPy grid flight {f.id} diverged at t={t:.2f} s")

@@ -371,7 +371,6 @@ def fly(case: Case, vehicle_cls=None):
     from rotorpy.controllers.quadrotor_control import SE3Control
     from rotorpy.vehicles.multirotor import Multirotor
     from rotorpy.wind.default_winds import ConstantWind, NoWind
-    from scipy.spatial.transform import Rotation
 
     from twin_nodes.twin.sim import FlightRecord
 
@@ -412,17 +411,8 @@ def fly(case: Case, vehicle_cls=None):
         cmd = np.clip(control["cmd_motor_speeds"], w_min, w_max) if armed else np.zeros(n_rot)
         used = dict(control, cmd_motor_speeds=cmd)
         sdot = vehicle.statedot(state, used, dt)
-        R = Rotation.from_quat(state["q"]).as_matrix()
-        X[k, 0:3], X[k, 3:6] = state["x"], state["v"]
-        X[k, 6:10] = frames.quat_from_rotmat(R)
-        X[k, 10:13], X[k, 13:] = state["w"], state["rotor_speeds"]
-        SF[k] = R.T @ (np.asarray(sdot["vdot"]) + np.array([0.0, 0.0, vehicle.g]))
-        EXT[k, 1:4] = state["wind"]
-        if armed:
-            U[k] = (cmd - w_min) / (w_max - w_min)
-            thr[k] = float(np.clip(control["cmd_thrust"] / tmax_total, 0.0, 1.0))
-        SP[k, 0:3], SP[k, 3:6], SP[k, 6:9] = flat["x"], flat["x_dot"], flat["x_ddot"]
-        SP[k, 9], SP[k, 10] = flat["yaw"], flat["yaw_dot"]
+        record_row(k, (X, SF, EXT, U, thr, SP), state, sdot["vdot"], vehicle.g, control, flat,
+                   cmd if armed else None, (w_min, w_max), tmax_total)
         state = vehicle.step(state, used, dt)
         if not np.all(np.isfinite(state["x"])) or np.linalg.norm(state["v"]) > 50:
             raise RuntimeError(f"RotorPy flight {case.tag} diverged at t={t:.2f} s")
@@ -432,6 +422,29 @@ def fly(case: Case, vehicle_cls=None):
     rec = FlightRecord(t=T, x=X, u=U, throttle=thr, sp=SP, specific_force=SF, ext=EXT, x_est=x_est,
                        info={"rotorpy_case": asdict(case)})
     return rec, vp
+
+
+
+def record_row(k: int, rows: tuple, state: dict, vdot, g: float, control: dict, flat: dict, cmd, w_range: tuple,
+               tmax_total: float) -> None:
+    """One control step of a RotorPy flight into its record's rows ``(X, SF, EXT, U, thr, SP)``: the state
+    (position, velocity, quaternion, rates, rotor speeds), the body specific force from the state derivative
+    ``vdot``, the wind, and where armed (``cmd`` not None) the normalised motor commands and collective."""
+    from scipy.spatial.transform import Rotation
+
+    X, SF, EXT, U, thr, SP = rows
+    R = Rotation.from_quat(state["q"]).as_matrix()
+    X[k, 0:3], X[k, 3:6] = state["x"], state["v"]
+    X[k, 6:10] = frames.quat_from_rotmat(R)
+    X[k, 10:13], X[k, 13:] = state["w"], state["rotor_speeds"]
+    SF[k] = R.T @ (np.asarray(vdot) + np.array([0.0, 0.0, g]))
+    EXT[k, 1:4] = state["wind"]
+    if cmd is not None:
+        w_min, w_max = w_range
+        U[k] = (cmd - w_min) / (w_max - w_min)
+        thr[k] = float(np.clip(control["cmd_thrust"] / tmax_total, 0.0, 1.0))
+    SP[k, 0:3], SP[k, 3:6], SP[k, 6:9] = flat["x"], flat["x_dot"], flat["x_ddot"]
+    SP[k, 9], SP[k, 10] = flat["yaw"], flat["yaw_dot"]
 
 
 def write_flight(path: str | Path, case: Case) -> dict:
