@@ -25,6 +25,8 @@ import numpy as np
 
 MANIFEST = Path(__file__).with_name("oov_manifest.yaml")
 GENERATOR_VERSION = 1
+#: the manifest's splits: tune, the first judge half (seen since stop 31), the fresh batch of amendment 2
+SPLITS = ("tune", "judge", "judge2")
 
 
 def load_manifest(path: str | Path = MANIFEST) -> list[dict]:
@@ -44,8 +46,8 @@ def load_manifest(path: str | Path = MANIFEST) -> list[dict]:
         if f.get("mechanism") not in (*PLANT_EFFECTS, "none"):
             raise TwinError(f"{where}.mechanism: expected one of {', '.join([*PLANT_EFFECTS, 'none'])}, "
                             f"got {f.get('mechanism')!r}")
-        if f.get("split") not in ("tune", "judge"):
-            raise TwinError(f"{where}.split: expected tune or judge, got {f.get('split')!r}")
+        if f.get("split") not in SPLITS:
+            raise TwinError(f"{where}.split: expected one of {', '.join(SPLITS)}, got {f.get('split')!r}")
         if f.get("mission") not in ("OOV1", "OOVR"):
             raise TwinError(f"{where}.mission: expected OOV1 or OOVR, got {f.get('mission')!r}")
         f.setdefault("params", {})
@@ -288,7 +290,7 @@ def run_one(args) -> dict:
 def summarise(rows: list[dict]) -> dict:
     """Per split: mechanism named right, the closed-loop cut on effect flights, terms on no-effect flights."""
     out: dict = {"source": "oov", "rows": rows}
-    for split in ("tune", "judge"):
+    for split in SPLITS:
         rs = [r for r in rows if r["split"] == split]
         eff = [r for r in rs if r["truth"] != "none"]
         none = [r for r in rs if r["truth"] == "none"]
@@ -311,7 +313,7 @@ def format_table(summary: dict) -> str:
         lines.append(f"{r['flight']:<40} {r['split']:<5} {r['truth']:<18} {term:<34} "
                      f"{'yes' if r['named_right'] else 'NO':<3} {('%.0f %%' % (100 * cut)) if cut is not None else '-':>10}  "
                      f"{', '.join(r['vocabulary_findings']) or '-'}")
-    for split in ("tune", "judge"):
+    for split in SPLITS:
         s = summary.get(split) or {}
         if s.get("flights"):
             lines.append(f"{split}: named right {s['named_right']}/{s['flights']}; closed-loop throttle RMSE cut >= 30 % "
@@ -323,7 +325,7 @@ def format_table(summary: dict) -> str:
 def summary_line(summary: dict) -> str:
     """One line per split: the issue's three numbers."""
     parts = []
-    for split in ("tune", "judge"):
+    for split in SPLITS:
         s = summary.get(split) or {}
         if s.get("flights"):
             parts.append(f"{split}: mechanism named right {s['named_right']}/{s['flights']}, closed-loop throttle cut "
