@@ -89,9 +89,24 @@ def nominal_params(qp: dict, name: str = f"rotorpy_{VEHICLE}") -> VehicleParams:
                    "omega_cmd_max_rad_s": w_max, "omega_max_rad_s": w_max,
                    "tau_up_s": float(qp["tau_m"]), "tau_down_s": float(qp["tau_m"])},
         "effects": effects,
+        # the controller RotorPy flies its vehicles with (SE3Control, its own gains): a closed-loop twin of a
+        # RotorPy flight flies the same law (twin_nodes.twin.control_se3)
+        "controller": se3_controller(qp),
         "simulation": {"dt_s": 0.001},
     }
     return from_ros_dict(doc, f"<rotorpy {name}>")
+
+
+def se3_controller(qp: dict) -> dict:
+    """The ``controller:`` block of RotorPy's ``SE3Control`` for the vehicle ``qp``: the law, its rate here
+    (:data:`CONTROL_RATE_HZ`) and the gains read from RotorPy's own controller."""
+    from rotorpy.controllers.quadrotor_control import SE3Control
+
+    c = SE3Control(qp)
+    return {"law": "se3", "rate_hz": CONTROL_RATE_HZ,
+            "se3_kp_xy_1_s2": float(c.kp_pos[0]), "se3_kp_z_1_s2": float(c.kp_pos[2]),
+            "se3_kd_xy_1_s": float(c.kd_pos[0]), "se3_kd_z_1_s": float(c.kd_pos[2]),
+            "se3_kp_att_1_s2": float(c.kp_att), "se3_kd_att_1_s": float(c.kd_att)}
 
 
 # ------------------------------------------------------------------ flights

@@ -59,6 +59,15 @@ class ControllerGains:
     #: desaturation skips rotors whose share of the desaturation direction is below this: 0.2 in PX4's
     #: control allocator (>= 1.13, ControlAllocationSequentialDesaturation), FLT_EPSILON in the mixer
     desat_min_effect: float = 0.2
+    #: the geometric SE(3) law (``law: se3``, :mod:`twin_nodes.twin.control_se3`; Lee, Leok, McClamroch 2010,
+    #: as RotorPy's SE3Control): position and velocity gains per axis, attitude and rate gains; the defaults
+    #: are RotorPy 3's
+    se3_kp_xy_1_s2: float = 6.5
+    se3_kp_z_1_s2: float = 15.0
+    se3_kd_xy_1_s: float = 4.0
+    se3_kd_z_1_s: float = 9.0
+    se3_kp_att_1_s2: float = 310.0
+    se3_kd_att_1_s: float = 57.0
 
     @classmethod
     def from_params(cls, vp: VehicleParams) -> "ControllerGains":
@@ -66,6 +75,8 @@ class ControllerGains:
         names = {f.name for f in fields(cls)}
         kwargs = {}
         for k, v in cfg.items():
+            if k == "law":
+                continue  # which control law (controller_law), not a gain
             if k not in names:
                 raise ParamsError(vp.source, f"controller.{k}", f"unknown gain (known: {', '.join(sorted(names))})")
             if isinstance(v, bool) or not isinstance(v, (int, float)):
@@ -567,8 +578,29 @@ def allocation_table(vp: VehicleParams) -> np.ndarray:
     return np.ascontiguousarray(np.hstack([A, px4_mix_directions(A), Bt]))
 
 
+#: the control laws a twin can fly (``controller.law``): PX4's cascade (this module), the geometric SE(3)
+#: law (:mod:`twin_nodes.twin.control_se3`, the controller RotorPy flies)
+LAWS = ("px4", "se3")
+
+
+def controller_law(vp: VehicleParams) -> str:
+    """The params' ``controller.law`` (default ``px4``)."""
+    return str((vp.controller or {}).get("law", "px4"))
+
+
+def make_controller(vp: VehicleParams, believed: VehicleParams | None = None):
+    """The controller the params' ``controller.law`` names, for the vehicle ``vp`` (the SE(3) law's mass and
+    inertia: ``believed``, the vehicle its controller was written for; default ``vp``)."""
+    if controller_law(vp) == "se3":
+        from twin_nodes.twin.control_se3 import SE3Controller
+        return SE3Controller(vp, believed)
+    return Controller(vp)
+
+
 class Controller:
     """Stateful wrapper: ``u, info = ctrl.update(x_est, setpoint, dt)``."""
+
+    law = "px4"
 
     def __init__(self, vp: VehicleParams, gains: ControllerGains | None = None):
         from twin_nodes.physics.core import pack

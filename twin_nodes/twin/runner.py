@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from twin_nodes.twin.control import G_ZV_P, G_ZV_UP, SP_SIZE, Controller
+from twin_nodes.twin.control import G_ZV_P, G_ZV_UP, SP_SIZE, make_controller
 from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.model import Multirotor
@@ -85,7 +85,8 @@ class TwinRunner:
         self.model = Multirotor(vp)
         # the controller knows the twin as it is (parameter-type effects applied), as PX4 knows
         # the real vehicle through its hover-thrust estimate
-        self.ctrl = Controller(self.model.params)
+        # (the SE(3) law believes the params as given: its mass and inertia, not the fitted physics)
+        self.ctrl = make_controller(self.model.params, believed=vp)
         self.rate_hz = float(rate_hz or self.ctrl.gains.rate_hz)
         self.dt_c = 1.0 / self.rate_hz
         self.nsub = max(int(round(self.dt_c / vp.dt_s)), 1)
@@ -333,7 +334,7 @@ class TwinRunner:
                     # feeds the stick's yaw rate forward, logged as the attitude setpoint's yaw_sp_move_rate
                     sp = sp.copy()
                     sp[10] = self.att_yawrate
-                if self.ramp < 1.0:
+                if self.ramp < 1.0 and self.ctrl.law == "px4":  # PX4's take-off ramp; other laws have none
                     u, info = self._ramped_update(sp, q_att)
                 else:
                     u, info = self.ctrl.update(self.x[:13], sp, self.dt_c, q_att=q_att)

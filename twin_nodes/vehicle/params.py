@@ -88,7 +88,8 @@ CONTROLLER_LIMITS: dict[str, tuple[float, float, bool, str]] = {
     **{k: _GAIN for k in ("xy_p_1_s", "z_p_1_s", "xy_vel_p_1_s", "xy_vel_i_1_s2", "xy_vel_d", "z_vel_p_1_s",
                           "z_vel_i_1_s2", "z_vel_d", "roll_p_1_s", "pitch_p_1_s", "yaw_p_1_s", "rate_p_1_s",
                           "rate_i_1_s2", "rate_d", "yawrate_p_1_s", "yawrate_i_1_s2", "rate_i_max_rad_s2",
-                          "vel_i_max_m_s2")},
+                          "vel_i_max_m_s2", "se3_kp_xy_1_s2", "se3_kp_z_1_s2", "se3_kd_xy_1_s", "se3_kd_z_1_s",
+                          "se3_kp_att_1_s2", "se3_kd_att_1_s")},
     "xy_vel_max_m_s": (0.0, 1000.0, False, "m/s"),
     "z_vel_max_up_m_s": (0.0, 1000.0, False, "m/s"),
     "z_vel_max_dn_m_s": (0.0, 1000.0, False, "m/s"),
@@ -445,6 +446,10 @@ def _check_effect(path: str, name: str, params: Mapping[str, Any], n_rotors: int
 def _check_controller(path: str, controller: Mapping[str, Any]) -> None:
     """The ``controller:`` gains of :data:`CONTROLLER_LIMITS` in their ranges, thr_min < thr_max."""
     for k, v in controller.items():
+        if k == "law":
+            if v not in ("px4", "se3"):
+                raise ParamsError(path, "controller.law", f"expected px4 or se3, got {_short(v)}")
+            continue
         lim = CONTROLLER_LIMITS.get(str(k))
         if lim is None:
             continue  # unknown keys: ControllerGains.from_params names the known ones
