@@ -12,7 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from twin_nodes.base.errors import ParamsError
 from twin_nodes.prove import rotorpy_flights as rp
-from twin_nodes.twin.control import Controller, make_controller
+from twin_nodes.twin.control import Controller
+from twin_nodes.twin.controllers import make_controller
 from twin_nodes.twin.control_se3 import SE3Controller
 from twin_nodes.vehicle.params import from_ros_dict
 

@@ -578,25 +578,6 @@ def allocation_table(vp: VehicleParams) -> np.ndarray:
     return np.ascontiguousarray(np.hstack([A, px4_mix_directions(A), Bt]))
 
 
-#: the control laws a twin can fly (``controller.law``): PX4's cascade (this module), the geometric SE(3)
-#: law (:mod:`twin_nodes.twin.control_se3`, the controller RotorPy flies)
-LAWS = ("px4", "se3")
-
-
-def controller_law(vp: VehicleParams) -> str:
-    """The params' ``controller.law`` (default ``px4``)."""
-    return str((vp.controller or {}).get("law", "px4"))
-
-
-def make_controller(vp: VehicleParams, believed: VehicleParams | None = None):
-    """The controller the params' ``controller.law`` names, for the vehicle ``vp`` (the SE(3) law's mass and
-    inertia: ``believed``, the vehicle its controller was written for; default ``vp``)."""
-    if controller_law(vp) == "se3":
-        from twin_nodes.twin.control_se3 import SE3Controller
-        return SE3Controller(vp, believed)
-    return Controller(vp)
-
-
 class Controller:
     """Stateful wrapper: ``u, info = ctrl.update(x_est, setpoint, dt)``."""
 

@@ -24,7 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from twin_nodes.twin.control import G_ZV_P, G_ZV_UP, SP_SIZE, make_controller
+from twin_nodes.twin.control import G_ZV_P, G_ZV_UP, SP_SIZE
+from twin_nodes.twin.controllers import make_controller
 from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.model import Multirotor
