@@ -9,7 +9,7 @@ handed to a node with ``--ros-args --params-file``::
         rotors:    {x_flu_m: [...], y_flu_m: [...], z_flu_m: [...], direction: [...],
                     thrust_model, kt_n_s2_rad2, km_m, omega_*_rad_s, tau_up_s, tau_down_s, ...}
         effects:   {enabled: [names...], <name>: {<param>: value}}
-        controller: {...}      # PX4-like cascade gains (twin_nodes.twin.control)
+        controller: {...}      # law (px4: PX4-like cascade, twin_nodes.twin.control; se3: geometric SE(3), twin.control_se3) and gains
         sensors:    {...}      # noise/bias model for the simulator link
         simulation: {dt_s: 0.001}
 
