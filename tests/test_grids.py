@@ -170,12 +170,31 @@ def _log(**info):
 
 def test_who_flew_the_log():
     assert closed_loop.controller_of(_log(ver_hw="ROTORTWIN_SIM")) == "twin"
-    assert closed_loop.controller_of(_log(ver_hw="ROTORPY_SIM", sys_name="rotorpy")) == "other"
+    assert closed_loop.controller_of(_log(ver_hw="ROTORPY_SIM", sys_name="rotorpy")) == "rotorpy"
+    assert closed_loop.controller_of(_log(ver_hw="GAZEBO_SIM")) == "other"
     assert closed_loop.controller_of(_log(ver_hw="PX4_SITL", ver_sw="02e73e3b")) == "px4"
     ok = {"throttle_rmse": 0.01, "xy_rmse_m": 0.5}
     assert closed_loop.veto_standing(_log(ver_sw="x", ver_hw="PX4_SITL"), ok)[0]
     assert not closed_loop.veto_standing(_log(ver_sw="x", ver_hw="PX4_SITL"), dict(ok, throttle_rmse=0.2))[0]
-    assert not closed_loop.veto_standing(_log(ver_hw="ROTORPY_SIM"), ok)[0]
+    assert closed_loop.veto_standing(_log(ver_hw="ROTORTWIN_SIM"), dict(ok, throttle_rmse=0.2))[0]
+
+
+def test_the_twin_stands_for_a_flight_only_when_it_flies_the_flights_controller():
+    """PX4's cascade stands for PX4 and our simulator's flights; the SE(3) law for RotorPy's; a twin following
+    its flight (FIDELITY) is still needed for flights of another program."""
+    from twin_nodes.prove import rotorpy_flights as rp
+
+    se3 = rp.nominal_params(rp.rotorpy_params("crazyflie"))
+    px4 = shipped("px4_sih_quadx")
+    ok = {"throttle_rmse": 0.01, "xy_rmse_m": 0.5}
+    rotorpy = _log(ver_hw="ROTORPY_SIM", sys_name="rotorpy")
+    assert closed_loop.veto_standing(rotorpy, ok, se3)[0]
+    assert not closed_loop.veto_standing(rotorpy, dict(ok, throttle_rmse=0.2), se3)[0]
+    assert not closed_loop.veto_standing(rotorpy, ok, px4)[0]
+    assert not closed_loop.veto_standing(rotorpy, ok)[0]
+    assert not closed_loop.veto_standing(_log(ver_hw="ROTORTWIN_SIM"), ok, se3)[0]
+    assert not closed_loop.veto_standing(_log(ver_sw="x", ver_hw="PX4_SITL"), ok, se3)[0]
+    assert closed_loop.veto_standing(_log(ver_sw="x", ver_hw="PX4_SITL"), ok, px4)[0]
 
 
 def _run(err, t):

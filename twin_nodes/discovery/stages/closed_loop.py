@@ -66,11 +66,13 @@ BOOT_N = 400
 
 def controller_of(log) -> str:
     """Who flew the log: ``twin`` (our simulator's PX4-like controller, the twin's own), ``px4`` (PX4
-    firmware, which the twin's controller models), or ``other`` (e.g. RotorPy's SE(3) controller)."""
+    firmware, which the twin's controller models), ``rotorpy`` (RotorPy's SE(3) controller), or ``other``."""
     info = getattr(log, "info", None) or {}
     hw = str(info.get("ver_hw", "")).upper()
     if hw == "ROTORTWIN_SIM":
         return "twin"
+    if hw == "ROTORPY_SIM":
+        return "rotorpy"
     if hw.endswith("_SIM") and hw != "PX4_SITL":
         return "other"
     if info.get("ver_sw") or "PX4" in str(info.get("sys_name", "")).upper() or hw.startswith("PX4"):
@@ -78,17 +80,25 @@ def controller_of(log) -> str:
     return "other"
 
 
-def veto_standing(log, before: dict) -> tuple[bool, str]:
-    """Whether the closed-loop twin may veto on this flight, and why (or why not)."""
+#: who flew a flight (``controller_of``) -> the twin's control law (``controller.law``) that stands for it
+LAW_OF = {"twin": "px4", "px4": "px4", "rotorpy": "se3"}
+
+
+def veto_standing(log, before: dict, vp: VehicleParams | None = None) -> tuple[bool, str]:
+    """Whether the closed-loop twin of ``vp`` may veto on this flight, and why (or why not): it flies the law
+    the flight was flown by, and (unless it is our own simulator's flight) follows the flight (``FIDELITY``)."""
+    from twin_nodes.twin.controllers import controller_law
+
     who = controller_of(log)
+    law = controller_law(vp) if vp is not None else "px4"
+    if LAW_OF.get(who) != law:
+        return False, "the flight was flown by another controller than the twin's"
     if who == "twin":
         return True, "the twin's controller flew this flight"
-    if who == "px4":
-        ok = all(float(before.get(k, float("inf"))) <= v for k, v in FIDELITY.items())
-        return ok, ("the nominal twin follows this PX4 flight" if ok else
-                    "the nominal twin does not follow this PX4 flight closely enough "
-                    f"(throttle RMSE {before.get('throttle_rmse', float('nan')):.4f}, xy {before.get('xy_rmse_m', float('nan')):.2f} m)")
-    return False, "the flight was flown by another controller than the twin's"
+    ok = all(float(before.get(k, float("inf"))) <= v for k, v in FIDELITY.items())
+    return ok, (f"the nominal twin follows this {who} flight" if ok else
+                f"the nominal twin does not follow this {who} flight closely enough "
+                f"(throttle RMSE {before.get('throttle_rmse', float('nan')):.4f}, xy {before.get('xy_rmse_m', float('nan')):.2f} m)")
 
 
 def rise_significance(after: dict, best: dict) -> tuple[float, float]:
@@ -140,7 +150,7 @@ def guard(checked: Checked, log, flight: PreparedFlight, enabled: bool) -> Calla
         if not (enabled and closed):
             return None
         m = _closed_loop_metrics(log, vp_new, flight.t_split, flight.t_end)
-        vetoed, why = _veto(m, closed["after"], closed["before"], veto_standing(log, closed["before"]))
+        vetoed, why = _veto(m, closed["after"], closed["before"], veto_standing(log, closed["before"], flight.nominal))
         if not vetoed:
             closed["after"] = m
             return None
@@ -228,7 +238,7 @@ def _closed_loop_guard(accepted: list[Fit], log, nominal: VehicleParams, data, f
     closed-loop twin's held-out throttle RMSE worse.  Returns the kept effects, their (re)fitted
     vehicle and the metrics cache ``{"before": ..., "after": ...}``."""
     before = _closed_loop_metrics(log, nominal, t0, t1)
-    standing = veto_standing(log, before)
+    standing = veto_standing(log, before, nominal)
     best = before
     kept: list[Fit] = []
     current = nominal

@@ -115,15 +115,20 @@ def _grade(inp: TermsInput, fit: T.TermFit, named: dict, vp_term: VehicleParams,
              "heldout_improvement": round(1.0 - ra / rb, 4) if rb > 0 else 0.0, "residual": "equation"}
     why = []
     if inp.closed_loop:
-        m0 = (inp.result.get("after") or {}).get("closed_loop_heldout") or \
-            closed_loop._closed_loop_metrics(inp.log, inp.current, S.t_split, S.t_end)
+        # (flown once per discover call: the refitted vehicle's run is cached, with its per-sample errors)
+        m0 = closed_loop._closed_loop_metrics(inp.log, inp.current, S.t_split, S.t_end)
         m1 = closed_loop._closed_loop_metrics(inp.log, vp_term, S.t_split, S.t_end)
         closed_loop.reset()
         entry["closed_loop_heldout"] = {"before": m0, "after": m1}
         b, a = m0["throttle_rmse"], m1["throttle_rmse"]
         entry["closed_loop_throttle_cut"] = round(1.0 - a / b, 4) if b > 0 else 0.0
-        if closed_loop._worse(a, b, b):
-            why.append(f"makes the closed-loop twin worse on the held-out part (throttle RMSE {b:.6f} -> {a:.6f})")
+        # the guard's one rule (closed_loop._veto): a rise vetoes only beyond its own scatter, and only where the
+        # twin flies the flight's controller and follows the flight
+        vetoed, said = closed_loop._veto(m1, m0, m0, closed_loop.veto_standing(inp.log, m0, S.nominal))
+        if vetoed:
+            why.append(f"makes the closed-loop twin worse on the held-out part ({said})")
+        elif said:
+            entry["closed_loop_note"] = said
     if fit.t_stat <= T_CRIT:
         why.append(f"not significant on held-out blocks (t={fit.t_stat:.1f} over {fit.n_blocks})")
     if fit.cut < MIN_REL_IMPROVEMENT:
