@@ -25,7 +25,7 @@ def _states(n=200, seed=0):
 
 def test_state_term_kernel_agrees_with_its_numpy_twin():
     v, h, q, omega = _states()
-    coef = {f"c_{f}": c for f, c in zip(STATE_TERM_FEATURES, (0.03, 0.02, -0.05, -0.04, 0.01, 0.5, -0.1, 0.05, 0.1))}
+    coef = {f"c_{f}": c for f, c in zip(STATE_TERM_FEATURES, (0.03, 0.02, -0.05, -0.04, 0.01, 0.5, -0.1, 0.05, 0.1, -0.07))}
     eff = StateTerm(v_h=5.6, radius=0.12, omega_max=1000.0, c_one=0.02, **coef)
     p = eff.vector()
     F = state_term_features(v, h, q, omega, 5.6, 0.12, 1000.0)
@@ -68,7 +68,8 @@ def _synthetic(term: dict | None, n=3000, noise=0.002, seed=1):
     vz = 1.2 * np.sin(t / 7.0) + 0.3 * np.sin(t / 2.3)
     u = 0.7 + 0.08 * np.sin(t / 3.1) + 0.02 * rng.standard_normal(n)
     feats = np.column_stack([mu, mu ** 2, np.maximum(vz, 0), np.maximum(-vz, 0), np.maximum(-vz, 0) ** 2,
-                             np.full(n, 1e-4), u ** 2, u ** 4, 0.02 * mu])
+                             np.full(n, 1e-4), u ** 2, u ** 4, 0.02 * mu, u ** 8])
+    assert feats.shape[1] == len(STATE_TERM_FEATURES)
     thrust = 0.5 + 0.1 * (u - 0.7)
     X = np.column_stack([thrust, feats * thrust[:, None]])
     y = np.convolve(rng.standard_normal(n), np.ones(5) / 5, mode="same") * noise
@@ -99,6 +100,19 @@ def test_descent_loss_named_vortex_ring_only_in_its_range():
     slow[:, 4] *= 0.0625
     named = T.name_term(s.best, slow)
     assert named["mechanism"] is None and "unnamed term in throttle" in named["name"]
+
+
+def test_a_loss_only_near_full_output_is_named_thrust_flattening():
+    """A hinge-shaped loss (none below 0.75 of the top speed, 30 % at the top; not a feature of the library)
+    is found in the rotor-speed features and named the flattening of the thrust curve."""
+    y, X, t, feats = _synthetic(None, seed=3)
+    u = np.sqrt(feats[:, STATE_TERM_FEATURES.index("omega2")])
+    loss = -0.3 * (np.clip(u - 0.75, 0, None) / 0.25) ** 2
+    y = y + loss * X[:, 0]
+    s = T.find_term(y, X, t, t < t[-1] * 0.65, feats)
+    assert s.best is not None and not s.why_none
+    assert set(s.best.names) <= {"omega2", "omega4", "omega8"}
+    assert T.name_term(s.best, feats)["mechanism"] == "thrust_flattening"
 
 
 def test_no_term_in_noise():

@@ -258,7 +258,7 @@ MECHANISMS = {
                                                 "induced velocity (the rotor in its own wake)"),
     "ground_effect": (("ground",), +1, "ground effect (Cheeseman-Bennett): thrust gained within a few rotor "
                                       "radii of the ground"),
-    "thrust_flattening": (("omega2", "omega4"), -1, "thrust-curve flattening near full output: less thrust "
+    "thrust_flattening": (("omega2", "omega4", "omega8"), -1, "thrust-curve flattening near full output: less thrust "
                                                    "than the omega^2 curve at high rotor speed"),
 }
 

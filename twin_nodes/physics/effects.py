@@ -277,7 +277,8 @@ def _k_state_term(p, x, ext, omega, T, Q):
               + p[9] * ground + p[12] * tilt)
     for i in range(T.shape[0]):
         u = omega[i] / w_max
-        gain = common + p[10] * u * u + p[11] * u * u * u * u
+        u4 = u * u * u * u
+        gain = common + p[10] * u * u + p[11] * u4 + p[13] * u4 * u4
         T[i] *= min(max(gain, 0.1), 3.0)
 
 
@@ -513,17 +514,18 @@ class Inertia(Effect):
 
 
 #: the state term's features, in its coefficient order (see ``state_term_features``)
-STATE_TERM_FEATURES = ("mu", "mu2", "climb", "descent", "descent2", "ground", "omega2", "omega4", "tilt")
+STATE_TERM_FEATURES = ("mu", "mu2", "climb", "descent", "descent2", "ground", "omega2", "omega4", "tilt", "omega8")
 #: what each feature is, in words (normalised to the vehicle)
 STATE_TERM_MEANING = {
     "mu": "horizontal airspeed / v_h", "mu2": "(horizontal airspeed / v_h)^2", "climb": "climb rate / v_h",
     "descent": "descent rate / v_h", "descent2": "(descent rate / v_h)^2", "ground": "(R / 4z)^2",
-    "omega2": "(omega / omega_max)^2", "omega4": "(omega / omega_max)^4", "tilt": "1 - cos(tilt)"}
+    "omega2": "(omega / omega_max)^2", "omega4": "(omega / omega_max)^4", "tilt": "1 - cos(tilt)",
+    "omega8": "(omega / omega_max)^8"}
 
 
 def state_term_features(v_air_enu: np.ndarray, height_m: np.ndarray, q_wxyz: np.ndarray, omega: np.ndarray,
                         v_h: float, radius: float, omega_max: float) -> np.ndarray:
-    """The state term's features (T, N, 9) in ``STATE_TERM_FEATURES`` order, per sample and rotor.
+    """The state term's features (T, N, 10) in ``STATE_TERM_FEATURES`` order, per sample and rotor.
 
     ``v_air_enu`` (T, 3) air-relative velocity ENU [m/s], ``height_m`` (T,) above ground, ``q_wxyz``
     (T, 4) FLU->ENU, ``omega`` (T, N) rotor speeds [rad/s].  The numpy twin of ``_k_state_term``
@@ -538,11 +540,12 @@ def state_term_features(v_air_enu: np.ndarray, height_m: np.ndarray, q_wxyz: np.
     u = np.asarray(omega, float) / omega_max
     n = u.shape[1]
     common = np.stack([mu, mu ** 2, climb, descent, descent ** 2, ground], axis=1)
-    out = np.empty((len(mu), n, 9))
+    out = np.empty((len(mu), n, len(STATE_TERM_FEATURES)))
     out[:, :, 0:6] = common[:, None, :]
     out[:, :, 6] = u ** 2
     out[:, :, 7] = u ** 4
     out[:, :, 8] = tilt[:, None]
+    out[:, :, 9] = u ** 8
     return out
 
 
