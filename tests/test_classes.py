@@ -173,7 +173,7 @@ def test_a_diverging_estimate_with_valid_flags_is_found_and_left_out(sim_flight,
     4.5 s into the drift; those seconds (and no others) are found, and controlled_axes leaves them out
     of xy and z.  The unedited flight, with and without GPS: nothing found."""
     from twin_nodes.twin.estimate_check import estimate_failures
-    from twin_nodes.twin.runner import controlled_axes
+    from twin_nodes.twin.flight_mode import controlled_axes
 
     topics, params = sim_flight
     assert estimate_failures(_write(tmp_path / "clean.ulg", topics, params))[0] == []
@@ -288,7 +288,7 @@ def test_setpoint_gaps_longer_than_a_second_are_bridged_and_short_ones_held():
     """C10: the Mantis follow flights' trajectory_setpoint has logging gaps of up to 4.4 s while the
     target moved 9 m: across a gap > 1 s the twin flies the straight line between the logged samples
     (what PX4's 50 Hz setpoint did, near enough), not the old sample then a jump; a 0.4 s gap is held."""
-    from twin_nodes.twin.runner import bridge_setpoint_gaps
+    from twin_nodes.twin.inputs import bridge_setpoint_gaps
 
     ts = np.array([0.0, 0.4, 4.4, 4.8])
     vals = np.array([[0.0, 0.0, 5.0], [0.0, 0.0, 5.0], [8.0, -4.0, np.nan], [8.0, -4.0, 5.0]])

@@ -95,7 +95,8 @@ def test_runner_flies_px4_manual_modes_and_the_params_wind():
     attitude (mc_pos_control does not run); elsewhere its position/velocity cascade.  A steady wind
     in the params reaches the closed-loop twin."""
     from twin_nodes.twin.control import setpoint
-    from twin_nodes.twin.runner import MANUAL_NAV_STATES, TwinRunner
+    from twin_nodes.logs.ulog_io import MANUAL_NAV_STATES
+    from twin_nodes.twin.runner import TwinRunner
 
     vp = shipped("px4_sih_quadx")
     windy = vp.with_effect("wind", vx=3.0, vy=-1.0)

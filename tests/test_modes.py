@@ -27,7 +27,8 @@ from twin_nodes.logs.ulog_io import read_ulog
 from twin_nodes.twin import divergence
 from twin_nodes.twin.compare import align
 from twin_nodes.twin.metrics import flight_metrics
-from twin_nodes.twin.runner import TwinRun, controlled_axes, run_twin_on_log
+from twin_nodes.twin.flight_mode import controlled_axes
+from twin_nodes.twin.runner import TwinRun, run_twin_on_log
 from twin_nodes.vehicle.params import load_params
 
 ROOT = Path(__file__).resolve().parents[1]

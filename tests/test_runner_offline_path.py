@@ -17,7 +17,8 @@ import pytest
 from tests.conftest import shared_log
 from twin_nodes.identify.nominal import params_for_log
 from twin_nodes.logs.ulog_io import read_ulog
-from twin_nodes.twin.runner import TwinRunner, _setpoints, log_inputs, run_twin_on_log
+from twin_nodes.twin.inputs import log_inputs, setpoint_rows
+from twin_nodes.twin.runner import TwinRunner, run_twin_on_log
 from twin_nodes.vehicle.params import load_params
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -29,7 +30,7 @@ def _streamed(log, vp, mode: str, t0: float, t1: float) -> dict[str, np.ndarray]
     data = log_inputs(log, runner.rate_hz, t0, t1)
     t = data["t"]
     n = len(t)
-    sp = _setpoints(data, n)
+    sp = setpoint_rows(data, n)
     armed = np.asarray(data["armed"]).reshape(n) > 0.5
     batt = np.asarray(data["battery_v"]).reshape(n) if "battery_v" in data else np.full(n, np.nan)
     nav = np.asarray(data["nav_state"]).reshape(n) if "nav_state" in data else np.full(n, np.nan)

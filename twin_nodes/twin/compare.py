@@ -33,7 +33,9 @@ import numpy as np
 from twin_nodes.logs import time_sync
 from twin_nodes.twin.metrics import Aligned, flight_metrics
 from twin_nodes.twin import divergence
-from twin_nodes.twin.runner import TwinRun, controlled_axes, estimate_failed, run_twin_on_log
+from twin_nodes.twin.estimate_check import estimate_failed
+from twin_nodes.twin.flight_mode import controlled_axes
+from twin_nodes.twin.runner import TwinRun, run_twin_on_log
 
 __all__ = ["align", "compare_log", "load_flight", "CompareResult", "OPEN_LOOP_NOTE", "DEFAULT_RATE_HZ", "mask_from_intervals",
            "streams_to_log_and_run", "metrics_from_streams"]
@@ -45,7 +47,7 @@ OPEN_LOOP_NOTE = ("open loop: XY/Z errors are re-synced prediction errors (re-sy
                   "only show resampling), its throttle is the mean real motor command")
 
 
-#: the series the twin flies beside (``runner.log_inputs``): a log without one of them is refused
+#: the series the twin flies beside (``inputs.log_inputs``): a log without one of them is refused
 TWIN_INPUTS = ("position_enu", "velocity_enu", "attitude_q", "body_rates_flu", "motors")
 
 
@@ -129,7 +131,7 @@ def align(run: TwinRun, log: Any, rate_hz: float = DEFAULT_RATE_HZ, t0: float | 
     ``[t0, t1]`` when given).  ``mask`` keeps samples where both XY are finite
     and, with ``airborne_only``, the vehicle is airborne
     (:meth:`FlightLog.airborne_intervals`: land detector, else armed, else height).  XY and Z are
-    scored only where PX4 controlled them (:func:`~twin_nodes.twin.runner.controlled_axes`); a closed-loop
+    scored only where PX4 controlled them (:func:`~twin_nodes.twin.flight_mode.controlled_axes`); a closed-loop
     twin is checked for a divergence from the real flight up to ``t1`` (:mod:`twin_nodes.twin.divergence`;
     the streamed graph's twin has no attitude: ``check_divergence=False``)."""
     pos = log.require("position_enu")

@@ -11,7 +11,7 @@ the estimator's own innovation test ratios (``estimator_status``
 ``vel/pos/hgt_test_ratio`` > 1: the GPS/baro measurement rejected) must stay below 1.  On the 8 shared real
 logs, the corpus tuning half and 20 fleet flights the largest mismatches over 2 s are 3.6 m/s and 0.85 m
 and no test ratio exceeds 1.0; the tolerances below leave a margin of 1.7x and 3.5x.  Pure numpy; the seconds found are left out of XY/Z scoring
-(:func:`twin_nodes.twin.runner.controlled_axes`) and said.
+(:func:`twin_nodes.twin.flight_mode.controlled_axes`) and said.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 
 from twin_nodes.base import frames
 
-__all__ = ["WINDOW_S", "DV_TOL_M_S", "DP_TOL_M", "estimate_failures", "failed_at"]
+__all__ = ["WINDOW_S", "DV_TOL_M_S", "DP_TOL_M", "estimate_failures", "failed_at", "estimate_failed"]
 
 #: window over which the velocity change is compared with the integrated IMU acceleration [s]
 WINDOW_S = 2.0
@@ -133,3 +133,16 @@ def failed_at(intervals: list[tuple[float, float]], t: np.ndarray) -> np.ndarray
     for a, b in intervals:
         m |= (t >= a) & (t <= b)
     return m
+
+
+def estimate_failed(log, t: np.ndarray) -> tuple[np.ndarray, str]:
+    """True at the times ``t`` where the vehicle's position estimate failed
+    (:func:`estimate_failures`, computed once per log and kept on it), and how it was checked."""
+    cached = getattr(log, "_estimate_failures", None)
+    if cached is None:
+        cached = estimate_failures(log)
+        try:
+            log._estimate_failures = cached
+        except AttributeError:  # a log type without attributes: recomputed each call
+            pass
+    return failed_at(cached[0], t), cached[1]

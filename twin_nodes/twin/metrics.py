@@ -178,7 +178,7 @@ class Aligned:
     mode: str = "closed"
     notes: list[str] = field(default_factory=list)
     #: where PX4 controlled the horizontal position / the height (``None``: everywhere); ``xy`` and
-    #: ``z`` are scored only there (:func:`twin_nodes.twin.runner.controlled_axes`)
+    #: ``z`` are scored only there (:func:`twin_nodes.twin.flight_mode.controlled_axes`)
     xy_mask: np.ndarray | None = None
     z_mask: np.ndarray | None = None
     #: the twin's divergence from the real flight (``{"t_s", "cause", "detail"}``; None: none found)

@@ -15,6 +15,10 @@ Two ways to shadow the real vehicle:
 ``real_motors``, ``armed``, ``battery``) and ``advance_to(t)`` returns the twin's
 outputs at its control rate.  :func:`run_twin_on_log` feeds a whole
 :class:`~twin_nodes.logs.ulog_io.FlightLog` through the same engine.
+
+The runner's parts live beside it: which PX4 mode is flown how, and where PX4 held the position
+(:mod:`twin_nodes.twin.flight_mode`); the ground plane, PX4's grounded phases and its take-off ramp
+(:mod:`twin_nodes.twin.ground`); a whole log's inputs on the control grid (:mod:`twin_nodes.twin.inputs`).
 """
 
 from __future__ import annotations
@@ -24,38 +28,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from twin_nodes.twin.control import G_ZV_P, G_ZV_UP, SP_SIZE
+from twin_nodes.twin.control import SP_SIZE
 from twin_nodes.twin.controllers import make_controller
 from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.model import Multirotor
 from twin_nodes.twin.sim import DelayLine
 from twin_nodes.twin.pilot import PilotStandIn
-from twin_nodes.logs import time_sync
+from twin_nodes.twin.flight_mode import ALTCTL_NAV_STATE, fly_mode
+from twin_nodes.twin.ground import TAKEOFF_RAMP_S, GroundHandling, log_takeoff_ramp_s
+from twin_nodes.twin.inputs import log_feed
 from twin_nodes.logs.ulog_io import MANUAL_NAV_STATES
 
 MODES = ("closed", "open")
-#: PX4 nav_state values with their own setpoint: ACRO flies the rate setpoint, OFFBOARD what its flags say
-ACRO_NAV_STATE = 10.0
-ALTCTL_NAV_STATE = 1.0
-OFFBOARD_NAV_STATE = 14.0
-#: how a closed-loop control step was flown: PX4's attitude setpoint (MANUAL/STAB, offboard attitude),
-#: its rate setpoint (ACRO), the real attitude (a manual mode in a log without an attitude setpoint),
-#: the position/velocity cascade (ALTCTL/POSCTL/AUTO/offboard trajectories), or not at all (disarmed)
-FLOWN_AS = ("attitude", "rates", "real_attitude", "cascade", "grounded", "disarmed")
-#: a logged collective thrust setpoint at or below this (0..1) in PX4's position-controlled modes: PX4
-#: commands no thrust, which it does only before its take-off ramp (``TakeoffHandling`` state below
-#: ``rampup``) or with ground contact after a touchdown (``mc_pos_control``: ``not_taken_off ||
-#: flying_but_ground_contact``: zero thrust, integrators reset); in flight its thrust is at least MPC_THR_MIN
-GROUNDED_THRUST = 0.02
-#: ... entered only with the real vehicle within this height [m] of the twin's ground plane
-GROUNDED_ENTER_M = 0.5
-#: PX4's take-off ramp (``MPC_TKO_RAMP_T``, 3 s by default since PX4 1.12): from the end of a grounded
-#: phase the upward velocity limit goes from -g / MPC_Z_VEL_P_ACC (zero thrust) to MPC_Z_VEL_MAX_UP
-TAKEOFF_RAMP_S = 3.0
-G_ACC = 9.80665
-__all__ = ["MANUAL_NAV_STATES", "MODES", "FLOWN_AS", "controlled_axes", "TwinSample", "TwinRunner", "TwinRun",
-           "run_twin_on_log", "log_inputs"]
+__all__ = ["MODES", "TwinSample", "TwinRunner", "TwinRun", "run_twin_on_log"]
 
 
 @dataclass
@@ -73,8 +59,9 @@ _HORIZONTAL = (0, 1, 3, 4)
 _NON_HORIZONTAL = np.array([2, 5, 6, 7, 8, 9, 10, 11, 12])
 
 
-class TwinRunner:
-    """Streaming twin.  Feed inputs in time order, call ``advance_to(t)``."""
+class TwinRunner(GroundHandling):
+    """Streaming twin.  Feed inputs in time order, call ``advance_to(t)``.  Its ground handling (the ground
+    plane, grounded phases, take-off ramp) is :class:`~twin_nodes.twin.ground.GroundHandling`."""
 
     def __init__(self, vp: VehicleParams, mode: str = "closed", horizon_s: float = 2.0,
                  rate_hz: float | None = None, pilot: bool = True):
@@ -132,7 +119,7 @@ class TwinRunner:
         #: progress 0..1 (1: flying; set to 0 by a grounded phase, so a log started in the air has none)
         self.takeoff_ramp_s = TAKEOFF_RAMP_S
         self.ramp = 1.0
-        #: how the last control step was flown (:data:`FLOWN_AS`)
+        #: how the last control step was flown (:data:`~twin_nodes.twin.flight_mode.FLOWN_AS`)
         self.flown_as = ""
         #: the pilot stand-in for the vertical axis in PX4's manual modes (None: the logged thrust alone)
         self.pilot = PilotStandIn(self.model.params.hover_command, vp.gravity_m_s2) if pilot else None
@@ -156,19 +143,7 @@ class TwinRunner:
             for k in _HORIZONTAL:
                 if not math.isfinite(x[k]):
                     x[k] = prev[k]
-        if not self._initialised and np.linalg.norm(x[3:6]) < 0.3:
-            # at rest when the twin starts (PX4 logs start at boot or at arming, on the ground):
-            # that height is the ground (not the arming state: its message may come first or last)
-            self.ground_z = float(x[2])
-        x[2] -= self.ground_z
-        if self._initialised and x[2] < 0.0:
-            # the real vehicle below the twin's ground plane (terrain lower than the take-off spot, the
-            # baro or EKF height drifting down): the ground is below wherever the vehicle flies, so the
-            # plane goes down to it and the twin, flying, keeps its own height
-            shift = float(x[2])
-            self.ground_z += shift
-            x[2] = 0.0
-            self.x[2] -= shift  # (the setpoint is taken again in the new frame: _sp_ground_z differs)
+        self._to_ground_frame(x)
         self.real_x = x
         if not self._initialised:
             self._start(t)
@@ -224,37 +199,10 @@ class TwinRunner:
         self.offboard_flags = np.asarray(flags, float).reshape(6)
 
     def _fly_mode(self) -> str:
-        """What PX4 flies now, by ``nav_state`` and what the log carries (:data:`FLOWN_AS`)."""
-        nav = self.nav_state
-        thr_ok = math.isfinite(self.real_throttle)
-        q_ok = bool(np.isfinite(self.att_q).all())
-        w_ok = bool(np.isfinite(self.rates_sp).all())
-        if nav == ACRO_NAV_STATE:
-            if w_ok and thr_ok:
-                return "rates"
-        elif nav in MANUAL_NAV_STATES:
-            if q_ok and thr_ok:
-                return "attitude"
-        elif nav == OFFBOARD_NAV_STATE:
-            f = self.offboard_flags
-            traj = bool(np.isfinite(self.sp[0:9]).any())
-            if np.isfinite(f).all():
-                if (f[0:3] > 0).any() and traj:
-                    return "cascade"
-                if f[3] > 0 and q_ok and (thr_ok or math.isfinite(self.att_thrust)):
-                    return "attitude"
-                if f[4] > 0 and w_ok and thr_ok:
-                    return "rates"
-            elif not traj:
-                if q_ok and (thr_ok or math.isfinite(self.att_thrust)):
-                    return "attitude"
-                if w_ok and thr_ok:
-                    return "rates"
-            return "cascade"
-        else:
-            return "cascade"
-        # a manual mode without the setpoint this log would need: the pilot's throttle and the real attitude
-        return "real_attitude" if thr_ok and self.real_x is not None else "cascade"
+        """What PX4 flies now, by ``nav_state`` and what the log carries
+        (:func:`~twin_nodes.twin.flight_mode.fly_mode`)."""
+        return fly_mode(self.nav_state, self.real_throttle, self.att_q, self.att_thrust, self.rates_sp,
+                        self.offboard_flags, self.sp, self.real_x is not None)
 
     @property
     def manual(self) -> bool:
@@ -370,61 +318,6 @@ class TwinRunner:
             return thr
         return thr + p.update(self.x[2], self.x[5], self.real_x[2], self.real_x[5], self.dt_c)
 
-    def _ramped_update(self, sp: np.ndarray, q_att) -> tuple[np.ndarray, np.ndarray]:
-        """A cascade step during PX4's take-off ramp (``Takeoff::updateRamp``, ``mc_pos_control``): the
-        upward velocity limit, the trajectory's own upward velocity included, ramps from -g / Kp_vz (the
-        velocity loop asks for zero thrust) to MPC_Z_VEL_MAX_UP over MPC_TKO_RAMP_T; no acceleration
-        feed-forward while it ramps."""
-        G = self.ctrl.G
-        up = float(G[G_ZV_UP])
-        self.ramp = min(self.ramp + self.dt_c / max(self.takeoff_ramp_s, self.dt_c), 1.0)
-        v0 = -G_ACC / max(float(G[G_ZV_P]), 0.01)
-        lim = v0 + self.ramp * (up - v0)
-        sp = sp.copy()
-        sp[8] = np.nan
-        if math.isfinite(sp[5]):
-            sp[5] = min(sp[5], lim)
-        G[G_ZV_UP] = lim
-        try:
-            return self.ctrl.update(self.x[:13], sp, self.dt_c, q_att=q_att)
-        finally:
-            G[G_ZV_UP] = up
-
-    def _px4_grounded(self) -> bool:
-        """PX4's position controller commands no thrust (see :data:`GROUNDED_THRUST`): its logged
-        collective thrust setpoint, or where none is logged the real motors, at zero."""
-        # a grounded phase starts on the ground: a zero thrust setpoint in the air (an idle descent of
-        # PX4's old mixer, a logging glitch) is flown, not held; once on the ground it lasts while the
-        # thrust stays at zero (the EKF's height may drift, a hand may lift the vehicle)
-        if self.flown_as not in ("grounded", "disarmed") and self.real_x is not None:
-            h = float(self.real_x[2])
-            if math.isfinite(h) and h > GROUNDED_ENTER_M:
-                return False
-        thr = self.real_throttle
-        if math.isfinite(thr):
-            return thr <= GROUNDED_THRUST
-        u = self.real_u
-        return bool(u.shape == (self.n,) and np.isfinite(u).all() and float(np.max(u)) <= GROUNDED_THRUST)
-
-    def _hold_on_ground(self) -> None:
-        """Disarmed, or armed with PX4 commanding no thrust: the vehicle is not flying (it stands on the
-        ground, or a hand holds it), so the twin is where the real vehicle is, at rest on a ground plane
-        at its height; a later take-off starts the twin from there, as PX4 starts its ramp from the
-        ground with reset integrators (a second take-off in one log: a touch-and-go, a payload set down
-        at a spot higher or lower than the first, the EKF's height drifted while landed)."""
-        shift = float(self.real_x[2])  # the real height above the twin's ground plane
-        if shift != 0.0:
-            # the ground plane moves to the real height (a touchdown elsewhere, the EKF's height drifting)
-            self.ground_z += shift
-            self.real_x[2] = 0.0
-            if self._sp_ground_z is not None:
-                self.sp = self.sp.copy()
-                self.sp[2] -= shift
-                self._sp_ground_z = self.ground_z
-        self.x[:13] = self.real_x
-        self.x[2] = max(self.x[2], 0.0)
-        self.x[NX_BODY:] = self.params.rotors.reference_from_command(np.nan_to_num(self.u))
-
     def _carried_setpoint(self) -> np.ndarray:
         """The position setpoint carried along by the velocity and acceleration setpoints since the
         last setpoint sample: PX4's trajectory is smooth at the controller rate, its log (and the
@@ -489,98 +382,21 @@ class TwinRun:
     info: dict = field(default_factory=dict)
 
 
-def log_inputs(log, rate_hz: float, t0: float | None = None, t1: float | None = None) -> dict[str, np.ndarray]:
-    """The real-vehicle inputs the twin needs, on one uniform grid (uses the log's resampler)."""
-    names = ["position_enu", "velocity_enu", "attitude_q", "body_rates_flu", "motors"]
-    optional = ["setpoint_position_enu", "setpoint_velocity_enu", "setpoint_accel_enu", "setpoint_yaw_enu",
-                "setpoint_yawspeed", "armed", "battery_v", "nav_state", "throttle"]
-    present = names + [n for n in optional if log.get(n) is not None]
-    grid, data = log.resample(present, rate_hz, t0, t1)
-    data["t"] = grid
-    sp = log.get("setpoint_position_enu")
-    if sp is not None and len(sp) > 1 and "setpoint_position_enu" in data:
-        data["setpoint_position_enu"] = bridge_setpoint_gaps(sp.t_s, sp.values, grid, data["setpoint_position_enu"])
-    # PX4's own attitude/rate setpoints and offboard flags, for the modes without a position
-    # controller: on the same grid (they do not shorten it), NaN before their first sample
-    for n in MODE_INPUTS:
-        s = log.get(n)
-        if s is not None and len(s):
-            data[n] = time_sync.interp_to(s.t_s, s.values, grid, kind=s.interp)
-    return data
-
-
-#: a gap between two logged position setpoints longer than this [s] is bridged linearly (PX4 published the
-#: setpoint at 50 Hz; a logger that dropped it for seconds, as on the Mantis follow flights' 4.4 s gaps
-#: with the target 9 m on, would have the twin hold the old one and then jump)
-SETPOINT_GAP_S = 1.0
-
-
-def bridge_setpoint_gaps(ts: np.ndarray, values: np.ndarray, grid: np.ndarray, held: np.ndarray) -> np.ndarray:
-    """``held`` (the position setpoint on ``grid``, held from each logged sample) with every gap longer than
-    SETPOINT_GAP_S between two logged samples finite in an axis replaced there by the straight line between
-    them; shorter gaps and everything else unchanged."""
-    out = np.array(held, float, copy=True).reshape(len(grid), -1)
-    gaps = np.flatnonzero(np.diff(ts) > SETPOINT_GAP_S)
-    for i in gaps:
-        a, b = ts[i], ts[i + 1]
-        inside = (grid > a) & (grid < b)
-        if not inside.any():
-            continue
-        w = ((grid[inside] - a) / (b - a))[:, None]
-        line = values[i] * (1.0 - w) + values[i + 1] * w
-        ok = np.isfinite(values[i]) & np.isfinite(values[i + 1])
-        out[inside] = np.where(ok[None, :], line, out[inside])
-    return out
-
-
-#: the series the modes without a position controller fly (:meth:`TwinRunner._fly_mode`)
-MODE_INPUTS = ("attitude_setpoint_q", "attitude_setpoint_thrust", "attitude_setpoint_yawrate", "setpoint_rates_flu",
-               "offboard_mode")
-
-
-def _setpoints(data: dict[str, np.ndarray], n: int) -> np.ndarray:
-    sp = np.full((n, SP_SIZE), np.nan)
-    for key, sl in (("setpoint_position_enu", slice(0, 3)), ("setpoint_velocity_enu", slice(3, 6)),
-                    ("setpoint_accel_enu", slice(6, 9)), ("setpoint_yaw_enu", slice(9, 10)),
-                    ("setpoint_yawspeed", slice(10, 11))):
-        if key in data:
-            sp[:, sl] = np.asarray(data[key]).reshape(n, -1)[:, : sl.stop - sl.start]
-    return sp
-
-
 def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: float = 2.0,
                     t0: float | None = None, t1: float | None = None, progress: bool = False,
                     pilot: bool = True) -> TwinRun:
     """Run the twin beside a whole log (offline), returning its outputs on the control grid (``pilot``: the
     vertical pilot stand-in in manual modes, :mod:`twin_nodes.twin.pilot`)."""
     runner = TwinRunner(vp, mode, horizon_s, pilot=pilot)
-    ramp_s = (getattr(log, "params", None) or {}).get("MPC_TKO_RAMP_T")
-    if ramp_s is not None and math.isfinite(float(ramp_s)) and float(ramp_s) >= 0.0:
-        runner.takeoff_ramp_s = float(ramp_s)
-    data = log_inputs(log, runner.rate_hz, t0, t1)
-    t = data["t"]
+    ramp_s = log_takeoff_ramp_s(log)
+    if ramp_s is not None:
+        runner.takeoff_ramp_s = ramp_s
+    feed = log_feed(log, runner.rate_hz, t0, t1)
+    t, X, finite, U, sp, repeated = feed.t, feed.x, feed.finite, feed.motors, feed.sp, feed.repeated
+    armed, batt, nav, thr = feed.armed, feed.battery_v, feed.nav_state, feed.throttle
+    att_q, att_thr, att_yr = feed.att_q, feed.att_thrust, feed.att_yawrate
+    rates_sp, offb = feed.rates_sp, feed.offboard
     n = len(t)
-    sp = _setpoints(data, n)
-    armed = np.asarray(data["armed"]).reshape(n) > 0.5 if "armed" in data else np.isfinite(
-        np.asarray(data["motors"])).any(axis=1)
-    batt = np.asarray(data["battery_v"]).reshape(n) if "battery_v" in data else np.full(n, np.nan)
-    nav = np.asarray(data["nav_state"]).reshape(n) if "nav_state" in data else np.full(n, np.nan)
-    thr = np.asarray(data["throttle"]).reshape(n) if "throttle" in data else np.full(n, np.nan)
-    def col(name: str, k: int) -> np.ndarray:
-        return np.asarray(data[name], float).reshape(n, k) if name in data else np.full((n, k), np.nan)
-    att_q, att_thr, att_yr = col("attitude_setpoint_q", 4), col("attitude_setpoint_thrust", 1)[:, 0], col(
-        "attitude_setpoint_yawrate", 1)[:, 0]
-    rates_sp, offb = col("setpoint_rates_flu", 3), col("offboard_mode", 6)
-    P, V, Q, W, U = (np.asarray(data[k]) for k in ("position_enu", "velocity_enu", "attitude_q",
-                                                     "body_rates_flu", "motors"))
-    # the per-sample work done once, vectorized: the real state rows and whether each is finite,
-    # and whether each setpoint sample repeats the previous one bit for bit (the runner then skips it)
-    X = np.concatenate([np.asarray(a, float).reshape(n, -1) for a in (P, V, Q, W)], axis=1)
-    del data, P, V, Q, W  # X and sp hold what the loop reads (a 1-hour flight at 250 Hz: ~170 MB less)
-    finite = np.isfinite(X).all(axis=1)
-    sp_bits = np.ascontiguousarray(sp).view(np.uint64)
-    repeated = np.zeros(n, bool)
-    repeated[1:] = (sp_bits[1:] == sp_bits[:-1]).all(axis=1)
     model = runner.model
     # the outputs go into arrays made for the whole run (one row per control step) rather than lists of
     # per-step arrays (~0.5 kB a step in objects, then copied once more: 0.9 GB on a 1-hour flight)
@@ -640,60 +456,3 @@ class _Rows:
 
     def arrays(self) -> list[np.ndarray]:
         return [a[:self.k] for a in self.a]
-
-
-def controlled_axes(log, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
-    """Where PX4 controlled the horizontal position (``xy``) and the height (``z``) on the times ``t``:
-    a position or velocity setpoint finite in that axis (``trajectory_setpoint``; NaN = not controlled,
-    as PX4's ``PositionControl`` reads it) while ``mc_pos_control`` runs (not MANUAL/STAB/ACRO; in
-    OFFBOARD only with the position or velocity flag where ``offboard_control_mode`` is logged).
-    Returns ``(xy, z, how)``; a log without any position/velocity setpoint counts every axis as
-    controlled (the twin then holds the real position) and ``how`` says so."""
-    t = np.asarray(t, float)
-    sp_p, sp_v = log.get("setpoint_position_enu"), log.get("setpoint_velocity_enu")
-    how = "trajectory_setpoint position/velocity finite per axis, nav_state not MANUAL/STAB/ACRO"
-    if (sp_p is None or not len(sp_p)) and (sp_v is None or not len(sp_v)):
-        xy, z = np.ones(t.shape, bool), np.ones(t.shape, bool)
-        how = ("no trajectory_setpoint in the log: every axis scored where nav_state is no manual mode (the twin "
-               "holds the real position there), the height only in ALTCTL")
-        nav = log.get("nav_state")
-        if nav is not None and len(nav):
-            xy &= nav.at(t, "previous")[:, 0] != ALTCTL_NAV_STATE
-    else:
-        def at(s, k):
-            return s.at(t, "previous") if s is not None and len(s) else np.full((len(t), k), np.nan)
-        p, v = at(sp_p, 3), at(sp_v, 3)
-        xy = np.isfinite(p[:, :2]).all(axis=1) | np.isfinite(v[:, :2]).all(axis=1)
-        z = np.isfinite(p[:, 2]) | np.isfinite(v[:, 2])
-    nav = log.get("nav_state")
-    if nav is not None and len(nav):
-        ns = nav.at(t, "previous")[:, 0]
-        running = ~np.isin(ns, MANUAL_NAV_STATES)
-        ocm = log.get("offboard_mode")
-        if ocm is not None and len(ocm):
-            f = ocm.at(t, "previous")
-            traj_flag = np.nan_to_num(f[:, 0]) + np.nan_to_num(f[:, 1]) > 0
-            running &= (ns != OFFBOARD_NAV_STATE) | traj_flag
-        xy &= running
-        z &= running
-    bad, bad_how = estimate_failed(log, t)
-    if bad.any():
-        xy &= ~bad
-        z &= ~bad
-        how += f"; not where the vehicle's own position estimate failed ({bad_how})"
-    return xy, z, how
-
-
-def estimate_failed(log, t: np.ndarray) -> tuple[np.ndarray, str]:
-    """True at the times ``t`` where the vehicle's position estimate failed
-    (:func:`twin_nodes.twin.estimate_check.estimate_failures`, computed once per log), and how it was checked."""
-    from twin_nodes.twin.estimate_check import estimate_failures, failed_at
-
-    cached = getattr(log, "_estimate_failures", None)
-    if cached is None:
-        cached = estimate_failures(log)
-        try:
-            log._estimate_failures = cached
-        except AttributeError:  # a log type without attributes: recomputed each call
-            pass
-    return failed_at(cached[0], t), cached[1]
