@@ -80,6 +80,9 @@ def run(inp: SelectionInput) -> Selection:
         joint = dynamic_refits(accepted, cs.first, current) if oe is not None else []
         if joint:
             per_label.update(fit_all(joint, all_oe=True, oe_only=True))
+        joint = force_refits(accepted, cs.first, current)
+        if joint:
+            per_label.update(fit_all(joint))
         if cs.richer and any(f.accepted for f in per_label.get(SYMMETRIC_LAG, [])):
             per_label.update(fit_all(cs.richer, all_oe=True))
         kept = _one_per_entry(per_label, blocks)
@@ -330,13 +333,29 @@ def nominal_refits(nominal: VehicleParams, current: VehicleParams) -> list[Candi
 CONFUSABLE = ("inertia", "motor_time_constant", "actuator_delay")
 
 
+#: the force effects (equation error) refitted jointly with a drag law found after them: a thrust per unit
+#: mass fitted before the drag was known takes up part of it in the orbit's tilted flight (SIH grid s044)
+FORCE_PAIRS = (("mass", "thrust_coefficient"), ("linear_drag", "rotor_drag", "body_drag"))
+
+
 def dynamic_refits(accepted: list[Fit], cands: list[Candidate], current: VehicleParams) -> list[Candidate]:
     """Each :data:`CONFUSABLE` candidate of the round with each accepted :data:`CONFUSABLE` effect of
     another name refitted jointly (on the current vehicle, that effect's parameters free; the effects in the
     plain candidate's order, so that the model's compiled stepper is the one the round already uses)."""
+    return _joint_refits(accepted, cands, current, CONFUSABLE, CONFUSABLE)
+
+
+def force_refits(accepted: list[Fit], cands: list[Candidate], current: VehicleParams) -> list[Candidate]:
+    """Each drag candidate of the round with an accepted mass or thrust coefficient refitted jointly."""
+    return _joint_refits(accepted, cands, current, FORCE_PAIRS[0], FORCE_PAIRS[1])
+
+
+def _joint_refits(accepted: list[Fit], cands: list[Candidate], current: VehicleParams, refit: tuple,
+                  offered: tuple) -> list[Candidate]:
+    """Each candidate named in ``offered`` with each accepted effect named in ``refit`` (another name) free."""
     out = []
     for a in accepted:
-        if a.candidate.name not in CONFUSABLE:
+        if a.candidate.name not in refit:
             continue
         pa = a.candidate.params_dict(a.theta)
         # its own fitted parameters (a joint refit accepted before: not the other effect's it carried)
@@ -344,7 +363,7 @@ def dynamic_refits(accepted: list[Fit], cands: list[Candidate], current: Vehicle
         names = tuple(a.candidate.param_names[i] for i in own)
         x0a, loa, hia = a.theta[own], a.candidate.lower[own], a.candidate.upper[own]
         for c in cands:
-            if c.name not in CONFUSABLE or c.name == a.candidate.name or (
+            if c.name not in offered or c.name == a.candidate.name or " (+" in c.label or (
                     c.name == "motor_time_constant" and c.label != SYMMETRIC_LAG):
                 continue
             n = len(c.param_names)
@@ -385,7 +404,7 @@ def _carry_refit(winner: Fit, accepted: list[Fit]) -> None:
         return
     values = {k: float(v) for k, v in zip(winner.candidate.param_names, winner.theta)}
     for a in accepted:
-        if a.candidate.name in CONFUSABLE and f"(+{a.candidate.name} refitted)" in winner.candidate.label:
+        if f"(+{a.candidate.name} refitted)" in winner.candidate.label:
             a.theta = np.array([values.get(k, float(v)) for k, v in zip(a.candidate.param_names, a.theta)])
             a.vp = winner.vp
             a.verdict_note = (a.verdict_note + "; " if a.verdict_note else "") + \
