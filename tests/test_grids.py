@@ -262,6 +262,7 @@ def test_lag_offered_with_the_accepted_inertia_refitted():
     win = SimpleNamespace(candidate=lag, theta=np.array([0.08, 0.025, 0.0251, 0.039]), vp=v)
     selection._carry_refit(win, [a])
     assert a.theta == pytest.approx([0.025, 0.0251, 0.039]) and a.vp is v
+    assert a.refitted_jointly_with == "motor_time_constant" and win.joint_refit_of == "inertia"
     # not offered for what is not a dynamic rival (a drag), nor on top of a mass
     assert all(c.name in selection.CONFUSABLE for c in joint)
     assert selection.dynamic_refits([SimpleNamespace(candidate=SimpleNamespace(name="mass"))], cands, current) == []

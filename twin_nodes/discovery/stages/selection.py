@@ -407,5 +407,5 @@ def _carry_refit(winner: Fit, accepted: list[Fit]) -> None:
         if f"(+{a.candidate.name} refitted)" in winner.candidate.label:
             a.theta = np.array([values.get(k, float(v)) for k, v in zip(a.candidate.param_names, a.theta)])
             a.vp = winner.vp
-            a.verdict_note = (a.verdict_note + "; " if a.verdict_note else "") + \
-                f"refitted jointly with {winner.candidate.name}"
+            a.refitted_jointly_with = winner.candidate.name
+            winner.joint_refit_of = a.candidate.name
