@@ -212,8 +212,29 @@ def test_a_ground_phase_lasts_seconds_not_the_flight():
     that drifted) after hovering at 1.6-1.9 m: only the last GROUND_PHASE_MAX_S are the touchdown, not the hover."""
     from twin_nodes.twin.compare import GROUND_PHASE_MAX_S, ground_phases
 
-    t = np.arange(0.0, 90.0, 0.1)
-    z = np.interp(t, [0, 5, 8, 12, 85, 90], [0.45, 0.45, 2.5, 1.8, 1.7, 1.52])
+    t = np.arange(0.0, 92.0, 0.1)  # the log goes on 2 s after the land detector's airborne interval
+    z = np.interp(t, [0, 5, 8, 12, 85, 90, 92], [0.45, 0.45, 2.5, 1.8, 1.7, 1.52, 1.52])
     g = ground_phases(t, z, [(5.0, 90.0)])
-    assert g[(t > 90.0 - GROUND_PHASE_MAX_S + 0.1)].all() and not g[(t > 8.0) & (t < 90.0 - GROUND_PHASE_MAX_S)].any()
+    end = (t > 90.0 - GROUND_PHASE_MAX_S + 0.1) & (t <= 90.0)
+    assert g[end].all() and not g[(t > 8.0) & (t < 90.0 - GROUND_PHASE_MAX_S)].any()
     assert g[(t >= 5.0) & (t < 5.7)].all() and not g[(t > 5.8) & (t < 8.0)].any()
+
+
+def test_a_flight_joined_in_the_air_has_no_take_off_phase():
+    """A stream (or log) that starts at 8 m, airborne from its first sample: nothing at its start is a take-off;
+    its touchdown at the end still is."""
+    from twin_nodes.twin.compare import ground_phases
+
+    t = np.arange(0.0, 30.0, 0.1)
+    z = np.interp(t, [0, 10, 25, 27, 30], [8.0, 8.2, 8.0, 0.2, 0.2])
+    g = ground_phases(t, z, [(0.0, 29.0)])
+    assert not g[t < 26.0].any() and g[(t > 27.0) & (t <= 29.0)].all()
+
+
+def test_a_stream_that_stops_in_the_air_has_no_touchdown_phase():
+    from twin_nodes.twin.compare import ground_phases
+
+    t = np.arange(0.0, 20.0, 0.1)
+    z = np.interp(t, [0, 2, 6, 20], [0.3, 0.3, 8.0, 8.1])
+    g = ground_phases(t, z, [(1.0, 19.95)])
+    assert g[(t >= 1.0) & (t < 2.2)].all() and not g[t > 3.0].any()

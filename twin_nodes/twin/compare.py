@@ -97,6 +97,8 @@ GROUND_MARGIN_M = 0.5
 #: take seconds; a longer stretch within the margin of an interval's end height is flight (an indoor hover
 #: at 1.5 m whose airborne interval ends there, a log that ends in the air)
 GROUND_PHASE_MAX_S = 8.0
+#: an airborne interval that begins within this of the first height sample began before the data did [s]
+_STARTED_AIRBORNE_S = 0.5
 
 
 def ground_phases(t: np.ndarray, z_real: np.ndarray, intervals: list[tuple[float, float]],
@@ -111,7 +113,9 @@ def ground_phases(t: np.ndarray, z_real: np.ndarray, intervals: list[tuple[float
     (default: ``t``, ``z_real`` themselves).  A window that starts or ends in the air (the held-out part)
     must pass the whole flight: measured from the window's own ends, its first seconds (until the vehicle
     rose 0.5 m above where the window began) were taken for a take-off.  Each phase lasts at most
-    :data:`GROUND_PHASE_MAX_S`."""
+    :data:`GROUND_PHASE_MAX_S`; an interval that begins with the data (a log, or a live stream, joined in the
+    air) has no take-off phase, and one that ends with it has a touchdown only if the vehicle came down into
+    its last height."""
     ft, fz = (np.asarray(t, float), np.asarray(z_real, float)) if flight is None else (
         np.asarray(flight[0], float), np.asarray(flight[1], float))
     out = np.zeros(t.shape, bool)
@@ -120,14 +124,19 @@ def ground_phases(t: np.ndarray, z_real: np.ndarray, intervals: list[tuple[float
         if idx.size < 2:
             continue
         z = fz[idx]
+        joined_airborne = a <= ft[0] + _STARTED_AIRBORNE_S  # a log or stream that begins in the air
+        # an interval that ends with the data ends in a touchdown only if the vehicle came down into its last
+        # height (1 m within the phase's length); else the log or stream stopped in the air
+        last = ft[idx] >= b - GROUND_PHASE_MAX_S
+        touchdown = b < ft[-1] - _STARTED_AIRBORNE_S or bool(np.any(z[last] > z[-1] + 2.0 * margin_m))
         up = np.flatnonzero(z > z[0] + margin_m)
         down = np.flatnonzero(z > z[-1] + margin_m)
-        if up.size == 0 or down.size == 0:
+        if (up.size == 0 and not joined_airborne) or (down.size == 0 and touchdown):
             continue  # never left the ground by the margin: nothing to trim, nothing to score safely
-        lifted = min(ft[idx[up[0]]], a + GROUND_PHASE_MAX_S)
-        settled = max(ft[idx[down[-1]]], b - GROUND_PHASE_MAX_S)
-        out |= (t >= a) & (t < lifted)
-        out |= (t > settled) & (t <= b)
+        if not joined_airborne:
+            out |= (t >= a) & (t < min(ft[idx[up[0]]], a + GROUND_PHASE_MAX_S))
+        if touchdown:
+            out |= (t > max(ft[idx[down[-1]]], b - GROUND_PHASE_MAX_S)) & (t <= b)
     return out
 
 
