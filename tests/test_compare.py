@@ -183,3 +183,24 @@ def test_twin_turns_with_the_logged_yaw_rate_feed_forward(tmp_path):
     # about yaw rate / MC_YAW_P (0.8 / 2.8 = 0.29 rad)
     assert fly(True) < np.radians(3.0)
     assert fly(False) > 0.15
+
+
+def test_a_held_out_window_starting_in_the_air_is_not_trimmed_as_a_take_off():
+    """The ground phases are where the vehicle is within 0.5 m of its take-off and touchdown heights, read from
+    the whole flight: a window that starts at 20 m while the vehicle descends to 10 m (then climbs to 30 m) keeps
+    every sample up to the touchdown; measured from the window's own first height it lost everything until the climb passed 20.5 m."""
+    from twin_nodes.twin.compare import ground_phases
+
+    t = np.arange(0.0, 100.0, 0.1)
+    z = np.interp(t, [0, 2, 10, 40, 50, 70, 80, 95, 98, 100], [0, 0, 20, 20, 10, 10, 30, 30, 0.2, 0.2])
+    iv = [(1.0, 99.0)]
+    w = t >= 45.0
+    whole = ground_phases(t, z, iv)
+    assert whole[(t >= 1.0) & (t < 2.2)].all() and not whole[(t > 3) & (t < 97)].any()
+    assert whole[(t > 98.1) & (t <= 99.0)].all() and not whole[t < 1.0].any()
+    windowed = ground_phases(t[w], z[w], iv, flight=(t, z))
+    np.testing.assert_array_equal(windowed, whole[w])
+    assert not windowed[t[w] < 97].any()
+    np.testing.assert_array_equal(ground_phases(t, z, iv, flight=(t, z)), whole)
+    # what the window alone made of it: the descent and the hold at 10 m taken for a take-off
+    assert ground_phases(t[w], z[w], iv)[t[w] < 70].all()

@@ -96,23 +96,32 @@ GROUND_MARGIN_M = 0.5
 
 
 def ground_phases(t: np.ndarray, z_real: np.ndarray, intervals: list[tuple[float, float]],
-                  margin_m: float = GROUND_MARGIN_M) -> np.ndarray:
+                  margin_m: float = GROUND_MARGIN_M, *, flight: tuple[np.ndarray, np.ndarray] | None = None
+                  ) -> np.ndarray:
     """Samples at the ends of each airborne interval while the real vehicle is still within
     ``margin_m`` of where it took off (spool-up, lift-off) or already within ``margin_m`` of where
     it touched down (ground contact and the land detector's 2-4 s lag).  The twin models neither
-    landing gear nor PX4's land logic, so these are excluded from the metrics (and said so)."""
+    landing gear nor PX4's land logic, so these are excluded from the metrics (and said so).
+
+    Where it took off and touched down are read from the whole flight's heights ``flight`` = (times, z)
+    (default: ``t``, ``z_real`` themselves).  A window that starts or ends in the air (the held-out part)
+    must pass the whole flight: measured from the window's own ends, its first seconds (until the vehicle
+    rose 0.5 m above where the window began) were taken for a take-off."""
+    ft, fz = (np.asarray(t, float), np.asarray(z_real, float)) if flight is None else (
+        np.asarray(flight[0], float), np.asarray(flight[1], float))
     out = np.zeros(t.shape, bool)
     for a, b in intervals:
-        idx = np.flatnonzero((t >= a) & (t <= b) & np.isfinite(z_real))
+        idx = np.flatnonzero((ft >= a) & (ft <= b) & np.isfinite(fz))
         if idx.size < 2:
             continue
-        z = z_real[idx]
+        z = fz[idx]
         up = np.flatnonzero(z > z[0] + margin_m)
         down = np.flatnonzero(z > z[-1] + margin_m)
         if up.size == 0 or down.size == 0:
             continue  # never left the ground by the margin: nothing to trim, nothing to score safely
-        out[idx[:up[0]]] = True
-        out[idx[down[-1] + 1:]] = True
+        lifted, settled = ft[idx[up[0]]], ft[idx[down[-1]]]
+        out |= (t >= a) & (t < lifted)
+        out |= (t > settled) & (t <= b)
     return out
 
 
@@ -178,7 +187,8 @@ def align(run: TwinRun, log: Any, rate_hz: float = DEFAULT_RATE_HZ, t0: float | 
         iv = log.airborne_intervals()
         if iv:
             mask &= mask_from_intervals(t, iv)
-            ground = ground_phases(t, p_real[:, 2], iv) & mask
+            flight_z = (np.asarray(pos.t_s, float), np.asarray(pos.values, float)[:, 2])
+            ground = ground_phases(t, p_real[:, 2], iv, flight=flight_z) & mask
             if ground.any():
                 mask &= ~ground
                 notes.append(f"take-off/touchdown: {ground.sum() / rate_hz:.1f} s within {GROUND_MARGIN_M} m of the "
@@ -198,7 +208,8 @@ def align(run: TwinRun, log: Any, rate_hz: float = DEFAULT_RATE_HZ, t0: float | 
         iv_air = log.airborne_intervals()
         div = divergence.detect(run, log, xy_controlled=lambda tt: controlled_axes(log, tt)[0],
                                 z_controlled=lambda tt: controlled_axes(log, tt)[1], t1=t1,
-                                ground=lambda tt: ground_phases(tt, pos.at(tt, "linear")[:, 2], iv_air))
+                                ground=lambda tt: ground_phases(tt, pos.at(tt, "linear")[:, 2], iv_air,
+                                                                flight=(pos.t_s, np.asarray(pos.values)[:, 2])))
         if div is not None:
             notes.append(f"DIVERGED at {div['t_s']:.2f} s: {div['cause']} ({div['detail']}); the metrics after "
                          "it describe another flight")
