@@ -71,10 +71,21 @@ def _hexa(vp):
                              z_flu_m=(0.0,) * 6, direction=(1, -1, 1, -1, 1, -1)).replace(mass_kg=vp.mass_kg * 1.5)
 
 
-@pytest.mark.parametrize("frame", ["quad", "hexa"])
+def _x8(vp):
+    """A coaxial X8: four arms, an upper and a lower rotor of opposite spin on each, the lower ones at
+    80 % of an upper one's thrust per command (the coaxial effect)."""
+    a = np.radians(np.array([45.0, 135.0, 225.0, 315.0]))
+    x, y = np.repeat(0.3 * np.cos(a), 2), np.repeat(0.3 * np.sin(a), 2)
+    lower = (1, 3, 5, 7)
+    vp8 = vp.replace_rotors(x_flu_m=tuple(x), y_flu_m=tuple(y), z_flu_m=(0.0,) * 8,
+                            direction=(1, -1, -1, 1, 1, -1, -1, 1)).replace(mass_kg=vp.mass_kg * 2.0)
+    return vp8.with_effect("coaxial", efficiency=0.8, lower_mask=float(sum(1 << i for i in lower)))
+
+
+@pytest.mark.parametrize("frame", ["quad", "hexa", "x8"])
 def test_trims_balancing_the_model_recover_the_true_trims_in_wind(frame):
     base = shipped("px4_sih_quadx")
-    truth = _truth(base if frame == "quad" else _hexa(base))
+    truth = _truth({"quad": lambda v: v, "hexa": _hexa, "x8": _x8}[frame](base))
     model = Multirotor(truth)
     # steady samples at several headings and small tilts: the rotor drag's moments change with each
     rng = np.random.default_rng(3)
