@@ -159,21 +159,18 @@ def test_the_twin_holds_the_yaw_split_in_wind_on_the_v6c_brownout_flight():
 
 
 def test_trims_are_made_where_px4_held_every_axis():
-    """Samples with a motor at a bound (PX4 gives yaw up first) or spinning (> 0.5 rad/s) are left out of
-    the trims; where less than 1 s of the rest is left, the steady samples are used as they are."""
-    from twin_nodes.identify.nominal import _balanced
+    """Samples with a motor at a bound (PX4 gives yaw up first) are left out of the trims; where less than
+    6 s of the rest is left, none (the median motor outputs give the trims, as before)."""
+    from twin_nodes.identify.nominal import BALANCED_MIN_S, _balanced
 
-    n = 200
+    n = 600
     steady = np.ones(n, bool)
     steady[:10] = False
     motors = np.full((n, 4), 0.5)
     motors[20:40, 2] = 1.0           # saturated
     motors[40:50, 0] = 0.005         # at idle
-    rates = np.zeros((n, 3))
-    rates[60:80, 2] = 1.2            # spinning in yaw
-    keep = _balanced(steady, motors, rates, 50.0)
-    assert keep.sum() == n - 10 - 20 - 10 - 20
-    assert not keep[:10].any() and not keep[20:50].any() and not keep[60:80].any() and keep[100:].all()
-    # less than 1 s (50 samples) left: the steady samples
-    motors[:, 3] = 1.0
-    np.testing.assert_array_equal(_balanced(steady, motors, rates, 50.0), steady)
+    keep = _balanced(steady, motors, 50.0)
+    assert keep.sum() == n - 10 - 20 - 10
+    assert not keep[:10].any() and not keep[20:50].any() and keep[50:].all()
+    motors[: n - int(BALANCED_MIN_S * 50) + 30, 3] = 1.0   # less than 6 s inside the range
+    assert _balanced(steady, motors, 50.0) is None

@@ -458,12 +458,18 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
         vp = from_ros_dict(data, log.path)
         # the trims again, now from the whole model's steady moments (rotor drag, wind, coaxial...):
         # what the twin itself needs to hold the vehicle's motor split (static_trims.py)
-        held = _balanced(steady, sig["motors"], rates_lp, GRID_HZ)
-        states = _model_states(log, vp, t, sig, segs, tau, rates_lp)[held]
-        bv = log.get("battery_v") if battery is not None else None
-        trims = model_trims(vp, states, alpha[held], None if bv is None else bv.at(t[held]).reshape(-1))
-        dx, dy, lever = _set_trims(effects, src, trims, l)
-        vp = from_ros_dict(data, log.path)
+        held = _balanced(steady, sig["motors"], GRID_HZ)
+        if held is not None:
+            states = _model_states(log, vp, t, sig, segs, tau, rates_lp)[held]
+            bv = log.get("battery_v") if battery is not None else None
+            trims = model_trims(vp, states, alpha[held], None if bv is None else bv.at(t[held]).reshape(-1))
+            dx, dy, lever = _set_trims(effects, src, trims, l)
+            vp = from_ros_dict(data, log.path)
+        else:
+            why = (f"; not made from the whole model: less than {BALANCED_MIN_S:g} s of steady flight with every motor "
+                   f"inside its range (PX4 gives yaw up first at a bound)")
+            for k in ("effects.com_offset", "effects.rotor_tilt"):
+                src[k] += why
     except ParamsError as exc:  # e.g. rotors that cannot lift the assumed mass: the fits stay readable
         fits.update(_vehicle_fits(rot, t_max, km, m, drag_se, lag_scan["near"], lag_scan["at_edge"], battery, dx, dy,
                                   lever, tt[steady]))
@@ -493,14 +499,18 @@ def _model_states(log: FlightLog, vp: VehicleParams, t: np.ndarray, sig: dict, s
     return X
 
 
-def _balanced(steady: np.ndarray, motors: np.ndarray, rates: np.ndarray, rate_hz: float) -> np.ndarray:
+#: the static trims are made from the whole model only with this much steady flight in which PX4 held every
+#: axis (as the fit mask's 6 s); with less, the median motor outputs give them as before
+BALANCED_MIN_S = 6.0
+
+
+def _balanced(steady: np.ndarray, motors: np.ndarray, rate_hz: float) -> np.ndarray | None:
     """The steady samples where PX4 held every axis: no motor within 1 % of a bound (where one is, the
-    allocation gives up yaw first and the vehicle turns instead of balancing) and no body rate above
-    0.5 rad/s (a vehicle spinning in yaw balances its motors' torque with its own yaw drag, which the model
-    has not); the steady samples as they are where less than 1 s of those is left."""
+    allocation gives up yaw first and the vehicle turns instead of balancing its moments); None where less
+    than ``BALANCED_MIN_S`` of them is left (a flight at its motors' limits: no steady balance to read)."""
     m = np.asarray(motors, float)
-    ok = steady & np.all((m > 0.01) & (m < 0.99), axis=1) & np.all(np.abs(rates) < 0.5, axis=1)
-    return ok if ok.sum() >= rate_hz else steady
+    ok = steady & np.all((m > 0.01) & (m < 0.99), axis=1)
+    return ok if ok.sum() >= BALANCED_MIN_S * rate_hz else None
 
 
 def _set_trims(effects: dict, src: dict, trims: Trims, arm: float) -> tuple[float, float, float]:
@@ -508,8 +518,8 @@ def _set_trims(effects: dict, src: dict, trims: Trims, arm: float) -> tuple[floa
     bounds; their sources in ``src``.  Returns (dx, dy, lever)."""
     dx, dy, lever = trims.dx, trims.dy, trims.lever
     other = ", ".join(f"{1000 * v:+.1f}" for v in trims.moment_other_nm)
-    how = (f"the trim that balances, at the median of {trims.n_samples} steady samples (every axis held, no motor at "
-           f"a bound, body rates < 0.5 rad/s, where 1 s of those is left), the model's own moments "
+    how = (f"the trim that balances, at the median of {trims.n_samples} steady samples with every motor inside its "
+           f"range, the model's own moments "
            f"with the logged commands and state less the measured motion's (the rest of the model: ({other}) mN m)")
     for name in ("com_offset", "rotor_tilt"):
         effects.pop(name, None)
