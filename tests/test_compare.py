@@ -202,5 +202,18 @@ def test_a_held_out_window_starting_in_the_air_is_not_trimmed_as_a_take_off():
     np.testing.assert_array_equal(windowed, whole[w])
     assert not windowed[t[w] < 97].any()
     np.testing.assert_array_equal(ground_phases(t, z, iv, flight=(t, z)), whole)
-    # what the window alone made of it: the descent and the hold at 10 m taken for a take-off
-    assert ground_phases(t[w], z[w], iv)[t[w] < 70].all()
+    # the window alone, without the whole flight, took the descent and the hold at 10 m for a take-off; the
+    # phase's length cap (GROUND_PHASE_MAX_S from the interval's start) now keeps that out too
+    assert not ground_phases(t[w], z[w], iv)[t[w] < 70].any()
+
+
+def test_a_ground_phase_lasts_seconds_not_the_flight():
+    """An indoor flight whose airborne interval ends at 1.5 m (a landing on a higher floor, or a height estimate
+    that drifted) after hovering at 1.6-1.9 m: only the last GROUND_PHASE_MAX_S are the touchdown, not the hover."""
+    from twin_nodes.twin.compare import GROUND_PHASE_MAX_S, ground_phases
+
+    t = np.arange(0.0, 90.0, 0.1)
+    z = np.interp(t, [0, 5, 8, 12, 85, 90], [0.45, 0.45, 2.5, 1.8, 1.7, 1.52])
+    g = ground_phases(t, z, [(5.0, 90.0)])
+    assert g[(t > 90.0 - GROUND_PHASE_MAX_S + 0.1)].all() and not g[(t > 8.0) & (t < 90.0 - GROUND_PHASE_MAX_S)].any()
+    assert g[(t >= 5.0) & (t < 5.7)].all() and not g[(t > 5.8) & (t < 8.0)].any()

@@ -239,3 +239,83 @@ def test_nominal_law_refitted_only_where_the_nominal_has_it():
     assert {c.name for c in selection.nominal_refits(vp, v)} == {"linear_drag"}
     bare = vp.replace(effects=())
     assert selection.nominal_refits(bare, bare) == []
+
+
+# ------------------------------------------------------------------ discovery: confusable effects refitted jointly
+
+
+def _accepted_inertia(vp, theta):
+    from twin_nodes.discovery.candidates import build_candidates
+
+    data = SimpleNamespace(v=np.tile([[5.0, 0.0, 0.0]], (100, 1)), valid=np.ones(100, bool), motor_dt_s=0.004,
+                           dt=0.004, height=np.full(100, 10.0), battery_v=np.full(100, np.nan))
+    cands = build_candidates(vp, data)
+    inertia = next(c for c in cands if c.name == "inertia")
+    f = SimpleNamespace(candidate=inertia, theta=np.array(theta), verdict_note="", vp=inertia.build(np.array(theta)))
+    return f, data
+
+
+def test_lag_offered_with_the_accepted_inertia_refitted():
+    from twin_nodes.discovery.candidates import SYMMETRIC_LAG, build_candidates
+
+    vp = shipped("px4_sih_quadx")
+    a, data = _accepted_inertia(vp, [0.030, 0.0277, 0.0399])     # s046: the lag taken up as Ixx/Iyy
+    current = a.vp
+    cands = build_candidates(current, data)
+    joint = selection.dynamic_refits([a], cands, current)
+    labels = {c.label for c in joint}
+    assert labels == {f"{SYMMETRIC_LAG} (+inertia refitted)", "actuator_delay (+inertia refitted)"}
+    lag = next(c for c in joint if c.name == "motor_time_constant")
+    assert lag.param_names == ("tau_up", "ixx", "iyy", "izz")
+    assert lag.x0 == pytest.approx([0.05, 0.030, 0.0277, 0.0399])
+    v = lag.build(np.array([0.08, 0.025, 0.025, 0.039]))
+    eff = {n: dict(p) for n, p in v.effects}
+    assert eff["motor_time_constant"] == {"tau_up": 0.08, "tau_down": 0.08}
+    assert eff["inertia"] == pytest.approx({"ixx": 0.025, "iyy": 0.025, "izz": 0.039})
+    # the effects in the plain candidate's order (the compiled stepper is the one the round uses)
+    plain = next(c for c in cands if c.label == SYMMETRIC_LAG).build(np.array([0.08]))
+    assert [n for n, _ in v.effects] == [n for n, _ in plain.effects]
+    assert lag.params_dict(np.array([0.08, 0.025, 0.025, 0.039])) == {"tau_up": 0.08, "tau_down": 0.08}
+    assert lag.floor(np.array([0.08, 0.025, 0.025, 0.039])) and not lag.floor(np.array([0.05, 0.03, 0.03, 0.03]))
+    # accepted: the inertia takes the joint values
+    win = SimpleNamespace(candidate=lag, theta=np.array([0.08, 0.025, 0.0251, 0.039]), vp=v)
+    selection._carry_refit(win, [a])
+    assert a.theta == pytest.approx([0.025, 0.0251, 0.039]) and a.vp is v
+    assert a.refitted_jointly_with == "motor_time_constant" and win.joint_refit_of == "inertia"
+    # not offered for what is not a dynamic rival (a drag), nor on top of a mass
+    assert all(c.name in selection.CONFUSABLE for c in joint)
+    assert selection.dynamic_refits([SimpleNamespace(candidate=SimpleNamespace(name="mass"))], cands, current) == []
+
+
+def test_drag_offered_with_the_accepted_thrust_refitted():
+    from twin_nodes.discovery.candidates import build_candidates
+
+    vp = shipped("px4_sih_quadx")
+    data = SimpleNamespace(v=np.tile([[5.0, 0.0, 0.0]], (100, 1)), valid=np.ones(100, bool), motor_dt_s=0.004,
+                           dt=0.004, height=np.full(100, 10.0), battery_v=np.full(100, np.nan))
+    kt = next(c for c in build_candidates(vp, data) if c.name == "thrust_coefficient")
+    a = SimpleNamespace(candidate=kt, theta=np.array([0.848]), verdict_note="", vp=kt.build(np.array([0.848])))
+    cands = build_candidates(a.vp, data) + selection.nominal_refits(vp, a.vp)
+    joint = selection.force_refits([a], cands, a.vp)
+    names = {c.label for c in joint}
+    assert "linear_drag (nominal refitted) (+thrust_coefficient refitted)" in names
+    assert all(c.name in selection.FORCE_PAIRS[1] for c in joint)
+    ld = next(c for c in joint if c.name == "linear_drag")
+    v = ld.build(np.array([1.28, 0.87]))
+    eff = {n: dict(p) for n, p in v.effects}
+    assert eff["linear_drag"] == {"k_n_s_m": 1.28} and eff["thrust_coefficient"] == {"kt_scale": 0.87}
+
+
+def test_drag_beside_a_thrust_standing_for_a_mass_is_read_per_unit_mass():
+    # s044: mass 1.15 and linear drag 1.5 on a 1 kg model; found kt 0.870 (1/1.15) and drag 1.28 per the
+    # model's 1 kg = 1.472 N/(m/s) at the true mass: 1.9 % off, not 14.7 %
+    vp = shipped("px4_sih_quadx")
+    truths = [Truth(Hidden("mass", {"mass": 1.15})), Truth(Hidden("linear_drag", {"k_n_s_m": 1.5}))]
+    res = {"effects": [_eff("thrust_coefficient", {"kt_scale": 0.8703}), _eff("linear_drag", {"k_n_s_m": 1.28})]}
+    r = grid_prove.score_grid_flight("f", truths, res, vp)
+    assert r["param_errors"]["linear_drag"] == pytest.approx(abs(1.28 * 1.15 / 1.5 - 1), rel=1e-9)
+    assert r["passed"]
+    # the mass found as a mass: the drag is the model's own, compared as it is
+    res = {"effects": [_eff("mass", {"mass": 1.15}), _eff("linear_drag", {"k_n_s_m": 1.28})]}
+    r = grid_prove.score_grid_flight("f", truths, res, vp)
+    assert r["param_errors"]["linear_drag"] == pytest.approx(abs(1.28 / 1.5 - 1), rel=1e-9) and not r["passed"]

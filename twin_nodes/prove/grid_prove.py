@@ -54,13 +54,14 @@ def score_grid_flight(flight: str, truths: list[Truth], result: dict, nominal, d
     right = bool(top) and any(effect_class(n) in classes for n, _ in _members(top))
     right_by_pair = bool(top) and right and effect_class(top["name"]) not in classes
     named, errs, texts = [], {}, {}
+    per_mass = _per_mass(real, found, nominal)
     for t in real:
         c = effect_class(t.hidden.name)
         for e in found:
             hit = [(n, p) for n, p in _members(e) if effect_class(n) == c]
             if hit:
                 named.append(t.hidden.name)
-                err, text = compare(t, hit[0][0], hit[0][1], nominal, drag)
+                err, text = compare(t, hit[0][0], hit[0][1], nominal, drag, per_mass)
                 errs[t.hidden.name], texts[t.hidden.name] = err, text
                 break
     ho = heldout_cut(top) if top else {}
@@ -75,6 +76,16 @@ def score_grid_flight(flight: str, truths: list[Truth], result: dict, nominal, d
                heldout_channel=ho.get("channel"), params_ok=params_ok, passed=passed,
                first_candidate=(result.get("effects") or [{}])[0].get("name") if not top else None)
     return row
+
+
+def _per_mass(real: list[Truth], found: list[dict], nominal) -> float:
+    """The true mass over the model's where a true mass change was found as a thrust coefficient (the model
+    kept its mass, so a drag found beside it is per the model's mass: :func:`scoring.compare`), else 1."""
+    mass = next((t for t in real if t.hidden.name == "mass"), None)
+    if mass is None or any(e["name"] == "mass" for e in found) or \
+            not any(e["name"] == "thrust_coefficient" for e in found):
+        return 1.0
+    return float(mass.hidden.params["mass"]) / nominal.mass_kg
 
 
 def summarize(rows: list[dict]) -> dict:

@@ -162,16 +162,26 @@ def _drag_laws(vp: VehicleParams) -> list[tuple[str, dict]]:
     return [(n, p) for n, p in vp.effect_dict.items() if effect_class(n) == "drag"]
 
 
+#: each drag law's coefficients (force per airspeed): what scales with the mass a force per unit mass is read at
+DRAG_COEFFICIENTS = {"linear_drag": ("k_n_s_m",), "rotor_drag": ("k_d",), "body_drag": ("c_dx", "c_dy", "c_dz")}
+
+
 def compare(truth: Truth, found_name: str, found: dict, nominal: VehicleParams,
-            drag: DragContext | None = None) -> tuple[float | None, str]:
+            drag: DragContext | None = None, per_mass: float = 1.0) -> tuple[float | None, str]:
     """Relative parameter error of a finding against the truth, and the comparison as text.
 
     Same effect: the largest relative error over the truth's parameters (as the ours suite always scored).
     Mass against thrust coefficient: thrust per unit mass (kt_scale against m0/m), shown in the truth's
     parameter.  Drag against drag (any law): the isotropic linear coefficient that does the same work on this
     flight's airspeeds, nominal drag included (the truth's total against the nominal plus the finding).
-    Another class: ``(inf, 'wrong effect')``."""
+    Another class: ``(inf, 'wrong effect')``.
+
+    ``per_mass``: the true mass over the model's where the flight's mass change was found as a thrust
+    coefficient (the model keeps its own mass): a drag found beside it is a force per the model's mass, and the
+    IMU fixes only force per unit mass, so the found drag is read at the true mass (times ``per_mass``)."""
     h = truth.hidden
+    if per_mass != 1.0 and effect_class(h.name) == "drag" and found_name == h.name and truth.drag_law is None:
+        found = {k: v * per_mass if k in DRAG_COEFFICIENTS.get(found_name, ()) else v for k, v in found.items()}
     if h.name == "none":
         return None, "-"
     if effect_class(found_name) != effect_class(h.name):
@@ -184,7 +194,7 @@ def compare(truth: Truth, found_name: str, found: dict, nominal: VehicleParams,
         true_laws.append(truth.drag_law or (h.name, h.params))
         found_laws = [law for law in nominal_laws if law[0] != found_name] + [(found_name, found)]
         k_true = drag.linear_equivalent(true_laws)
-        k_found = drag.linear_equivalent(found_laws)
+        k_found = drag.linear_equivalent(found_laws) * per_mass
         err = abs(k_found - k_true) / max(abs(k_true), 1e-12)
         return err, f"k_eq {k_found:.4g} vs {k_true:.4g} N/(m/s)"
     if found_name != h.name:  # mass <-> thrust coefficient: thrust per unit mass

@@ -93,6 +93,10 @@ def _as_logged(t_src: np.ndarray, values: np.ndarray, real: Any, t: np.ndarray) 
 
 #: height above the take-off / touchdown point below which the ends of a flight are not scored [m]
 GROUND_MARGIN_M = 0.5
+#: the longest a ground phase lasts [s]: spool-up and lift-off, or touchdown and the land detector's 2-4 s lag,
+#: take seconds; a longer stretch within the margin of an interval's end height is flight (an indoor hover
+#: at 1.5 m whose airborne interval ends there, a log that ends in the air)
+GROUND_PHASE_MAX_S = 8.0
 
 
 def ground_phases(t: np.ndarray, z_real: np.ndarray, intervals: list[tuple[float, float]],
@@ -106,7 +110,8 @@ def ground_phases(t: np.ndarray, z_real: np.ndarray, intervals: list[tuple[float
     Where it took off and touched down are read from the whole flight's heights ``flight`` = (times, z)
     (default: ``t``, ``z_real`` themselves).  A window that starts or ends in the air (the held-out part)
     must pass the whole flight: measured from the window's own ends, its first seconds (until the vehicle
-    rose 0.5 m above where the window began) were taken for a take-off."""
+    rose 0.5 m above where the window began) were taken for a take-off.  Each phase lasts at most
+    :data:`GROUND_PHASE_MAX_S`."""
     ft, fz = (np.asarray(t, float), np.asarray(z_real, float)) if flight is None else (
         np.asarray(flight[0], float), np.asarray(flight[1], float))
     out = np.zeros(t.shape, bool)
@@ -119,7 +124,8 @@ def ground_phases(t: np.ndarray, z_real: np.ndarray, intervals: list[tuple[float
         down = np.flatnonzero(z > z[-1] + margin_m)
         if up.size == 0 or down.size == 0:
             continue  # never left the ground by the margin: nothing to trim, nothing to score safely
-        lifted, settled = ft[idx[up[0]]], ft[idx[down[-1]]]
+        lifted = min(ft[idx[up[0]]], a + GROUND_PHASE_MAX_S)
+        settled = max(ft[idx[down[-1]]], b - GROUND_PHASE_MAX_S)
         out |= (t >= a) & (t < lifted)
         out |= (t > settled) & (t <= b)
     return out

@@ -29,6 +29,7 @@ class JudgeQuery:
     #: round 1's output-error cut per label (later rounds refit on the output error only above 2 %)
     oe_gain: dict[str, float] = field(default_factory=dict)
     all_oe: bool = False              # every dynamic candidate on the output error as well
+    oe_only: bool = False             # on the output error only (the joint dynamic refits of selection)
     pbar: object = None               # a tqdm bar to advance per fitted candidate
 
 
@@ -46,7 +47,8 @@ def run(q: JudgeQuery) -> JudgedFits:
     eq, oe, vp, rounds, pbar = q.flight.eq, q.flight.oe, q.flight.nominal, q.round, q.pbar
     tasks: list[tuple[Candidate, Judge, np.ndarray]] = []
     for c in q.batch:
-        tasks.append((c, eq, q.R0))
+        if not q.oe_only:
+            tasks.append((c, eq, q.R0))
         if oe is not None and c.name in OUTPUT_ERROR_EFFECTS and (
                 q.all_oe or rounds == 1 or q.oe_gain.get(c.label, 0) > 0.02):
             co = _restrict_to_axes(c, oe.windows.usable, oe.windows.axis_r2)

@@ -44,7 +44,7 @@ def run(inp: GradeInput) -> Verdicts:
     eq, oe, vp, names, base_held = S.eq, S.oe, S.nominal, S.names, inp.base_held
     # grades: confirmed (accepted and kept), likely, rejected (with why)
     acc_labels = [f.candidate.label for f in accepted]
-    side_base: dict[int, np.ndarray] = {}
+    side_base: dict[tuple[int, str], np.ndarray] = {}   # (base vehicle, residual) -> that residual of it
     for f in last.values():
         if f in accepted:
             f.accepted = True
@@ -60,10 +60,11 @@ def run(inp: GradeInput) -> Verdicts:
             judge = oe if f.kind == "equation" else eq
             if judge is not None:
                 b = f.base_vp or vp
-                if id(b) not in side_base:
-                    side_base[id(b)] = (judge.residual(b) if judge is eq else
-                                        _scatter(judge.residual(b, judge.held_mask), judge.held_mask))
-                f.other = _side(judge, f.vp, side_base[id(b)], vp)
+                key = (id(b), judge.kind)
+                if key not in side_base:
+                    side_base[key] = (judge.residual(b) if judge is eq else
+                                      _scatter(judge.residual(b, judge.held_mask), judge.held_mask))
+                f.other = _side(judge, f.vp, side_base[key], vp)
         f.evidence = _evidence(f, names, base_held)
     rank = {lab: i for i, lab in enumerate(inp.first_rank)}
     ranked = sorted(last.values(), key=lambda f: (_GRADE_ORDER[f.verdict],
@@ -179,6 +180,9 @@ def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:
         out["closed_loop"] = f.closed_loop
     if getattr(f, "closed_loop_note", None):
         out["closed_loop_note"] = f.closed_loop_note
+    for key in ("joint_refit_of", "refitted_jointly_with"):   # stages.selection._carry_refit
+        if getattr(f, key, None):
+            out[key] = getattr(f, key)
     if f.verdict in ("confirmed", "likely"):
         pair = not_told_apart(out)
         if pair is not None:
