@@ -396,7 +396,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
         src["effects.com_offset"] = (f"identified: dx {dx * 1000:.1f} mm, dy {dy * 1000:.1f} mm (the roll/pitch "
                                      f"trim of the median motor outputs in steady flight)")
     else:
-        src["effects.com_offset"] = f"not included: trim offset ({dx:.3g}, {dy:.3g}) m beyond 30 % of the arm"
+        src["effects.com_offset"] = f"not included: trim offset ({dx:.3g}, {dy:.3g}) m below 1 % or beyond 30 % of the arm"
     if abs(lever) > 0.002 * l and abs(lever) <= lim_l:
         effects["enabled"].append("rotor_tilt")
         effects["rotor_tilt"] = {"lever_m": lever}
