@@ -42,9 +42,11 @@ from twin_nodes.identify.fit_mask import fit_mask
 from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
                                            rotor_states_from_commands, thrust_regressor, translational_regression,
                                            world_to_body)
+from twin_nodes.identify.static_trims import Trims, model_trims
 from twin_nodes.identify.yaw_gain import applied_yaw_gain, yaw_gain_for_twin
 from twin_nodes.logs.flyable import MIN_HORIZONTAL_FRACTION, check_flyable, read_flight
 from twin_nodes.logs.ulog_io import FlightLog
+from twin_nodes.physics.core import NX_BODY
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 from twin_nodes.vehicle.px4_params import int_param  # noqa: I001 - a log integer, range-checked
 from twin_nodes.vehicle.px4_params import (AIRFRAMES, RateGainsPx4, lower_rotors, outer_loop_gains, param,
@@ -452,16 +454,94 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     fits = {"tau_s": tau, "kT/m": kt_m, "kT/m_se": kt_m_se, "hover_command": hover_cmd,
             "drag_n_s_m": drag, "angular_damping": k_w, "roll_r2": rot["roll"].r2, "pitch_r2": rot["pitch"].r2,
             "yaw_r2": rot["yaw"].r2, "z_r2": trans["z"].r2}
-    fits.update(_vehicle_fits(rot, t_max, km, m, drag_se, lag_scan["near"], lag_scan["at_edge"], battery, dx, dy, lever, tt[steady]))
     try:
         vp = from_ros_dict(data, log.path)
+        # the trims again, now from the whole model's steady moments (rotor drag, wind, coaxial...):
+        # what the twin itself needs to hold the vehicle's motor split (static_trims.py)
+        held = _balanced(steady, sig["motors"], GRID_HZ)
+        if held is not None:
+            states = _model_states(log, vp, t, sig, segs, tau, rates_lp)[held]
+            bv = log.get("battery_v") if battery is not None else None
+            trims = model_trims(vp, states, alpha[held], None if bv is None else bv.at(t[held]).reshape(-1))
+            dx, dy, lever = _set_trims(effects, src, trims, l)
+            vp = from_ros_dict(data, log.path)
+        else:
+            why = (f"; not made from the whole model: less than {BALANCED_MIN_S:g} s of steady flight with every motor "
+                   f"inside its range (PX4 gives yaw up first at a bound)")
+            for k in ("effects.com_offset", "effects.rotor_tilt"):
+                src[k] += why
     except ParamsError as exc:  # e.g. rotors that cannot lift the assumed mass: the fits stay readable
+        fits.update(_vehicle_fits(rot, t_max, km, m, drag_se, lag_scan["near"], lag_scan["at_edge"], battery, dx, dy,
+                                  lever, tt[steady]))
         exc.fits = fits
         raise
+    fits.update(_vehicle_fits(rot, t_max, km, m, drag_se, lag_scan["near"], lag_scan["at_edge"], battery, dx, dy, lever,
+                              tt[steady]))
     for k in ("BAT1_N_CELLS", "BAT1_V_CHARGED", "BAT1_V_EMPTY", "IMU_GYRO_CUTOFF", "IMU_DGYRO_CUTOFF"):
         if k in p:
             src[f"log {k}"] = f"{p[k]:g} (recorded, not modelled)"
     return Nominal(vp, log.path, src, fits)
+
+
+def _model_states(log: FlightLog, vp: VehicleParams, t: np.ndarray, sig: dict, segs: list[slice], tau: float,
+                  rates: np.ndarray) -> np.ndarray:
+    """The model's state along the fitted grid: the logged position, velocity and attitude, the (low-passed)
+    body rates and the rotor states the logged commands give through the identified lag."""
+    X = np.zeros((t.size, NX_BODY + vp.rotors.count))
+    pos = log.get("position_enu")
+    if pos is not None and len(pos):
+        X[:, 0:3] = np.nan_to_num(pos.at(t))
+    X[:, 3:6] = np.nan_to_num(sig["v_enu"])
+    X[:, 6:10] = sig["q"]
+    X[:, 10:13] = rates
+    for sg in segs:
+        X[sg, NX_BODY:] = rotor_states_from_commands(t[sg], sig["motors"][sg], tau_up_s=tau)
+    return X
+
+
+#: the static trims are made from the whole model only with this much steady flight in which PX4 held every
+#: axis (as the fit mask's 6 s); with less, the median motor outputs give them as before
+BALANCED_MIN_S = 6.0
+
+
+def _balanced(steady: np.ndarray, motors: np.ndarray, rate_hz: float) -> np.ndarray | None:
+    """The steady samples where PX4 held every axis: no motor within 1 % of a bound (where one is, the
+    allocation gives up yaw first and the vehicle turns instead of balancing its moments); None where less
+    than ``BALANCED_MIN_S`` of them is left (a flight at its motors' limits: no steady balance to read)."""
+    m = np.asarray(motors, float)
+    ok = steady & np.all((m > 0.01) & (m < 0.99), axis=1)
+    return ok if ok.sum() >= BALANCED_MIN_S * rate_hz else None
+
+
+def _set_trims(effects: dict, src: dict, trims: Trims, arm: float) -> tuple[float, float, float]:
+    """Put ``trims`` into ``effects`` (replacing the motor-output estimate) where they pass the same
+    bounds; their sources in ``src``.  Returns (dx, dy, lever)."""
+    dx, dy, lever = trims.dx, trims.dy, trims.lever
+    other = ", ".join(f"{1000 * v:+.1f}" for v in trims.moment_other_nm)
+    how = (f"the trim that balances, at the median of {trims.n_samples} steady samples with every motor inside its "
+           f"range, the model's own moments "
+           f"with the logged commands and state less the measured motion's (the rest of the model: ({other}) mN m)")
+    for name in ("com_offset", "rotor_tilt"):
+        effects.pop(name, None)
+        if name in effects["enabled"]:
+            effects["enabled"].remove(name)
+    # no lower bound: a yaw lever of 0.05 % of the arm is a 1 % motor split with km 0.02 m (the H480's), and a
+    # trim the twin does not hold is a per-motor error the whole flight long; the model-made trim is 0 where
+    # nothing is to be held
+    if max(abs(dx), abs(dy)) <= 0.3 * arm:
+        effects["enabled"].append("com_offset")
+        effects["com_offset"] = {"dx": dx, "dy": dy}
+        src["effects.com_offset"] = f"identified: dx {dx * 1000:.1f} mm, dy {dy * 1000:.1f} mm ({how})"
+    else:
+        src["effects.com_offset"] = f"not included: trim offset ({dx:.3g}, {dy:.3g}) m beyond 30 % of the arm"
+    if abs(lever) <= arm * math.sin(math.radians(10.0)):
+        effects["enabled"].append("rotor_tilt")
+        effects["rotor_tilt"] = {"lever_m": lever}
+        src["effects.rotor_tilt"] = (f"identified: {lever * 1000:.2f} mm yaw lever = "
+                                     f"{math.degrees(math.asin(lever / arm)):.2f} deg tangential tilt ({how}; km ASSUMED)")
+    else:
+        src["effects.rotor_tilt"] = f"not included: yaw trim lever {lever:.3g} m beyond a 10 deg tilt"
+    return dx, dy, lever
 
 
 def _horizontal_drag(t, sig, lp, f_lp, v_body, m, src):
@@ -594,7 +674,7 @@ def _hover_command(total_thrust_max_n: float, mass_kg: float, f: float, g: float
 _CODE_KEY = b"".join(inspect.getsource(sys.modules[name]).encode() for name in
                      (__name__, "twin_nodes.identify.regression", "twin_nodes.identify.yaw_gain",
                       "twin_nodes.vehicle.px4_params", "twin_nodes.logs.ulog_io", "twin_nodes.identify.fit_mask",
-                      "twin_nodes.identify.coaxial"))
+                      "twin_nodes.identify.coaxial", "twin_nodes.identify.static_trims"))
 
 #: PX4 airframes (SYS_AUTOSTART) with a shipped params file: (stem, what it is)
 SHIPPED_AIRFRAMES = {10040: "px4_sih_quadx", 1100: "px4_sih_quadx"}

@@ -24,6 +24,7 @@ Error channels (twin minus real, on one common time grid):
 ``xy`` and ``z`` count only where PX4 controlled that axis (``Aligned.xy_mask``/``z_mask``;
 ``controlled_s``/``controlled_when`` say how long and when); ``throttle_real_hf_rms`` is the real
 throttle's own RMS above 0.5 Hz on the scored samples (what a still-air twin cannot follow);
+``motor_real_hf_p75_mean`` the real motors' own P75 above 0.5 Hz, the per-motor metric's floor in the same sense;
 ``divergence`` is where the twin left the real flight (:mod:`twin_nodes.twin.divergence`) or None.
 
 Throttle and motor values are fractions (0.03 = 3 %); :func:`table2` prints
@@ -242,31 +243,50 @@ def _intervals(t: np.ndarray, flag: np.ndarray, dt: float) -> list[list[float]]:
 HF_CUTOFF_HZ = 0.5
 
 
-def highpass_rms(t: np.ndarray, x: np.ndarray, mask: np.ndarray, cutoff_hz: float = HF_CUTOFF_HZ) -> float:
-    """RMS over ``mask`` of ``x`` high-passed at ``cutoff_hz`` (2nd-order Butterworth, forward-backward,
-    over each run of finite samples of the uniform grid ``t``); NaN when nothing is left."""
+def highpass(t: np.ndarray, x: np.ndarray, cutoff_hz: float = HF_CUTOFF_HZ) -> np.ndarray:
+    """``x`` high-passed at ``cutoff_hz`` (2nd-order Butterworth, forward-backward, over each run of
+    finite samples of the uniform grid ``t`` at least one period of the cut-off long); NaN elsewhere."""
     from scipy.signal import butter, sosfiltfilt
 
     t = np.asarray(t, float)
     x = np.asarray(x, float).ravel()
-    mask = np.asarray(mask, bool)
+    hp = np.full(x.shape, np.nan)
     if t.size < 16:
-        return math.nan
+        return hp
     fs = 1.0 / float(np.median(np.diff(t)))
     if not cutoff_hz < 0.45 * fs:
-        return math.nan
+        return hp
     sos = butter(2, cutoff_hz, btype="highpass", fs=fs, output="sos")
-    hp = np.full(x.shape, np.nan)
-    ok = np.isfinite(x)
-    idx = np.flatnonzero(ok)
+    idx = np.flatnonzero(np.isfinite(x))
     if idx.size == 0:
-        return math.nan
+        return hp
     breaks = np.flatnonzero(np.diff(idx) > 1)
     for a, b in zip(np.concatenate([[idx[0]], idx[breaks + 1]]), np.concatenate([idx[breaks], [idx[-1]]])):
         if b - a + 1 >= int(fs / cutoff_hz) and b - a + 1 > 12:  # at least one period of the cut-off
             hp[a:b + 1] = sosfiltfilt(sos, x[a:b + 1])
-    v = hp[mask & np.isfinite(hp)]
+    return hp
+
+
+def highpass_rms(t: np.ndarray, x: np.ndarray, mask: np.ndarray, cutoff_hz: float = HF_CUTOFF_HZ) -> float:
+    """RMS over ``mask`` of ``x`` high-passed at ``cutoff_hz`` (:func:`highpass`); NaN when nothing is left."""
+    hp = highpass(t, x, cutoff_hz)
+    v = hp[np.asarray(mask, bool) & np.isfinite(hp)]
     return float(np.sqrt(np.mean(v * v))) if v.size else math.nan
+
+
+def motors_highpass_p75(t: np.ndarray, motors: np.ndarray, mask: np.ndarray,
+                        cutoff_hz: float = HF_CUTOFF_HZ) -> float:
+    """Mean over the motors of the P75 of ``|motor|`` high-passed at ``cutoff_hz`` over ``mask``: the real
+    motors' own content a still-air twin cannot follow, in the per-motor metric's own terms (a twin
+    that is exact below the cut-off and flat above it scores this); NaN when nothing is left."""
+    m = np.atleast_2d(np.asarray(motors, float))
+    p75 = []
+    for i in range(m.shape[1]):
+        hp = highpass(t, m[:, i], cutoff_hz)
+        v = hp[np.asarray(mask, bool) & np.isfinite(hp)]
+        if v.size:
+            p75.append(float(np.percentile(np.abs(v), 75.0)))
+    return float(np.mean(p75)) if p75 else math.nan
 
 
 def flight_metrics(al: Aligned) -> dict[str, Any]:
@@ -305,6 +325,7 @@ def flight_metrics(al: Aligned) -> dict[str, Any]:
     ef = np.zeros(mask.shape, bool) if al.estimate_failed is None else np.asarray(al.estimate_failed, bool)
     out["estimate_failed_s"] = round(float((mask & ef).sum()) * dt, 2)
     out["throttle_real_hf_rms"] = highpass_rms(t, al.throttle_real, mask, HF_CUTOFF_HZ)
+    out["motor_real_hf_p75_mean"] = motors_highpass_p75(t, al.motors_real, mask, HF_CUTOFF_HZ)
     out["divergence"] = dict(al.divergence) if al.divergence else None
     out["definitions"] = ("errors are twin minus real on a common grid over the masked (airborne) samples; "
                           "xy = horizontal distance [m], z = altitude difference [m], throttle and motors "

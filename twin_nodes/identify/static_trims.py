@@ -1,0 +1,87 @@
+"""Static trims (centre-of-mass offset, tangential rotor tilt) made so the twin holds the real motor split.
+
+PX4's rate integrators hold whatever steady moment the vehicle needs; in steady flight that shows
+as a static split of the motor outputs.  The twin holds the same split only if its own model needs
+the same moment there.  Other terms of the model carry steady moments as well: the rotors' H-force
+(``rotor_drag``) at hubs above the centre of mass gives roll and pitch moments in wind, and, where
+the rotors turn at different speeds (the pitch/roll trim itself), a *yaw* moment too; a coaxial
+lower rotor, a weaker motor, a battery scale all change what the same commands give.  A trim made
+from the motor outputs alone (moment of the median thrusts) leaves those out, and the twin then
+holds another split than the vehicle: on a V6C quad in 6 m/s of wind, the rotor drag's yaw moment
+was 80 % of the trim's, and the twin's yaw split was 1.1 % of full output where PX4's was 4.1 %.
+
+:func:`model_trims` measures instead, on the steady samples, the moment the model (every term but
+the trims) gives with the logged commands and state, less the moment the measured motion needs
+(``I alpha + w x I w``), and makes ``com_offset`` (roll/pitch, ``-d x F`` of the total thrust) and
+``rotor_tilt`` (yaw, lever x total thrust) of what is left: by construction the twin's steady moment
+balance is the vehicle's.  Pure numpy on :class:`~twin_nodes.physics.model.Multirotor`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from twin_nodes.physics.core import NX_BODY
+from twin_nodes.physics.model import Multirotor
+from twin_nodes.vehicle.params import VehicleParams
+
+__all__ = ["TRIM_EFFECTS", "Trims", "model_trims", "without_trims"]
+
+#: the effects the trims are made of (replaced, not added to)
+TRIM_EFFECTS = ("com_offset", "rotor_tilt")
+
+
+@dataclass(frozen=True)
+class Trims:
+    """``com_offset`` (dx, dy) [m, body FLU] and ``rotor_tilt`` lever [m] (yaw moment per newton of
+    total thrust, + CCW seen from above), and the steady moments they balance [N m] (FLU)."""
+    dx: float
+    dy: float
+    lever: float
+    moment_other_nm: tuple[float, float, float]
+    n_samples: int
+
+
+def without_trims(vp: VehicleParams) -> VehicleParams:
+    """``vp`` with its static-trim effects removed (every other effect kept)."""
+    eff = {k: v for k, v in vp.effect_dict.items() if k not in TRIM_EFFECTS}
+    return vp.replace(effects=tuple((k, tuple(v.items())) for k, v in eff.items()))
+
+
+def model_trims(vp: VehicleParams, states: np.ndarray, alpha: np.ndarray | None = None,
+                battery_v: np.ndarray | None = None) -> Trims:
+    """The trims that balance the model's steady moments (see the module docstring).
+
+    ``states`` (T, nx): the model's state on steady samples (ENU position/velocity, attitude, FLU rates
+    and the rotor states the logged commands give through the motor lag); ``alpha`` (T, 3): the
+    measured angular acceleration there (FLU; None: 0); ``battery_v`` (T,): the pack voltage for a
+    ``battery_sag`` effect.  Medians over the samples: a steady flight's outliers (a gust, a turn)
+    move them little."""
+    base = without_trims(vp)
+    model = Multirotor(base)
+    X = np.ascontiguousarray(np.atleast_2d(states), dtype=float)
+    if X.shape[1] != model.nx:
+        raise ValueError(f"model_trims: states need {model.nx} columns, got {X.shape[1]}")
+    t = np.arange(X.shape[0], dtype=float)
+    ext = model.exogenous(t, np.random.default_rng(0), battery_v)
+    terms = model.wrench_terms(X, ext)
+    m_model = sum(v[1] for v in terms.values())
+    thrust_z = terms["rotors"][0][:, 2]
+    J = vp.inertia
+    w = X[:, 10:13]
+    need = np.cross(w, w @ J.T)
+    if alpha is not None:
+        need = need + np.asarray(alpha, float) @ J.T
+    trim_m = need - m_model                     # what the trims must give, per sample
+    ok = np.isfinite(trim_m).all(axis=1) & (thrust_z > 1e-6)
+    if not ok.any():
+        raise ValueError("model_trims: no steady sample with thrust")
+    per_n = trim_m[ok] / thrust_z[ok, None]     # per newton of total thrust
+    # com_offset gives (-dy Tz, dx Tz, 0); rotor_tilt (0, 0, lever Tz)
+    dy = -float(np.median(per_n[:, 0]))
+    dx = float(np.median(per_n[:, 1]))
+    lever = float(np.median(per_n[:, 2]))
+    other = tuple(float(v) for v in np.median(m_model[ok] - need[ok], axis=0))
+    return Trims(dx, dy, lever, other, int(ok.sum()))
