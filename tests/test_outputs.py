@@ -334,15 +334,17 @@ def test_a_stage_left_by_a_killed_run_is_removed_by_the_next(tmp_path):
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_during_discover_leaves_no_output(sig, tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    # the child gets SIGINT's default action whatever this process inherited or was left with: an ignored
+    # SIGINT survives exec, and a Python started with it ignored never raises KeyboardInterrupt (in the clean-
+    # clone suite the discover ran to the end, rc 0, after the signal)
     proc = subprocess.Popen([*RT, "discover", str(FLIGHT), "--params", str(PARAMS), "--json", "d.json", "--report", "rep"],
-                            cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                            cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and not list(tmp_path.glob(f"{STAGE_PREFIX}*")):
         time.sleep(0.05)
     assert list(tmp_path.glob(f"{STAGE_PREFIX}*")), "discover staged its outputs"
-    # soon after the stage appears: on a quiet machine the whole discover of this short flight can end within a
-    # second of it (a clean-clone run saw it end before a signal sent 1 s later)
-    time.sleep(0.2)
+    time.sleep(1.0)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode in (130, 143, -sig), err
