@@ -389,21 +389,8 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
         my -= drag_h * drag * float(np.median(v_air[steady, 0]))
     mz = float(-km * np.dot(layout.direction, thrust))
     dx, dy, lever = -my / total, mx / total, -mz / total
-    lim_d, lim_l = 0.3 * l, l * math.sin(math.radians(10.0))
-    if math.hypot(dx, dy) > 0.01 * l and max(abs(dx), abs(dy)) <= lim_d:
-        effects["enabled"].append("com_offset")
-        effects["com_offset"] = {"dx": dx, "dy": dy}
-        src["effects.com_offset"] = (f"identified: dx {dx * 1000:.1f} mm, dy {dy * 1000:.1f} mm (the roll/pitch "
-                                     f"trim of the median motor outputs in steady flight)")
-    else:
-        src["effects.com_offset"] = f"not included: trim offset ({dx:.3g}, {dy:.3g}) m below 1 % or beyond 30 % of the arm"
-    if abs(lever) > 0.002 * l and abs(lever) <= lim_l:
-        effects["enabled"].append("rotor_tilt")
-        effects["rotor_tilt"] = {"lever_m": lever}
-        src["effects.rotor_tilt"] = (f"identified: {lever * 1000:.2f} mm yaw lever = {math.degrees(math.asin(lever / l)):.2f}"
-                                     f" deg tangential tilt (the yaw trim of the median motor outputs, km ASSUMED)")
-    else:
-        src["effects.rotor_tilt"] = f"not included: yaw trim lever {lever:.3g} m negligible or beyond a 10 deg tilt"
+    _put_trims(effects, src, dx, dy, lever, l, "the roll/pitch trim of the median motor outputs in steady flight",
+               "the yaw trim of the median motor outputs", lower_bounds=True)
 
     # --- the log's own controller
     hover_cmd = _hover_command(t_max * float(w_rot.sum()), m, f_fac)
@@ -504,6 +491,29 @@ def _model_states(log: FlightLog, vp: VehicleParams, t: np.ndarray, sig: dict, s
 BALANCED_MIN_S = 6.0
 
 
+def _put_trims(effects: dict, src: dict, dx: float, dy: float, lever: float, arm: float, how_com: str,
+               how_tilt: str, lower_bounds: bool) -> None:
+    """``com_offset`` (dx, dy) and ``rotor_tilt`` (lever) into ``effects`` where within 30 % of the arm and a
+    10 deg tilt (``lower_bounds``: and above 1 % of the arm, 0.2 % for the lever); why in ``src``."""
+    com_ok = max(abs(dx), abs(dy)) <= 0.3 * arm and (not lower_bounds or math.hypot(dx, dy) > 0.01 * arm)
+    tilt_ok = abs(lever) <= arm * math.sin(math.radians(10.0)) and (not lower_bounds or abs(lever) > 0.002 * arm)
+    if com_ok:
+        effects["enabled"].append("com_offset")
+        effects["com_offset"] = {"dx": dx, "dy": dy}
+        src["effects.com_offset"] = f"identified: dx {dx * 1000:.1f} mm, dy {dy * 1000:.1f} mm ({how_com})"
+    else:
+        src["effects.com_offset"] = (f"not included: trim offset ({dx:.3g}, {dy:.3g}) m "
+                                     f"{'below 1 % or ' if lower_bounds else ''}beyond 30 % of the arm")
+    if tilt_ok:
+        effects["enabled"].append("rotor_tilt")
+        effects["rotor_tilt"] = {"lever_m": lever}
+        src["effects.rotor_tilt"] = (f"identified: {lever * 1000:.2f} mm yaw lever = "
+                                     f"{math.degrees(math.asin(lever / arm)):.2f} deg tangential tilt ({how_tilt}; km ASSUMED)")
+    else:
+        src["effects.rotor_tilt"] = (f"not included: yaw trim lever {lever:.3g} m "
+                                     f"{'negligible or ' if lower_bounds else ''}beyond a 10 deg tilt")
+
+
 def _balanced(steady: np.ndarray, motors: np.ndarray, rate_hz: float) -> np.ndarray | None:
     """The steady samples where PX4 held every axis: no motor within 1 % of a bound (where one is, the
     allocation gives up yaw first and the vehicle turns instead of balancing its moments); None where less
@@ -528,19 +538,7 @@ def _set_trims(effects: dict, src: dict, trims: Trims, arm: float) -> tuple[floa
     # no lower bound: a yaw lever of 0.05 % of the arm is a 1 % motor split with km 0.02 m (the H480's), and a
     # trim the twin does not hold is a per-motor error the whole flight long; the model-made trim is 0 where
     # nothing is to be held
-    if max(abs(dx), abs(dy)) <= 0.3 * arm:
-        effects["enabled"].append("com_offset")
-        effects["com_offset"] = {"dx": dx, "dy": dy}
-        src["effects.com_offset"] = f"identified: dx {dx * 1000:.1f} mm, dy {dy * 1000:.1f} mm ({how})"
-    else:
-        src["effects.com_offset"] = f"not included: trim offset ({dx:.3g}, {dy:.3g}) m beyond 30 % of the arm"
-    if abs(lever) <= arm * math.sin(math.radians(10.0)):
-        effects["enabled"].append("rotor_tilt")
-        effects["rotor_tilt"] = {"lever_m": lever}
-        src["effects.rotor_tilt"] = (f"identified: {lever * 1000:.2f} mm yaw lever = "
-                                     f"{math.degrees(math.asin(lever / arm)):.2f} deg tangential tilt ({how}; km ASSUMED)")
-    else:
-        src["effects.rotor_tilt"] = f"not included: yaw trim lever {lever:.3g} m beyond a 10 deg tilt"
+    _put_trims(effects, src, dx, dy, lever, arm, how, how, lower_bounds=False)
     return dx, dy, lever
 
 
