@@ -362,3 +362,21 @@ def test_simulated_fleet_refuses_workers_below_one(tmp_path):
         with pytest.raises(TwinError, match=f"--workers: {w}: expected an integer >= 1"):
             write_fleet(tmp_path, plan(1, 1), PARAMS, workers=w)
     assert not list(tmp_path.iterdir())
+
+
+def test_a_flight_with_too_little_usable_airborne_data_is_left_out_not_failed(tmp_path, monkeypatch):
+    """Discovery's own refusal of a flight with under 5 s of airborne data once ground contact is taken out (the
+    fleet's log_22 and Luca_uebt_Fliegen) is a flight left out with its reason, as a bench test is."""
+    from twin_nodes.base.errors import LogError
+    from twin_nodes.discovery import survey
+
+    hop = tmp_path / "hop.ulg"
+    hop.write_bytes(b"")
+
+    def refuse(path, params=None):
+        raise LogError(str(path), "airborne samples", "expected at least 5 s of usable airborne data")
+
+    monkeypatch.setattr(survey, "survey_flight", refuse)
+    rows = survey.survey_rows([hop], PARAMS)
+    assert rows[0]["status"] == "left_out" and "usable airborne data" in rows[0]["error"]
+    assert "1 left out (no flight to fit), 0 failed" in survey.markdown_table(rows)

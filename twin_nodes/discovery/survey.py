@@ -27,8 +27,9 @@ THROTTLE_HF_FACTOR = 1.25
 #: the metrics a row carries from the closed-loop held-out run
 ROW_KEYS = ("throttle_rmse", "motor_p75_mean", "xy_rmse_m", "z_rmse_m", "throttle_real_hf_rms", "controlled_s",
             "divergence", "estimate_failed_s", "motor_real_hf_p75_mean")
-#: a LogError naming one of these is a flight left out (no flight to fit), not a failure
-LEFT_OUT_KINDS = ("never airborne", "never left the ground", "too short")
+#: a LogError naming one of these is a flight left out (no flight to fit), not a failure; "usable airborne
+#: data": it flew, but less than 5 s are left once ground contact is taken out (a hop, a held take-off)
+LEFT_OUT_KINDS = ("never airborne", "never left the ground", "too short", "usable airborne data")
 
 
 def survey_flight(path: str | Path, params: str | Path | None = None) -> dict:
