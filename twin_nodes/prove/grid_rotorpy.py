@@ -382,50 +382,21 @@ def key(f: GridFlight) -> str:
 
 
 def cached_flight(f: GridFlight, cache: str | Path) -> tuple[Path, dict]:
-    """The flight's ULog from the cache (``<cache>/<id>.ulg``), flown first when absent or out of date."""
-    d = Path(cache)
-    d.mkdir(parents=True, exist_ok=True)
-    path, meta = d / f"{f.id}.ulg", d / f"{f.id}.meta.json"
-    kk = key(f)
-    if path.is_file() and meta.is_file():
-        m = json.loads(meta.read_text())
-        if m.get("key") == kk:
-            if m.get("error"):
-                raise RuntimeError(m["error"])
-            return path, m["facts"]
-    try:
-        rec, vp, volts = fly(f)
-    except RuntimeError as e:
-        meta.write_text(json.dumps({"key": kk, "error": str(e)}))
-        raise
-    tmp = path.with_suffix(".tmp.ulg")
-    facts = _write(tmp, rec, vp, volts, f.seed)
-    tmp.replace(path)
-    meta.write_text(json.dumps({"key": kk, "id": f.id, "facts": facts}, indent=1, default=float))
-    return path, facts
+    """The flight's ULog from the cache (``<cache>/<id>.ulg``), flown first when absent or out of date; a
+    flight RotorPy could not fly is remembered under its key and raised again."""
+    from twin_nodes.prove.flight_cache import keyed_flight
+
+    return keyed_flight(cache, f.id, key(f), lambda tmp: _write(tmp, *fly(f), f.seed), {"id": f.id},
+                        remember_errors=True)
 
 
 def _write(path: Path, rec, vp, volts: np.ndarray, seed: int) -> dict:
-    from twin_nodes.base import frames
-    from twin_nodes.logs.ulog_write import write_px4_ulog
-    from twin_nodes.twin.simflight import record_to_topics
+    """The flown record as a PX4-like ULog with its pack voltage (``rotorpy_flights.write_record``)."""
+    from twin_nodes.prove import rotorpy_flights as rf
 
-    rng = np.random.default_rng(seed + 7)
-    topics = record_to_topics(rec, vp, lambda t: np.interp(t, rec.t, volts), (rec.t, rec.sp), rng)
-    r = vp.rotors
-    params = {"SYS_AUTOSTART": 0, "CA_ROTOR_COUNT": int(r.count), "MPC_THR_HOVER": float(vp.hover_command)}
-    frd = frames.flu_to_frd(np.column_stack([r.x_flu_m, r.y_flu_m, r.z_flu_m]))
-    for i in range(r.count):
-        params.update({f"CA_ROTOR{i}_PX": float(frd[i, 0]), f"CA_ROTOR{i}_PY": float(frd[i, 1]),
-                       f"CA_ROTOR{i}_PZ": float(frd[i, 2]), f"CA_ROTOR{i}_KM": float(r.direction[i]) * r.km_m})
-    write_px4_ulog(str(path), topics, params, {"sys_name": "rotorpy", "ver_hw": "ROTORPY_SIM", "sim_vehicle": vp.name})
-    air = np.isfinite(rec.u).all(1) & (rec.x[:, 2] > 0.3) & np.isfinite(rec.sp[:, 0:3]).all(1)
-    xy = np.hypot(*(rec.x[air, 0:2] - rec.sp[air, 0:2]).T)
-    return {"xy_tracking_rmse_m": float(np.sqrt(np.mean(xy ** 2))),
-            "z_tracking_rmse_m": float(np.sqrt(np.mean((rec.x[air, 2] - rec.sp[air, 2]) ** 2))),
-            "duration_s": float(rec.t[-1]), "max_speed_m_s": float(np.max(np.linalg.norm(rec.x[:, 3:6], axis=1))),
-            "volts_min": float(np.min(volts))}
-
+    facts = rf.write_record(path, rec, vp, seed, battery_v=lambda t: np.interp(t, rec.t, volts))
+    facts["volts_min"] = float(np.min(volts))
+    return facts
 
 from twin_nodes.prove.grid_missions import GRID_MISSIONS  # noqa: E402  (missions RP1-RP5)
 

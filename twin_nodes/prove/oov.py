@@ -225,20 +225,10 @@ def _code_key(f: dict) -> str:
 
 def cached_flight(f: dict, cache: str | Path) -> tuple[Path, dict]:
     """The flight's ULog from the cache, flown first when absent or made by other code."""
-    d = Path(cache)
-    d.mkdir(parents=True, exist_ok=True)
-    path, meta = d / f"{tag(f)}.ulg", d / f"{tag(f)}.meta.json"
-    key = _code_key(f)
-    if path.is_file() and meta.is_file():
-        m = json.loads(meta.read_text())
-        if m.get("key") == key:
-            return path, m["facts"]
-    tmp = path.with_suffix(".tmp.ulg")
-    facts = (fly_ours if f["generator"] == "ours" else fly_rotorpy)(f, tmp)
-    tmp.replace(path)
-    meta.write_text(json.dumps({"key": key, "flight": f, "facts": facts}, indent=1, default=float))
-    return path, facts
+    from twin_nodes.prove.flight_cache import keyed_flight
 
+    fly_to = fly_ours if f["generator"] == "ours" else fly_rotorpy
+    return keyed_flight(cache, tag(f), _code_key(f), lambda tmp: fly_to(f, tmp), {"flight": f})
 
 def nominal_for(f: dict):
     if f["generator"] == "ours":

@@ -468,13 +468,15 @@ def write_flight(path: str | Path, case: Case) -> dict:
     return write_record(path, rec, vp, case.seed)
 
 
-def write_record(path: str | Path, rec, vp: VehicleParams, seed: int) -> dict:
-    """Write a flown RotorPy record as a PX4-like ULog (the ours suite's logging model); facts about it."""
+def write_record(path: str | Path, rec, vp: VehicleParams, seed: int, battery_v=None) -> dict:
+    """Write a flown RotorPy record as a PX4-like ULog (the ours suite's logging model); facts about it.
+    ``battery_v(t)``: the pack voltage logged; default a steady 16 V (RotorPy has no battery, so our
+    battery_sag candidate is then not offered)."""
     from twin_nodes.logs.ulog_write import write_px4_ulog
 
     rng = np.random.default_rng(seed + 7)
-    volts = 16.0  # RotorPy has no battery: a steady pack (our battery_sag candidate is then not offered)
-    topics = record_to_topics(rec, vp, lambda t: np.full(np.shape(t), volts), (rec.t, rec.sp), rng)
+    battery = battery_v or (lambda t: np.full(np.shape(t), 16.0))
+    topics = record_to_topics(rec, vp, battery, (rec.t, rec.sp), rng)
     r = vp.rotors
     params = {"SYS_AUTOSTART": 0, "CA_ROTOR_COUNT": int(r.count), "MPC_THR_HOVER": float(vp.hover_command)}
     frd = frames.flu_to_frd(np.column_stack([r.x_flu_m, r.y_flu_m, r.z_flu_m]))
@@ -492,19 +494,9 @@ def write_record(path: str | Path, rec, vp: VehicleParams, seed: int) -> dict:
 
 def cached_flight(case: Case, cache: str | Path) -> tuple[Path, dict]:
     """The flight's ULog from the cache, flown first when absent or made by another definition."""
-    d = Path(cache)
-    d.mkdir(parents=True, exist_ok=True)
-    path, meta = d / f"{case.tag}.ulg", d / f"{case.tag}.meta.json"
-    key = case.key()
-    if path.is_file() and meta.is_file():
-        m = json.loads(meta.read_text())
-        if m.get("key") == key:
-            return path, m["facts"]
-    tmp = path.with_suffix(".tmp.ulg")
-    facts = write_flight(tmp, case)
-    tmp.replace(path)
-    meta.write_text(json.dumps({"key": key, "case": asdict(case), "facts": facts}, indent=1, default=float))
-    return path, facts
+    from twin_nodes.prove.flight_cache import keyed_flight
+
+    return keyed_flight(cache, case.tag, case.key(), lambda tmp: write_flight(tmp, case), {"case": asdict(case)})
 
 
 def run_one(args) -> dict:
