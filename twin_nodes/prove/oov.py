@@ -26,7 +26,7 @@ import numpy as np
 MANIFEST = Path(__file__).with_name("oov_manifest.yaml")
 GENERATOR_VERSION = 1
 #: the manifest's splits: tune, the first judge half (seen since stop 31), the fresh batches of amendments 2, 3
-SPLITS = ("tune", "judge", "judge2", "judge3")
+SPLITS = ("tune", "judge", "judge2", "judge3", "judge4")
 
 
 def load_manifest(path: str | Path = MANIFEST) -> list[dict]:
