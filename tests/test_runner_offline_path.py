@@ -17,7 +17,7 @@ import pytest
 from tests.conftest import shared_log
 from twin_nodes.identify.nominal import params_for_log
 from twin_nodes.logs.ulog_io import read_ulog
-from twin_nodes.twin.inputs import log_inputs, setpoint_rows
+from twin_nodes.twin.inputs import armed_rows, log_inputs, setpoint_rows
 from twin_nodes.twin.runner import TwinRunner, run_twin_on_log
 from twin_nodes.vehicle.params import load_params
 
@@ -31,7 +31,7 @@ def _streamed(log, vp, mode: str, t0: float, t1: float) -> dict[str, np.ndarray]
     t = data["t"]
     n = len(t)
     sp = setpoint_rows(data, n)
-    armed = np.asarray(data["armed"]).reshape(n) > 0.5
+    armed = armed_rows(data, n)
     batt = np.asarray(data["battery_v"]).reshape(n) if "battery_v" in data else np.full(n, np.nan)
     nav = np.asarray(data["nav_state"]).reshape(n) if "nav_state" in data else np.full(n, np.nan)
     thr = np.asarray(data["throttle"]).reshape(n) if "throttle" in data else np.full(n, np.nan)
@@ -46,7 +46,7 @@ def _streamed(log, vp, mode: str, t0: float, t1: float) -> dict[str, np.ndarray]
                           data["body_rates_flu"][k])
         runner.real_motors(data["motors"][k])
         runner.setpoint(sp[k])
-        runner.armed(bool(armed[k]))
+        runner.armed(float(armed[k]))
         runner.px4_mode(nav[k], thr[k])
         runner.attitude_setpoint(att_q[k], att_thr[k, 0], att_yr[k, 0])
         runner.rate_setpoint(rates[k])

@@ -235,13 +235,16 @@ def align(run: TwinRun, log: Any, rate_hz: float = DEFAULT_RATE_HZ, t0: float | 
 
 
 def compare_log(log: Any, vp: Any, mode: str = "closed", horizon_s: float = 2.0, airborne_only: bool = True,
-                rate_hz: float = DEFAULT_RATE_HZ, progress: bool = False) -> CompareResult:
-    """Run the twin beside a whole log and compute the whole-flight metrics.
+                rate_hz: float = DEFAULT_RATE_HZ, progress: bool = False,
+                setpoint_between_samples: bool = True) -> CompareResult:
+    """Run the twin beside a whole log and compute the whole-flight metrics (``setpoint_between_samples``:
+    :func:`~twin_nodes.twin.runner.run_twin_on_log`).
 
     ``log``: :class:`~twin_nodes.logs.ulog_io.FlightLog`; ``vp``: vehicle parameters.
     Returns :class:`CompareResult` with ``metrics`` (see
     :func:`~twin_nodes.twin.metrics.flight_metrics`), the aligned series and the run."""
-    run = run_twin_on_log(log, vp, mode=mode, horizon_s=horizon_s, progress=progress)
+    run = run_twin_on_log(log, vp, mode=mode, horizon_s=horizon_s, progress=progress,
+                          setpoint_between_samples=setpoint_between_samples)
     al = align(run, log, rate_hz=rate_hz, airborne_only=airborne_only)
     m = flight_metrics(al)
     m["params"] = getattr(vp, "name", "")

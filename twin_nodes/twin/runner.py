@@ -86,9 +86,10 @@ class TwinRunner(GroundHandling):
         # steady exogenous inputs from the params' effects (a steady wind); the battery voltage is fed in
         self.ext = self.model.exogenous(np.zeros(1))[0]
         self.sp = np.full(SP_SIZE, np.nan)
+        self._sp_raw = np.full(SP_SIZE, np.nan)  # the last setpoint sample as given (before the ground shift)
         self.real_x: np.ndarray | None = None
         self.real_u = np.full(n, np.nan)
-        self.is_armed = False
+        self.is_armed: bool | None = None  # None: no armed state received yet
         self.u = np.full(n, np.nan)
         self.throttle = float("nan")
         self.last_resync = -np.inf
@@ -159,22 +160,30 @@ class TwinRunner(GroundHandling):
         the previous call (then nothing changes while the ground height has not)."""
         if repeated and self._sp_ground_z == self.ground_z:
             return
-        sp = sp.copy()
-        sp[2] -= self.ground_z
-        if not np.array_equal(sp[0:9], self.sp[0:9], equal_nan=True):
+        # a new sample is one whose logged values differ (the same sample taken again in a moved ground
+        # plane's frame keeps its time: its trajectory is carried on from where it was logged)
+        if not np.array_equal(sp[0:9], self._sp_raw[0:9], equal_nan=True):
             self.sp_t = self.t  # a new setpoint sample: the trajectory is carried on from here
             self._sp_rates = None  # its velocity and acceleration terms, made when first carried
-        if not np.array_equal(sp[9:11], self.sp[9:11], equal_nan=True):
+        if not np.array_equal(sp[9:11], self._sp_raw[9:11], equal_nan=True):
             self.yaw_t = self.t  # a new yaw sample: carried by its feed-forward from here
             self._sp_rates = None
+        self._sp_raw = sp.copy()
+        sp = sp.copy()
+        sp[2] -= self.ground_z
         self.sp = sp
         self._sp_ground_z = self.ground_z
 
     def real_motors(self, u) -> None:
         self.real_u = np.asarray(u, float)
 
-    def armed(self, armed: bool) -> None:
-        self.is_armed = bool(armed)
+    def armed(self, armed: bool | float | None) -> None:
+        """The real vehicle's armed state; None or NaN: not known (no armed message yet: a log or a link
+        that starts in the air), flown as armed (PX4's zero thrust on the ground still holds the twin)."""
+        if armed is None or (isinstance(armed, float) and armed != armed):
+            self.is_armed = None
+        else:
+            self.is_armed = bool(armed)
 
     def px4_mode(self, nav_state: float, throttle: float = float("nan")) -> None:
         """The real vehicle's PX4 ``nav_state`` and collective thrust setpoint (0..1).  In PX4's manual
@@ -260,7 +269,7 @@ class TwinRunner(GroundHandling):
             mean_u = np.nanmean(u) if np.any(np.isfinite(u)) else np.nan
             self.throttle = float(mean_u)
         else:
-            how = self._fly_mode() if self.is_armed else "disarmed"
+            how = self._fly_mode() if self.is_armed is not False else "disarmed"
             if how == "cascade" and self._px4_grounded():
                 how = "grounded"
             thr = self.real_throttle if math.isfinite(self.real_throttle) else self.att_thrust
@@ -384,14 +393,16 @@ class TwinRun:
 
 def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: float = 2.0,
                     t0: float | None = None, t1: float | None = None, progress: bool = False,
-                    pilot: bool = True) -> TwinRun:
+                    pilot: bool = True, setpoint_between_samples: bool = True) -> TwinRun:
     """Run the twin beside a whole log (offline), returning its outputs on the control grid (``pilot``: the
-    vertical pilot stand-in in manual modes, :mod:`twin_nodes.twin.pilot`)."""
+    vertical pilot stand-in in manual modes, :mod:`twin_nodes.twin.pilot`; ``setpoint_between_samples``: the
+    logged setpoint trajectory read between its samples, :func:`~twin_nodes.twin.inputs.log_inputs`; False:
+    each sample held and carried, as the live twin in the graph gets them)."""
     runner = TwinRunner(vp, mode, horizon_s, pilot=pilot)
     ramp_s = log_takeoff_ramp_s(log)
     if ramp_s is not None:
         runner.takeoff_ramp_s = ramp_s
-    feed = log_feed(log, runner.rate_hz, t0, t1)
+    feed = log_feed(log, runner.rate_hz, t0, t1, between_samples=setpoint_between_samples)
     t, X, finite, U, sp, repeated = feed.t, feed.x, feed.finite, feed.motors, feed.sp, feed.repeated
     armed, batt, nav, thr = feed.armed, feed.battery_v, feed.nav_state, feed.throttle
     att_q, att_thr, att_yr = feed.att_q, feed.att_thrust, feed.att_yawrate
@@ -410,7 +421,7 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
         runner._take_real_state(t[k], X[k].copy(), bool(finite[k]))
         runner.real_motors(U[k])
         runner._take_setpoint(sp[k], bool(repeated[k]))
-        runner.armed(bool(armed[k]))
+        runner.armed(float(armed[k]))
         runner.px4_mode(nav[k], thr[k])
         runner.att_q, runner.att_thrust, runner.att_yawrate = att_q[k], att_thr[k], att_yr[k]
         runner.rates_sp, runner.offboard_flags = rates_sp[k], offb[k]
