@@ -218,3 +218,22 @@ def test_oov_scoring_rules():
     s = summarise(rows)["judge"]
     assert (s["named_right"], s["flights"], s["effect_flights_cut_ge_30pct"], s["effect_flights"],
             s["terms_on_no_effect_flights"]) == (2, 5, 1, 3, 1)
+
+
+def test_a_term_judged_on_a_diverged_closed_loop_twin_says_so():
+    """A RotorPy flattening flight whose vehicle saturated lost its heading in the twin before and after the term
+    (judge4 2813: heading at 19.1 s and 19.4 s): the term's closed-loop numbers then compare runs that left the
+    flight, and the entry and the oov table say so instead of showing a bare cut."""
+    from twin_nodes.discovery.stages.terms import _diverged
+    from twin_nodes.prove.oov import format_table
+
+    before = {"divergence": {"t_s": 19.08, "cause": "heading"}}
+    after = {"divergence": {"t_s": 19.36, "cause": "heading"}}
+    assert _diverged(before, after) == "before: heading at 19.1 s; after: heading at 19.4 s"
+    assert _diverged({"divergence": None}, {}) == ""
+    row = {"flight": "rotorpy_thrust_flattening_OOVR_2813", "split": "judge4", "truth": "thrust_flattening",
+           "term": "thrust-curve flattening", "term_verdict": "confirmed", "named_right": True,
+           "closed_loop_throttle_cut": -0.48, "vocabulary_findings": [],
+           "closed_loop_diverged": _diverged(before, after)}
+    text = format_table({"rows": [row]})
+    assert "-48 %d" in text and "2813 (before: heading at 19.1 s; after: heading at 19.4 s)" in text

@@ -260,6 +260,8 @@ def score_oov(f: dict, res: dict) -> dict:
         row["throttle_rmse_with"] = cl["after"]["throttle_rmse"]
         row["closed_loop_throttle_cut"] = cand["closed_loop_throttle_cut"]
         row["heldout_ee_cut"] = cand["heldout_improvement"]
+        if cand.get("closed_loop_diverged"):
+            row["closed_loop_diverged"] = cand["closed_loop_diverged"]
     return row
 
 
@@ -301,8 +303,12 @@ def format_table(summary: dict) -> str:
         cut = r.get("closed_loop_throttle_cut")
         term = f"{r['term']} ({r['term_verdict']})" if r["term"] else "-"
         lines.append(f"{r['flight']:<40} {r['split']:<5} {r['truth']:<18} {term:<34} "
-                     f"{'yes' if r['named_right'] else 'NO':<3} {('%.0f %%' % (100 * cut)) if cut is not None else '-':>10}  "
-                     f"{', '.join(r['vocabulary_findings']) or '-'}")
+                     f"{'yes' if r['named_right'] else 'NO':<3} {('%.0f %%' % (100 * cut)) if cut is not None else '-':>10}"
+                     f"{'d' if r.get('closed_loop_diverged') else ' '} {', '.join(r['vocabulary_findings']) or '-'}")
+    if any(r.get("closed_loop_diverged") for r in summary["rows"]):
+        lines.append("d: the closed-loop twin diverged before or after the term (its numbers compare runs that left "
+                     "the flight): " + "; ".join(f"{r['flight']} ({r['closed_loop_diverged']})"
+                                                 for r in summary["rows"] if r.get("closed_loop_diverged")))
     for split in SPLITS:
         s = summary.get(split) or {}
         if s.get("flights"):

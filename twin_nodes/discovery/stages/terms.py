@@ -122,6 +122,9 @@ def _grade(inp: TermsInput, fit: T.TermFit, named: dict, vp_term: VehicleParams,
         entry["closed_loop_heldout"] = {"before": m0, "after": m1}
         b, a = m0["throttle_rmse"], m1["throttle_rmse"]
         entry["closed_loop_throttle_cut"] = round(1.0 - a / b, 4) if b > 0 else 0.0
+        diverged = _diverged(m0, m1)
+        if diverged:
+            entry["closed_loop_diverged"] = diverged
         # the guard's one rule (closed_loop._veto): a rise vetoes only beyond its own scatter, and only where the
         # twin flies the flight's controller and follows the flight
         vetoed, said = closed_loop._veto(m1, m0, m0, closed_loop.veto_standing(inp.log, m0, S.nominal))
@@ -143,6 +146,15 @@ def _grade(inp: TermsInput, fit: T.TermFit, named: dict, vp_term: VehicleParams,
                          f"(out-of-fold), t={fit.t_stat:.1f} over {fit.n_blocks} blocks; {named.get('evidence', '')}"
                          + (f"; {entry['verdict_note']}" if why else ""))
     return entry
+
+
+def _diverged(before: dict, after: dict) -> str:
+    """Where the closed-loop twin left the flight (``divergence`` of its metrics) before or after the term: said,
+    since its held-out numbers then compare runs that no longer follow the flight (e.g. a saturated vehicle's
+    heading); empty when neither diverged."""
+    said = [f"{k}: {d['cause']} at {d['t_s']:.1f} s" for k, d in (("before", before.get("divergence")),
+                                                                   ("after", after.get("divergence"))) if d]
+    return "; ".join(said)
 
 
 def _join(result: dict, entry: dict, vp_term: VehicleParams) -> None:
@@ -191,7 +203,9 @@ def summary_lines(res: dict) -> list[str]:
         cl = e.get("closed_loop_heldout")
         if cl:
             lines.append(f"              closed-loop twin, held-out throttle RMSE {cl['before']['throttle_rmse']:.4f} -> "
-                         f"{cl['after']['throttle_rmse']:.4f} ({100 * e['closed_loop_throttle_cut']:.0f} % lower)")
+                         f"{cl['after']['throttle_rmse']:.4f} ({100 * e['closed_loop_throttle_cut']:.0f} % lower)"
+                         + (f"; the twin diverged ({e['closed_loop_diverged']}): these compare runs that left the "
+                            "flight" if e.get("closed_loop_diverged") else ""))
     return lines
 
 
