@@ -322,3 +322,59 @@ def test_a_twin_that_climbs_away_in_a_manual_mode_is_a_divergence(hover_log):
     d = detect(run_twin_on_log(hover_log, strong, mode="closed", pilot=False))
     assert d is not None and d["cause"] == "height run-away" and 8.0 < d["t_s"] < 20.0, d
     assert detect(run_twin_on_log(hover_log, strong, mode="closed")) is None
+
+
+def _spun(log, t_force: float, rate_rad_s: float, t_stop: float = np.inf, setpoint: bool = True):
+    """``log`` with its vehicle turning at ``rate_rad_s`` about the vertical from ``t_force`` to ``t_stop``
+    (yaw authority gone, then back) and PX4's attitude setpoint the attitude it flew before, taken again at
+    the heading it stopped at (PX4 locks the heading it finds); none: ``setpoint`` False."""
+    import dataclasses
+
+    from twin_nodes.logs.ulog_io import Series
+
+    att = log.get("attitude_q")
+    t = np.asarray(att.t_s, float)
+    e = F.euler_from_quat(np.asarray(att.values, float))
+    turned = rate_rad_s * np.clip(np.minimum(t, t_stop) - t_force, 0.0, None)
+    series = dict(log.series)
+    if setpoint:
+        relocked = np.where(t >= t_stop, turned, 0.0)
+        series["attitude_setpoint_q"] = Series(t, F.quat_from_euler(e[:, 0], e[:, 1], e[:, 2] + relocked), "-",
+                                               att.frame, att.source, "previous")
+    series["attitude_q"] = Series(t, F.quat_from_euler(e[:, 0], e[:, 1], e[:, 2] + turned), att.units, att.frame,
+                                  att.source, att.interp)
+    return dataclasses.replace(log, series=series)
+
+
+def _twin_spun(log, t_force: float, rate_rad_s: float) -> TwinRun:
+    run = _twin_equal_to_real(log)
+    k = run.t >= t_force
+    e = F.euler_from_quat(run.x[k, 6:10])
+    run.x[k, 6:10] = F.quat_from_euler(e[:, 0], e[:, 1], e[:, 2] + rate_rad_s * (run.t[k] - t_force))
+    return run
+
+
+def test_a_twin_spinning_with_a_vehicle_out_of_yaw_authority_is_no_heading_divergence(flight):
+    """Issue 24.4/24.5: a vehicle whose yaw authority ran out turns away from PX4's heading setpoint (0.5
+    rad/s from 8 s: 90 deg off at 8 + pi s); a twin that ran out too spins with it at its own rate (0.3
+    rad/s: 90 deg off at 13.24 s, 90 deg from the vehicle at 8 + (pi/2)/0.2 = 15.85 s) and has not left
+    the flight.  One that held its heading while the vehicle spun has (at 8 + pi s), and so has one that
+    spun while the vehicle held; without PX4's attitude setpoint every heading gap counts, as before."""
+    t0 = 8.0
+    assert divergence.detect(_twin_spun(flight, t0, 0.3), _spun(flight, t0, 0.5)) is None
+    for run, log, t_expected in ((_twin_equal_to_real(flight), _spun(flight, t0, 0.5), t0 + np.pi),
+                                 (_twin_spun(flight, t0, 0.5), _spun(flight, t0, 0.0), t0 + np.pi),
+                                 (_twin_spun(flight, t0, 0.3), _spun(flight, t0, 0.5, setpoint=False),
+                                  t0 + np.pi / 2 / 0.2)):
+        d = divergence.detect(run, log)
+        assert d is not None and d["cause"] == "heading" and abs(d["t_s"] - t_expected) < 0.05, (d, t_expected)
+
+
+def test_a_twin_still_spinning_after_the_vehicle_took_its_heading_back_has_diverged(flight):
+    """The vehicle spins at +1 rad/s from 6 to 9.5 s and holds the heading it stopped at (PX4 locks it):
+    back in yaw control at 11.5 s (YAW_SUSTAIN_S within YAW_HELD_DEG).  The twin spins the other way at
+    0.8 rad/s from 6 s, out of control from 6 + (pi/2)/0.8 = 7.96 s: the headings more than 90 deg apart
+    from 6.87 s (1.1 s before the twin lost its own: not sustained) are no divergence while both spin,
+    and one from the moment the vehicle has its heading back (11.5 s), the gap then 93 deg."""
+    d = divergence.detect(_twin_spun(flight, 6.0, -0.8), _spun(flight, 6.0, 1.0, t_stop=9.5))
+    assert d is not None and d["cause"] == "heading" and abs(d["t_s"] - 11.5) < 0.05, d

@@ -8,7 +8,12 @@ finds the first such divergence on the airborne part of the flight and names its
   more tilted of the two, for :data:`ATT_SUSTAIN_S` without a break (a real vehicle flung by a gust
   that the still-air twin does not follow is the metrics' business, not a divergence of the twin);
 - ``heading``: the twin's heading more than :data:`YAW_ERR_DEG` from the real one for
-  :data:`YAW_SUSTAIN_S` (the vehicle spun and the twin did not, or the other way round);
+  :data:`YAW_SUSTAIN_S` (the vehicle spun and the twin did not, or the other way round).  Not while both
+  are out of yaw control (where the log has PX4's attitude setpoint): from the first time each is more
+  than :data:`YAW_ERR_DEG` from its heading until it is back within :data:`YAW_HELD_DEG` of it for
+  :data:`YAW_SUSTAIN_S`.  A vehicle whose yaw authority ran out (a motor pair at full output, PX4's
+  allocation giving yaw up) turns at a rate no twin can phase-match; a twin that ran out too spins with
+  it and has not left the flight, one that held its heading while the vehicle spun has;
 - ``motors oscillating``: a twin motor going rail to rail (below :data:`RAIL_LO`, above
   :data:`RAIL_HI`) at least :data:`RAIL_SWITCHES` times within :data:`RAIL_WINDOW_S` while the real
   motors in that window span less than :data:`REAL_SPAN_MAX` (a twin limit cycle, not the vehicle's);
@@ -35,12 +40,14 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["detect", "ATT_ERR_DEG", "ATT_SUSTAIN_S", "RUNAWAY_XY_M", "RUNAWAY_Z_M"]
+__all__ = ["detect", "ATT_ERR_DEG", "ATT_SUSTAIN_S", "RUNAWAY_XY_M", "RUNAWAY_Z_M", "YAW_HELD_DEG"]
 
 ATT_ERR_DEG = 30.0
 ATT_SUSTAIN_S = 1.0
 YAW_ERR_DEG = 90.0
 YAW_SUSTAIN_S = 2.0
+#: a vehicle out of yaw control is back in it once within this of PX4's heading for YAW_SUSTAIN_S [deg]
+YAW_HELD_DEG = 30.0
 RAIL_LO, RAIL_HI = 0.05, 0.95
 RAIL_SWITCHES = 3
 RAIL_WINDOW_S = 1.0
@@ -119,6 +126,39 @@ def _yaw(q: np.ndarray) -> np.ndarray:
     return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
+def _setpoint_heading(log: Any, t: np.ndarray) -> np.ndarray:
+    """The heading [rad] of PX4's own attitude setpoint (``attitude_setpoint_q``) on ``t``; NaN where the
+    log has none (before its first sample, or no such series)."""
+    sp = log.get("attitude_setpoint_q")
+    if sp is None or not len(sp):
+        return np.full(t.shape, np.nan)
+    q = np.asarray(sp.at(t), float)
+    ok = np.isfinite(q).all(axis=1) & (t >= float(sp.t_s[0]))
+    return np.where(ok, _yaw(np.where(ok[:, None], q, [1.0, 0.0, 0.0, 0.0])), np.nan)
+
+
+def _out_of_yaw_control(t: np.ndarray, q: np.ndarray, yaw_sp: np.ndarray) -> np.ndarray:
+    """Where the vehicle of attitudes ``q`` is out of yaw control: from the first sample more than
+    :data:`YAW_ERR_DEG` from the setpoint heading ``yaw_sp`` [rad] until it has been back within
+    :data:`YAW_HELD_DEG` of it for :data:`YAW_SUSTAIN_S` (a spinning vehicle passes its setpoint
+    but does not stay there).  All False where there is no setpoint."""
+    with np.errstate(invalid="ignore"):
+        err = np.degrees(np.abs(np.angle(np.exp(1j * (_yaw(q) - yaw_sp)))))
+        off, near = err > YAW_ERR_DEG, err <= YAW_HELD_DEG
+    out = np.zeros(t.shape, bool)
+    lost, held_since = False, None
+    for k in range(t.size):
+        if off[k]:
+            lost, held_since = True, None
+        elif lost and near[k]:
+            held_since = t[k] if held_since is None else held_since
+            lost = t[k] - held_since < YAW_SUSTAIN_S
+        else:
+            held_since = None
+        out[k] = lost
+    return out
+
+
 def detect(run: Any, log: Any, xy_controlled=None, z_controlled=None, t0: float | None = None,
            t1: float | None = None, ground=None) -> dict | None:
     """The first divergence of the closed-loop twin ``run`` (:class:`~twin_nodes.twin.runner.TwinRun`)
@@ -170,8 +210,10 @@ def detect(run: Any, log: Any, xy_controlled=None, z_controlled=None, t0: float 
             found.append((ts, "attitude", f"the twin tilted {tilt_err[k]:.0f} deg away from the real attitude for "
                                           f">= {ATT_SUSTAIN_S:g} s (limit {ATT_ERR_DEG:g} deg)"))
         yaw_err = np.degrees(np.abs(np.angle(np.exp(1j * (_yaw(q_twin) - _yaw(q_real))))))
+        yaw_sp = _setpoint_heading(log, t)
+        both_lost = _out_of_yaw_control(t, q_real, yaw_sp) & _out_of_yaw_control(t, q_twin, yaw_sp)
         with np.errstate(invalid="ignore"):
-            ts = _first_sustained(t, air & (yaw_err > YAW_ERR_DEG), YAW_SUSTAIN_S)
+            ts = _first_sustained(t, air & (yaw_err > YAW_ERR_DEG) & ~both_lost, YAW_SUSTAIN_S)
         if ts is not None:
             k = np.searchsorted(t, ts)
             found.append((ts, "heading", f"the twin's heading {yaw_err[k]:.0f} deg from the real one for "
