@@ -15,7 +15,8 @@ assumption), and :func:`header` writes them into the file.
   side of the equation that tolerates it; yaw gives ``Izz / km`` only, so ``Izz`` rests on the
   assumed ``km``;
 - static trims: the median motor outputs in steady flight give a centre-of-mass offset
-  (roll/pitch) and a tangential rotor tilt (yaw); the pack voltage, when it sags, a battery term;
+  (roll/pitch) and a tangential rotor tilt (yaw); an offset beyond 30 % of the arm only where the
+  flight's two halves show it held and it lies inside the rotor polygon (static_trims.com_verdict); the pack voltage, when it sags, a battery term;
 - the motor time constant: the lag that best explains the roll/pitch accelerations
   (a scan over 0.02-0.25 s; reported with the range within 2 % of the best residual);
 - mass: the user's ``--mass-kg``, else the airframe's typical mass (an assumption:
@@ -42,7 +43,7 @@ from twin_nodes.identify.fit_mask import fit_mask
 from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
                                            rotor_states_from_commands, thrust_regressor, translational_regression,
                                            world_to_body)
-from twin_nodes.identify.static_trims import Trims, model_trims
+from twin_nodes.identify.static_trims import ComSupport, Trims, com_verdict, model_trims
 from twin_nodes.identify.yaw_gain import applied_yaw_gain, yaw_gain_for_twin
 from twin_nodes.logs.flyable import MIN_HORIZONTAL_FRACTION, check_flyable, read_flight
 from twin_nodes.logs.ulog_io import FlightLog
@@ -380,17 +381,15 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     steady = np.linalg.norm(sig["v_enu"], axis=1) < 2.0
     if steady.sum() < 10 * GRID_HZ:
         steady = np.ones(t.size, bool)
-    thrust = t_max * np.median(tt[steady], axis=0)
-    total = float(thrust.sum())
-    mx = float(np.dot(layout.y_flu_m, thrust))
-    my = float(-np.dot(layout.x_flu_m, thrust))
-    if drag_h is not None:  # less the drag moment the commands hold at the median air speed
-        mx += drag_h * drag * float(np.median(v_air[steady, 1]))
-        my -= drag_h * drag * float(np.median(v_air[steady, 0]))
-    mz = float(-km * np.dot(layout.direction, thrust))
-    dx, dy, lever = -my / total, mx / total, -mz / total
+    # the roll/pitch balance holds on samples with a motor at a bound too (PX4 gives yaw up first, and a
+    # vehicle that does not tumble holds its roll/pitch moments on average): a payload far off-centre keeps a
+    # motor near a bound all flight, and these are then its only steady samples
+    steady_s = float(steady.sum()) / GRID_HZ
+    dx, dy, lever = _median_trims(t_max * tt[steady], layout, km, drag_h, drag, v_air[steady])
     _put_trims(effects, src, dx, dy, lever, l, "the roll/pitch trim of the median motor outputs in steady flight",
-               "the yaw trim of the median motor outputs", lower_bounds=True)
+               "the yaw trim of the median motor outputs", lower_bounds=True,
+               support=_com_support(layout, steady_s, [_median_trims(t_max * tt[h], layout, km, drag_h, drag, v_air[h])
+                                                       for h in _halves(steady)]))
 
     # --- the log's own controller
     hover_cmd = _hover_command(t_max * float(w_rot.sum()), m, f_fac)
@@ -449,8 +448,13 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
         if held is not None:
             states = _model_states(log, vp, t, sig, segs, tau, rates_lp)[held]
             bv = log.get("battery_v") if battery is not None else None
-            trims = model_trims(vp, states, alpha[held], None if bv is None else bv.at(t[held]).reshape(-1))
-            dx, dy, lever = _set_trims(effects, src, trims, l)
+            v_held = None if bv is None else bv.at(t[held]).reshape(-1)
+            trims = model_trims(vp, states, alpha[held], v_held)
+            parts = [model_trims(vp, states[h], alpha[held][h], None if v_held is None else v_held[h])
+                     for h in _halves(np.ones(int(held.sum()), bool))]
+            dx, dy, lever = _set_trims(effects, src, trims, l,
+                                       _com_support(layout, float(held.sum()) / GRID_HZ,
+                                                    [(q.dx, q.dy, q.lever) for q in parts]))
             vp = from_ros_dict(data, log.path)
         else:
             why = (f"; not made from the whole model: less than {BALANCED_MIN_S:g} s of steady flight with every motor "
@@ -491,19 +495,53 @@ def _model_states(log: FlightLog, vp: VehicleParams, t: np.ndarray, sig: dict, s
 BALANCED_MIN_S = 6.0
 
 
+def _com_support(layout, seconds: float, halves: list) -> ComSupport:
+    return ComSupport(tuple(layout.x_flu_m), tuple(layout.y_flu_m), float(seconds),
+                      tuple(tuple(float(v) for v in h) for h in halves))
+
+
+def _halves(mask: np.ndarray) -> list[np.ndarray]:
+    """The first and the second half (in time) of the samples ``mask`` selects, as two masks."""
+    idx = np.flatnonzero(mask)
+    out = []
+    for part in (idx[: idx.size // 2], idx[idx.size // 2:]):
+        h = np.zeros(mask.size, bool)
+        h[part] = True
+        out.append(h)
+    return out
+
+
+def _median_trims(thrust: np.ndarray, layout, km: float, drag_h, drag: float, v_air: np.ndarray
+                  ) -> tuple[float, float, float]:
+    """(dx, dy, lever) that balance the moments of the median rotor thrusts ``thrust`` (T, N) [N], less the
+    drag moment at the median air speed where the drag acts at a height ``drag_h``."""
+    med = np.median(thrust, axis=0) if len(thrust) else np.full(len(layout.x_flu_m), np.nan)
+    total = float(med.sum())
+    mx = float(np.dot(layout.y_flu_m, med))
+    my = float(-np.dot(layout.x_flu_m, med))
+    if drag_h is not None and len(v_air):
+        mx += drag_h * drag * float(np.median(v_air[:, 1]))
+        my -= drag_h * drag * float(np.median(v_air[:, 0]))
+    mz = float(-km * np.dot(layout.direction, med))
+    return -my / total, mx / total, -mz / total
+
+
 def _put_trims(effects: dict, src: dict, dx: float, dy: float, lever: float, arm: float, how_com: str,
-               how_tilt: str, lower_bounds: bool) -> None:
-    """``com_offset`` (dx, dy) and ``rotor_tilt`` (lever) into ``effects`` where within 30 % of the arm and a
-    10 deg tilt (``lower_bounds``: and above 1 % of the arm, 0.2 % for the lever); why in ``src``."""
-    com_ok = max(abs(dx), abs(dy)) <= 0.3 * arm and (not lower_bounds or math.hypot(dx, dy) > 0.01 * arm)
+               how_tilt: str, lower_bounds: bool, support: ComSupport | None = None) -> None:
+    """``com_offset`` (dx, dy) and ``rotor_tilt`` (lever) into ``effects`` where the centre of mass passes
+    :func:`~twin_nodes.identify.static_trims.com_verdict` (within 30 % of the arm, or beyond it where
+    ``support`` shows it held; inside the rotor polygon) and the lever a 10 deg tilt (``lower_bounds``: and above 1 % of the arm, 0.2 % for the
+    lever); why in ``src``."""
+    com_ok, com_why = com_verdict(dx, dy, arm, support, BALANCED_MIN_S)
+    if com_ok and lower_bounds and not math.hypot(dx, dy) > 0.01 * arm:
+        com_ok, com_why = False, "below 1 % of the arm"
     tilt_ok = abs(lever) <= arm * math.sin(math.radians(10.0)) and (not lower_bounds or abs(lever) > 0.002 * arm)
     if com_ok:
         effects["enabled"].append("com_offset")
         effects["com_offset"] = {"dx": dx, "dy": dy}
-        src["effects.com_offset"] = f"identified: dx {dx * 1000:.1f} mm, dy {dy * 1000:.1f} mm ({how_com})"
+        src["effects.com_offset"] = f"identified: dx {dx * 1000:.1f} mm, dy {dy * 1000:.1f} mm ({how_com}){com_why}"
     else:
-        src["effects.com_offset"] = (f"not included: trim offset ({dx:.3g}, {dy:.3g}) m "
-                                     f"{'below 1 % or ' if lower_bounds else ''}beyond 30 % of the arm")
+        src["effects.com_offset"] = f"not included: trim offset ({dx:.3g}, {dy:.3g}) m {com_why}"
     if tilt_ok:
         effects["enabled"].append("rotor_tilt")
         effects["rotor_tilt"] = {"lever_m": lever}
@@ -523,7 +561,8 @@ def _balanced(steady: np.ndarray, motors: np.ndarray, rate_hz: float) -> np.ndar
     return ok if ok.sum() >= BALANCED_MIN_S * rate_hz else None
 
 
-def _set_trims(effects: dict, src: dict, trims: Trims, arm: float) -> tuple[float, float, float]:
+def _set_trims(effects: dict, src: dict, trims: Trims, arm: float, support: ComSupport | None = None
+               ) -> tuple[float, float, float]:
     """Put ``trims`` into ``effects`` (replacing the motor-output estimate) where they pass the same
     bounds; their sources in ``src``.  Returns (dx, dy, lever)."""
     dx, dy, lever = trims.dx, trims.dy, trims.lever
@@ -538,7 +577,7 @@ def _set_trims(effects: dict, src: dict, trims: Trims, arm: float) -> tuple[floa
     # no lower bound: a yaw lever of 0.05 % of the arm is a 1 % motor split with km 0.02 m (the H480's), and a
     # trim the twin does not hold is a per-motor error the whole flight long; the model-made trim is 0 where
     # nothing is to be held
-    _put_trims(effects, src, dx, dy, lever, arm, how, how, lower_bounds=False)
+    _put_trims(effects, src, dx, dy, lever, arm, how, how, lower_bounds=False, support=support)
     return dx, dy, lever
 
 
