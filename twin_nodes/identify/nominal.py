@@ -8,7 +8,9 @@ assumption), and :func:`header` writes them into the file.
   the log's PX4 parameters (:mod:`twin_nodes.vehicle.px4_params`);
 - maximum thrust per rotor ``T_max`` and linear drag: the specific-force equation
   ``f_z = (T_max/m) sum T~(s_i) - (k_z/m) v_z`` (body FLU, accelerometer) over the
-  airborne part, ``T~ = f s^2 + (1 - f) s`` of the lagged commands ``s``;
+  airborne part, ``T~ = f s^2 + (1 - f) s`` of the lagged commands ``s``; the thrust at the top of the
+  command range (a motor >= 0.9, steady height, saturated samples included) checked against the map, or
+  said not reached (:func:`_thrust_at_top`: a report, not applied);
 - inertia and angular damping: the rotor moment computed from the commands (``T_max`` from
   above, the lever arms) regressed on the measured angular acceleration and rate,
   ``M = I w' + k_w w + trim``: the commands carry the controller's noise, so they stand on the
@@ -16,7 +18,8 @@ assumption), and :func:`header` writes them into the file.
   assumed ``km``;
 - static trims: the median motor outputs in steady flight give a centre-of-mass offset
   (roll/pitch) and a tangential rotor tilt (yaw); an offset beyond 30 % of the arm only where the
-  flight's two halves show it held and it lies inside the rotor polygon (static_trims.com_verdict); the pack voltage, when it sags, a battery term;
+  flight's two halves show it held and it lies inside the rotor polygon (static_trims.com_verdict);
+  the pack voltage, when it sags, a battery term;
 - the motor time constant: the lag that best explains the roll/pitch accelerations
   (a scan over 0.02-0.25 s; reported with the range within 2 % of the best residual);
 - mass: the user's ``--mass-kg``, else the airframe's typical mass (an assumption:
@@ -39,7 +42,7 @@ import numpy as np
 
 from twin_nodes.base.errors import LogError, ParamsError
 from twin_nodes.identify.coaxial import ASSUMED as COAX_ASSUMED, LOWPASS_HZ as COAX_LOWPASS_HZ, coaxial_efficiency
-from twin_nodes.identify.fit_mask import fit_mask
+from twin_nodes.identify.fit_mask import contact_mask, fit_mask
 from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
                                            rotor_states_from_commands, thrust_regressor, translational_regression,
                                            world_to_body)
@@ -154,6 +157,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
 
     t = _airborne_grid(log, GRID_HZ)
     sig = _signals(log, t)
+    t_air, sig_air = t, dict(sig)
     # a flight without horizontal velocity (no GPS: PX4 logs it NaN) is identified on what it has:
     # the vertical and rotational equations with the horizontal velocity taken as 0, and no horizontal
     # drag, wind or drag height (their regressors are the horizontal velocity)
@@ -262,6 +266,8 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     t_max = m * kt_m
     src["rotors.thrust_max_n"] = (f"identified: {t_max:.3f} N ± {m * kt_m_se:.3f} (specific force z, mass above"
                                   + (f", at {battery[2]:.2f} V)" if battery is not None else ")"))
+    src["rotors.thrust at the top of the command range"], top_fits = _thrust_at_top(
+        log, t_air, sig_air, m, t_max * w_rot, f_fac, battery, cutoff_hz, tau)
     # isotropic horizontal drag: body x and y stacked with one shared coefficient (a mission
     # flown nose-first excites body x only), a trim offset per axis, and a steady wind: the drag
     # acts on the air-relative velocity, f_b = -(k/m) R^T (v - w) + bias; while the heading turns,
@@ -439,7 +445,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
             "rotors": rotors, "effects": effects, "controller": gains, "simulation": {"dt_s": 0.002}}
     fits = {"tau_s": tau, "kT/m": kt_m, "kT/m_se": kt_m_se, "hover_command": hover_cmd,
             "drag_n_s_m": drag, "angular_damping": k_w, "roll_r2": rot["roll"].r2, "pitch_r2": rot["pitch"].r2,
-            "yaw_r2": rot["yaw"].r2, "z_r2": trans["z"].r2}
+            "yaw_r2": rot["yaw"].r2, "z_r2": trans["z"].r2, **top_fits}
     try:
         vp = from_ros_dict(data, log.path)
         # the trims again, now from the whole model's steady moments (rotor drag, wind, coaxial...):
@@ -530,8 +536,8 @@ def _put_trims(effects: dict, src: dict, dx: float, dy: float, lever: float, arm
                how_tilt: str, lower_bounds: bool, support: ComSupport | None = None) -> None:
     """``com_offset`` (dx, dy) and ``rotor_tilt`` (lever) into ``effects`` where the centre of mass passes
     :func:`~twin_nodes.identify.static_trims.com_verdict` (within 30 % of the arm, or beyond it where
-    ``support`` shows it held; inside the rotor polygon) and the lever a 10 deg tilt (``lower_bounds``: and above 1 % of the arm, 0.2 % for the
-    lever); why in ``src``."""
+    ``support`` shows it held; inside the rotor polygon) and the lever a 10 deg tilt (``lower_bounds``: and
+    above 1 % of the arm, 0.2 % for the lever); why in ``src``."""
     com_ok, com_why = com_verdict(dx, dy, arm, support, BALANCED_MIN_S)
     if com_ok and lower_bounds and not math.hypot(dx, dy) > 0.01 * arm:
         com_ok, com_why = False, "below 1 % of the arm"
@@ -579,6 +585,83 @@ def _set_trims(effects: dict, src: dict, trims: Trims, arm: float, support: ComS
     # nothing is to be held
     _put_trims(effects, src, dx, dy, lever, arm, how, how, lower_bounds=False, support=support)
     return dx, dy, lever
+
+
+#: a sample is "at the top of the command range" with a motor at or above this normalised command
+TOP_COMMAND = 0.9
+#: the top is reported as checked with at least this many seconds of such samples
+TOP_MIN_S = 2.0
+#: at a nearly steady height [m/s, body z]
+TOP_VZ_MAX = 0.5
+
+
+def _thrust_at_top(log: FlightLog, t: np.ndarray, sig: dict, m: float, t_max_rotor: np.ndarray, f_fac: float,
+                   battery, cutoff_hz: float, tau: float) -> tuple[str, dict[str, float]]:
+    """The thrust the identified map gives at the top of the command range, checked against the flight:
+    on the airborne samples (``t``, ``sig``: the whole grid, saturated samples included, ground contact
+    left out, at a nearly steady height) the body z equation ``m f_z = c T_map - k_z v_z`` with one ``c`` for
+    the samples with a motor
+    at >= ``TOP_COMMAND`` and one for the rest (``T_map``: the identified map's thrust of the logged commands
+    through the motor lag ``tau``, the battery term included): ``c_top`` and ``c_bulk`` with their standard
+    errors (1: the map is right there);
+    or, where the flight has less
+    than ``TOP_MIN_S`` there, how far up its commands reach.  A check, not a fit: the ratio is not applied
+    (a vehicle's ratio there differs from flight to flight with the climb rate and the ground; see
+    docs/yaw_authority_fleet.md)."""
+    u = np.asarray(sig["motors"], float)
+    fz = np.asarray(sig["f_body"], float)[:, 2]
+    ok = np.isfinite(u).all(axis=1) & np.isfinite(fz) & contact_mask(log, t, GRID_HZ)
+    scale = np.ones(t.size)
+    bv = log.get("battery_v") if battery is not None else None
+    if bv is not None:
+        v = bv.at(t).reshape(-1)
+        ok &= np.isfinite(v)
+        scale = np.clip(np.nan_to_num(v, nan=battery[2]) / battery[2], 0.3, 1.5) ** battery[3]
+    uc = np.clip(np.nan_to_num(u), 0.0, 1.0)
+    reach = float(np.percentile(uc[ok].max(axis=1), 99)) if ok.any() else math.nan
+    # the rotor states the commands give through the identified lag, and both sides low-passed alike: a
+    # command spike is not yet thrust (selecting on raw commands >= 0.9 read 0.91 on a simulated flight
+    # whose map is exact)
+    segs = _segments(t, GRID_HZ)
+    states = np.zeros_like(uc)
+    inside = np.zeros(t.size, bool)
+    for sg in segs:
+        states[sg] = rotor_states_from_commands(t[sg], uc[sg], tau_up_s=tau)
+        inside[sg] = True
+
+    def lp(x: np.ndarray) -> np.ndarray:
+        return _per_segment(lambda _t, y: lowpass(y, GRID_HZ, cutoff_hz), t, x, segs)
+
+    model = (thrust_regressor(states, "thrust_factor", f_fac) @ t_max_rotor) * scale
+    v_up = lp(world_to_body(sig["q"], np.nan_to_num(np.asarray(sig["v_enu"], float)))[:, 2])
+    f_lp, t_lp = lp(np.where(ok, m * fz, 0.0)), lp(np.where(ok, model, 0.0))
+    # samples of nearly steady height only: in a climb the vertical drag and a map wrong at the top are
+    # one regressor (on a simulated flight whose map was given linear for a convex truth, the fit on every
+    # sample read half the truth's deviation; below 0.5 m/s it reads it within 0.1 %)
+    ok &= inside & (np.abs(v_up) < TOP_VZ_MAX)
+    top = ok & (lp(states.max(axis=1)) >= TOP_COMMAND) & (t_lp > 0)
+    fits = {"top_command_p99": reach, "top_seconds": float(top.sum()) / GRID_HZ}
+    if top.sum() < TOP_MIN_S * GRID_HZ:
+        return (f"not reached: {fits['top_seconds']:.1f} s with a motor at >= {TOP_COMMAND:g} of full command "
+                f"at a steady height (|v_z| < {TOP_VZ_MAX:g} m/s; needs {TOP_MIN_S:g} s; the airborne motor commands "
+                f"reach {reach:.2f}, 99th percentile): above, the thrust is the map extrapolated"), fits
+    # m f_z = c_bulk T_map (below the top) + c_top T_map (at the top) - k_z v_z, fitted together: the
+    # vertical drag is not taken from the map's own fit (a map wrong at the top leaves its error in k_z there)
+    w = top[ok].astype(float)
+    fit = fit_linear(np.column_stack([t_lp[ok] * (1.0 - w), t_lp[ok] * w, -v_up[ok]]), f_lp[ok],
+                     ["c_bulk", "c_top", "k_z"])
+    if fit.rank < 3 or fit.cov is None or not fit["c_bulk"] > 0:
+        return "not determined: the top and the rest of the flight are not separable in the fit", fits
+    # the low-passed samples are correlated over ~1/(2 cutoff): the fit's covariance is scaled by that many
+    inflate = math.sqrt(GRID_HZ / (2.0 * cutoff_hz))
+    c_top, c_bulk = float(fit["c_top"]), float(fit["c_bulk"])
+    se_top, se_bulk = fit.se("c_top") * inflate, fit.se("c_bulk") * inflate
+    fits.update(top_thrust_ratio=c_top, top_thrust_ratio_se=se_top, bulk_thrust_ratio=c_bulk,
+                bulk_thrust_ratio_se=se_bulk)
+    return (f"checked on {fits['top_seconds']:.1f} s with a motor at >= {TOP_COMMAND:g} of full command at a steady "
+            f"height (|v_z| < {TOP_VZ_MAX:g} m/s, saturated samples included): the thrust there is {c_top:.3f} ± "
+            f"{se_top:.3f} of the map's ({c_bulk:.3f} ± {se_bulk:.3f} below the top; body z specific force with a "
+            f"vertical drag, fitted together); not applied to the map"), fits
 
 
 def _horizontal_drag(t, sig, lp, f_lp, v_body, m, src):
