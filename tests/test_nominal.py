@@ -255,3 +255,76 @@ def test_a_flight_whose_velocity_is_unknown_for_a_while_still_builds():
     r = nom.params.rotors
     assert r.count == 4
     assert 2.0 < r.thrust_max_n < 20.0  # a ~1.5 kg quad: 4 rotors lifting it with margin
+
+
+def test_a_large_com_offset_held_the_whole_flight_is_recovered_as_a_trim(tmp_path):
+    """Known truth: the simulator flies the SIH quad (arm 0.283 m) with its centre of mass 110 mm forward and
+    40 mm left (41 % of the arm, beyond the 30 % that needs no further evidence); the nominal built from that
+    log recovers it within 3 % and puts it into the twin, saying the flight's halves show it held."""
+    from twin_nodes.twin.simflight import Hidden, write_flight
+
+    vp = shipped("px4_sih_quadx")
+    path = tmp_path / "com.ulg"
+    write_flight(path, vp, Hidden("com_offset", {"dx": 0.11, "dy": 0.04}), 7)
+    nom = nominal_from_log(read_ulog(str(path)), mass_kg=vp.mass_kg)
+    com = dict(nom.params.effect_dict["com_offset"])
+    assert com["dx"] == pytest.approx(0.11, rel=0.03) and com["dy"] == pytest.approx(0.04, rel=0.03)
+    assert "held the whole flight" in nom.sources["effects.com_offset"]
+
+
+def _heavy_sim(tmp_path, fac: float, mass: float):
+    from twin_nodes.twin.simflight import Hidden, write_flight
+
+    vp = shipped("px4_sih_quadx")
+    vp = vp.replace_rotors(thr_mdl_fac=fac).replace(mass_kg=mass)
+    path = tmp_path / f"top_{fac}_{mass}.ulg"
+    write_flight(path, vp, Hidden("none", {}), 3)
+    return vp, path
+
+
+def test_thrust_at_the_top_of_the_command_range_is_checked_against_the_accelerometer(tmp_path):
+    """Known truth: the simulator flies the SIH quad at 1.6 kg (hover at 0.88 of full command, THR_MDL_FAC
+    0.8), so that it spends seconds at a steady height with a motor >= 0.9.  Told the true map, the nominal's
+    check of the thrust there reads 1.000 (within 0.5 %); told a linear map (THR_MDL_FAC 0, the fit then
+    matches the bulk of the flight), it reads the true map's thrust at the top over the linear one's (the same
+    two-scale fit of the true thrust on the linear map's, at a steady height) within 0.5 %, above 1 by more
+    than 3 standard errors."""
+    from twin_nodes.identify.nominal import GRID_HZ, TOP_COMMAND, TOP_VZ_MAX, _airborne_grid, _per_segment, _segments
+    from twin_nodes.identify.regression import lowpass, rotor_states_from_commands, world_to_body
+
+    vp, path = _heavy_sim(tmp_path, 0.8, 1.6)
+    log = read_ulog(str(path))
+    exact = nominal_from_log(log, mass_kg=1.6)
+    assert exact.fits["top_seconds"] > 5.0
+    assert exact.fits["top_thrust_ratio"] == pytest.approx(1.0, abs=0.005)
+    assert "checked on" in exact.sources["rotors.thrust at the top of the command range"]
+
+    log.params["THR_MDL_FAC"] = 0.0
+    lin = nominal_from_log(log, mass_kg=1.6)
+    # the truth at the check's samples: the true map over the linear one, through the same lag and low-pass
+    t = _airborne_grid(log, GRID_HZ)
+    u = np.clip(np.nan_to_num(log.require("motors").at(t)), 0.0, 1.0)
+    segs = _segments(t, GRID_HZ)
+    tau = lin.params.rotors.tau_up_s
+    s = _per_segment(lambda tt, x: rotor_states_from_commands(tt, x, tau_up_s=tau), t, u, segs)
+    lp = lambda x: _per_segment(lambda _t, y: lowpass(y, GRID_HZ, 2.5), t, x, segs)  # noqa: E731
+    true_t = lp((vp.rotors.thrust_max_n * (0.8 * s * s + 0.2 * s)).sum(axis=1))
+    lin_t = lp((lin.params.rotors.thrust_max_n * s).sum(axis=1))
+    v_z = lp(world_to_body(log.require("attitude_q").at(t), np.nan_to_num(log.require("velocity_enu").at(t)))[:, 2])
+    sel = np.abs(v_z) < TOP_VZ_MAX
+    w = (lp(s.max(axis=1)) >= TOP_COMMAND)[sel].astype(float)
+    (c_bulk, c_top), *_ = np.linalg.lstsq(np.column_stack([lin_t[sel] * (1 - w), lin_t[sel] * w]), true_t[sel],
+                                          rcond=None)
+    truth = c_top
+    got, se = lin.fits["top_thrust_ratio"], lin.fits["top_thrust_ratio_se"]
+    assert got == pytest.approx(truth, abs=0.005) and got - 1.0 > 3 * se
+
+
+def test_a_flight_that_never_reaches_the_top_says_so(tmp_path):
+    """The SIH quad at its own 1.0 kg hovers at 0.59 of full command: its commands never reach 0.9 for 2 s,
+    and the nominal says the thrust above is the map extrapolated."""
+    _vp, path = _heavy_sim(tmp_path, 0.4, 1.0)
+    nom = nominal_from_log(read_ulog(str(path)), mass_kg=1.0)
+    text = nom.sources["rotors.thrust at the top of the command range"]
+    assert text.startswith("not reached") and "extrapolated" in text
+    assert nom.fits["top_seconds"] < 2.0 and nom.fits["top_command_p99"] < 0.9

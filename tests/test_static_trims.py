@@ -174,3 +174,65 @@ def test_trims_are_made_where_px4_held_every_axis():
     assert not keep[:10].any() and not keep[20:50].any() and keep[50:].all()
     motors[: n - int(BALANCED_MIN_S * 50) + 30, 3] = 1.0   # less than 6 s inside the range
     assert _balanced(steady, motors, 50.0) is None
+
+
+# ------------------------------------------------------------------ a large centre-of-mass offset
+QUAD_X = (np.array([0.2, -0.2, 0.2, -0.2]), np.array([-0.2, 0.2, 0.2, -0.2]))   # arm 0.283 m
+
+
+def test_polygon_margin_is_the_distance_to_the_nearest_rotor_edge():
+    """Square of half-side 0.2 m: 0.2 at the centre, 0.2 - |x| along an axis, negative outside; a layout on
+    one line has no polygon."""
+    from twin_nodes.identify.static_trims import polygon_margin
+
+    x, y = QUAD_X
+    assert polygon_margin(x, y, 0.0, 0.0) == pytest.approx(0.2)
+    assert polygon_margin(x, y, 0.13, -0.05) == pytest.approx(0.07)
+    assert polygon_margin(x, y, 0.05, 0.19) == pytest.approx(0.01)
+    assert polygon_margin(x, y, 0.25, 0.0) == pytest.approx(-0.05)
+    assert polygon_margin(np.array([0.2, -0.2]), np.array([0.0, 0.0]), 0.0, 0.0) == -math.inf
+
+
+def test_a_large_com_offset_is_a_trim_only_where_held_and_inside_the_rotor_polygon():
+    """Beyond 30 % of the arm: accepted with >= 6 s of steady flight whose halves agree within 25 %, inside
+    the rotor polygon 10 % of the arm from its edge; refused when the halves disagree, the seconds are too
+    few, or the point nears the polygon's edge; within 30 % nothing more is asked (as before)."""
+    from twin_nodes.identify.static_trims import ComSupport, com_verdict
+
+    x, y = QUAD_X
+    arm = 0.2 * math.sqrt(2)
+
+    def sup(seconds, *halves):
+        return ComSupport(tuple(x), tuple(y), seconds, tuple((a, b, 0.0) for a, b in halves))
+
+    d = (0.11, 0.04)                                  # 41 % of the arm, 50 mm from the edge x = 0.2
+    ok, why = com_verdict(*d, arm, sup(8.0, (0.115, 0.035), (0.105, 0.045)), 6.0)
+    assert ok and "held the whole flight" in why
+    ok, why = com_verdict(*d, arm, sup(8.0, (0.125, 0.005), (0.09, 0.075)), 6.0)    # a half 38 mm off: 33 %
+    assert not ok and "not shown held" in why
+    assert not com_verdict(*d, arm, sup(5.0, (0.11, 0.04), (0.11, 0.04)), 6.0)[0]  # < 6 s
+    assert not com_verdict(*d, arm, None, 6.0)[0]                                  # no evidence: the 30 % rule
+    ok, why = com_verdict(0.18, 0.0, arm, sup(60.0, (0.18, 0.0), (0.18, 0.0)), 6.0)  # 20 mm from the edge
+    assert not ok and "inside the rotor polygon" in why
+    assert com_verdict(0.05, -0.03, arm, None, 6.0) == (True, "")                 # within 30 %: as before
+    assert com_verdict(0.05, -0.03, arm, sup(1.0, (0.0, 0.0), (0.1, 0.1)), 6.0)[0]
+
+
+def test_median_trims_balance_the_median_rotor_moments():
+    """Closed form: rotor thrusts that carry a weight W at (dx, dy) give back (dx, dy); the yaw lever is
+    -km sum(dir T) / sum T."""
+    from types import SimpleNamespace
+
+    from twin_nodes.identify.nominal import _median_trims
+
+    x, y = QUAD_X
+    lay = SimpleNamespace(x_flu_m=x, y_flu_m=y, direction=np.array([1, 1, -1, -1]))
+    dx, dy, W = 0.09, -0.06, 20.0
+    # least-norm thrusts with sum T = W, sum y T = dy W, sum x T = dx W
+    A = np.vstack([np.ones(4), y, x])
+    T = np.linalg.lstsq(A, np.array([W, dy * W, dx * W]), rcond=None)[0]
+    rng = np.random.default_rng(0)
+    samples = T + rng.normal(0, 0.01, (501, 4))
+    gx, gy, lever = _median_trims(samples, lay, 0.02, None, 0.0, np.zeros((501, 3)))
+    assert (gx, gy) == (pytest.approx(dx, abs=1e-3), pytest.approx(dy, abs=1e-3))
+    assert lever == pytest.approx(-0.02 * float(np.dot(lay.direction, T)) / W, abs=2e-4)

@@ -99,6 +99,12 @@ def fit_mask(log, t: np.ndarray, rate_hz: float, min_keep_s: float = MIN_KEEP_S)
     return everything
 
 
+def contact_mask(log, t: np.ndarray, rate_hz: float) -> np.ndarray:
+    """``t`` samples free of ground contact and land-detector transitions, saturated samples kept (for an
+    equation that holds with a motor at its bound: the thrust of a saturated command is still its thrust)."""
+    return _fit_mask(log, t, rate_hz, saturation=False).keep
+
+
 SATURATED = "with a motor output at its bound (saturated)"
 
 

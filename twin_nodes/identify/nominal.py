@@ -8,14 +8,18 @@ assumption), and :func:`header` writes them into the file.
   the log's PX4 parameters (:mod:`twin_nodes.vehicle.px4_params`);
 - maximum thrust per rotor ``T_max`` and linear drag: the specific-force equation
   ``f_z = (T_max/m) sum T~(s_i) - (k_z/m) v_z`` (body FLU, accelerometer) over the
-  airborne part, ``T~ = f s^2 + (1 - f) s`` of the lagged commands ``s``;
+  airborne part, ``T~ = f s^2 + (1 - f) s`` of the lagged commands ``s``; the thrust at the top of the
+  command range (a motor >= 0.9, steady height, saturated samples included) checked against the map, or
+  said not reached (:func:`_thrust_at_top`: a report, not applied);
 - inertia and angular damping: the rotor moment computed from the commands (``T_max`` from
   above, the lever arms) regressed on the measured angular acceleration and rate,
   ``M = I w' + k_w w + trim``: the commands carry the controller's noise, so they stand on the
   side of the equation that tolerates it; yaw gives ``Izz / km`` only, so ``Izz`` rests on the
   assumed ``km``;
 - static trims: the median motor outputs in steady flight give a centre-of-mass offset
-  (roll/pitch) and a tangential rotor tilt (yaw); the pack voltage, when it sags, a battery term;
+  (roll/pitch) and a tangential rotor tilt (yaw); an offset beyond 30 % of the arm only where the
+  flight's two halves show it held and it lies inside the rotor polygon (static_trims.com_verdict);
+  the pack voltage, when it sags, a battery term;
 - the motor time constant: the lag that best explains the roll/pitch accelerations
   (a scan over 0.02-0.25 s; reported with the range within 2 % of the best residual);
 - mass: the user's ``--mass-kg``, else the airframe's typical mass (an assumption:
@@ -38,11 +42,11 @@ import numpy as np
 
 from twin_nodes.base.errors import LogError, ParamsError
 from twin_nodes.identify.coaxial import ASSUMED as COAX_ASSUMED, LOWPASS_HZ as COAX_LOWPASS_HZ, coaxial_efficiency
-from twin_nodes.identify.fit_mask import fit_mask
+from twin_nodes.identify.fit_mask import contact_mask, fit_mask
 from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
                                            rotor_states_from_commands, thrust_regressor, translational_regression,
                                            world_to_body)
-from twin_nodes.identify.static_trims import Trims, model_trims
+from twin_nodes.identify.static_trims import ComSupport, Trims, com_verdict, model_trims
 from twin_nodes.identify.yaw_gain import applied_yaw_gain, yaw_gain_for_twin
 from twin_nodes.logs.flyable import MIN_HORIZONTAL_FRACTION, check_flyable, read_flight
 from twin_nodes.logs.ulog_io import FlightLog
@@ -153,6 +157,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
 
     t = _airborne_grid(log, GRID_HZ)
     sig = _signals(log, t)
+    t_air, sig_air = t, dict(sig)
     # a flight without horizontal velocity (no GPS: PX4 logs it NaN) is identified on what it has:
     # the vertical and rotational equations with the horizontal velocity taken as 0, and no horizontal
     # drag, wind or drag height (their regressors are the horizontal velocity)
@@ -261,6 +266,8 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     t_max = m * kt_m
     src["rotors.thrust_max_n"] = (f"identified: {t_max:.3f} N ± {m * kt_m_se:.3f} (specific force z, mass above"
                                   + (f", at {battery[2]:.2f} V)" if battery is not None else ")"))
+    src["rotors.thrust at the top of the command range"], top_fits = _thrust_at_top(
+        log, t_air, sig_air, m, t_max * w_rot, f_fac, battery, cutoff_hz, tau)
     # isotropic horizontal drag: body x and y stacked with one shared coefficient (a mission
     # flown nose-first excites body x only), a trim offset per axis, and a steady wind: the drag
     # acts on the air-relative velocity, f_b = -(k/m) R^T (v - w) + bias; while the heading turns,
@@ -380,17 +387,15 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     steady = np.linalg.norm(sig["v_enu"], axis=1) < 2.0
     if steady.sum() < 10 * GRID_HZ:
         steady = np.ones(t.size, bool)
-    thrust = t_max * np.median(tt[steady], axis=0)
-    total = float(thrust.sum())
-    mx = float(np.dot(layout.y_flu_m, thrust))
-    my = float(-np.dot(layout.x_flu_m, thrust))
-    if drag_h is not None:  # less the drag moment the commands hold at the median air speed
-        mx += drag_h * drag * float(np.median(v_air[steady, 1]))
-        my -= drag_h * drag * float(np.median(v_air[steady, 0]))
-    mz = float(-km * np.dot(layout.direction, thrust))
-    dx, dy, lever = -my / total, mx / total, -mz / total
+    # the roll/pitch balance holds on samples with a motor at a bound too (PX4 gives yaw up first, and a
+    # vehicle that does not tumble holds its roll/pitch moments on average): a payload far off-centre keeps a
+    # motor near a bound all flight, and these are then its only steady samples
+    steady_s = float(steady.sum()) / GRID_HZ
+    dx, dy, lever = _median_trims(t_max * tt[steady], layout, km, drag_h, drag, v_air[steady])
     _put_trims(effects, src, dx, dy, lever, l, "the roll/pitch trim of the median motor outputs in steady flight",
-               "the yaw trim of the median motor outputs", lower_bounds=True)
+               "the yaw trim of the median motor outputs", lower_bounds=True,
+               support=_com_support(layout, steady_s, [_median_trims(t_max * tt[h], layout, km, drag_h, drag, v_air[h])
+                                                       for h in _halves(steady)]))
 
     # --- the log's own controller
     hover_cmd = _hover_command(t_max * float(w_rot.sum()), m, f_fac)
@@ -440,7 +445,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
             "rotors": rotors, "effects": effects, "controller": gains, "simulation": {"dt_s": 0.002}}
     fits = {"tau_s": tau, "kT/m": kt_m, "kT/m_se": kt_m_se, "hover_command": hover_cmd,
             "drag_n_s_m": drag, "angular_damping": k_w, "roll_r2": rot["roll"].r2, "pitch_r2": rot["pitch"].r2,
-            "yaw_r2": rot["yaw"].r2, "z_r2": trans["z"].r2}
+            "yaw_r2": rot["yaw"].r2, "z_r2": trans["z"].r2, **top_fits}
     try:
         vp = from_ros_dict(data, log.path)
         # the trims again, now from the whole model's steady moments (rotor drag, wind, coaxial...):
@@ -449,8 +454,13 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
         if held is not None:
             states = _model_states(log, vp, t, sig, segs, tau, rates_lp)[held]
             bv = log.get("battery_v") if battery is not None else None
-            trims = model_trims(vp, states, alpha[held], None if bv is None else bv.at(t[held]).reshape(-1))
-            dx, dy, lever = _set_trims(effects, src, trims, l)
+            v_held = None if bv is None else bv.at(t[held]).reshape(-1)
+            trims = model_trims(vp, states, alpha[held], v_held)
+            parts = [model_trims(vp, states[h], alpha[held][h], None if v_held is None else v_held[h])
+                     for h in _halves(np.ones(int(held.sum()), bool))]
+            dx, dy, lever = _set_trims(effects, src, trims, l,
+                                       _com_support(layout, float(held.sum()) / GRID_HZ,
+                                                    [(q.dx, q.dy, q.lever) for q in parts]))
             vp = from_ros_dict(data, log.path)
         else:
             why = (f"; not made from the whole model: less than {BALANCED_MIN_S:g} s of steady flight with every motor "
@@ -491,19 +501,53 @@ def _model_states(log: FlightLog, vp: VehicleParams, t: np.ndarray, sig: dict, s
 BALANCED_MIN_S = 6.0
 
 
+def _com_support(layout, seconds: float, halves: list) -> ComSupport:
+    return ComSupport(tuple(layout.x_flu_m), tuple(layout.y_flu_m), float(seconds),
+                      tuple(tuple(float(v) for v in h) for h in halves))
+
+
+def _halves(mask: np.ndarray) -> list[np.ndarray]:
+    """The first and the second half (in time) of the samples ``mask`` selects, as two masks."""
+    idx = np.flatnonzero(mask)
+    out = []
+    for part in (idx[: idx.size // 2], idx[idx.size // 2:]):
+        h = np.zeros(mask.size, bool)
+        h[part] = True
+        out.append(h)
+    return out
+
+
+def _median_trims(thrust: np.ndarray, layout, km: float, drag_h, drag: float, v_air: np.ndarray
+                  ) -> tuple[float, float, float]:
+    """(dx, dy, lever) that balance the moments of the median rotor thrusts ``thrust`` (T, N) [N], less the
+    drag moment at the median air speed where the drag acts at a height ``drag_h``."""
+    med = np.median(thrust, axis=0) if len(thrust) else np.full(len(layout.x_flu_m), np.nan)
+    total = float(med.sum())
+    mx = float(np.dot(layout.y_flu_m, med))
+    my = float(-np.dot(layout.x_flu_m, med))
+    if drag_h is not None and len(v_air):
+        mx += drag_h * drag * float(np.median(v_air[:, 1]))
+        my -= drag_h * drag * float(np.median(v_air[:, 0]))
+    mz = float(-km * np.dot(layout.direction, med))
+    return -my / total, mx / total, -mz / total
+
+
 def _put_trims(effects: dict, src: dict, dx: float, dy: float, lever: float, arm: float, how_com: str,
-               how_tilt: str, lower_bounds: bool) -> None:
-    """``com_offset`` (dx, dy) and ``rotor_tilt`` (lever) into ``effects`` where within 30 % of the arm and a
-    10 deg tilt (``lower_bounds``: and above 1 % of the arm, 0.2 % for the lever); why in ``src``."""
-    com_ok = max(abs(dx), abs(dy)) <= 0.3 * arm and (not lower_bounds or math.hypot(dx, dy) > 0.01 * arm)
+               how_tilt: str, lower_bounds: bool, support: ComSupport | None = None) -> None:
+    """``com_offset`` (dx, dy) and ``rotor_tilt`` (lever) into ``effects`` where the centre of mass passes
+    :func:`~twin_nodes.identify.static_trims.com_verdict` (within 30 % of the arm, or beyond it where
+    ``support`` shows it held; inside the rotor polygon) and the lever a 10 deg tilt (``lower_bounds``: and
+    above 1 % of the arm, 0.2 % for the lever); why in ``src``."""
+    com_ok, com_why = com_verdict(dx, dy, arm, support, BALANCED_MIN_S)
+    if com_ok and lower_bounds and not math.hypot(dx, dy) > 0.01 * arm:
+        com_ok, com_why = False, "below 1 % of the arm"
     tilt_ok = abs(lever) <= arm * math.sin(math.radians(10.0)) and (not lower_bounds or abs(lever) > 0.002 * arm)
     if com_ok:
         effects["enabled"].append("com_offset")
         effects["com_offset"] = {"dx": dx, "dy": dy}
-        src["effects.com_offset"] = f"identified: dx {dx * 1000:.1f} mm, dy {dy * 1000:.1f} mm ({how_com})"
+        src["effects.com_offset"] = f"identified: dx {dx * 1000:.1f} mm, dy {dy * 1000:.1f} mm ({how_com}){com_why}"
     else:
-        src["effects.com_offset"] = (f"not included: trim offset ({dx:.3g}, {dy:.3g}) m "
-                                     f"{'below 1 % or ' if lower_bounds else ''}beyond 30 % of the arm")
+        src["effects.com_offset"] = f"not included: trim offset ({dx:.3g}, {dy:.3g}) m {com_why}"
     if tilt_ok:
         effects["enabled"].append("rotor_tilt")
         effects["rotor_tilt"] = {"lever_m": lever}
@@ -523,7 +567,8 @@ def _balanced(steady: np.ndarray, motors: np.ndarray, rate_hz: float) -> np.ndar
     return ok if ok.sum() >= BALANCED_MIN_S * rate_hz else None
 
 
-def _set_trims(effects: dict, src: dict, trims: Trims, arm: float) -> tuple[float, float, float]:
+def _set_trims(effects: dict, src: dict, trims: Trims, arm: float, support: ComSupport | None = None
+               ) -> tuple[float, float, float]:
     """Put ``trims`` into ``effects`` (replacing the motor-output estimate) where they pass the same
     bounds; their sources in ``src``.  Returns (dx, dy, lever)."""
     dx, dy, lever = trims.dx, trims.dy, trims.lever
@@ -538,8 +583,85 @@ def _set_trims(effects: dict, src: dict, trims: Trims, arm: float) -> tuple[floa
     # no lower bound: a yaw lever of 0.05 % of the arm is a 1 % motor split with km 0.02 m (the H480's), and a
     # trim the twin does not hold is a per-motor error the whole flight long; the model-made trim is 0 where
     # nothing is to be held
-    _put_trims(effects, src, dx, dy, lever, arm, how, how, lower_bounds=False)
+    _put_trims(effects, src, dx, dy, lever, arm, how, how, lower_bounds=False, support=support)
     return dx, dy, lever
+
+
+#: a sample is "at the top of the command range" with a motor at or above this normalised command
+TOP_COMMAND = 0.9
+#: the top is reported as checked with at least this many seconds of such samples
+TOP_MIN_S = 2.0
+#: at a nearly steady height [m/s, body z]
+TOP_VZ_MAX = 0.5
+
+
+def _thrust_at_top(log: FlightLog, t: np.ndarray, sig: dict, m: float, t_max_rotor: np.ndarray, f_fac: float,
+                   battery, cutoff_hz: float, tau: float) -> tuple[str, dict[str, float]]:
+    """The thrust the identified map gives at the top of the command range, checked against the flight:
+    on the airborne samples (``t``, ``sig``: the whole grid, saturated samples included, ground contact
+    left out, at a nearly steady height) the body z equation ``m f_z = c T_map - k_z v_z`` with one ``c`` for
+    the samples with a motor
+    at >= ``TOP_COMMAND`` and one for the rest (``T_map``: the identified map's thrust of the logged commands
+    through the motor lag ``tau``, the battery term included): ``c_top`` and ``c_bulk`` with their standard
+    errors (1: the map is right there);
+    or, where the flight has less
+    than ``TOP_MIN_S`` there, how far up its commands reach.  A check, not a fit: the ratio is not applied
+    (a vehicle's ratio there differs from flight to flight with the climb rate and the ground; see
+    docs/yaw_authority_fleet.md)."""
+    u = np.asarray(sig["motors"], float)
+    fz = np.asarray(sig["f_body"], float)[:, 2]
+    ok = np.isfinite(u).all(axis=1) & np.isfinite(fz) & contact_mask(log, t, GRID_HZ)
+    scale = np.ones(t.size)
+    bv = log.get("battery_v") if battery is not None else None
+    if bv is not None:
+        v = bv.at(t).reshape(-1)
+        ok &= np.isfinite(v)
+        scale = np.clip(np.nan_to_num(v, nan=battery[2]) / battery[2], 0.3, 1.5) ** battery[3]
+    uc = np.clip(np.nan_to_num(u), 0.0, 1.0)
+    reach = float(np.percentile(uc[ok].max(axis=1), 99)) if ok.any() else math.nan
+    # the rotor states the commands give through the identified lag, and both sides low-passed alike: a
+    # command spike is not yet thrust (selecting on raw commands >= 0.9 read 0.91 on a simulated flight
+    # whose map is exact)
+    segs = _segments(t, GRID_HZ)
+    states = np.zeros_like(uc)
+    inside = np.zeros(t.size, bool)
+    for sg in segs:
+        states[sg] = rotor_states_from_commands(t[sg], uc[sg], tau_up_s=tau)
+        inside[sg] = True
+
+    def lp(x: np.ndarray) -> np.ndarray:
+        return _per_segment(lambda _t, y: lowpass(y, GRID_HZ, cutoff_hz), t, x, segs)
+
+    model = (thrust_regressor(states, "thrust_factor", f_fac) @ t_max_rotor) * scale
+    v_up = lp(world_to_body(sig["q"], np.nan_to_num(np.asarray(sig["v_enu"], float)))[:, 2])
+    f_lp, t_lp = lp(np.where(ok, m * fz, 0.0)), lp(np.where(ok, model, 0.0))
+    # samples of nearly steady height only: in a climb the vertical drag and a map wrong at the top are
+    # one regressor (on a simulated flight whose map was given linear for a convex truth, the fit on every
+    # sample read half the truth's deviation; below 0.5 m/s it reads it within 0.1 %)
+    ok &= inside & (np.abs(v_up) < TOP_VZ_MAX)
+    top = ok & (lp(states.max(axis=1)) >= TOP_COMMAND) & (t_lp > 0)
+    fits = {"top_command_p99": reach, "top_seconds": float(top.sum()) / GRID_HZ}
+    if top.sum() < TOP_MIN_S * GRID_HZ:
+        return (f"not reached: {fits['top_seconds']:.1f} s with a motor at >= {TOP_COMMAND:g} of full command "
+                f"at a steady height (|v_z| < {TOP_VZ_MAX:g} m/s; needs {TOP_MIN_S:g} s; the airborne motor commands "
+                f"reach {reach:.2f}, 99th percentile): above, the thrust is the map extrapolated"), fits
+    # m f_z = c_bulk T_map (below the top) + c_top T_map (at the top) - k_z v_z, fitted together: the
+    # vertical drag is not taken from the map's own fit (a map wrong at the top leaves its error in k_z there)
+    w = top[ok].astype(float)
+    fit = fit_linear(np.column_stack([t_lp[ok] * (1.0 - w), t_lp[ok] * w, -v_up[ok]]), f_lp[ok],
+                     ["c_bulk", "c_top", "k_z"])
+    if fit.rank < 3 or fit.cov is None or not fit["c_bulk"] > 0:
+        return "not determined: the top and the rest of the flight are not separable in the fit", fits
+    # the low-passed samples are correlated over ~1/(2 cutoff): the fit's covariance is scaled by that many
+    inflate = math.sqrt(GRID_HZ / (2.0 * cutoff_hz))
+    c_top, c_bulk = float(fit["c_top"]), float(fit["c_bulk"])
+    se_top, se_bulk = fit.se("c_top") * inflate, fit.se("c_bulk") * inflate
+    fits.update(top_thrust_ratio=c_top, top_thrust_ratio_se=se_top, bulk_thrust_ratio=c_bulk,
+                bulk_thrust_ratio_se=se_bulk)
+    return (f"checked on {fits['top_seconds']:.1f} s with a motor at >= {TOP_COMMAND:g} of full command at a steady "
+            f"height (|v_z| < {TOP_VZ_MAX:g} m/s, saturated samples included): the thrust there is {c_top:.3f} ± "
+            f"{se_top:.3f} of the map's ({c_bulk:.3f} ± {se_bulk:.3f} below the top; body z specific force with a "
+            f"vertical drag, fitted together); not applied to the map"), fits
 
 
 def _horizontal_drag(t, sig, lp, f_lp, v_body, m, src):

@@ -14,11 +14,17 @@ was 80 % of the trim's, and the twin's yaw split was 1.1 % of full output where 
 the trims) gives with the logged commands and state, less the moment the measured motion needs
 (``I alpha + w x I w``), and makes ``com_offset`` (roll/pitch, ``-d x F`` of the total thrust) and
 ``rotor_tilt`` (yaw, lever x total thrust) of what is left: by construction the twin's steady moment
-balance is the vehicle's.  Pure numpy on :class:`~twin_nodes.physics.model.Multirotor`.
+balance is the vehicle's.
+
+A centre of mass far off (a payload hanging off-centre, 0.10-0.12 m on a 0.23 m arm on the 23 Jun 2023
+V6C flights) is a trim only where the flight shows it: within 30 % of the arm as before; beyond, where
+the steady flight's two halves give the same trim (held the whole flight, not a transient) and it lies
+inside the rotor polygon (:func:`com_verdict`).  Pure numpy on :class:`~twin_nodes.physics.model.Multirotor`.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +33,7 @@ from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.model import Multirotor
 from twin_nodes.vehicle.params import VehicleParams
 
-__all__ = ["TRIM_EFFECTS", "Trims", "model_trims", "without_trims"]
+__all__ = ["TRIM_EFFECTS", "ComSupport", "Trims", "com_verdict", "model_trims", "polygon_margin", "without_trims"]
 
 #: the effects the trims are made of (replaced, not added to)
 TRIM_EFFECTS = ("com_offset", "rotor_tilt")
@@ -85,3 +91,68 @@ def model_trims(vp: VehicleParams, states: np.ndarray, alpha: np.ndarray | None 
     lever = float(np.median(per_n[:, 2]))
     other = tuple(float(v) for v in np.median(m_model[ok] - need[ok], axis=0))
     return Trims(dx, dy, lever, other, int(ok.sum()))
+
+
+#: a centre-of-mass trim beyond this fraction of the arm is accepted only where the flight shows it held
+#: (:func:`com_verdict`): enough seconds of steady flight, and its two halves' trims within
+#: ``COM_HALVES_REL`` of the trim (a payload hanging off-centre for the whole flight, not a transient)
+COM_FREE_ARM = 0.3
+COM_HALVES_REL = 0.25
+#: and in every case inside the rotor polygon at least this fraction of the arm from its edge: beyond the
+#: polygon no set of rotor thrusts >= 0 holds the vehicle level
+COM_EDGE_ARM = 0.1
+
+
+@dataclass(frozen=True)
+class ComSupport:
+    """What the flight says about a centre-of-mass trim: the rotor positions (FLU x, y), the seconds of
+    steady flight it was made of and the trims (dx, dy, lever) made of the first and second half of them."""
+
+    x_flu_m: tuple[float, ...]
+    y_flu_m: tuple[float, ...]
+    seconds: float
+    halves: tuple[tuple[float, float, float], ...]
+
+
+def polygon_margin(x: np.ndarray, y: np.ndarray, px: float, py: float) -> float:
+    """Signed distance [m] of the point (px, py) inside the convex hull of the rotors (x, y) (negative:
+    outside); -inf for fewer than 3 rotors off one line."""
+    pts = np.column_stack([x, y]).astype(float)
+    c = pts.mean(axis=0)
+    ang = np.arctan2(pts[:, 1] - c[1], pts[:, 0] - c[0])
+    ring = pts[np.argsort(ang)]
+    best = math.inf
+    for a, b in zip(ring, np.roll(ring, -1, axis=0)):
+        e = b - a
+        ln = float(np.hypot(*e))
+        if ln < 1e-9:
+            continue
+        # inward normal of a counter-clockwise ring: (-e_y, e_x)
+        best = min(best, float((-e[1] * (px - a[0]) + e[0] * (py - a[1])) / ln))
+    return best if len(ring) >= 3 and math.isfinite(best) else -math.inf
+
+
+def com_verdict(dx: float, dy: float, arm: float, support: ComSupport | None, min_seconds: float
+                ) -> tuple[bool, str]:
+    """Whether a centre-of-mass trim (dx, dy) [m] goes into the twin, and why (the reason, or for a large
+    accepted one the evidence, to append to its source): see the constants above."""
+    d = math.hypot(dx, dy)
+    if support is not None:
+        edge = polygon_margin(np.array(support.x_flu_m), np.array(support.y_flu_m), dx, dy)
+        if math.isfinite(edge) and edge < COM_EDGE_ARM * arm:
+            return False, (f"{edge * 1000:.0f} mm inside the rotor polygon (needs >= {COM_EDGE_ARM:.0%} of the arm, "
+                           f"{COM_EDGE_ARM * arm * 1000:.0f} mm)")
+    if max(abs(dx), abs(dy)) <= COM_FREE_ARM * arm:
+        return True, ""
+    if support is None or not math.isfinite(polygon_margin(np.array(support.x_flu_m), np.array(support.y_flu_m),
+                                                           dx, dy)):
+        return False, f"beyond {COM_FREE_ARM:.0%} of the arm"
+    spread = max((math.hypot(h[0] - dx, h[1] - dy) for h in support.halves), default=math.inf)
+    held = support.seconds >= min_seconds and len(support.halves) == 2 and spread <= COM_HALVES_REL * d
+    how = (f"{d * 1000:.0f} mm ({d / arm:.0%} of the arm), beyond {COM_FREE_ARM:.0%}: the flight's halves give "
+           + ", ".join(f"({1000 * h[0]:.0f}, {1000 * h[1]:.0f})" for h in support.halves)
+           + f" mm over {support.seconds:.1f} s of steady flight")
+    if held:
+        return True, f"; {how}: held the whole flight (halves within {COM_HALVES_REL:.0%}), inside the rotor polygon"
+    return False, (f"{how}, not shown held (needs >= {min_seconds:g} s and halves within "
+                   f"{COM_HALVES_REL:.0%} of it)")
