@@ -69,6 +69,11 @@ def test_only_the_joint_refit_recovers_both_effects(monkeypatch):
     # the mass took the joint value (the vehicle the next round and the refit start from)
     assert dict(dict(sel.current.effects)["mass"])["mass"] == pytest.approx(MASS, rel=0.02)
 
+    # each one's held-out contribution given the other (both linear: the drag's is the cut it was accepted with)
+    given = joint.contributions(S.eq, sel.current, sel.accepted)
+    assert given[1]["cut"] == pytest.approx(drag.rel_improvement, abs=1e-3) and given[1]["t"] > 3
+    assert given[0]["cut"] > 0.1 and given[0]["t"] > 3
+
     # without the joint variants: the mass fitted first takes up the drag's share, and the drag left is too small
     monkeypatch.setattr(selection, "offer", lambda *a: [])
     S, _ = _flight()
