@@ -137,3 +137,19 @@ def test_an_accepted_effect_of_the_candidates_kind_is_not_freed():
     sub = joint.subset(lin, (1,))
     assert sub.names == ["body_drag"] and list(sub.theta0) == [0.1, 0.1, 0.1] and sub.D.shape[0] == 3
     assert sub.fits == ["cd"]
+
+
+def test_an_accepted_wind_with_its_drag_is_refitted_as_the_wind():
+    # wind(+linear_drag) (a vehicle without a drag law) reports its drag beside the wind's parameters: refitted
+    # jointly, the wind's own parameters move and the drag stays where the vehicle has it
+    vp = shipped("px4_sih_quadx").replace(effects=())
+    data = SimpleNamespace(v=np.tile([[5.0, 0.0, 0.0]], (100, 1)), valid=np.ones(100, bool))
+    w = selection.wind_with_drag(vp, data)[0]
+    a = SimpleNamespace(candidate=w, theta=np.array([2.0, -1.0, 0.5]), kind="equation")
+
+    def residual(v):
+        eff = {n: dict(p) for n, p in v.effects}
+        return np.array([[eff["wind"]["vx"], eff["wind"]["vy"], eff["linear_drag"]["k_n_s_m"]]])
+    lin = joint.linearize(SimpleNamespace(residual=residual), w.build(a.theta), [a])
+    assert lin.params == [("vx", "vy")] and list(lin.theta0) == [2.0, -1.0]
+    assert lin.D[:, 0] == pytest.approx(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))

@@ -81,8 +81,10 @@ def _apply(vp: VehicleParams, lin: Linearized, theta_a: np.ndarray) -> VehiclePa
     """``vp`` with the accepted effects of ``lin`` at ``theta_a`` (in place)."""
     k = 0
     for a, names in zip(lin.fits, lin.params):
-        pa = a.candidate.params_dict(a.theta)
-        vp = in_place(vp, a.candidate.name, merged(pa, names, theta_a[k:k + len(names)], a.candidate.tied))
+        name = a.candidate.name
+        pa = merged(a.candidate.params_dict(a.theta), names, theta_a[k:k + len(names)], a.candidate.tied)
+        # the effect's own parameters (the wind offered with a drag reports the drag's beside them)
+        vp = in_place(vp, name, {p: v for p, v in pa.items() if p in EFFECTS[name].param_names})
         k += len(names)
     return vp
 
