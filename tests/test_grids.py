@@ -288,22 +288,35 @@ def test_lag_offered_with_the_accepted_inertia_refitted():
 
 
 def test_drag_offered_with_the_accepted_thrust_refitted():
+    # s044: the drag beside the accepted thrust coefficient, both free (stages.joint, which every later candidate
+    # goes through now); the mass is not (one kind with the thrust coefficient)
     from twin_nodes.discovery.candidates import build_candidates
+    from twin_nodes.discovery.stages import joint
 
     vp = shipped("px4_sih_quadx")
     data = SimpleNamespace(v=np.tile([[5.0, 0.0, 0.0]], (100, 1)), valid=np.ones(100, bool), motor_dt_s=0.004,
                            dt=0.004, height=np.full(100, 10.0), battery_v=np.full(100, np.nan))
     kt = next(c for c in build_candidates(vp, data) if c.name == "thrust_coefficient")
-    a = SimpleNamespace(candidate=kt, theta=np.array([0.848]), verdict_note="", vp=kt.build(np.array([0.848])))
-    cands = build_candidates(a.vp, data) + selection.nominal_refits(vp, a.vp)
-    joint = selection.force_refits([a], cands, a.vp)
-    names = {c.label for c in joint}
-    assert "linear_drag (nominal refitted) (+thrust_coefficient refitted)" in names
-    assert all(c.name in selection.FORCE_PAIRS[1] for c in joint)
-    ld = next(c for c in joint if c.name == "linear_drag")
+    a = SimpleNamespace(candidate=kt, theta=np.array([0.848]), verdict_note="", vp=kt.build(np.array([0.848])),
+                        kind="equation")
+    cands = {c.label: c for c in build_candidates(a.vp, data) + selection.nominal_refits(vp, a.vp)}
+    lin = joint.Linearized(["thrust_coefficient"], [("kt_scale",)], np.array([0.848]), kt.lower, kt.upper,
+                           np.zeros((1, 1, 1)), [a])
+    assert joint.partners(cands["mass"], lin) == ()
+    ld = joint.variant(cands["linear_drag (nominal refitted)"], lin, [])
+    assert ld.label == "linear_drag (nominal refitted) (+thrust_coefficient refitted)"
     v = ld.build(np.array([1.28, 0.87]))
     eff = {n: dict(p) for n, p in v.effects}
     assert eff["linear_drag"] == {"k_n_s_m": 1.28} and eff["thrust_coefficient"] == {"kt_scale": 0.87}
+    # the effects in the plain candidate's order (the compiled stepper is the one the round already uses)
+    plain = cands["linear_drag (nominal refitted)"].build(np.array([1.28]))
+    assert [n for n, _ in v.effects] == [n for n, _ in plain.effects]
+    assert ld.params_dict(np.array([1.28, 0.87])) == {"k_n_s_m": 1.28}
+    # accepted: the thrust coefficient takes the joint value
+    win = SimpleNamespace(candidate=ld, theta=np.array([1.28, 0.8703]), vp=v)
+    selection._carry_refit(win, [a])
+    assert a.theta == pytest.approx([0.8703]) and a.refitted_jointly_with == "linear_drag"
+    assert win.joint_refit_of == "thrust_coefficient"
 
 
 def test_drag_beside_a_thrust_standing_for_a_mass_is_read_per_unit_mass():

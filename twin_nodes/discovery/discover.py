@@ -88,6 +88,7 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     # 6. grade: confirmed, likely (what it lacks), rejected (why)
     graded = verdicts.run(verdicts.GradeInput(flight, checked.accepted, chosen.last, chosen.first_rank,
                                               found.base_held))
+    verdicts.given_the_others(graded, flight.eq, checked.current, checked.accepted)
     # 7. on PX4 logs: the inertia's roll/pitch axes and PX4's rate loop, the closed-loop twin permitting
     final = instrument.run(instrument.InstrumentInput(
         flight, graded, checked.current, closed_loop.guard(checked, log, flight, closed_loop_metrics)))

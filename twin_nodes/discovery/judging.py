@@ -147,6 +147,9 @@ def fit_candidate(c: Candidate, data: EquationData | Judge, nominal: VehiclePara
     """Least-squares fit of one candidate's parameters on the fit rows of a residual
     (an :class:`EquationData` means the equation error, as before residuals were pluggable)."""
     judge = data if isinstance(data, Judge) else _equation_judge(data, nominal, [], [], fit_mask)
+    fitted = c.fit_on(judge, fit_mask) if judge.kind == "equation" and hasattr(c, "fit_on") else None
+    if fitted is not None:
+        return fitted   # a joint variant on its linearised form (stages.joint)
     s = _scales(c)
     lo, hi = c.lower / s, c.upper / s
     rows = fit_mask

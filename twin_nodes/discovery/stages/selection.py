@@ -15,8 +15,8 @@ from twin_nodes.discovery.candidates import SYMMETRIC_LAG, Candidate
 from twin_nodes.discovery.judging import (ALT_FRACTION, MAX_EFFECTS, MIN_REL_IMPROVEMENT, OE_MIN_CHANGE, T_CHOICE,
                                           T_CRIT, Fit, _summary)
 from twin_nodes.discovery.stages import candidates, judge
+from twin_nodes.discovery.stages.joint import in_place, merged, offer, own_params
 from twin_nodes.discovery.stages.prepare import PreparedFlight
-from twin_nodes.physics.effects import EFFECTS
 from twin_nodes.discovery.verdicts import corroboration, likely_failures
 from twin_nodes.vehicle.params import VehicleParams
 
@@ -80,9 +80,8 @@ def run(inp: SelectionInput) -> Selection:
         joint = dynamic_refits(accepted, cs.first, current) if oe is not None else []
         if joint:
             per_label.update(fit_all(joint, all_oe=True, oe_only=True))
-        joint = force_refits(accepted, cs.first, current)
-        if joint:
-            per_label.update(fit_all(joint))
+        for joint, R0_joint in offer(accepted, cs.first, per_label, eq, current):   # the accepted refitted too
+            per_label.update(fit_all(joint, R0=R0_joint))
         if cs.richer and any(f.accepted for f in per_label.get(SYMMETRIC_LAG, [])):
             per_label.update(fit_all(cs.richer, all_oe=True))
         kept = _one_per_entry(per_label, blocks)
@@ -333,21 +332,11 @@ def nominal_refits(nominal: VehicleParams, current: VehicleParams) -> list[Candi
 CONFUSABLE = ("inertia", "motor_time_constant", "actuator_delay")
 
 
-#: the force effects (equation error) refitted jointly with a drag law found after them: a thrust per unit
-#: mass fitted before the drag was known takes up part of it in the orbit's tilted flight (SIH grid s044)
-FORCE_PAIRS = (("mass", "thrust_coefficient"), ("linear_drag", "rotor_drag", "body_drag"))
-
-
 def dynamic_refits(accepted: list[Fit], cands: list[Candidate], current: VehicleParams) -> list[Candidate]:
     """Each :data:`CONFUSABLE` candidate of the round with each accepted :data:`CONFUSABLE` effect of
     another name refitted jointly (on the current vehicle, that effect's parameters free; the effects in the
     plain candidate's order, so that the model's compiled stepper is the one the round already uses)."""
     return _joint_refits(accepted, cands, current, CONFUSABLE, CONFUSABLE)
-
-
-def force_refits(accepted: list[Fit], cands: list[Candidate], current: VehicleParams) -> list[Candidate]:
-    """Each drag candidate of the round with an accepted mass or thrust coefficient refitted jointly."""
-    return _joint_refits(accepted, cands, current, FORCE_PAIRS[0], FORCE_PAIRS[1])
 
 
 def _joint_refits(accepted: list[Fit], cands: list[Candidate], current: VehicleParams, refit: tuple,
@@ -359,7 +348,7 @@ def _joint_refits(accepted: list[Fit], cands: list[Candidate], current: VehicleP
             continue
         pa = a.candidate.params_dict(a.theta)
         # its own fitted parameters (a joint refit accepted before: not the other effect's it carried)
-        own = [i for i, k in enumerate(a.candidate.param_names) if k in EFFECTS[a.candidate.name].param_names]
+        own = own_params(a)
         names = tuple(a.candidate.param_names[i] for i in own)
         x0a, loa, hia = a.theta[own], a.candidate.lower[own], a.candidate.upper[own]
         for c in cands:
@@ -369,11 +358,11 @@ def _joint_refits(accepted: list[Fit], cands: list[Candidate], current: VehicleP
             n = len(c.param_names)
 
             def build(theta, c=c, n=n, a=a, pa=pa, names=names):
-                vpa = _in_place(current, a.candidate.name, _merged(pa, names, theta[n:], a.candidate.tied))
+                vpa = in_place(current, a.candidate.name, merged(pa, names, theta[n:], a.candidate.tied))
                 return vpa.with_effect(c.name, **c.params_dict(theta[:n]))
 
             def unphysical(theta, c=c, n=n, a=a, pa=pa, names=names):
-                full = _merged(pa, names, theta[n:], a.candidate.tied)
+                full = merged(pa, names, theta[n:], a.candidate.tied)
                 return c.unphysical(theta[:n]) or a.candidate.unphysical(
                     np.array([full.get(k, 0.0) for k in a.candidate.param_names]))
             out.append(Candidate(c.name, tuple(c.param_names) + names, np.concatenate([c.x0, x0a]),
@@ -383,29 +372,18 @@ def _joint_refits(accepted: list[Fit], cands: list[Candidate], current: VehicleP
     return out
 
 
-def _merged(params: dict, names: tuple, values: np.ndarray, tied: dict) -> dict:
-    """An effect's parameters with ``names`` set to ``values`` (and those tied to them following)."""
-    out = {**params, **{k: float(v) for k, v in zip(names, values)}}
-    out.update({k: out[v] for k, v in tied.items() if v in out})
-    return out
-
-
-def _in_place(vp: VehicleParams, name: str, params: dict) -> VehicleParams:
-    """``vp`` with effect ``name``'s parameters replaced where it stands in the effect order."""
-    new = vp.with_effect(name, **params)
-    eff = dict(new.effects)
-    return new.replace(effects=tuple((n, eff[n]) for n, _ in vp.effects))
-
-
 def _carry_refit(winner: Fit, accepted: list[Fit]) -> None:
-    """Where the winner is a joint refit (:func:`dynamic_refits`), the accepted effect it refitted takes the
-    joint values (its parameters the winner's fit moved; those it held stay)."""
+    """Where the winner is a joint refit (:func:`dynamic_refits`, :mod:`.joint`), the accepted effects it
+    refitted take the joint values (their parameters the winner's fit moved; those it held stay)."""
     if " (+" not in winner.candidate.label or not winner.candidate.label.endswith(" refitted)"):
         return
     values = {k: float(v) for k, v in zip(winner.candidate.param_names, winner.theta)}
+    refits = getattr(winner.candidate, "refits", None)     # stages.joint: every accepted effect it refitted
     for a in accepted:
-        if f"(+{a.candidate.name} refitted)" in winner.candidate.label:
+        if (a.candidate.name in refits and a.kind == "equation") if refits is not None else (
+                f"(+{a.candidate.name} refitted)" in winner.candidate.label):
             a.theta = np.array([values.get(k, float(v)) for k, v in zip(a.candidate.param_names, a.theta)])
             a.vp = winner.vp
             a.refitted_jointly_with = winner.candidate.name
-            winner.joint_refit_of = a.candidate.name
+            prev = getattr(winner, "joint_refit_of", None)
+            winner.joint_refit_of = f"{prev}, {a.candidate.name}" if prev else a.candidate.name

@@ -83,6 +83,17 @@ def run(inp: GradeInput) -> Verdicts:
     return Verdicts(ranked, effects_out, acc_labels)
 
 
+def given_the_others(v: Verdicts, eq: Judge, vp: VehicleParams, accepted: list[Fit]) -> None:
+    """Each accepted equation-error effect's held-out contribution given all the others as well
+    (:func:`~twin_nodes.discovery.stages.joint.contributions`), in its ``heldout_contribution``."""
+    from twin_nodes.discovery.stages.joint import contributions
+
+    by_index = contributions(eq, vp, accepted)
+    for f, e in zip(v.ranked, v.effects):
+        if f in accepted and accepted.index(f) in by_index and "heldout_contribution" in e:
+            e["heldout_contribution"]["given_the_others"] = by_index[accepted.index(f)]
+
+
 def _instrumented_views(S: PreparedFlight, ranked: list[Fit], effects_out: list[dict]) -> None:
     """A motor lag or delay acts on every rotational axis: its held-out cut there in the
     instrument-projected error too, which the 50 Hz aliasing does not bound (reported only)."""
