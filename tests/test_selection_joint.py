@@ -153,3 +153,34 @@ def test_an_accepted_wind_with_its_drag_is_refitted_as_the_wind():
     lin = joint.linearize(SimpleNamespace(residual=residual), w.build(a.theta), [a])
     assert lin.params == [("vx", "vy")] and list(lin.theta0) == [2.0, -1.0]
     assert lin.D[:, 0] == pytest.approx(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
+
+
+def test_the_wind_offered_with_its_drag_refits_jointly_with_another_effect(monkeypatch):
+    """The wind offered with the drag it needs (a vehicle without a drag law) accepted beside another
+    equation-error effect: the joint refit builds the vehicle with the drag and the wind (before, it passed the
+    drag's size to the wind effect, which has no such parameter: a parameter error in the refit stage)."""
+    from types import SimpleNamespace
+
+    from twin_nodes.discovery.stages import refit
+    from twin_nodes.discovery.stages.selection import wind_with_drag
+    from twin_nodes.discovery.candidates import Candidate
+    from twin_nodes.vehicle.params import shipped
+
+    vp = shipped("px4_sih_quadx")
+    vp = vp.replace(effects=tuple((n, p) for n, p in vp.effects if n not in ("linear_drag", "rotor_drag", "body_drag")))
+    data = SimpleNamespace(v=np.tile([3.0, 0.0, 0.0], (50, 1)), valid=np.ones(50, bool))
+    wind = wind_with_drag(vp, data)[0]
+    theta_w = np.array([2.0, -1.0, 0.5])
+    built = wind.apply(vp, theta_w)
+    eff = {n: dict(p) for n, p in built.effects}
+    assert eff["linear_drag"]["k_n_s_m"] == pytest.approx(0.5)
+    assert (eff["wind"]["vx"], eff["wind"]["vy"]) == (pytest.approx(2.0), pytest.approx(-1.0))
+    mass = Candidate("mass", ("mass",), np.array([1.0]), np.array([0.5]), np.array([2.0]),
+                     lambda th: vp.with_effect("mass", mass=float(th[0])), {}, lambda th: True)
+    fits = [SimpleNamespace(kind="equation", candidate=wind, theta=theta_w.copy()),
+            SimpleNamespace(kind="equation", candidate=mass, theta=np.array([1.1]))]
+    monkeypatch.setattr(refit, "residual_channels", lambda d, v, nominal: np.zeros((20, 3)))
+    out = refit._joint_refit(fits, data, vp, np.ones(20, bool))
+    eff = {n: dict(p) for n, p in out.effects}
+    assert eff["linear_drag"]["k_n_s_m"] == pytest.approx(0.5) and eff["wind"]["vx"] == pytest.approx(2.0)
+    assert eff["mass"]["mass"] == pytest.approx(1.1)

@@ -54,6 +54,11 @@ class Candidate:
         order = EFFECTS[self.name].param_names
         return {k: out[k] for k in order if k in out}
 
+    def apply(self, vp: VehicleParams, theta: np.ndarray) -> VehicleParams:
+        """``vp`` with this candidate's effect at ``theta`` (a candidate that stands for more than one effect,
+        as the wind offered with the drag it needs, adds each)."""
+        return vp.with_effect(self.name, **self.params_dict(theta))
+
 
 #: the label of the one-time-constant motor lag (tau_down = tau_up)
 SYMMETRIC_LAG = "motor_time_constant(tau_up = tau_down)"

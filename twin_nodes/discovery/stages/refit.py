@@ -40,7 +40,7 @@ def _joint_refit(accepted: list[Fit], data, nominal, fit_mask) -> VehicleParams:
     base = nominal
     for f in accepted:
         if f.kind != "equation":
-            base = base.with_effect(f.candidate.name, **f.candidate.params_dict(f.theta))
+            base = f.candidate.apply(base, f.theta)
     eq_fits = [f for f in accepted if f.kind == "equation"]
     if not eq_fits:
         return base
@@ -55,7 +55,7 @@ def _joint_refit(accepted: list[Fit], data, nominal, fit_mask) -> VehicleParams:
         vpj = base
         k = 0
         for c, n in zip(cands, sizes):
-            vpj = vpj.with_effect(c.name, **c.params_dict(theta[k:k + n]))
+            vpj = c.apply(vpj, theta[k:k + n])
             k += n
         return vpj
 

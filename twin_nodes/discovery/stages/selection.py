@@ -261,6 +261,11 @@ class _JointWind(Candidate):
     def params_dict(self, theta):
         return {"vx": float(theta[0]), "vy": float(theta[1]), "gust_std": 0.0, "drag_k_n_s_m": float(theta[2])}
 
+    def apply(self, vp: VehicleParams, theta: np.ndarray) -> VehicleParams:
+        """The drag the wind needs, then the wind (the wind effect has no drag parameter of its own)."""
+        return vp.with_effect("linear_drag", k_n_s_m=float(theta[2])).with_effect(
+            "wind", vx=float(theta[0]), vy=float(theta[1]), gust_std=0.0)
+
 
 def wind_with_drag(vp: VehicleParams, data) -> list[Candidate]:
     """The joint wind + linear drag candidate where ``vp`` has no drag law (else nothing)."""
@@ -359,7 +364,7 @@ def _joint_refits(accepted: list[Fit], cands: list[Candidate], current: VehicleP
 
             def build(theta, c=c, n=n, a=a, pa=pa, names=names):
                 vpa = in_place(current, a.candidate.name, merged(pa, names, theta[n:], a.candidate.tied))
-                return vpa.with_effect(c.name, **c.params_dict(theta[:n]))
+                return c.apply(vpa, theta[:n])
 
             def unphysical(theta, c=c, n=n, a=a, pa=pa, names=names):
                 full = merged(pa, names, theta[n:], a.candidate.tied)
