@@ -166,3 +166,28 @@ def test_twin_engine_flies_px4_manual_modes_from_status_and_throttle():
     assert r.manual and r.real_throttle == pytest.approx(0.3)
     eng._apply(4_000_000, "/real/status", cv.status_msg(float("nan"), float("nan"), float("nan")))
     assert not r.manual
+
+
+def test_the_recorder_watermark_waits_for_the_slowest_live_follower():
+    """The replay's clock at 10 s, the twin's outputs at 7.5 s (a CPU-starved twin node, more than the 2 s
+    reorder lag behind): the recorder releases only up to the twin's stamp, so its next message (7.6 s) is not
+    late (before, released up to 8 s: it landed in a later MCAP chunk than 8 s of replay data, 1 overlap of 31
+    chunks on a clean-clone CI run); a follower silent for 1 s of wall time stops holding it back."""
+    from twin_nodes.nodes.engine import FollowerWatermark
+
+    s = 1_000_000_000
+    fw = FollowerWatermark(stale_s=1.0)
+    assert fw.limit(10 * s, wall_s=0.0) == 10 * s              # no follower yet: the clock
+    fw.seen("/twin/odom", int(7.5 * s), wall_s=100.0)
+    fw.seen("/twin_error/diagnostics", int(9.0 * s), wall_s=100.0)
+    assert fw.limit(10 * s, wall_s=100.2) == int(7.5 * s)
+    rb = ReorderBuffer(lag_ns=2 * s)
+    for t in (int(5.4 * s), int(7.0 * s), int(9.9 * s)):
+        rb.push(t, t)
+    rb.advance(fw.limit(10 * s, wall_s=100.2))
+    assert [t for t, _ in rb.pop_ready()] == [int(5.4 * s)]    # up to 7.5 - 2 s
+    rb.push(int(7.6 * s), "twin")
+    assert rb.late == 0
+    assert fw.limit(10 * s, wall_s=101.5) == 10 * s             # both silent for 1.5 s: the clock again
+    fw.seen("/twin/odom", int(6.0 * s), wall_s=102.0)           # stamps never go back
+    assert fw.limit(10 * s, wall_s=102.1) == int(7.5 * s)

@@ -130,6 +130,29 @@ class ReorderBuffer:
         return out
 
 
+class FollowerWatermark:
+    """The watermark a recorder may release up to: the replay's clock, but never past the latest stamp of a
+    stream computed from the replay (the twin's and the metrics' outputs, ``follower``) that is still
+    publishing, since such a stream runs behind the clock (by more than the reorder lag when its node is
+    starved of CPU: its messages then missed their place and two MCAP chunks overlapped in time).  A follower
+    silent for ``stale_s`` of wall time (finished, or gone) no longer holds the watermark back."""
+
+    def __init__(self, stale_s: float = 1.0):
+        self.stale_s = float(stale_s)
+        self._latest: dict[str, int] = {}
+        self._wall: dict[str, float] = {}
+
+    def seen(self, topic: str, t_ns: int, wall_s: float) -> None:
+        """A follower's message at stamp ``t_ns``, received at wall time ``wall_s``."""
+        self._latest[topic] = max(self._latest.get(topic, -(2 ** 62)), int(t_ns))
+        self._wall[topic] = float(wall_s)
+
+    def limit(self, clock_ns: int, wall_s: float) -> int:
+        """``clock_ns`` held back to the slowest live follower's latest stamp."""
+        live = [t for k, t in self._latest.items() if wall_s - self._wall[k] < self.stale_s]
+        return min([int(clock_ns)] + live)
+
+
 def as_float32(x: Any) -> Any:
     """What a value looks like after a ``std_msgs/Float32[MultiArray]`` round trip."""
     return np.asarray(x, dtype=np.float32).astype(float)

@@ -20,9 +20,10 @@ Message time in the bag (every message at its own time, never wall-clock time on
 - the rest (``/replay/*``, ``/twin/done``, ``/twin_error/final_*``): the latest ``/clock``,
   before the first ``/clock`` the replay's first message time (``t0_ns`` of its plan).
 
-Messages are held for ``reorder_lag_s`` (2 s) of message time and written in time order,
-so the MCAP chunks do not overlap in time (the twin's outputs come up to a second behind
-the replay).  ``exclude`` (regex) skips topics, default ``/rosout`` and
+Messages are held for ``reorder_lag_s`` (2 s) of message time behind the replay's clock, or behind the
+slowest ``/twin*`` stream still publishing where that is later (the twin's outputs come up to a second
+behind the replay, more when its node is starved of CPU), and written in time order, so the MCAP chunks
+do not overlap in time.  ``exclude`` (regex) skips topics, default ``/rosout`` and
 ``/parameter_events``.
 
 Stopping: SIGINT/SIGTERM (and the death of the process that started it, see
@@ -43,6 +44,10 @@ from typing import Any
 from msgs_py.topics import DEPTH, msg_class
 from twin_nodes.logs.recording import McapRecorder, cdr_header_stamp
 from twin_nodes.nodes.common import NS, GraphNode, ReorderBuffer, declare, run_node
+from twin_nodes.nodes.engine import FollowerWatermark
+
+#: streams computed from the replay, which run behind its clock: the twin's and the metrics' outputs
+FOLLOWER_PREFIX = "/twin"
 
 
 #: header-less topics published one-to-one with a stamped one: message k takes the stamp of message k there
@@ -70,6 +75,7 @@ class RecorderNode(GraphNode):
         self.last_msg_wall = time.monotonic()
         self.t_start_wall = time.monotonic()
         self.buf = ReorderBuffer(int(lag_s * NS))
+        self.followers = FollowerWatermark()
         self.pending: dict[str, deque] = {}
         self.index_stamps: dict[str, list[int]] = {src: [] for src in set(INDEX_STAMPS.values())}
         self.index_stamps["/twin_error/diagnostics"] = []
@@ -118,6 +124,8 @@ class RecorderNode(GraphNode):
                 t = cdr_header_stamp(data)
                 if topic in self.index_stamps:
                     self.index_stamps[topic].append(t)
+                if topic.startswith(FOLLOWER_PREFIX):
+                    self.followers.seen(topic, t, self.last_msg_wall)
                 self._push(topic, t, data)
                 return
             if self.kind[topic] == "plain" and self.timeline.has(topic) and not self.pending[topic]:
@@ -164,7 +172,9 @@ class RecorderNode(GraphNode):
         self.buf.push(t, (topic, data))
 
     def _write_ready(self, flush: bool = False) -> None:
-        self.buf.advance(self.clock_ns if self.clock_ns is not None else self.max_t)
+        # the replay's clock, held back to the slowest stream still computed from it (FollowerWatermark)
+        clock = self.clock_ns if self.clock_ns is not None else self.max_t
+        self.buf.advance(self.followers.limit(clock, time.monotonic()))
         for t, (topic, data) in self.buf.pop_ready(flush=flush):
             self.bag.write_raw(topic, data, t)
             self.n += 1
