@@ -137,15 +137,14 @@ def com_verdict(dx: float, dy: float, arm: float, support: ComSupport | None, mi
     """Whether a centre-of-mass trim (dx, dy) [m] goes into the twin, and why (the reason, or for a large
     accepted one the evidence, to append to its source): see the constants above."""
     d = math.hypot(dx, dy)
-    if support is not None:
-        edge = polygon_margin(np.array(support.x_flu_m), np.array(support.y_flu_m), dx, dy)
-        if math.isfinite(edge) and edge < COM_EDGE_ARM * arm:
-            return False, (f"{edge * 1000:.0f} mm inside the rotor polygon (needs >= {COM_EDGE_ARM:.0%} of the arm, "
-                           f"{COM_EDGE_ARM * arm * 1000:.0f} mm)")
+    edge = -math.inf if support is None else polygon_margin(np.array(support.x_flu_m), np.array(support.y_flu_m),
+                                                            dx, dy)
+    if math.isfinite(edge) and edge < COM_EDGE_ARM * arm:
+        return False, (f"{edge * 1000:.0f} mm inside the rotor polygon (needs >= {COM_EDGE_ARM:.0%} of the arm, "
+                       f"{COM_EDGE_ARM * arm * 1000:.0f} mm)")
     if max(abs(dx), abs(dy)) <= COM_FREE_ARM * arm:
         return True, ""
-    if support is None or not math.isfinite(polygon_margin(np.array(support.x_flu_m), np.array(support.y_flu_m),
-                                                           dx, dy)):
+    if not math.isfinite(edge):
         return False, f"beyond {COM_FREE_ARM:.0%} of the arm"
     spread = max((math.hypot(h[0] - dx, h[1] - dy) for h in support.halves), default=math.inf)
     held = support.seconds >= min_seconds and len(support.halves) == 2 and spread <= COM_HALVES_REL * d

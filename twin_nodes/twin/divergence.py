@@ -145,18 +145,14 @@ def _out_of_yaw_control(t: np.ndarray, q: np.ndarray, yaw_sp: np.ndarray) -> np.
     with np.errstate(invalid="ignore"):
         err = np.degrees(np.abs(np.angle(np.exp(1j * (_yaw(q) - yaw_sp)))))
         off, near = err > YAW_ERR_DEG, err <= YAW_HELD_DEG
-    out = np.zeros(t.shape, bool)
-    lost, held_since = False, None
-    for k in range(t.size):
-        if off[k]:
-            lost, held_since = True, None
-        elif lost and near[k]:
-            held_since = t[k] if held_since is None else held_since
-            lost = t[k] - held_since < YAW_SUSTAIN_S
-        else:
-            held_since = None
-        out[k] = lost
-    return out
+    idx = np.arange(t.size)
+    # the start of the run of "near" samples each sample is in, and where such a run has lasted long enough
+    starts = np.maximum.accumulate(np.where(near & ~np.r_[False, near[:-1]], idx, -1))
+    back = near & (t - t[np.maximum(starts, 0)] >= YAW_SUSTAIN_S)
+    # out of control since the last sample off the setpoint, unless back in control since then
+    last_off = np.maximum.accumulate(np.where(off, idx, -1))
+    last_back = np.maximum.accumulate(np.where(back, idx, -1))
+    return (last_off >= 0) & (last_back < last_off)
 
 
 def detect(run: Any, log: Any, xy_controlled=None, z_controlled=None, t0: float | None = None,

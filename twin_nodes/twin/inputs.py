@@ -48,12 +48,12 @@ def log_inputs(log, rate_hz: float, t0: float | None = None, t1: float | None = 
     # descents, 25 Hz, the held acceleration left the twin's braking 0.2-0.5 of full throttle off for a fraction
     # of a second: 4.8 % held-out throttle RMSE with the exact plant).  Long gaps (SETPOINT_GAP_S) were
     # bridged so before.  The live twin, which has no next sample, carries the last one (TwinRunner).
-    for key in SETPOINT_BETWEEN_KEYS:
+    for key in SETPOINT_BETWEEN_KEYS if between_samples else ("setpoint_position_enu",):
         s = log.get(key)
         if s is not None and len(s) > 1 and key in data:
-            gap = 0.0 if between_samples else (SETPOINT_GAP_S if key == "setpoint_position_enu" else np.inf)
-            data[key] = bridge_setpoint_gaps(s.t_s, s.values, grid, data[key], min_gap_s=gap).reshape(
-                np.shape(data[key]))
+            data[key] = bridge_setpoint_gaps(s.t_s, s.values, grid, data[key],
+                                             min_gap_s=0.0 if between_samples else SETPOINT_GAP_S
+                                             ).reshape(np.shape(data[key]))
     # PX4's own attitude/rate setpoints and offboard flags, for the modes without a position
     # controller: on the same grid (they do not shorten it), NaN before their first sample
     for n in MODE_INPUTS:
