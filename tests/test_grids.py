@@ -38,6 +38,19 @@ def test_rotorpy_grid_manifest_is_the_declaration():
     assert set(grid_rotorpy.ISSUE_PAIRS) <= pairs
 
 
+def test_second_batches_are_their_declarations_and_all_judging():
+    b = grid_rotorpy.declare_batch2()
+    assert grid_rotorpy.load_grid(half="judge2") == b and len(b) == 41
+    assert {f.half for f in b} == {"judge2"} and not {f.id for f in b} & {f.id for f in grid_rotorpy.load_grid()}
+    assert Counter(f.stratum for f in b)["two effects"] == 22 and set(grid_rotorpy.EFFECTS) <= {
+        n for f in b for n, _ in f.effects}
+    rows = grid_sih.declare_batch2()
+    flights = grid_sih.load_grid(half="judge2")
+    assert [r["id"] for r in rows] == list(flights) and {f["half"] for f in flights.values()} == {"judge2"}
+    combos = [r["group"] for r in rows if "+" in r["group"]]
+    assert len(combos) == 10 and not {tuple(c.split("+")) for c in combos} & set(grid_sih.COMBOS)
+
+
 def test_rotorpy_grid_truths_in_physical_units():
     qp = grid_rotorpy.rf.rotorpy_params("crazyflie")
     lag = grid_rotorpy.plant_change("motor_time_constant", 2, qp, 1)

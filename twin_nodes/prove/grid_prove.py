@@ -144,7 +144,7 @@ def rotorpy_jobs(half: str, cache: Path) -> tuple[list, list[str]]:
     from twin_nodes.prove import grid_rotorpy as g
 
     jobs, missing = [], []
-    for f in g.load_grid():
+    for f in g.load_grid(half=half):
         if half != "all" and f.half != half:
             continue
         p, meta = cache / f"{f.id}.ulg", cache / f"{f.id}.meta.json"
@@ -159,7 +159,7 @@ def sih_jobs(half: str, cache: Path) -> tuple[list, list[str]]:
     from twin_nodes.prove import grid_sih as g
 
     jobs, missing = [], []
-    for fid, fl in g.load_grid().items():
+    for fid, fl in g.load_grid(half=half).items():
         if half != "all" and fl["half"] != half:
             continue
         p = cache / fid / "flight.ulg"
@@ -286,7 +286,7 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(prog="python -m twin_nodes.prove.grid_prove")
     ap.add_argument("--source", choices=["rotorpy", "px4sih"], required=True)
-    ap.add_argument("--half", choices=["tuning", "judging", "all"], required=True)
+    ap.add_argument("--half", choices=["tuning", "judging", "judge2", "all"], required=True)
     ap.add_argument("--out", required=True)
     ap.add_argument("--cache", default=str(CACHE))
     ap.add_argument("--reuse", action="store_true", help="re-score a flight's result already in --out")

@@ -37,6 +37,9 @@ from twin_nodes.twin.simflight import Hidden
 
 GRID_SEED = 26
 GRID_PATH = Path(__file__).resolve().parent / "grids" / "rotorpy_grid.yaml"
+#: a second, judging-only batch declared 2026-11-27 (fifth session) before that session changed anything
+BATCH2_SEED = 2727
+BATCH2_PATH = Path(__file__).resolve().parent / "grids" / "rotorpy_grid_batch2.yaml"
 VEHICLES = ("crazyflie", "px4_sihsim_quadx")   # RotorPy's Crazyflie (30 g) and its 1.0 kg PX4 SIH quad preset
 MISSION_KINDS = {"RP1": "waypoints", "RP2": "figure-eight", "RP3": "circle", "RP4": "hover with yaw",
                  "RP5": "fast descents"}
@@ -127,13 +130,33 @@ def _split(flights: list[GridFlight], rng: np.random.Generator) -> list[GridFlig
     return [GridFlight(f.id, f.vehicle, f.mission, f.effects, f.seed, half[i]) for i, f in enumerate(flights)]
 
 
-def write_manifest(path: str | Path = GRID_PATH, seed: int = GRID_SEED) -> Path:
+def declare_batch2(seed: int = BATCH2_SEED) -> list[GridFlight]:
+    """A fresh judging batch of the same kinds: each effect once at a drawn magnitude on a drawn vehicle (13),
+    22 two-effect pairs drawn from every pair of different classes at the middle magnitude (as the grid's),
+    6 no-effect flights; missions drawn.  All of it is judging ("judge2"): nothing here is tuned on."""
+    rng = np.random.default_rng(seed)
+    kinds = list(MISSION_KINDS)
+    rows: list[tuple[str, str, tuple]] = []
+    for name in EFFECTS:
+        rows.append((VEHICLES[int(rng.integers(2))], kinds[int(rng.integers(5))], ((name, int(rng.integers(3))),)))
+    pool = [p for p in itertools.combinations(EFFECTS, 2) if set(p) not in _SAME_CLASS]
+    for i in rng.choice(len(pool), size=22, replace=False):
+        a, b = pool[int(i)]
+        rows.append((VEHICLES[int(rng.integers(2))], kinds[int(rng.integers(5))], ((a, 1), (b, 1))))
+    for j in range(6):
+        rows.append((VEHICLES[j % 2], kinds[int(rng.integers(5))], ()))
+    return [GridFlight(f"q{i + 1:03d}", v, m, eff, int(seed * 1000 + i + 1), "judge2")
+            for i, (v, m, eff) in enumerate(rows)]
+
+
+def write_manifest(path: str | Path = GRID_PATH, seed: int = GRID_SEED, batch2: bool = False) -> Path:
     """Write the declared grid as YAML (effects with their magnitudes in physical units, the truth, the half)."""
     import yaml
 
-    flights = declare(seed)
+    flights = declare_batch2(seed) if batch2 else declare(seed)
     doc = {"grid": "rotorpy", "issue": 26, "seed": seed, "generator": "twin_nodes/prove/grid_rotorpy.py",
-           "declared": "before any tuning; halves drawn per stratum by the seed",
+           "declared": ("2026-11-27, before the fifth session changed anything; every flight judging (judge2)"
+                        if batch2 else "before any tuning; halves drawn per stratum by the seed"),
            "vehicles": list(VEHICLES), "missions": MISSION_KINDS, "levels": {k: list(v) for k, v in LEVELS.items()},
            "flights": []}
     for f in flights:
@@ -144,15 +167,18 @@ def write_manifest(path: str | Path = GRID_PATH, seed: int = GRID_SEED) -> Path:
                                "truth": truths, "logging": "rotorpy_px4like", "seed": f.seed, "half": f.half})
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text("# Declared RotorPy grid of issue 26, written by `python -m twin_nodes.prove.grid_rotorpy declare`\n"
+    cmd = "declare-batch2" if batch2 else "declare"
+    p.write_text(f"# Declared RotorPy grid of issue 26, written by `python -m twin_nodes.prove.grid_rotorpy {cmd}`\n"
                  "# before any tuning. Do not edit by hand: prove reads the halves from here.\n"
                  + yaml.safe_dump(doc, sort_keys=False, width=140))
     return p
 
 
-def load_grid(path: str | Path = GRID_PATH) -> list[GridFlight]:
+def load_grid(path: str | Path | None = None, half: str = "") -> list[GridFlight]:
     """The declared grid from its manifest."""
 
+    if path is None:
+        path = BATCH2_PATH if half == "judge2" else GRID_PATH
     doc = read_yaml_file(path, "grid manifest")
     return [GridFlight(d["id"], d["vehicle"], d["mission"], tuple((n, int(lv)) for n, lv in d["effects"]),
                        int(d["seed"]), d["half"]) for d in doc["flights"]]
@@ -407,15 +433,18 @@ def main(argv=None) -> int:
     import time
 
     ap = argparse.ArgumentParser(prog="python -m twin_nodes.prove.grid_rotorpy")
-    ap.add_argument("command", choices=["declare", "fly"])
+    ap.add_argument("command", choices=["declare", "declare-batch2", "fly"])
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "rotortwin" / "grids" / "rotorpy"))
-    ap.add_argument("--half", choices=["tuning", "judging", "all"], default="all")
+    ap.add_argument("--half", choices=["tuning", "judging", "judge2", "all"], default="all")
     ap.add_argument("--ids", nargs="*", help="only these flights, in this order")
     a = ap.parse_args(argv)
     if a.command == "declare":
         print(write_manifest())
         return 0
-    grid = load_grid()
+    if a.command == "declare-batch2":
+        print(write_manifest(BATCH2_PATH, BATCH2_SEED, batch2=True))
+        return 0
+    grid = load_grid(half=a.half) + ([] if a.half != "all" else load_grid(half="judge2"))
     if a.ids:
         by_id = {f.id: f for f in grid}
         grid = [by_id[i] for i in a.ids if i in by_id]

@@ -17,6 +17,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 GRID_SEED = 2626
 GRID_PATH = REPO / "missions" / "sih_grid" / "manifest.yaml"
+#: a second, judging-only batch declared 2026-11-27 (fifth session) before that session changed anything
+BATCH2_SEED = 2727
+BATCH2_PATH = REPO / "missions" / "sih_grid" / "batch2.yaml"
 BASE = REPO / "missions" / "sih_effects" / "manifest.yaml"
 #: each SIH parameter group that changes the physics, at two magnitudes (PX4 SIH defaults in sih_flight.SIH_DEFAULTS)
 GROUPS = {
@@ -79,7 +82,40 @@ def declare(seed: int = GRID_SEED) -> list[dict]:
     return rows
 
 
-def load_grid(path: str | Path = GRID_PATH) -> dict:
+def declare_batch2(seed: int = BATCH2_SEED) -> list[dict]:
+    """A fresh judging batch: 10 single-group flights (groups drawn, magnitude, mission and logging drawn), 10
+    two-group combinations not among :data:`COMBOS` (drawn from the pairs of different classes; first
+    magnitude, as the grid's), 4 no-effect flights.  All judging ("judge2")."""
+    rng = np.random.default_rng(seed)
+    names = list(GROUPS)
+    missions = sorted(MISSIONS)
+    rows = []
+    for i in rng.choice(len(names), size=10, replace=False):
+        g = names[int(i)]
+        rows.append({"group": g, "sih": dict(GROUPS[g][int(rng.integers(2))]),
+                     "mission": missions[int(rng.integers(len(missions)))],
+                     "logging": ("default", "highrate")[int(rng.integers(2))]})
+    same = ({"MASS", "T_MAX"}, {"IXX_IYY", "IZZ"}, {"L_ROLL", "L_PITCH"})
+    pool = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]
+            if {a, b} not in same and (a, b) not in COMBOS and (b, a) not in COMBOS]
+    for i in rng.choice(len(pool), size=10, replace=False):
+        a, b = pool[int(i)]
+        rows.append({"group": f"{a}+{b}", "sih": {**GROUPS[a][0], **GROUPS[b][0]},
+                     "mission": missions[int(rng.integers(len(missions)))],
+                     "logging": ("default", "highrate")[int(rng.integers(2))]})
+    for j in range(4):
+        rows.append({"group": "none", "sih": {}, "mission": missions[int(rng.integers(len(missions)))],
+                     "logging": ("default", "highrate")[j % 2]})
+    for i, r in enumerate(rows):
+        r["id"] = f"t{i + 1:03d}"
+        r["half"] = "judge2"
+        r["seed"] = int(seed * 100 + i + 1)
+    return rows
+
+
+def load_grid(path: str | Path | None = None, half: str = "") -> dict:
+    if path is None:
+        path = BATCH2_PATH if half == "judge2" else GRID_PATH
 
     return read_yaml_file(path, "grid manifest")["flights"]
 
