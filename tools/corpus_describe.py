@@ -5,7 +5,9 @@
 Reads only the log's own header, parameters and a few topics with pyulog: hardware and uuid, the
 airframe (SYS_AUTOSTART, MAV_TYPE), rotor count (CA_ROTOR_COUNT where present, else the motor
 outputs that move while armed), the PX4 release (``ver_sw_release`` decoded), the nav_state set,
-the armed duration and whether the vehicle left the ground (land detector, else height change).
+the armed duration and whether the vehicle left the ground (land detector, else height change; a
+vehicle whose tilt never moves, standard deviation under 0.2 deg, and whose height moves under 1.5 m
+was held on a stand or tether: not airborne, whatever the land detector says).
 It runs nothing of rotortwin.  An unreadable file is a line with its one-line error.
 """
 from __future__ import annotations
@@ -80,25 +82,51 @@ def _moving_outputs(ulog, t0, t1):
     return best[0], best[2]
 
 
+def _span(data, t0, t1):
+    return (data["timestamp"] >= (t0 or 0)) & (data["timestamp"] <= (t1 or 2**63))
+
+
+def _tilt_sd_deg(ulog, t0, t1):
+    """Standard deviation of the tilt (deg) while armed; nan without vehicle_attitude."""
+    q = _topic(ulog, "vehicle_attitude")
+    if q is None or "q[1]" not in q or not _span(q, t0, t1).any():
+        return float("nan")
+    sel = _span(q, t0, t1)
+    q1, q2 = q["q[1]"][sel], q["q[2]"][sel]
+    return float(np.degrees(np.arccos(np.clip(1 - 2 * (q1 * q1 + q2 * q2), -1, 1))).std())
+
+
+def _height_range_m(ulog, t0, t1):
+    lp = _topic(ulog, "vehicle_local_position")
+    if lp is None or "z" not in lp or not _span(lp, t0, t1).any():
+        return float("nan")
+    z = lp["z"][_span(lp, t0, t1)]
+    return float(np.nanmax(z) - np.nanmin(z))
+
+
+#: a vehicle whose tilt stays this still while armed (deg, standard deviation) and whose height moves
+#: less than 1.5 m is held (a stand, a tether, weights): hand-flown and mission flights measured 0.46-15
+#: deg, the held/bench runs 0.01-0.09 deg (docs/corpus.md, batch 4)
+HELD_TILT_SD_DEG = 0.2
+
+
 def _airborne(ulog, t0, t1):
+    """Land detector (else a height change > 1.5 m) -- unless the vehicle was held still."""
+    dz, tilt_sd = _height_range_m(ulog, t0, t1), _tilt_sd_deg(ulog, t0, t1)
+    if tilt_sd < HELD_TILT_SD_DEG and not dz > 1.5:
+        return False
     land = _topic(ulog, "vehicle_land_detected")
     if land is not None and "landed" in land:
-        sel = (land["timestamp"] >= (t0 or 0)) & (land["timestamp"] <= (t1 or 2**63))
+        sel = _span(land, t0, t1)
         if sel.any() and (land["landed"][sel] == 0).any():
             return True
-    lp = _topic(ulog, "vehicle_local_position")
-    if lp is not None and "z" in lp:
-        sel = (lp["timestamp"] >= (t0 or 0)) & (lp["timestamp"] <= (t1 or 2**63))
-        z = lp["z"][sel]
-        if z.size and np.nanmax(z) - np.nanmin(z) > 1.5:
-            return True
-    return False
+    return dz > 1.5
 
 
 def describe(path: str) -> dict:
     from pyulog import ULog
     topics = ["vehicle_status", "actuator_motors", "actuator_outputs", "vehicle_land_detected",
-              "vehicle_local_position"]
+              "vehicle_local_position", "vehicle_attitude"]
     u = ULog(path, topics, disable_str_exceptions=True)
     info, p = u.msg_info_dict, u.initial_parameters
     t0, t1, st = _armed_span(u)
@@ -118,6 +146,7 @@ def describe(path: str) -> dict:
         "armed_s": round((t1 - t0) / 1e6, 1) if t0 else 0.0,
         "log_s": round((u.last_timestamp - u.start_timestamp) / 1e6, 1),
         "airborne": _airborne(u, t0, t1),
+        "height_range_m": round(_height_range_m(u, t0, t1), 2), "tilt_sd_deg": round(_tilt_sd_deg(u, t0, t1), 2),
         "has_gps_vel": _topic(u, "vehicle_local_position") is not None,
     }
 
