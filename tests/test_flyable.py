@@ -13,6 +13,7 @@ import contextlib
 import io
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import shared_log
 
@@ -117,3 +118,39 @@ def test_never_left_the_ground_is_named(tmp_path):
     with pytest.raises(LogError, match=r"vehicle_local_position\.z: never left the ground: expected it to rise at "
                                        r"least 0\.5 m above where it took off \(or landed, for a log started in the air\), it rose 0\.\d\d m"):
         read_flight(f)
+
+
+def test_held_still_is_named_even_when_the_baro_drifts():
+    """A vehicle on a stand (the fleet's 21 Jun log_62: tilt s.d. 0.02 deg while the land detector calls it
+    airborne) whose height estimate drifts over the 0.5 m rise: refused as held still, not flown.  Corpus
+    batch 4's held motor run jmh_v3_d04 rose 0.50 m on its baro alone and failed with 'rotors cannot lift'."""
+    log = read_ulog(shared_log("fleet_quadx_v6c", "DritterFlugtag/log_62_2023-6-21-08-32-30.ulg"))
+    iv = log.airborne_intervals()
+    from twin_nodes.logs.flyable import tilt_sd_deg
+    assert tilt_sd_deg(log, iv) == pytest.approx(0.02, abs=0.015)
+    pos = log.get("position_enu")
+    a, b = iv[0]
+    inside = (pos.t_s >= a) & (pos.t_s <= b)
+    pos.values[inside, 2] += np.linspace(0.0, 1.0, int(inside.sum()))   # a 1.0 m drift: past the rise check
+    with pytest.raises(LogError, match=r"vehicle_attitude\.q: never left the ground: held still, .* its tilt varied "
+                                       r"by 0\.0\d deg .* it rose 1\.\d\d m"):
+        check_flyable(log, horizontal=False)
+
+
+def test_tilt_sd_closed_form():
+    """Tilt of a w-x-y-z quaternion: alternating 0 and 2 deg roll -> s.d. 1 deg."""
+    from types import SimpleNamespace
+
+    from twin_nodes.logs.flyable import tilt_sd_deg
+    ang = np.radians(np.tile([0.0, 2.0], 50))
+    q = np.stack([np.cos(ang / 2), np.sin(ang / 2), 0 * ang, 0 * ang], axis=1)
+    log = SimpleNamespace(get=lambda name: _Series(np.arange(100) * 0.1, q) if name == "attitude_q" else None)
+    assert tilt_sd_deg(log, [(0.0, 10.0)]) == pytest.approx(1.0, rel=1e-9)
+
+
+class _Series:
+    def __init__(self, t, v):
+        self.t_s, self.values = t, v
+
+    def __len__(self):
+        return len(self.t_s)

@@ -50,6 +50,7 @@ def survey_flight(path: str | Path, params: str | Path | None = None) -> dict:
     res.pop("_series", None)
     before = res["baseline"]["closed_loop_heldout"]
     after = res["after"]["closed_loop_heldout"]
+    _check_scored(path, before)
     eq_b = res["baseline"]["equation_error_heldout"]
     eq_a = res["after"]["equation_error_heldout"]
 
@@ -73,6 +74,17 @@ def survey_flight(path: str | Path, params: str | Path | None = None) -> dict:
     }
 
 
+def _check_scored(path, m: dict) -> None:
+    """A held-out window with nothing scored in it (all of it take-off or touchdown: a hop whose last 35 %
+    is its landing) is a flight too short for the survey, said as such rather than a row of blanks."""
+    x = m.get("throttle_rmse")
+    if not (isinstance(x, (int, float)) and math.isfinite(x)):
+        a, b = (m.get("interval_s") or (math.nan, math.nan))[:2]
+        raise LogError(path, "held-out window", f"too short: expected airborne samples to score in the held-out "
+                       f"last 35 % ({a:.1f}-{b:.1f} s), every one is take-off or touchdown (within 0.5 m of the "
+                       f"ground); the flight is a hop")
+
+
 def _has_horizontal(log) -> bool:
     """Horizontal velocity in enough of the airborne flight for discovery's horizontal equations."""
     from twin_nodes.logs.flyable import MIN_HORIZONTAL_FRACTION, _finite_fraction
@@ -91,6 +103,7 @@ def _nominal_only_row(path, log, vp, params_file, note, t_start: float) -> dict:
     a, b = iv[0][0], iv[-1][1]
     t_split = a + (1.0 - HELDOUT_FRACTION) * (b - a)
     m = _closed_loop_twin(log, vp, t_split, b)
+    _check_scored(path, m)
     row_m = {k: m.get(k) for k in ROW_KEYS}
     return {"flight": Path(path).stem, "path": str(path), "status": "ok", "params": params_file.name,
             "params_note": note or "given", "accepted": [],

@@ -10,6 +10,9 @@ the logs that load but are no usable flight:
 - **never left the ground**: "airborne" by the land detector but never :data:`MIN_RISE_M` above where it
   took off (a hop in ground effect, a held or tethered vehicle: the fleet's 7 Jun log_13 sits at full
   throttle 0.25 m up; a twin flown on it climbs away, and none of it could be scored);
+- **held still**: "airborne" by the land detector, rose less than :data:`HELD_RISE_M`, and its tilt never
+  moved (standard deviation under :data:`HELD_TILT_SD_DEG`): a vehicle on a stand, tethered or held for a
+  motor run (batch 4 of the corpus: 15 such runs, one rose 0.50 m on its baro drift alone);
 - **without GPS** / **without horizontal velocity**: the EKF's horizontal position and/or velocity
   (``vehicle_local_position.xy_valid`` / ``v_xy_valid``) invalid in more than
   ``1 - MIN_HORIZONTAL_FRACTION`` of the airborne samples (the fleet's 21 Jun log_59 and log_65:
@@ -31,7 +34,8 @@ import numpy as np
 from twin_nodes.base.errors import LogError
 from twin_nodes.logs.ulog_io import FlightLog, read_ulog
 
-__all__ = ["check_flyable", "read_flight", "MIN_LOG_S", "MIN_AIRBORNE_S", "MIN_RISE_M", "MIN_HORIZONTAL_FRACTION"]
+__all__ = ["check_flyable", "read_flight", "tilt_sd_deg", "MIN_LOG_S", "MIN_AIRBORNE_S", "MIN_RISE_M",
+           "HELD_TILT_SD_DEG", "HELD_RISE_M", "MIN_HORIZONTAL_FRACTION"]
 
 #: a log whose position samples span less than this [s] is too short for any command
 MIN_LOG_S = 5.0
@@ -39,6 +43,11 @@ MIN_LOG_S = 5.0
 MIN_AIRBORNE_S = 2.0
 #: rose less than this [m] above its take-off height in all (the metrics' ground margin): never left the ground
 MIN_RISE_M = 0.5
+#: a vehicle whose tilt stays this still while "airborne" (standard deviation [deg]) and that rose less than
+#: HELD_RISE_M was held (a stand, a tether, weights): real hand-flown and mission flights of the corpus measure
+#: 0.46-15 deg, held motor runs 0.01-0.09 deg (docs/corpus.md, batch 4; tools/corpus_describe.py, same rule)
+HELD_TILT_SD_DEG = 0.2
+HELD_RISE_M = 1.5
 #: horizontal position/velocity finite in less than this fraction of the airborne samples: refused
 MIN_HORIZONTAL_FRACTION = 0.25
 
@@ -71,6 +80,22 @@ def _max_rise(pos, intervals: list[tuple[float, float]]) -> float | None:
         r = float(z.max() - ground)
         best = r if best is None else max(best, r)
     return best
+
+
+def tilt_sd_deg(log: FlightLog, intervals: list[tuple[float, float]]) -> float | None:
+    """Standard deviation of the tilt [deg] (body up from world up) over the intervals; None without attitude."""
+    q = log.get("attitude_q")
+    if q is None or len(q) < 2:
+        return None
+    inside = np.zeros(len(q), bool)
+    for a, b in intervals:
+        inside |= (q.t_s >= a) & (q.t_s <= b)
+    v = q.values[inside]
+    v = v[np.all(np.isfinite(v), axis=1)]
+    if len(v) < 2:
+        return None
+    c = 1.0 - 2.0 * (v[:, 1] ** 2 + v[:, 2] ** 2)   # cos(tilt) of a w-x-y-z quaternion between z-up frames
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))).std())
 
 
 def _finite_fraction(log: FlightLog, name: str, cols: slice, intervals: list[tuple[float, float]]) -> float:
@@ -117,6 +142,13 @@ def check_flyable(log: FlightLog, *, airborne: bool = True, horizontal: bool = T
                        f"airborne "
                        f"(a hop in ground effect, a held or tethered vehicle, a bench test, or a height estimate that "
                        f"never moved)")
+    tilt = tilt_sd_deg(log, iv)
+    if tilt is not None and tilt < HELD_TILT_SD_DEG and not (rise is not None and rise >= HELD_RISE_M):
+        raise LogError(path, "vehicle_attitude.q",
+                       f"never left the ground: held still, expected a vehicle in free flight to tilt, its tilt "
+                       f"varied by {tilt:.2f} deg (s.d.; flights measure 0.46 deg and more) over the {air:.1f} s "
+                       f"'{_airborne_source(log)[0]}' calls airborne, and it rose "
+                       f"{'an unknown height' if rise is None else f'{rise:.2f} m'} (a stand, tether or held motor run)")
     if not horizontal:
         return log
     p_ok = _finite_fraction(log, "position_enu", slice(0, 2), iv)
