@@ -54,6 +54,25 @@ def test_mass_and_thrust_coefficient_are_one_class_compared_as_thrust_per_mass()
     assert compare(t, "yaw_moment", {"km": 0.03}, vp)[0] == math.inf
 
 
+def test_a_wind_and_a_com_offset_are_scored_as_vectors():
+    vp = shipped("px4_sih_quadx")
+    # a 3.5 m/s wind 6.4 degrees off the y axis, found 0.26 m/s off: 7.4 % of its speed, although its small x
+    # component is 57 % off
+    t = Truth(Hidden("wind", {"vx": 0.39, "vy": 3.48, "gust_std": 0.35}))
+    err, text = compare(t, "wind", {"vx": 0.167, "vy": 3.61, "gust_std": 0.0}, vp)
+    assert err == pytest.approx(math.hypot(0.223, 0.13) / math.hypot(0.39, 3.48), rel=1e-9)
+    assert err < 0.10 and "|error|/|truth|" in text
+    # the gust level is reported, not scored; a missing component is no finding of the vector
+    assert compare(t, "wind", {"vx": 0.39, "vy": 3.48, "gust_std": 3.0}, vp)[0] == pytest.approx(0.0, abs=1e-12)
+    assert compare(t, "wind", {"vx": 0.39}, vp)[0] == math.inf
+    # a CoM offset: |(3, 4) mm off| over |(30, 40) mm| = 10 %
+    c = Truth(Hidden("com_offset", {"dx": 0.03, "dy": 0.04}))
+    assert compare(c, "com_offset", {"dx": 0.033, "dy": 0.044}, vp)[0] == pytest.approx(0.1, rel=1e-9)
+    # other effects keep the largest relative error over their parameters
+    i = Truth(Hidden("inertia", {"ixx": 0.025, "iyy": 0.03, "izz": 0.03}))
+    assert compare(i, "inertia", {"ixx": 0.0275, "iyy": 0.03, "izz": 0.03}, vp)[0] == pytest.approx(0.1, rel=1e-9)
+
+
 def test_drag_laws_are_one_class_compared_by_the_work_they_do_on_the_flight():
     vp = shipped("px4_sih_quadx")  # nominal linear_drag 1.0
     rng = np.random.default_rng(0)
