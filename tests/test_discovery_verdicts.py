@@ -562,3 +562,23 @@ def test_each_roll_pitch_inertia_axis_stands_on_its_own_evidence(tmp_path, chang
     tests = _axis_tests(S, g)
     assert set(tests) == {"ixx", "iyy"}
     assert {a for a, (t, _) in tests.items() if t > T_CRIT} == resolved, tests
+
+
+def test_the_explained_share_is_read_over_the_channels_the_candidate_changes():
+    from twin_nodes.discovery.judging import _own_channel_cut
+    rng = np.random.default_rng(3)
+    # four motor channels with a yaw error the candidate removes, two force channels of accelerometer noise
+    # it cannot touch: over all six channels the cut is diluted, over its own four it is 1 - 0.5 = 50 %
+    R0 = np.column_stack([np.full(400, 0.02), np.full(400, -0.02), np.full(400, 0.02), np.full(400, -0.02),
+                          rng.normal(0, 0.05, (400, 2))])
+    R1 = R0.copy()
+    R1[:, :4] *= 0.5
+    assert _own_channel_cut(R0, R1) == pytest.approx(0.5, abs=1e-12)
+    whole = 1 - np.sqrt(np.mean(R1 ** 2)) / np.sqrt(np.mean(R0 ** 2))
+    assert whole < 0.25
+    # a candidate that moves every channel, or none: no own-channel number (the whole residual decides)
+    assert _own_channel_cut(R0, 0.9 * R0) is None and _own_channel_cut(R0, R0.copy()) is None
+    f = Fit(None, np.zeros(1), None, 0.0, 0.0, np.zeros(6), 4.0, 100, float(whole), True)
+    assert f.explains == pytest.approx(whole)
+    f.own_cut = 0.5
+    assert f.explains == 0.5 and f.rel_improvement == pytest.approx(whole)
