@@ -345,3 +345,27 @@ def test_drag_beside_a_thrust_standing_for_a_mass_is_read_per_unit_mass():
     res = {"effects": [_eff("mass", {"mass": 1.15}), _eff("linear_drag", {"k_n_s_m": 1.28})]}
     r = grid_prove.score_grid_flight("f", truths, res, vp)
     assert r["param_errors"]["linear_drag"] == pytest.approx(abs(1.28 / 1.5 - 1), rel=1e-9) and not r["passed"]
+
+
+def test_wind_offered_on_a_hover_where_the_vehicle_has_a_drag():
+    """A hovering vehicle in a steady wind has airspeed though it has no ground speed: the wind is a
+    candidate wherever the nominal has a drag law (the drags themselves need the flight's own speed)."""
+    from twin_nodes.discovery.candidates import build_candidates
+
+    vp = shipped("px4_sih_quadx")
+    assert any(n == "linear_drag" for n, _ in vp.effects)
+
+    def names(speed):
+        data = SimpleNamespace(v=np.tile([[speed, 0.0, 0.0]], (100, 1)), valid=np.ones(100, bool),
+                               motor_dt_s=0.02, dt=0.02, height=np.full(100, 10.0), battery_v=np.full(100, np.nan))
+        return {c.name for c in build_candidates(vp, data)}
+    hover, cruise = names(0.1), names(5.0)
+    assert "wind" in hover and not {"rotor_drag", "body_drag"} & hover
+    assert {"wind", "rotor_drag", "body_drag"} <= cruise
+    bare = vp.replace(effects=tuple(e for e in vp.effects if e[0] != "linear_drag"))
+    data = SimpleNamespace(v=np.zeros((100, 3)), valid=np.ones(100, bool), motor_dt_s=0.02, dt=0.02,
+                           height=np.full(100, 10.0), battery_v=np.full(100, np.nan))
+    assert "wind" not in {c.name for c in build_candidates(bare, data)}
+    # the wind's floor: 0.3 m/s
+    w = next(c for c in build_candidates(vp, data) if c.name == "wind")
+    assert w.floor(np.array([0.2, 0.25])) and not w.floor(np.array([0.2, 0.2]))
