@@ -369,3 +369,22 @@ def test_wind_offered_on_a_hover_where_the_vehicle_has_a_drag():
     # the wind's floor: 0.3 m/s
     w = next(c for c in build_candidates(vp, data) if c.name == "wind")
     assert w.floor(np.array([0.2, 0.25])) and not w.floor(np.array([0.2, 0.2]))
+
+
+def test_a_lag_the_rate_loop_prefers_is_named_beside_a_delay():
+    """On a 50 Hz PX4 log the flight's own residuals may name a delay where the motors are slow: PX4's rate loop,
+    flown without that delay, reads a lag that fits its held-out windows better than an extra delay; the lag is
+    then the delay's not-told-apart partner, with the manoeuvre that separates them, and the delay is kept."""
+    from twin_nodes.discovery.stages.instrument import _beside_the_delay
+
+    delay = {"name": "actuator_delay", "verdict": "confirmed", "verdict_note": "t=5.5 over 26 held-out blocks",
+             "params": {"delay": 0.0708}, "alternatives": []}
+    r = {"tau_fold1": 0.128, "tau": 0.131, "se": 0.004, "model_tau": 0.05,
+         "heldout_sse": {"lag": 812.0, "delay": 955.0, "model": 1400.0}}
+    out = _beside_the_delay(r, {"verdict": "likely"}, delay)
+    assert out["verdict"].startswith("named beside the delay")
+    assert delay["params"] == {"delay": 0.0708} and delay["verdict"] == "confirmed"
+    pair = delay["not_told_apart"]
+    assert pair["with"] == {"name": "motor_time_constant", "params": {"tau_up": 0.128, "tau_down": 0.128}}
+    assert pair["manoeuvre"] == "rate_doublets" and pair["plan_flyable"]
+    assert "0.131 +- 0.004 s" in delay["verdict_note"] and "812 vs 955" in delay["verdict_note"]

@@ -453,8 +453,14 @@ def _rate_loop_lag(S: PreparedFlight, current: VehicleParams, effects_out: list[
     SIH_T_TAU 0.09 s on a 50 Hz log, where lag and delay cut the output error 9-10 %).  The entry
     replaces the flight's own ``motor_time_constant`` (kept as its residuals), re-sorted by grade.
     Returns the numbers for the result (None: not looked at)."""
+    delay = None
     if any(name in MOTOR_DYNAMICS for name, _ in current.effects):
-        return None
+        # a delay found on the flight's own residuals (on a 50 Hz log they cannot tell it from a lag): the
+        # rate loop reads the lag on the vehicle without it, and a lag it prefers is named beside the delay
+        delay = next((e for e in effects_out if e["name"] == "actuator_delay" and e["verdict"] != "rejected"), None)
+        if delay is None or {n for n, _ in current.effects if n in MOTOR_DYNAMICS} != {"actuator_delay"}:
+            return None
+        current = current.replace(effects=tuple(e for e in current.effects if e[0] != "actuator_delay"))
     r = rate_loop.motor_lag(S.data, S.log_params, current, S.t_split, S.t_split2)
     if r is None:
         return None
@@ -488,7 +494,29 @@ def _rate_loop_lag(S: PreparedFlight, current: VehicleParams, effects_out: list[
         out["why_not"] = why
         return out
     out["verdict"] = "likely"
+    if delay is not None:
+        return _beside_the_delay(r, out, delay)
     return _rate_loop_lag_entry(r, out, cut, effects_out)
+
+
+def _beside_the_delay(r: dict, out: dict, delay: dict) -> dict:
+    """The rate loop's lag (``r``, which beat an extra delay on its held-out windows) as the ``actuator_delay``
+    finding's not-told-apart partner, with the manoeuvre that separates them; the finding and the refit
+    vehicle are unchanged (the flight's own residuals chose the delay)."""
+    from twin_nodes.discovery.stages.verdicts import not_told_apart
+
+    tau = float(r["tau_fold1"])
+    alt = {"name": "motor_time_constant", "params": {"tau_up": tau, "tau_down": tau},
+           "note": (f"PX4's rate loop flown on the model without the delay reads the motors' lag {r['tau']:.3f} +- "
+                    f"{r['se']:.3f} s (model {r['model_tau']:.3f} s), and it fits the held-out windows better than "
+                    f"an extra delay (sum of squares {r['heldout_sse']['lag']:.0f} vs {r['heldout_sse']['delay']:.0f})")}
+    delay["alternatives"] = [alt] + [a for a in delay.get("alternatives") or [] if a.get("name") != alt["name"]]
+    pair = not_told_apart(delay)
+    if pair is not None:
+        delay["not_told_apart"] = pair
+    delay["verdict_note"] = delay.get("verdict_note", "") + "; not told apart from a motor lag: " + alt["note"]
+    out["verdict"] = "named beside the delay found on the flight's own residuals"
+    return out
 
 
 def _rate_loop_lag_entry(r: dict, out: dict, cut: float, effects_out: list[dict]) -> dict:
