@@ -582,3 +582,25 @@ def test_the_explained_share_is_read_over_the_channels_the_candidate_changes():
     assert f.explains == pytest.approx(whole)
     f.own_cut = 0.5
     assert f.explains == 0.5 and f.rel_improvement == pytest.approx(whole)
+
+
+def test_block_test_counts_only_the_blocks_a_regime_effect_reaches():
+    """A ground effect changes the take-off's and the landing's blocks and leaves the other 48 a millionth as
+    much: those 48 are not active (before, the 90th percentile of the changes fell among them and all 50 counted,
+    their coin-flip gains drowning the two that carry the effect); a broad effect keeps every block."""
+    from twin_nodes.discovery.blocktest import NEGLIGIBLE, _block_stats
+    rng = np.random.default_rng(7)
+    blocks = [np.arange(k * 10, (k + 1) * 10) for k in range(50)]
+    R0 = rng.normal(0, 1e-3, (500, 4))
+    R0[:10] += 0.05
+    R0[-10:] += 0.03
+    R1 = R0 + rng.normal(0, 1e-9, R0.shape)      # a change a millionth of the residual: noise
+    R1[:10] -= 0.05
+    R1[-10:] -= 0.03
+    st = _block_stats(R0, R1, blocks)
+    assert st["n"] == 2 and st["n_pos"] == 2 and st["t"] == 0.0   # too few for a test: 'likely' at most
+    assert 1e-9 / 0.03 < NEGLIGIBLE
+    # a broad effect (a tenth of the residual removed in every block): every block counts, as before
+    wide = R0 - 0.1 * R0
+    st = _block_stats(R0, wide, blocks)
+    assert st["n"] == 50 and st["n_pos"] == 50 and st["t"] > 3
