@@ -153,10 +153,10 @@ class DragContext:
             F = -params["k_n_s_m"] * v
         elif name == "rotor_drag":
             F[:, :2] = -params["k_d"] * self.sum_omega[:, None] * v[:, :2]
-        elif name == "body_drag":
+        elif name == "body_drag" and not params.get("norm"):
             c = np.array([params["c_dx"], params["c_dy"], params["c_dz"]])
             F = -c * np.abs(v) * v
-        elif name == "rotorpy_parasitic":  # RotorPy's D = -|v| C v (norm times component)
+        elif name in ("rotorpy_parasitic", "body_drag"):  # RotorPy's D = -|v| C v (our body_drag with norm 1)
             c = np.array([params["c_dx"], params["c_dy"], params["c_dz"]])
             F = -np.linalg.norm(v, axis=1, keepdims=True) * c * v
         else:
