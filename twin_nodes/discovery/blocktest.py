@@ -26,11 +26,11 @@ def _block_stats(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_c
     delta = np.array([np.sqrt(np.mean((R1[b] - R0[b]) ** 2)) for b in blocks])
     if delta.size == 0 or delta.max() <= 0:
         return {"t": 0.0, "n": 0, "mean": 0.0, "sd": 0.0, "n_pos": 0}
-    # the reference over the blocks the candidate reaches at all (>= NEGLIGIBLE of its largest change): an
-    # effect confined to under a tenth of the blocks (a ground effect on the take-off and the landing) would
-    # otherwise set it in blocks it leaves untouched, and every block would count
-    ref = np.percentile(delta[delta >= NEGLIGIBLE * delta.max()], 90)
-    active = [b for b, dl in zip(blocks, delta) if dl >= max(0.25 * ref, min_change)]
+    ref = np.percentile(delta, 90)
+    # and never a block the candidate barely reaches (under NEGLIGIBLE of its largest change): where an effect
+    # is confined to under a tenth of the blocks (a ground effect on the take-off and the landing) the
+    # percentile falls among blocks it leaves untouched, and every block would count
+    active = [b for b, dl in zip(blocks, delta) if dl >= max(0.25 * ref, min_change, NEGLIGIBLE * delta.max())]
     d = np.array([np.mean(R0[b] ** 2) - np.mean(R1[b] ** 2) for b in active])
     st = {"n": int(d.size), "mean": float(d.mean()) if d.size else 0.0,
           "sd": float(d.std(ddof=1)) if d.size > 1 else 0.0, "n_pos": int(np.sum(d > 0))}
