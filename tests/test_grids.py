@@ -375,7 +375,7 @@ def test_a_lag_the_rate_loop_prefers_is_named_beside_a_delay():
     """On a 50 Hz PX4 log the flight's own residuals may name a delay where the motors are slow: PX4's rate loop,
     flown without that delay, reads a lag that fits its held-out windows better than an extra delay; the lag is
     then the delay's not-told-apart partner, with the manoeuvre that separates them, and the delay is kept."""
-    from twin_nodes.discovery.stages.instrument import _beside_the_delay
+    from twin_nodes.discovery.stages.motor_lag import _beside_the_delay
 
     delay = {"name": "actuator_delay", "verdict": "confirmed", "verdict_note": "t=5.5 over 26 held-out blocks",
              "params": {"delay": 0.0708}, "alternatives": []}
@@ -388,3 +388,48 @@ def test_a_lag_the_rate_loop_prefers_is_named_beside_a_delay():
     assert pair["with"] == {"name": "motor_time_constant", "params": {"tau_up": 0.128, "tau_down": 0.128}}
     assert pair["manoeuvre"] == "rate_doublets" and pair["plan_flyable"]
     assert "0.131 +- 0.004 s" in delay["verdict_note"] and "812 vs 955" in delay["verdict_note"]
+
+
+def test_a_lag_fitted_on_aliased_commands_is_read_again_by_the_rate_loop(monkeypatch):
+    """On a 50 Hz PX4 log the equation error fitted SIH_T_TAU 0.13 s as 0.147/0.151 (s016); PX4's rate loop, which
+    uses no motor command, reads 0.129: that value replaces the finding's (kept as own_params) and the refit
+    vehicle's; a reading that moves the lag the other way, or that the closed-loop check refuses, changes nothing."""
+    from twin_nodes.discovery import rate_loop
+    from twin_nodes.discovery.stages import motor_lag
+
+    vp = shipped("px4_sih_quadx")
+    current = vp.with_effect("motor_time_constant", tau_up=0.147, tau_down=0.151)
+    S = SimpleNamespace(data=SimpleNamespace(motor_dt_s=0.02), nominal=vp, log_params={}, t_split=1.0, t_split2=0.5)
+    reading = {"flagged": True, "model_tau": vp.rotors.tau_up_s, "tau": 0.1294, "se": 0.0009, "tau_fold1": 0.1296,
+               "se_fold1": 0.0012, "tau_fold2": 0.1291, "se_fold2": 0.0013, "heldout_before": 1.0, "heldout_after": 0.3,
+               "heldout_sse": {"model": 10350.0, "lag": 7610.0, "delay": 9861.0}, "delay_fold1": 0.03,
+               "axis_tau": {"roll": 0.121, "pitch": 0.132, "yaw": 0.121}}
+    seen = {}
+
+    def fake(d, params, base, t1, t2):
+        seen["base"] = dict(base.effect_dict)["motor_time_constant"]
+        return dict(reading)
+    monkeypatch.setattr(rate_loop, "motor_lag", fake)
+
+    def entry():
+        return [{"name": "motor_time_constant", "verdict": "confirmed", "residual": "equation",
+                 "params": {"tau_up": 0.147, "tau_down": 0.151}, "verdict_note": "t=7.3"}]
+    eff = entry()
+    new = motor_lag.read_finding(S, current, eff, lambda v: None)
+    # read against the nominal lag, not the finding's own
+    assert seen["base"] == {"tau_up": vp.rotors.tau_up_s, "tau_down": vp.rotors.tau_down_s}
+    assert eff[0]["params"] == {"tau_up": 0.1296, "tau_down": 0.1296}
+    assert eff[0]["own_params"] == {"tau_up": 0.147, "tau_down": 0.151}
+    assert dict(new.effect_dict)["motor_time_constant"] == {"tau_up": 0.1296, "tau_down": 0.1296}
+    assert "0.129 +- 0.001 s" in eff[0]["verdict_note"] and eff[0]["residuals"]["rate_loop"]["heldout_improvement"] == 0.7
+    # the closed-loop check refuses it: nothing changes, the reading is shown
+    eff = entry()
+    assert motor_lag.read_finding(S, current, eff, lambda v: "worse in the closed loop") is None
+    assert eff[0]["params"] == {"tau_up": 0.147, "tau_down": 0.151} and eff[0]["rate_loop_reading"]["tau"] == 0.1294
+    # a reading faster than the model while the finding is slower: not the same lag
+    reading.update(tau=0.03, tau_fold1=0.03, tau_fold2=0.03)
+    eff = entry()
+    assert motor_lag.read_finding(S, current, eff, lambda v: None) is None and "own_params" not in eff[0]
+    # a log whose motors are logged as fast as the rate loop runs: the finding's own fit stands
+    S.data.motor_dt_s = 0.004
+    assert motor_lag.read_finding(S, current, entry(), lambda v: None) is None
