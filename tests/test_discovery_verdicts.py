@@ -562,3 +562,45 @@ def test_each_roll_pitch_inertia_axis_stands_on_its_own_evidence(tmp_path, chang
     tests = _axis_tests(S, g)
     assert set(tests) == {"ixx", "iyy"}
     assert {a for a, (t, _) in tests.items() if t > T_CRIT} == resolved, tests
+
+
+def test_the_explained_share_is_read_over_the_channels_the_candidate_changes():
+    from twin_nodes.discovery.judging import _own_channel_cut
+    rng = np.random.default_rng(3)
+    # four motor channels with a yaw error the candidate removes, two force channels of accelerometer noise
+    # it cannot touch: over all six channels the cut is diluted, over its own four it is 1 - 0.5 = 50 %
+    R0 = np.column_stack([np.full(400, 0.02), np.full(400, -0.02), np.full(400, 0.02), np.full(400, -0.02),
+                          rng.normal(0, 0.05, (400, 2))])
+    R1 = R0.copy()
+    R1[:, :4] *= 0.5
+    assert _own_channel_cut(R0, R1) == pytest.approx(0.5, abs=1e-12)
+    whole = 1 - np.sqrt(np.mean(R1 ** 2)) / np.sqrt(np.mean(R0 ** 2))
+    assert whole < 0.25
+    # a candidate that moves every channel, or none: no own-channel number (the whole residual decides)
+    assert _own_channel_cut(R0, 0.9 * R0) is None and _own_channel_cut(R0, R0.copy()) is None
+    f = Fit(None, np.zeros(1), None, 0.0, 0.0, np.zeros(6), 4.0, 100, float(whole), True)
+    assert f.explains == pytest.approx(whole)
+    f.own_cut = 0.5
+    assert f.explains == 0.5 and f.rel_improvement == pytest.approx(whole)
+
+
+def test_block_test_counts_only_the_blocks_a_regime_effect_reaches():
+    """A ground effect changes the take-off's and the landing's blocks and leaves the other 48 a millionth as
+    much: those 48 are not active (before, the 90th percentile of the changes fell among them and all 50 counted,
+    their coin-flip gains drowning the two that carry the effect); a broad effect keeps every block."""
+    from twin_nodes.discovery.blocktest import NEGLIGIBLE, _block_stats
+    rng = np.random.default_rng(7)
+    blocks = [np.arange(k * 10, (k + 1) * 10) for k in range(50)]
+    R0 = rng.normal(0, 1e-3, (500, 4))
+    R0[:10] += 0.05
+    R0[-10:] += 0.03
+    R1 = R0 + rng.normal(0, 1e-9, R0.shape)      # a change a millionth of the residual: noise
+    R1[:10] -= 0.05
+    R1[-10:] -= 0.03
+    st = _block_stats(R0, R1, blocks)
+    assert st["n"] == 2 and st["n_pos"] == 2 and st["t"] == 0.0   # too few for a test: 'likely' at most
+    assert 1e-9 / 0.03 < NEGLIGIBLE
+    # a broad effect (a tenth of the residual removed in every block): every block counts, as before
+    wide = R0 - 0.1 * R0
+    st = _block_stats(R0, wide, blocks)
+    assert st["n"] == 50 and st["n_pos"] == 50 and st["t"] > 3

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
+from twin_nodes.base.errors import ParamsError
 from twin_nodes.base.frames import quat_from_euler, quat_to_rotmat
 from twin_nodes.vehicle.params import dump_params, load_params, shipped
 from twin_nodes.physics.effects import EFFECTS
@@ -145,6 +146,23 @@ def test_body_drag_is_quadratic_per_body_axis(buho):
     x2[3:6] = 2 * x[3:6]
     f2 = m.wrench_terms(x2, ext_of(wind=2 * np.array(wind)))["body_drag"][0][0]
     np.testing.assert_allclose(f2, 4 * f, rtol=1e-12)  # quadratic in airspeed
+
+
+def test_body_drag_in_rotorpys_norm_form(buho):
+    """norm 1: -c_i |v| v_i (RotorPy's parasitic drag); along a body axis both forms agree, off it the norm form
+    is stronger on each component by |v| / |v_i|; any other norm value is refused."""
+    c = np.array([0.05, 0.08, 0.12])
+    m = Multirotor(buho.with_effect("body_drag", c_dx=c[0], c_dy=c[1], c_dz=c[2], norm=1.0))
+    x = probe_state(m, np.full(4, 250.0))
+    wind = (-2.0, 1.0, 0.5)
+    vb = air_body(x, wind)
+    f = m.wrench_terms(x, ext_of(wind=wind))["body_drag"][0][0]
+    np.testing.assert_allclose(f, -c * np.linalg.norm(vb) * vb, rtol=1e-12)
+    per_axis = Multirotor(buho.with_effect("body_drag", c_dx=c[0], c_dy=c[1], c_dz=c[2]))
+    g = per_axis.wrench_terms(x, ext_of(wind=wind))["body_drag"][0][0]
+    np.testing.assert_allclose(f / g, np.linalg.norm(vb) / np.abs(vb), rtol=1e-12)
+    with pytest.raises(ParamsError):
+        buho.with_effect("body_drag", c_dx=0.1, norm=0.5)
 
 
 # ----------------------------------------------------------------------------- rotor / command hooks

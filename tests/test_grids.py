@@ -345,3 +345,91 @@ def test_drag_beside_a_thrust_standing_for_a_mass_is_read_per_unit_mass():
     res = {"effects": [_eff("mass", {"mass": 1.15}), _eff("linear_drag", {"k_n_s_m": 1.28})]}
     r = grid_prove.score_grid_flight("f", truths, res, vp)
     assert r["param_errors"]["linear_drag"] == pytest.approx(abs(1.28 / 1.5 - 1), rel=1e-9) and not r["passed"]
+
+
+def test_wind_offered_on_a_hover_where_the_vehicle_has_a_drag():
+    """A hovering vehicle in a steady wind has airspeed though it has no ground speed: the wind is a
+    candidate wherever the nominal has a drag law (the drags themselves need the flight's own speed)."""
+    from twin_nodes.discovery.candidates import build_candidates
+
+    vp = shipped("px4_sih_quadx")
+    assert any(n == "linear_drag" for n, _ in vp.effects)
+
+    def names(speed):
+        data = SimpleNamespace(v=np.tile([[speed, 0.0, 0.0]], (100, 1)), valid=np.ones(100, bool),
+                               motor_dt_s=0.02, dt=0.02, height=np.full(100, 10.0), battery_v=np.full(100, np.nan))
+        return {c.name for c in build_candidates(vp, data)}
+    hover, cruise = names(0.1), names(5.0)
+    assert "wind" in hover and not {"rotor_drag", "body_drag"} & hover
+    assert {"wind", "rotor_drag", "body_drag"} <= cruise
+    bare = vp.replace(effects=tuple(e for e in vp.effects if e[0] != "linear_drag"))
+    data = SimpleNamespace(v=np.zeros((100, 3)), valid=np.ones(100, bool), motor_dt_s=0.02, dt=0.02,
+                           height=np.full(100, 10.0), battery_v=np.full(100, np.nan))
+    assert "wind" not in {c.name for c in build_candidates(bare, data)}
+    # the wind's floor: 0.3 m/s
+    w = next(c for c in build_candidates(vp, data) if c.name == "wind")
+    assert w.floor(np.array([0.2, 0.25])) and not w.floor(np.array([0.2, 0.2]))
+
+
+def test_a_lag_the_rate_loop_prefers_is_named_beside_a_delay():
+    """On a 50 Hz PX4 log the flight's own residuals may name a delay where the motors are slow: PX4's rate loop,
+    flown without that delay, reads a lag that fits its held-out windows better than an extra delay; the lag is
+    then the delay's not-told-apart partner, with the manoeuvre that separates them, and the delay is kept."""
+    from twin_nodes.discovery.stages.motor_lag import _beside_the_delay
+
+    delay = {"name": "actuator_delay", "verdict": "confirmed", "verdict_note": "t=5.5 over 26 held-out blocks",
+             "params": {"delay": 0.0708}, "alternatives": []}
+    r = {"tau_fold1": 0.128, "tau": 0.131, "se": 0.004, "model_tau": 0.05,
+         "heldout_sse": {"lag": 812.0, "delay": 955.0, "model": 1400.0}}
+    out = _beside_the_delay(r, {"verdict": "likely"}, delay)
+    assert out["verdict"].startswith("named beside the delay")
+    assert delay["params"] == {"delay": 0.0708} and delay["verdict"] == "confirmed"
+    pair = delay["not_told_apart"]
+    assert pair["with"] == {"name": "motor_time_constant", "params": {"tau_up": 0.128, "tau_down": 0.128}}
+    assert pair["manoeuvre"] == "rate_doublets" and pair["plan_flyable"]
+    assert "0.131 +- 0.004 s" in delay["verdict_note"] and "812 vs 955" in delay["verdict_note"]
+
+
+def test_a_lag_fitted_on_aliased_commands_is_read_again_by_the_rate_loop(monkeypatch):
+    """On a 50 Hz PX4 log the equation error fitted SIH_T_TAU 0.13 s as 0.147/0.151 (s016); PX4's rate loop, which
+    uses no motor command, reads 0.129: that value replaces the finding's (kept as own_params) and the refit
+    vehicle's; a reading that moves the lag the other way, or that the closed-loop check refuses, changes nothing."""
+    from twin_nodes.discovery import rate_loop
+    from twin_nodes.discovery.stages import motor_lag
+
+    vp = shipped("px4_sih_quadx")
+    current = vp.with_effect("motor_time_constant", tau_up=0.147, tau_down=0.151)
+    S = SimpleNamespace(data=SimpleNamespace(motor_dt_s=0.02), nominal=vp, log_params={}, t_split=1.0, t_split2=0.5)
+    reading = {"flagged": True, "model_tau": vp.rotors.tau_up_s, "tau": 0.1294, "se": 0.0009, "tau_fold1": 0.1296,
+               "se_fold1": 0.0012, "tau_fold2": 0.1291, "se_fold2": 0.0013, "heldout_before": 1.0, "heldout_after": 0.3,
+               "heldout_sse": {"model": 10350.0, "lag": 7610.0, "delay": 9861.0}, "delay_fold1": 0.03,
+               "axis_tau": {"roll": 0.121, "pitch": 0.132, "yaw": 0.121}}
+    seen = {}
+
+    def fake(d, params, base, t1, t2):
+        seen["base"] = dict(base.effect_dict)["motor_time_constant"]
+        return dict(reading)
+    monkeypatch.setattr(rate_loop, "motor_lag", fake)
+
+    def entry():
+        return [{"name": "motor_time_constant", "verdict": "confirmed", "residual": "equation",
+                 "params": {"tau_up": 0.147, "tau_down": 0.151}, "verdict_note": "t=7.3"}]
+    eff = entry()
+    new = motor_lag.read_finding(S, current, eff, lambda v: None)
+    # read against the nominal lag, not the finding's own
+    assert seen["base"] == {"tau_up": vp.rotors.tau_up_s, "tau_down": vp.rotors.tau_down_s}
+    assert eff[0]["params"] == {"tau_up": 0.1296, "tau_down": 0.1296}
+    assert eff[0]["own_params"] == {"tau_up": 0.147, "tau_down": 0.151}
+    assert dict(new.effect_dict)["motor_time_constant"] == {"tau_up": 0.1296, "tau_down": 0.1296}
+    assert "0.129 +- 0.001 s" in eff[0]["verdict_note"] and eff[0]["residuals"]["rate_loop"]["heldout_improvement"] == 0.7
+    # the closed-loop check refuses it: nothing changes, the reading is shown
+    eff = entry()
+    assert motor_lag.read_finding(S, current, eff, lambda v: "worse in the closed loop") is None
+    assert eff[0]["params"] == {"tau_up": 0.147, "tau_down": 0.151} and eff[0]["rate_loop_reading"]["tau"] == 0.1294
+    # a reading faster than the model while the finding is slower: not the same lag
+    reading.update(tau=0.03, tau_fold1=0.03, tau_fold2=0.03)
+    eff = entry()
+    assert motor_lag.read_finding(S, current, eff, lambda v: None) is None and "own_params" not in eff[0]
+    # a log whose motors are logged as fast as the rate loop runs: the finding's own fit stands
+    S.data.motor_dt_s = 0.004
+    assert motor_lag.read_finding(S, current, entry(), lambda v: None) is None

@@ -8,6 +8,10 @@ import math
 import numpy as np
 
 
+#: a block whose change is under this fraction of the candidate's largest block change carries nothing of it
+NEGLIGIBLE = 0.01
+
+
 def _block_stats(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_change: float = 0.0) -> dict:
     """Per-block drop in mean squared residual over the blocks where the candidate changes the
     prediction at all (>= 25 % of its 90th-percentile block change, so one violent manoeuvre
@@ -23,7 +27,10 @@ def _block_stats(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_c
     if delta.size == 0 or delta.max() <= 0:
         return {"t": 0.0, "n": 0, "mean": 0.0, "sd": 0.0, "n_pos": 0}
     ref = np.percentile(delta, 90)
-    active = [b for b, dl in zip(blocks, delta) if dl >= max(0.25 * ref, min_change)]
+    # and never a block the candidate barely reaches (under NEGLIGIBLE of its largest change): where an effect
+    # is confined to under a tenth of the blocks (a ground effect on the take-off and the landing) the
+    # percentile falls among blocks it leaves untouched, and every block would count
+    active = [b for b, dl in zip(blocks, delta) if dl >= max(0.25 * ref, min_change, NEGLIGIBLE * delta.max())]
     d = np.array([np.mean(R0[b] ** 2) - np.mean(R1[b] ** 2) for b in active])
     st = {"n": int(d.size), "mean": float(d.mean()) if d.size else 0.0,
           "sd": float(d.std(ddof=1)) if d.size > 1 else 0.0, "n_pos": int(np.sum(d > 0))}

@@ -140,11 +140,12 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
         cd_floor = 0.01 * weight / (v_typ ** 2)
         add("body_drag", ["c_dx", "c_dy", "c_dz"], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0],
             [500 * cd_floor] * 3, lambda th: max(th) > cd_floor)
-        has_drag = bool(existing & {"linear_drag", "rotor_drag", "body_drag"})
-        if has_drag:
-            # wind acts only through drag; the gust level is estimated after the fit
-            add("wind", ["vx", "vy"], [0.0, 0.0], [-20.0, -20.0], [20.0, 20.0],
-                lambda th: np.hypot(th[0], th[1]) > 0.3, fixed={"gust_std": 0.0})
+    if existing & {"linear_drag", "rotor_drag", "body_drag"}:
+        # wind acts only through drag, on the airspeed: also on a flight that hovers (a hovering vehicle
+        # in a steady wind leans into it, and its accelerometer reads the drag); the gust level is
+        # estimated after the fit
+        add("wind", ["vx", "vy"], [0.0, 0.0], [-20.0, -20.0], [20.0, 20.0],
+            lambda th: np.hypot(th[0], th[1]) > 0.3, fixed={"gust_std": 0.0})
     low = data.valid & (data.height < 3.0)
     if low.sum() > 1.0 / data.dt:  # at least 1 s flown low
         add("ground_effect", ["coefficient", "height_scale"], [0.0, 0.5], [0.0, 0.05], [2.0, 5.0],

@@ -46,7 +46,8 @@ from twin_nodes.discovery.stages import (closed_loop, instrument, mismatch, prep
                                         verdicts)
 from twin_nodes.discovery.stages.closed_loop import CLOSED_LOOP_TOL_REL, _closed_loop_guard, _closed_loop_metrics, _worse
 from twin_nodes.discovery.stages.instrument import (INSTRUMENTED_BLOCKS_MISSING, _axis_tests, _equation_axes,
-                                                    _instrumented, _rate_loop_lag, attach_instrumented)
+                                                    _instrumented, attach_instrumented)
+from twin_nodes.discovery.stages.motor_lag import rate_loop_lag as _rate_loop_lag
 from twin_nodes.discovery.stages.prepare import PreparedFlight, prepare_flight
 from twin_nodes.discovery.stages.refit import _joint_refit
 from twin_nodes.discovery.stages.selection import _one_variant, _parsimonious, _pick, _tie_break

@@ -108,6 +108,15 @@ class Fit:
     alternatives: list = field(default_factory=list)   # other effects that pass as well (near-equal cut)
     #: this candidate's fits on each residual this round (kind -> Fit; set by :func:`_pick`)
     by_kind: dict = field(default_factory=dict)
+    #: the cross-validated cut over the residual channels the candidate changes at all (None: every channel)
+    own_cut: float | None = None
+
+    @property
+    def explains(self) -> float:
+        """The share of the held-out residual it explains, for the ``MIN_REL_IMPROVEMENT`` bar: over the
+        channels it can change (a yaw moment cannot move the horizontal-force channels, whose accelerometer
+        noise would otherwise dilute it), else over all; the ranking keeps :attr:`rel_improvement`."""
+        return self.rel_improvement if self.own_cut is None else self.own_cut
 
     @property
     def rank(self) -> float:
@@ -354,6 +363,7 @@ def assess(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, R0:
     hcv = np.sqrt(np.mean(Rcv[test_all] ** 2))
     stats = _block_stats(R0, Rcv, judge.blocks, OE_MIN_CHANGE if judge.lean else 0.0)
     rel = 1.0 - hcv / h0 if h0 > 0 else 0.0
+    own = _own_channel_cut(R0[test_all], Rcv[test_all])
     # an estimate pinned to the edge of the physical range is not an identification
     span = c.upper - c.lower
     at_bound = bool(np.any((np.abs(theta - c.upper) < 0.01 * span) |
@@ -362,6 +372,7 @@ def assess(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, R0:
               np.sqrt(np.mean(R1[held_mask] ** 2, axis=0)), stats["t"], stats["n"], float(rel),
               bool(c.floor(theta)))
     fit.kind = judge.kind
+    fit.own_cut = own
     fit.stats = stats
     fit.fold_thetas = thetas
     fit.folds_agree = folds_agree(c, thetas, _scales(c)) and all(bool(c.floor(t)) for t in thetas)
@@ -381,6 +392,19 @@ def assess(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, R0:
     k = int(np.argmax(r0 ** 2 - r1 ** 2))
     fit.judged = (mnames[k], float(r0[k]), float(r1[k]))
     return fit
+
+
+def _own_channel_cut(R0: np.ndarray, R1: np.ndarray) -> float | None:
+    """1 - RMS(R1) / RMS(R0) over the channels (columns) where ``R1`` differs from ``R0`` at all (a channel
+    the candidate's model leaves untouched is left out); None when it changes every channel or none."""
+    if R0.size == 0:
+        return None
+    tol = 1e-9 * max(float(np.max(np.abs(R0))), 1e-300)
+    moved = np.any(np.abs(R1 - R0) > tol, axis=0)
+    if moved.all() or not moved.any():
+        return None
+    h0 = float(np.sqrt(np.mean(R0[:, moved] ** 2)))
+    return float(1.0 - np.sqrt(np.mean(R1[:, moved] ** 2)) / h0) if h0 > 0 else None
 
 
 def _warm(tasks: list[tuple[Candidate, Judge, np.ndarray]]) -> None:

@@ -194,9 +194,15 @@ def _k_rotor_drag(p, P, x, R, ext, omega, T, Fb, Mb, Fw):
 @njit(cache=True)
 def _k_body_drag(p, x, R, ext, omega, T, Fb, Mb, Fw):
     vb0, vb1, vb2 = _air_body(x, R, ext)
-    Fb[0] -= p[0] * abs(vb0) * vb0
-    Fb[1] -= p[1] * abs(vb1) * vb1
-    Fb[2] -= p[2] * abs(vb2) * vb2
+    if p[3] > 0.5:
+        # RotorPy's parasitic drag: the airspeed's norm times each body component (-|v| C v)
+        s = math.sqrt(vb0 * vb0 + vb1 * vb1 + vb2 * vb2)
+        s0, s1, s2 = s, s, s
+    else:
+        s0, s1, s2 = abs(vb0), abs(vb1), abs(vb2)
+    Fb[0] -= p[0] * s0 * vb0
+    Fb[1] -= p[1] * s1 * vb1
+    Fb[2] -= p[2] * s2 * vb2
 
 
 @njit(cache=True)
@@ -319,12 +325,20 @@ class RotorDrag(Effect):
 
 class BodyDrag(Effect):
     name = "body_drag"
-    param_names = ("c_dx", "c_dy", "c_dz")
-    defaults = {"c_dx": 0.0, "c_dy": 0.0, "c_dz": 0.0}
-    units = {"c_dx": "N/(m/s)^2", "c_dy": "N/(m/s)^2", "c_dz": "N/(m/s)^2"}
-    ranges = {"c_dx": (0.0, 1e7), "c_dy": (0.0, 1e7), "c_dz": (0.0, 1e7)}
-    description = "parasitic drag quadratic in air-relative velocity per body axis"
+    param_names = ("c_dx", "c_dy", "c_dz", "norm")
+    defaults = {"c_dx": 0.0, "c_dy": 0.0, "c_dz": 0.0, "norm": 0.0}
+    units = {"c_dx": "N/(m/s)^2", "c_dy": "N/(m/s)^2", "c_dz": "N/(m/s)^2", "norm": "0 or 1"}
+    ranges = {"c_dx": (0.0, 1e7), "c_dy": (0.0, 1e7), "c_dz": (0.0, 1e7), "norm": (0.0, 1.0)}
+    description = ("parasitic drag quadratic in air-relative velocity per body axis: -c_i |v_i| v_i, or with "
+                   "norm 1 RotorPy's form -c_i |v| v_i (the airspeed's norm times the component)")
     wrench_kernel = staticmethod(_k_body_drag)
+
+    @classmethod
+    def check_params(cls, params, n_rotors=None):
+        bad = super().check_params(params, n_rotors)
+        if bad is None and "norm" in params and float(params["norm"]) not in (0.0, 1.0):
+            return "norm", f"expected 0 (per axis) or 1 (RotorPy's norm form), got {float(params['norm']):g}"
+        return bad
 
 
 class BatterySag(Effect):

@@ -21,14 +21,36 @@ from twin_nodes.twin.simflight import Hidden
 from twin_nodes.vehicle.params import VehicleParams
 
 
+#: parameters that are the components of one vector (a wind velocity, a CoM offset): scored as the length of
+#: the vector error over the true vector's length; a component near zero has no relative error of its own
+#: (a 3.5 m/s wind blowing 6 degrees off north is not "57 % wrong" because its 0.4 m/s east part is 0.2 m/s off)
+VECTOR_PARAMS = {"wind": ("vx", "vy"), "com_offset": ("dx", "dy")}
+
+
+def _vector_error(name: str, true: dict, found: dict) -> tuple[float, tuple[str, ...]] | None:
+    """(|found - true| / |true|, the components) of ``name``'s vector parameters; None when it has none."""
+    keys = VECTOR_PARAMS.get(name)
+    if not keys or not all(k in true for k in keys):
+        return None
+    if not all(k in found for k in keys):
+        return float("inf"), keys
+    t = np.array([true[k] for k in keys], float)
+    f = np.array([found[k] for k in keys], float)
+    return float(np.linalg.norm(f - t) / max(float(np.linalg.norm(t)), 1e-9)), keys
+
+
 def _param_error(hidden: Hidden, found: dict) -> float | None:
-    """Largest relative error over the hidden effect's identified parameters (motor index exact)."""
+    """Largest relative error over the hidden effect's identified parameters (motor index exact; a vector's
+    components as one vector, :data:`VECTOR_PARAMS`)."""
     if hidden.name == "none":
         return None
     errs = []
+    vec = _vector_error(hidden.name, hidden.params, found)
+    if vec is not None:
+        errs.append(vec[0])
     for k, true in hidden.params.items():
-        if k == "gust_std":
-            continue  # a noise level, not a physical constant: reported, not scored
+        if k == "gust_std" or (vec is not None and k in vec[1]):
+            continue  # gust_std: a noise level, not a physical constant: reported, not scored
         if k not in found:
             return float("inf")
         if k == "motor":
@@ -131,10 +153,10 @@ class DragContext:
             F = -params["k_n_s_m"] * v
         elif name == "rotor_drag":
             F[:, :2] = -params["k_d"] * self.sum_omega[:, None] * v[:, :2]
-        elif name == "body_drag":
+        elif name == "body_drag" and not params.get("norm"):
             c = np.array([params["c_dx"], params["c_dy"], params["c_dz"]])
             F = -c * np.abs(v) * v
-        elif name == "rotorpy_parasitic":  # RotorPy's D = -|v| C v (norm times component)
+        elif name in ("rotorpy_parasitic", "body_drag"):  # RotorPy's D = -|v| C v (our body_drag with norm 1)
             c = np.array([params["c_dx"], params["c_dy"], params["c_dz"]])
             F = -np.linalg.norm(v, axis=1, keepdims=True) * c * v
         else:
@@ -208,6 +230,11 @@ def compare(truth: Truth, found_name: str, found: dict, nominal: VehicleParams,
             return err, f"mass~{m0 / r_found:.4g} vs {h.params['mass']:.4g}"
         return err, f"kt_scale~{r_found:.4g} vs {h.params['kt_scale']:.4g}"
     err = _param_error(h, found)
+    vec = _vector_error(h.name, h.params, found)
+    if vec is not None and err is not None and math.isfinite(err) and vec[0] >= err:
+        keys = vec[1]
+        return err, (f"({', '.join(f'{found[k]:.3g}' for k in keys)}) vs ({', '.join(f'{h.params[k]:.3g}' for k in keys)})"
+                     f" |error|/|truth|")
     worst, worst_e = None, -1.0
     for k, true in h.params.items():
         if k in ("gust_std", "motor") or k not in found:

@@ -1,7 +1,7 @@
 """Stage 7, the refit continued on PX4 logs: an inertia finding's roll/pitch axes each on its
 own evidence (:func:`_equation_axes`), the roll/pitch inertia read by PX4's rate loop flown on the
 model or by the rate setpoint as instrument (:func:`_instrumented`), and where the rate loop says the
-motors are slow, how slow (:func:`_rate_loop_lag`); each may update the verdicts' entries and the
+motors are slow, how slow (:mod:`.motor_lag`); each may update the verdicts' entries and the
 refit vehicle, the closed-loop check permitting (``InstrumentInput`` -> ``Instrumented``)."""
 
 from __future__ import annotations
@@ -14,14 +14,16 @@ import numpy as np
 
 from twin_nodes.discovery import rate_loop
 from twin_nodes.discovery.blocktest import _block_test
-from twin_nodes.discovery.judging import MOTOR_DYNAMICS, T_CRIT, _GRADE_ORDER, Fit, _window_folds
+from twin_nodes.discovery.judging import T_CRIT, _GRADE_ORDER, Fit, _window_folds
 from twin_nodes.discovery.output_error import (AXES, IV_AXIS_PARAM, IV_GAIN_RANGE, MIN_AXIS_R2, Windows,
                                                instrumented_inertia)
 from twin_nodes.discovery.plans import RATE_LOOP_LOG_S
+from twin_nodes.discovery.stages import motor_lag
+from twin_nodes.discovery.stages.motor_lag import INSTRUMENTED_BLOCKS_MISSING
 from twin_nodes.discovery.stages.prepare import PreparedFlight
 from twin_nodes.discovery.stages.verdicts import Verdicts
 from twin_nodes.discovery.verdicts import LIKELY_MIN_CUT
-from twin_nodes.physics.effects import EFFECTS, effective_params
+from twin_nodes.physics.effects import effective_params
 from twin_nodes.vehicle.params import VehicleParams
 
 
@@ -44,13 +46,16 @@ class Instrumented:
 def run(inp: InstrumentInput) -> Instrumented:
     """The roll/pitch axes, then the instrument on what is still held, then the rate loop's motor lag."""
     S, v, current, guard = inp.flight, inp.verdicts, inp.current, inp.guard
+    # a motor lag found on aliased 50 Hz commands: PX4's rate loop, which uses none, reads its time constant
+    # (before the inertia, which it reads on the refit vehicle's motors)
+    current = motor_lag.read_finding(S, current, v.effects, guard) or current
     # an inertia finding's roll/pitch axes, each on its own evidence, then the instrument on what is
     # still held: either may change the refit vehicle
     current = _equation_axes(S, v.ranked, v.effects, current, v.accepted_labels, guard) or current
     instrumented, refit = _instrumented(S, current, v.accepted_labels, v.effects, guard, S.nominal)
     current = refit or current
     # where the rate loop says the motors are slow, not an inertia: how slow
-    lag = (_rate_loop_lag(S, current, v.effects)
+    lag = (motor_lag.rate_loop_lag(S, current, v.effects)
            if instrumented is not None and instrumented.get("method") == "rate_loop" and instrumented["motor_signature"]
            else None)
     return Instrumented(current, instrumented, lag)
@@ -110,12 +115,6 @@ def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: 
                                          for p_, (a, k, held, _) in zip(part, agree))
                              + f"; {held_out}{100 * residual['heldout_improvement']:.0f} %)")
     return "corroborates the " + entry["verdict"] + " finding"
-
-
-#: the output-error blocks an instrumented effect's plan asks for: the axis had none a fit could use,
-#: so no block statistic says how many; PX4 SIH SIH_L_ROLL 0.16 (g26, g34): 50-65 active roll blocks
-#: gave t 3.9-4.9 in one follow-up and 58 gave t 2.4 in another, so twice g34's missing 15
-INSTRUMENTED_BLOCKS_MISSING = 30
 
 
 #: the inertia candidate's roll and pitch parameters
@@ -439,109 +438,3 @@ def _instrument_entry(v: dict, iv: dict, out: dict, entry: dict | None, effects_
               or (e["verdict"] == "likely" and (e.get("cv_improvement") or 0) < new["cv_improvement"])), len(effects_out))
     effects_out.insert(k, new)
     return out, None
-
-
-def _rate_loop_lag(S: PreparedFlight, current: VehicleParams, effects_out: list[dict]) -> dict | None:
-    """The motors' time constant read by PX4's rate loop flown on the model
-    (:func:`~twin_nodes.discovery.rate_loop.motor_lag`), where the rate loop said the motors, not an
-    inertia, are slow (every axis off the same way) and the model's lag and delay are its own.
-
-    It is ``likely`` when the lag is far from the model's on every axis alike, both folds move it the
-    same way by 2 standard errors, fold 1's lag cuts the held-out rate error along its sensitivity by
-    ``LIKELY_MIN_CUT``, lies inside the effect's physical range, and beats an extra delay on the
-    held-out windows; never ``confirmed`` (no residual of the flight's own shows it: PX4 SIH
-    SIH_T_TAU 0.09 s on a 50 Hz log, where lag and delay cut the output error 9-10 %).  The entry
-    replaces the flight's own ``motor_time_constant`` (kept as its residuals), re-sorted by grade.
-    Returns the numbers for the result (None: not looked at)."""
-    if any(name in MOTOR_DYNAMICS for name, _ in current.effects):
-        return None
-    r = rate_loop.motor_lag(S.data, S.log_params, current, S.t_split, S.t_split2)
-    if r is None:
-        return None
-    out = {k: (round(float(v), 5) if isinstance(v, float) else v) for k, v in r.items() if k not in ("loop", "heldout_sse")}
-    out["heldout_sse"] = {k: round(float(v), 2) for k, v in r["heldout_sse"].items()}
-    out["verdict"] = "none"
-    tau0, tau1 = r["model_tau"], r["tau_fold1"]
-    if not r["flagged"]:
-        out["why_not"] = [f"the lag {r['tau']:.3f} +- {r['se']:.3f} s is not far from the model's {tau0:.3f} s on "
-                          f"every axis alike (roll, pitch, yaw {', '.join(f'{v:.3f}' for v in r['axis_tau'].values())})"]
-        return out
-    why = []
-    sides = [(r[f"tau_fold{k}"] - tau0) / r[f"se_fold{k}"] for k in (1, 2)
-             if np.isfinite(r[f"tau_fold{k}"]) and np.isfinite(r[f"se_fold{k}"]) and r[f"se_fold{k}"] > 0]
-    if len(sides) < 2 or not all(abs(t) > 2.0 and np.sign(t) == np.sign(r["tau"] - tau0) for t in sides):
-        why.append("the two folds do not both move the lag the same way at 2 standard errors")
-    b0, b1 = r["heldout_before"], r["heldout_after"]
-    cut = 1.0 - b1 / b0 if np.isfinite(b0) and np.isfinite(b1) and b0 > 0 else math.nan
-    if not (cut >= LIKELY_MIN_CUT):
-        why.append(f"held-out cut of the body-rate error along the lag's sensitivity {100 * cut:.0f} % < "
-                   f"{100 * LIKELY_MIN_CUT:.0f} %")
-    lo, hi = EFFECTS["motor_time_constant"].ranges["tau_up"]
-    if not lo <= tau1 <= hi:
-        why.append(f"lag {tau1:.3f} s outside the physical range {lo:g}-{hi:g} s")
-    held = r["heldout_sse"]
-    if not held["lag"] < held["delay"]:
-        why.append(f"an extra {1e3 * r['delay_fold1']:.0f} ms delay fits the held-out windows as well "
-                   f"(sum of squares {held['delay']:.0f} vs the lag's {held['lag']:.0f})")
-    out["heldout_improvement"] = round(float(cut), 4) if np.isfinite(cut) else None
-    if why:
-        out["why_not"] = why
-        return out
-    out["verdict"] = "likely"
-    return _rate_loop_lag_entry(r, out, cut, effects_out)
-
-
-def _rate_loop_lag_entry(r: dict, out: dict, cut: float, effects_out: list[dict]) -> dict:
-    """A ``likely`` motor lag from PX4's rate loop (``r``: :func:`~twin_nodes.discovery.rate_loop.motor_lag`'s
-    result): its residual, and its entry in ``effects_out`` in place of the flight's own
-    ``motor_time_constant`` unless that is already a finding; returns ``out``."""
-    tau0, tau1 = r["model_tau"], r["tau_fold1"]
-    b0, b1 = r["heldout_before"], r["heldout_after"]
-    held = r["heldout_sse"]
-    params = {"tau_up": float(tau1), "tau_down": float(tau1)}
-    # reported in the axis the lag moves most (as projected_view), the joint numbers beside it
-    per = r["heldout_axes"]
-    main = max(per, key=lambda a: per[a]["before"] if np.isfinite(per[a]["before"]) else -1.0)
-    residual = {"residual": "rate_loop", "heldout_channel": main, "heldout_before": round(float(per[main]["before"]), 5),
-                "heldout_after": round(float(per[main]["after"]), 5),
-                "heldout_improvement": round(float(per[main]["cut"]), 4),
-                "heldout_axes": {a: {k: round(float(v), 4) for k, v in x.items()} for a, x in per.items()},
-                "heldout_joint": {"before": round(float(b0), 5), "after": round(float(b1), 5),
-                                  "cut": round(float(cut), 4), "t": round(float(r["heldout_t"]), 2)},
-                "heldout_t_stat": round(float(r["heldout_t"]), 2), "params": params,
-                "fold_params": [round(float(r["tau_fold1"]), 5), round(float(r["tau_fold2"]), 5)]}
-    prev = next((e for e in effects_out if e["name"] == "motor_time_constant"), None)
-    if prev is not None and prev["verdict"] in ("confirmed", "likely"):
-        return out
-    axis_tau = ", ".join(f"{a} {v:.3f}" for a, v in r["axis_tau"].items())
-    note = (f"likely (rate loop): PX4's rate loop (the log's gains and filters) flown on the model from the logged "
-            f"rate setpoint reads the motors' lag {r['tau']:.3f} +- {r['se']:.3f} s for the model's {tau0:.3f} "
-            f"(each axis: {axis_tau} s); held-out body-rate error along the lag's sensitivity cut {100 * cut:.0f} % "
-            f"(roll, pitch, yaw together; {main} {100 * per[main]['cut']:.0f} %); "
-            f"an extra {1e3 * r['delay_fold1']:.0f} ms delay instead fits the held-out windows worse (sum of squares "
-            f"{held['delay']:.0f} vs {held['lag']:.0f}); confirm on a flight with the motors logged every 4 ms "
-            "(rate doublets), where the output error resolves it")
-    new = {"name": "motor_time_constant", "accepted": False, "verdict": "likely", "verdict_note": note,
-           "params": params, "params_se": {"tau_up": float(r["se_fold1"]), "tau_down": float(r["se_fold1"])},
-           "evidence": (f"motor_time_constant (tau {tau1:.4g} s) cuts the held-out body-rate error of PX4's rate loop "
-                        f"along its sensitivity by {100 * cut:.0f} %: likely (rate loop)"),
-           "residual": "rate_loop", "heldout_channel": main, "heldout_before": residual["heldout_before"],
-           "heldout_after": residual["heldout_after"],
-           "heldout_units": (f"{main} body-rate error (in units of its own RMS) along its sensitivity to the lag, "
-                             "|sum <J, e>| / |J|, held-out windows of PX4's rate loop flown on the model"),
-           "heldout_improvement": residual["heldout_improvement"], "heldout_t_stat": residual["heldout_t_stat"],
-           "cv_improvement": residual["heldout_improvement"], "above_resolution_floor": True,
-           "excitation": {**((prev or {}).get("excitation") or {}), "channel": main,
-                          "residual": "rate_loop", "windows": r["windows"], "plans": ["rate_doublets"],
-                          "blocks_missing": INSTRUMENTED_BLOCKS_MISSING,
-                          "supplied_by": "roll and pitch rate doublets with the motors logged every 4 ms (PX4: "
-                                         "SDLOG_PROFILE's high-rate bit), where the output error can fit the lag"},
-           "residuals": {**((prev or {}).get("residuals") or {}), "rate_loop": residual},
-           "alternatives": [{"name": "actuator_delay", "params": {"delay": float(r["delay_fold1"])},
-                             "heldout_sse": held["delay"], "note": "the rate loop's best extra delay"}]}
-    if prev is not None:
-        effects_out.remove(prev)
-    k = next((i for i, e in enumerate(effects_out) if _GRADE_ORDER[e["verdict"]] > 1
-              or (e["verdict"] == "likely" and (e.get("cv_improvement") or 0) < new["cv_improvement"])), len(effects_out))
-    effects_out.insert(k, new)
-    return out

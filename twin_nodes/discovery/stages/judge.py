@@ -71,7 +71,7 @@ def run(q: JudgeQuery) -> JudgedFits:
         f = assess(c, judge, vp, R0j, fold_fits=fold_fits)
         f.base_vp = q.current
         f.accepted = (f.above_floor and not f.at_bound and f.unphysical is None and f.t_stat > T_CRIT
-                      and f.rel_improvement >= MIN_REL_IMPROVEMENT)
+                      and f.explains >= MIN_REL_IMPROVEMENT)
         out.setdefault(c.label, []).append(f)
         if judge is oe and rounds == 1:
             oe_gain[c.label] = f.rel_improvement

@@ -51,7 +51,7 @@ def run(inp: GradeInput) -> Verdicts:
         elif f.accepted:
             f.accepted = False
         expl = None
-        if (not f.accepted and f.t_stat > T_CRIT and f.rel_improvement >= MIN_REL_IMPROVEMENT and acc_labels
+        if (not f.accepted and f.t_stat > T_CRIT and f.explains >= MIN_REL_IMPROVEMENT and acc_labels
                 and f.above_floor and not f.at_bound and f.unphysical is None and f.closed_loop is None):
             expl = ", ".join(acc_labels)
         grade(f, T_CRIT, MIN_REL_IMPROVEMENT, S.excitation, expl)
@@ -145,8 +145,8 @@ def _evidence(f: Fit, names: list[str], before_ch: np.ndarray) -> str:
         why.append(f.closed_loop)
     if f.t_stat <= T_CRIT:
         why.append(f"not significant on held-out blocks (t={f.t_stat:.1f})")
-    if f.rel_improvement < MIN_REL_IMPROVEMENT:
-        why.append(f"explains only {100 * f.rel_improvement:.0f} % of the held-out residual")
+    if f.explains < MIN_REL_IMPROVEMENT:
+        why.append(f"explains only {100 * f.explains:.0f} % of the held-out residual")
     reason = "; ".join(why) if why else f"t={f.t_stat:.1f} over {f.n_blocks} held-out blocks"
     verdict = f.verdict if f.verdict else ("accepted" if f.accepted else "rejected")
     if verdict == "confirmed":
@@ -180,6 +180,7 @@ def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:
         "heldout_improvement": round(1.0 - ja / jb, 4) if jb > 0 else 0.0,
         "heldout_t_stat": round(float(f.t_stat), 2) if math.isfinite(f.t_stat) else None,
         "cv_improvement": round(float(f.rel_improvement), 4),
+        **({"cv_improvement_own_channels": round(float(f.own_cut), 4)} if f.own_cut is not None else {}),
         "above_resolution_floor": bool(f.above_floor),
         "excitation": f.excitation,
         "residuals": {f.kind: _summary(f)},
