@@ -12,8 +12,8 @@ import numpy as np
 
 from twin_nodes.discovery.blocktest import _block_test
 from twin_nodes.discovery.candidates import SYMMETRIC_LAG, Candidate
-from twin_nodes.discovery.judging import (ALT_FRACTION, MAX_EFFECTS, MIN_REL_IMPROVEMENT, OE_MIN_CHANGE, T_CHOICE,
-                                          T_CRIT, Fit, _summary)
+from twin_nodes.discovery.judging import (ALT_FRACTION, MAX_EFFECTS, MIN_REL_IMPROVEMENT, OE_MIN_CHANGE, PRUNE_GAIN,
+                                          T_CHOICE, T_CRIT, Fit, _summary)
 from twin_nodes.discovery.stages import candidates, judge
 from twin_nodes.discovery.stages.joint import in_place, merged, offer, own_params
 from twin_nodes.discovery.stages.prepare import PreparedFlight
@@ -71,9 +71,11 @@ def run(inp: SelectionInput) -> Selection:
                                                       _rescaled_gain(r1_gain, energy_1, energy)))
         cs.first += [c for c in wind_with_drag(current, data) + nominal_refits(S.nominal, current)
                      if c.label not in done]
+        # round 1's output-error cuts read against the output error left now (as the pruning's, above)
+        oe_now = _rescaled_gain(oe_gain, (0.0, energy_1[1]), (0.0, energy[1])) if rounds > 1 else oe_gain
 
         def fit_all(batch, all_oe=False, R0=R0, R0_oe=R0_oe, current=current, rounds=rounds, oe_only=False):
-            j = judge.run(judge.JudgeQuery(S, current, batch, R0, R0_oe, rounds, oe_gain, all_oe, oe_only, pbar))
+            j = judge.run(judge.JudgeQuery(S, current, batch, R0, R0_oe, rounds, oe_now, all_oe, oe_only, pbar))
             oe_gain.update(j.oe_gain)
             return j.per_label
         per_label = fit_all(cs.first)
@@ -87,7 +89,7 @@ def run(inp: SelectionInput) -> Selection:
         kept = _one_per_entry(per_label, blocks)
         if rounds == 1:
             first_rank = [f.candidate.label for f in kept]
-            r1_gain = {lab: max(f.rel_improvement for f in fl) for lab, fl in per_label.items()}
+            r1_gain = {lab: _first_gain(fl) for lab, fl in per_label.items()}
         for f in kept:
             if f.candidate.label not in done:
                 last[_entry_key(f)] = f
@@ -109,6 +111,19 @@ def _energy(R0: np.ndarray, R0_oe: np.ndarray | None) -> tuple[float, float]:
     eq = float(np.nanmean(R0 ** 2)) if R0.size else 0.0
     oe = float(np.nanmean(R0_oe ** 2)) if R0_oe is not None and R0_oe.size else 0.0
     return eq, oe
+
+
+def _first_gain(fits: list[Fit]) -> float:
+    """Round 1's cut of a candidate, as the pruning of later rounds reads it: its best cross-validated cut, but
+    never below the pruning line where a fit moved its parameters above the resolution floor and still failed
+    cross-validation (the two folds disagree).  That candidate explained nothing because the residual it was
+    fitted on carried another effect it tried to take up (rotor drag beside a 13 % thrust coefficient: the drag
+    fitted the throttle error with its vertical term and lost on held-out data, issue 26's r057), not because
+    there is nothing of it: it is refitted once that effect is accepted.  One that stayed at nominal is pruned."""
+    g = max(f.rel_improvement for f in fits)
+    if g < PRUNE_GAIN and any(f.above_floor and not f.at_bound and f.rel_improvement < 0 for f in fits):
+        return PRUNE_GAIN
+    return g
 
 
 def _rescaled_gain(first_gain: dict[str, float], energy_1: tuple[float, float] | None,
