@@ -36,7 +36,7 @@ def run(q: CandidateQuery) -> CandidateSet:
     # after the first round, a candidate that explained nothing then (< 2 % cross-validated, on
     # either residual) is not refitted: adding an effect does not make it explain the rest
     cands = [c for c in build_candidates(q.current, q.data) if c.label not in q.done
-             and (q.round == 1 or q.first_gain.get(c.label, 1.0) >= PRUNE_GAIN)]
+             and (q.round <= 2 or q.first_gain.get(c.label, 1.0) >= PRUNE_GAIN)]
     # the up/down motor lag is fitted only where the one-constant lag is found (it can only
     # refine it; on the other flights it would cost the most expensive fit of the round)
     richer = [c for c in cands if c.name == "motor_time_constant" and c.label != SYMMETRIC_LAG
