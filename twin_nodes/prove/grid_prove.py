@@ -208,8 +208,14 @@ def run_one(job, reuse: Path | None = None) -> dict:
         f = spec
         vp = rf.nominal_params(rf.rotorpy_params(f.vehicle), f"rotorpy_{f.vehicle}")
         truths = []
+        flown: dict = {}      # the plant keys as flown: a later change's k_m replaces an earlier one's
         for c in g.changes(f):
-            truths.append(Truth(c["hidden"], f"{c['hidden'].name} {c['hidden'].params}", drag_law=c.get("drag_law")))
+            flown.update(c.get("plant") or {})
+        for c in g.changes(f):
+            h = c["hidden"]
+            if h.name == "yaw_moment" and "k_eta" in flown:   # our km is torque per thrust: k_m / k_eta as flown
+                h = Hidden("yaw_moment", {"km": float(flown["k_m"]) / float(flown["k_eta"])})
+            truths.append(Truth(h, f"{h.name} {h.params}", drag_law=c.get("drag_law")))
         truths = truths or [Truth(Hidden("none", {}), "RotorPy's own vehicle")]
         name, facts = f"{f.id} {f.vehicle[:9]} {f.mission}", {"mission_kind": g.MISSION_KINDS[f.mission],
                                                                "vehicle": f.vehicle, "id": f.id}
