@@ -193,6 +193,26 @@ def _sih_truths(fl: dict, nominal) -> list[Truth]:
     return out
 
 
+def rotorpy_truths(f) -> list[Truth]:
+    """A RotorPy grid flight's true effects as scored.  A yaw moment's ``km`` is our torque per thrust, so its
+    truth is ``k_m / k_eta`` of the plant as flown: beside a thrust coefficient (which scales both), the yaw
+    moment's ``k_m`` replaces the thrust coefficient's, and the flight's km is the yaw factor over ``kt`` (r070:
+    1.5 / 0.87 of the nominal, 0.0345, where the declared truth reads 0.030), as the PX4 SIH grid reads
+    ``Q_MAX / T_MAX`` (:func:`_sih_truths`)."""
+    from twin_nodes.prove import grid_rotorpy as g
+
+    flown: dict = {}      # the plant keys as flown: a later change's k_m replaces an earlier one's
+    for c in g.changes(f):
+        flown.update(c.get("plant") or {})
+    truths = []
+    for c in g.changes(f):
+        h = c["hidden"]
+        if h.name == "yaw_moment" and "k_eta" in flown:
+            h = Hidden("yaw_moment", {"km": float(flown["k_m"]) / float(flown["k_eta"])})
+        truths.append(Truth(h, f"{h.name} {h.params}", drag_law=c.get("drag_law")))
+    return truths or [Truth(Hidden("none", {}), "RotorPy's own vehicle")]
+
+
 def run_one(job, reuse: Path | None = None) -> dict:
     """Discover blind on one grid flight and score it; ``reuse``: a result JSON of this flight written by an
     earlier run of the same code, re-scored instead of discovered again."""
@@ -207,10 +227,7 @@ def run_one(job, reuse: Path | None = None) -> dict:
 
         f = spec
         vp = rf.nominal_params(rf.rotorpy_params(f.vehicle), f"rotorpy_{f.vehicle}")
-        truths = []
-        for c in g.changes(f):
-            truths.append(Truth(c["hidden"], f"{c['hidden'].name} {c['hidden'].params}", drag_law=c.get("drag_law")))
-        truths = truths or [Truth(Hidden("none", {}), "RotorPy's own vehicle")]
+        truths = rotorpy_truths(f)
         name, facts = f"{f.id} {f.vehicle[:9]} {f.mission}", {"mission_kind": g.MISSION_KINDS[f.mission],
                                                                "vehicle": f.vehicle, "id": f.id}
     else:

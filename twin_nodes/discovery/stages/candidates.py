@@ -19,7 +19,7 @@ class CandidateQuery:
     data: EquationData
     round: int                            # 1, 2, ...
     done: set[str] = field(default_factory=set)               # accepted labels
-    first_gain: dict[str, float] = field(default_factory=dict)  # round 1's best cut per label
+    first_gain: dict[str, float] = field(default_factory=dict)  # round 1's cut per label, rescaled
 
 
 @dataclass
@@ -33,10 +33,12 @@ class CandidateSet:
 
 def run(q: CandidateQuery) -> CandidateSet:
     """The candidates of round ``q.round``."""
-    # after the first round, a candidate that explained nothing then (< 2 % cross-validated, on
-    # either residual) is not refitted: adding an effect does not make it explain the rest
+    # round 2 refits every candidate: round 1 fitted them beside the first effect's residual, which a
+    # one-sided effect (a ground effect under a thrust deficit) or one that tried to take it up (a drag's
+    # vertical term) could not explain; from round 3 a candidate that explained nothing in round 1 (< 2 %
+    # cross-validated, rescaled to the residual left: stages.selection) is not refitted
     cands = [c for c in build_candidates(q.current, q.data) if c.label not in q.done
-             and (q.round == 1 or q.first_gain.get(c.label, 1.0) >= PRUNE_GAIN)]
+             and (q.round <= 2 or q.first_gain.get(c.label, 1.0) >= PRUNE_GAIN)]
     # the up/down motor lag is fitted only where the one-constant lag is found (it can only
     # refine it; on the other flights it would cost the most expensive fit of the round)
     richer = [c for c in cands if c.name == "motor_time_constant" and c.label != SYMMETRIC_LAG

@@ -192,7 +192,7 @@ def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:
         out["closed_loop"] = f.closed_loop
     if getattr(f, "closed_loop_note", None):
         out["closed_loop_note"] = f.closed_loop_note
-    for key in ("joint_refit_of", "refitted_jointly_with"):   # stages.selection._carry_refit
+    for key in ("joint_refit_of", "refitted_jointly_with", "rival_path"):   # stages.selection
         if getattr(f, key, None):
             out[key] = getattr(f, key)
     if f.verdict in ("confirmed", "likely"):
