@@ -119,6 +119,14 @@ class Fit:
         return self.rel_improvement if self.own_cut is None else self.own_cut
 
     @property
+    def passes(self) -> bool:
+        """Its fit passes every acceptance bar of its own: above the resolution floor, not pinned at a bound,
+        physical, significant on held-out blocks (``T_CRIT``) and explaining ``MIN_REL_IMPROVEMENT`` of the
+        held-out residual (:attr:`explains`)."""
+        return bool(self.above_floor and not self.at_bound and self.unphysical is None and self.t_stat > T_CRIT
+                    and self.explains >= MIN_REL_IMPROVEMENT)
+
+    @property
     def rank(self) -> float:
         """How strongly the flight asks for this effect: the largest cross-validated cut among its
         accepted fits (each on its own residual), else its own.  :func:`_pick` may report the

@@ -77,12 +77,15 @@ def survey_flight(path: str | Path, params: str | Path | None = None) -> dict:
 def _check_scored(path, m: dict) -> None:
     """A held-out window with nothing scored in it (all of it take-off or touchdown: a hop whose last 35 %
     is its landing) is a flight too short for the survey, said as such rather than a row of blanks."""
+    from twin_nodes.discovery.judging import HELDOUT_FRACTION
+    from twin_nodes.twin.compare import GROUND_MARGIN_M
+
     x = m.get("throttle_rmse")
     if not (isinstance(x, (int, float)) and math.isfinite(x)):
         a, b = (m.get("interval_s") or (math.nan, math.nan))[:2]
         raise LogError(path, "held-out window", f"too short: expected airborne samples to score in the held-out "
-                       f"last 35 % ({a:.1f}-{b:.1f} s), every one is take-off or touchdown (within 0.5 m of the "
-                       f"ground); the flight is a hop")
+                       f"last {100 * HELDOUT_FRACTION:.0f} % ({a:.1f}-{b:.1f} s), every one is take-off or touchdown "
+                       f"(within {GROUND_MARGIN_M:g} m of the ground); the flight is a hop")
 
 
 def _has_horizontal(log) -> bool:

@@ -140,7 +140,7 @@ def likely_failures(f, t_crit: float, min_rel: float) -> list[str]:
         why.append("worse in the closed loop")
     if f.mode_cut < LIKELY_MIN_CUT:
         why.append(f"held-out cut {100 * f.mode_cut:.0f} % < {100 * LIKELY_MIN_CUT:.0f} %")
-    if getattr(f, "explains", f.rel_improvement) < min_rel:
+    if f.explains < min_rel:
         why.append("cross-validated cut too small")
     if not f.folds_agree:
         why.append("the two folds disagree")

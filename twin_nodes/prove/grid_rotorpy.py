@@ -444,7 +444,7 @@ def main(argv=None) -> int:
     if a.command == "declare-batch2":
         print(write_manifest(BATCH2_PATH, BATCH2_SEED, batch2=True))
         return 0
-    grid = load_grid(half=a.half) + ([] if a.half != "all" else load_grid(half="judge2"))
+    grid = load_grid(half=a.half)
     if a.ids:
         by_id = {f.id: f for f in grid}
         grid = [by_id[i] for i in a.ids if i in by_id]

@@ -10,8 +10,8 @@ import numpy as np
 
 from twin_nodes.discovery import evaluate
 from twin_nodes.discovery.candidates import Candidate
-from twin_nodes.discovery.judging import (MIN_REL_IMPROVEMENT, OUTPUT_ERROR_EFFECTS, T_CRIT, Fit, Judge, _fold_fit,
-                                          _restrict_to_axes, _task_cost, _warm, assess)
+from twin_nodes.discovery.judging import (OUTPUT_ERROR_EFFECTS, Fit, Judge, _fold_fit, _restrict_to_axes, _task_cost,
+                                          _warm, assess)
 from twin_nodes.discovery.stages.prepare import PreparedFlight
 from twin_nodes.vehicle.params import VehicleParams
 
@@ -70,8 +70,7 @@ def run(q: JudgeQuery) -> JudgedFits:
         fold_fits = [res for (ti, _), res in zip(jobs, done) if ti == i]
         f = assess(c, judge, vp, R0j, fold_fits=fold_fits)
         f.base_vp = q.current
-        f.accepted = (f.above_floor and not f.at_bound and f.unphysical is None and f.t_stat > T_CRIT
-                      and f.explains >= MIN_REL_IMPROVEMENT)
+        f.accepted = f.passes
         out.setdefault(c.label, []).append(f)
         if judge is oe and rounds == 1:
             oe_gain[c.label] = f.rel_improvement

@@ -51,8 +51,7 @@ def run(inp: GradeInput) -> Verdicts:
         elif f.accepted:
             f.accepted = False
         expl = None
-        if (not f.accepted and f.t_stat > T_CRIT and f.explains >= MIN_REL_IMPROVEMENT and acc_labels
-                and f.above_floor and not f.at_bound and f.unphysical is None and f.closed_loop is None):
+        if not f.accepted and f.passes and acc_labels and f.closed_loop is None:
             expl = ", ".join(acc_labels)
         grade(f, T_CRIT, MIN_REL_IMPROVEMENT, S.excitation, expl)
         if f.other is None:
