@@ -51,6 +51,19 @@ def test_second_batches_are_their_declarations_and_all_judging():
     assert len(combos) == 10 and not {tuple(c.split("+")) for c in combos} & set(grid_sih.COMBOS)
 
 
+def test_third_batches_are_their_declarations_new_ids_all_judging():
+    seed, _, prefix, _ = grid_rotorpy.BATCHES["judge3"]
+    b = grid_rotorpy.declare_batch2(seed, prefix, "judge3")
+    assert grid_rotorpy.load_grid(half="judge3") == b and len(b) == 41 and {f.half for f in b} == {"judge3"}
+    earlier = {f.id for h in ("all", "judge2") for f in grid_rotorpy.load_grid(half=h)}
+    assert not {f.id for f in b} & earlier and b != grid_rotorpy.declare_batch2()
+    seed, _, prefix, _ = grid_sih.BATCHES["judge3"]
+    rows = grid_sih.declare_batch2(seed, prefix, "judge3")
+    flights = grid_sih.load_grid(half="judge3")
+    assert [r["id"] for r in rows] == list(flights) and {f["half"] for f in flights.values()} == {"judge3"}
+    assert not set(flights) & (set(grid_sih.load_grid(half="judge2")) | set(grid_sih.load_grid()))
+
+
 def test_rotorpy_grid_truths_in_physical_units():
     qp = grid_rotorpy.rf.rotorpy_params("crazyflie")
     lag = grid_rotorpy.plant_change("motor_time_constant", 2, qp, 1)

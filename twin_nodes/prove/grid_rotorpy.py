@@ -40,6 +40,13 @@ GRID_PATH = Path(__file__).resolve().parent / "grids" / "rotorpy_grid.yaml"
 #: a second, judging-only batch declared 2026-11-27 (fifth session) before that session changed anything
 BATCH2_SEED = 2727
 BATCH2_PATH = Path(__file__).resolve().parent / "grids" / "rotorpy_grid_batch2.yaml"
+#: judging-only batches, each declared before the session that judges on it changed anything:
+#: half -> (seed, manifest, id prefix, when declared)
+BATCHES = {
+    "judge2": (BATCH2_SEED, BATCH2_PATH, "q", "2026-11-27, before the fifth session changed anything"),
+    "judge3": (2828, Path(__file__).resolve().parent / "grids" / "rotorpy_grid_batch3.yaml", "w",
+               "2026-11-27 14:57 UTC, before the sixth session changed anything"),
+}
 VEHICLES = ("crazyflie", "px4_sihsim_quadx")   # RotorPy's Crazyflie (30 g) and its 1.0 kg PX4 SIH quad preset
 MISSION_KINDS = {"RP1": "waypoints", "RP2": "figure-eight", "RP3": "circle", "RP4": "hover with yaw",
                  "RP5": "fast descents"}
@@ -130,10 +137,11 @@ def _split(flights: list[GridFlight], rng: np.random.Generator) -> list[GridFlig
     return [GridFlight(f.id, f.vehicle, f.mission, f.effects, f.seed, half[i]) for i, f in enumerate(flights)]
 
 
-def declare_batch2(seed: int = BATCH2_SEED) -> list[GridFlight]:
+def declare_batch2(seed: int = BATCH2_SEED, prefix: str = "q", half: str = "judge2") -> list[GridFlight]:
     """A fresh judging batch of the same kinds: each effect once at a drawn magnitude on a drawn vehicle (13),
     22 two-effect pairs drawn from every pair of different classes at the middle magnitude (as the grid's),
-    6 no-effect flights; missions drawn.  All of it is judging ("judge2"): nothing here is tuned on."""
+    6 no-effect flights; missions drawn.  All of it is judging (``half``: "judge2", "judge3"): nothing here is
+    tuned on."""
     rng = np.random.default_rng(seed)
     kinds = list(MISSION_KINDS)
     rows: list[tuple[str, str, tuple]] = []
@@ -145,18 +153,23 @@ def declare_batch2(seed: int = BATCH2_SEED) -> list[GridFlight]:
         rows.append((VEHICLES[int(rng.integers(2))], kinds[int(rng.integers(5))], ((a, 1), (b, 1))))
     for j in range(6):
         rows.append((VEHICLES[j % 2], kinds[int(rng.integers(5))], ()))
-    return [GridFlight(f"q{i + 1:03d}", v, m, eff, int(seed * 1000 + i + 1), "judge2")
+    return [GridFlight(f"{prefix}{i + 1:03d}", v, m, eff, int(seed * 1000 + i + 1), half)
             for i, (v, m, eff) in enumerate(rows)]
 
 
-def write_manifest(path: str | Path = GRID_PATH, seed: int = GRID_SEED, batch2: bool = False) -> Path:
-    """Write the declared grid as YAML (effects with their magnitudes in physical units, the truth, the half)."""
+def write_manifest(path: str | Path = GRID_PATH, seed: int = GRID_SEED, batch: str = "") -> Path:
+    """Write the declared grid (``batch`` "": batch 1; "judge2", "judge3": a judging-only batch) as YAML
+    (effects with their magnitudes in physical units, the truth, the half)."""
     import yaml
 
-    flights = declare_batch2(seed) if batch2 else declare(seed)
+    if batch:
+        seed, path, prefix, when = BATCHES[batch]
+        flights = declare_batch2(seed, prefix, batch)
+    else:
+        flights = declare(seed)
     doc = {"grid": "rotorpy", "issue": 26, "seed": seed, "generator": "twin_nodes/prove/grid_rotorpy.py",
-           "declared": ("2026-11-27, before the fifth session changed anything; every flight judging (judge2)"
-                        if batch2 else "before any tuning; halves drawn per stratum by the seed"),
+           "declared": (f"{when}; every flight judging ({batch})"
+                        if batch else "before any tuning; halves drawn per stratum by the seed"),
            "vehicles": list(VEHICLES), "missions": MISSION_KINDS, "levels": {k: list(v) for k, v in LEVELS.items()},
            "flights": []}
     for f in flights:
@@ -167,7 +180,7 @@ def write_manifest(path: str | Path = GRID_PATH, seed: int = GRID_SEED, batch2: 
                                "truth": truths, "logging": "rotorpy_px4like", "seed": f.seed, "half": f.half})
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    cmd = "declare-batch2" if batch2 else "declare"
+    cmd = f"declare --batch {batch}" if batch else "declare"
     p.write_text(f"# Declared RotorPy grid of issue 26, written by `python -m twin_nodes.prove.grid_rotorpy {cmd}`\n"
                  "# before any tuning. Do not edit by hand: prove reads the halves from here.\n"
                  + yaml.safe_dump(doc, sort_keys=False, width=140))
@@ -178,7 +191,7 @@ def load_grid(path: str | Path | None = None, half: str = "") -> list[GridFlight
     """The declared grid from its manifest."""
 
     if path is None:
-        path = BATCH2_PATH if half == "judge2" else GRID_PATH
+        path = BATCHES[half][1] if half in BATCHES else GRID_PATH
     doc = read_yaml_file(path, "grid manifest")
     return [GridFlight(d["id"], d["vehicle"], d["mission"], tuple((n, int(lv)) for n, lv in d["effects"]),
                        int(d["seed"]), d["half"]) for d in doc["flights"]]
@@ -433,16 +446,14 @@ def main(argv=None) -> int:
     import time
 
     ap = argparse.ArgumentParser(prog="python -m twin_nodes.prove.grid_rotorpy")
-    ap.add_argument("command", choices=["declare", "declare-batch2", "fly"])
+    ap.add_argument("command", choices=["declare", "fly"])
+    ap.add_argument("--batch", choices=sorted(BATCHES), help="declare: a judging-only batch instead of batch 1")
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "rotortwin" / "grids" / "rotorpy"))
-    ap.add_argument("--half", choices=["tuning", "judging", "judge2", "all"], default="all")
+    ap.add_argument("--half", choices=["tuning", "judging", *sorted(BATCHES), "all"], default="all")
     ap.add_argument("--ids", nargs="*", help="only these flights, in this order")
     a = ap.parse_args(argv)
     if a.command == "declare":
-        print(write_manifest())
-        return 0
-    if a.command == "declare-batch2":
-        print(write_manifest(BATCH2_PATH, BATCH2_SEED, batch2=True))
+        print(write_manifest(batch=a.batch or ""))
         return 0
     grid = load_grid(half=a.half)
     if a.ids:

@@ -20,6 +20,13 @@ GRID_PATH = REPO / "missions" / "sih_grid" / "manifest.yaml"
 #: a second, judging-only batch declared 2026-11-27 (fifth session) before that session changed anything
 BATCH2_SEED = 2727
 BATCH2_PATH = REPO / "missions" / "sih_grid" / "batch2.yaml"
+#: judging-only batches, each declared before the session that judges on it changed anything:
+#: half -> (seed, manifest, id prefix, when declared)
+BATCHES = {
+    "judge2": (BATCH2_SEED, BATCH2_PATH, "t", "2026-11-27, before the fifth session changed anything"),
+    "judge3": (2828, REPO / "missions" / "sih_grid" / "batch3.yaml", "u",
+               "2026-11-27 14:57 UTC, before the sixth session changed anything"),
+}
 BASE = REPO / "missions" / "sih_effects" / "manifest.yaml"
 #: each SIH parameter group that changes the physics, at two magnitudes (PX4 SIH defaults in sih_flight.SIH_DEFAULTS)
 GROUPS = {
@@ -82,10 +89,10 @@ def declare(seed: int = GRID_SEED) -> list[dict]:
     return rows
 
 
-def declare_batch2(seed: int = BATCH2_SEED) -> list[dict]:
+def declare_batch2(seed: int = BATCH2_SEED, prefix: str = "t", half: str = "judge2") -> list[dict]:
     """A fresh judging batch: 10 single-group flights (groups drawn, magnitude, mission and logging drawn), 10
     two-group combinations not among :data:`COMBOS` (drawn from the pairs of different classes; first
-    magnitude, as the grid's), 4 no-effect flights.  All judging ("judge2")."""
+    magnitude, as the grid's), 4 no-effect flights.  All judging (``half``: "judge2", "judge3")."""
     rng = np.random.default_rng(seed)
     names = list(GROUPS)
     missions = sorted(MISSIONS)
@@ -107,15 +114,15 @@ def declare_batch2(seed: int = BATCH2_SEED) -> list[dict]:
         rows.append({"group": "none", "sih": {}, "mission": missions[int(rng.integers(len(missions)))],
                      "logging": ("default", "highrate")[j % 2]})
     for i, r in enumerate(rows):
-        r["id"] = f"t{i + 1:03d}"
-        r["half"] = "judge2"
+        r["id"] = f"{prefix}{i + 1:03d}"
+        r["half"] = half
         r["seed"] = int(seed * 100 + i + 1)
     return rows
 
 
 def load_grid(path: str | Path | None = None, half: str = "") -> dict:
     if path is None:
-        path = BATCH2_PATH if half == "judge2" else GRID_PATH
+        path = BATCHES[half][1] if half in BATCHES else GRID_PATH
 
     return read_yaml_file(path, "grid manifest")["flights"]
 
