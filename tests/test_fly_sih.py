@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import struct
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -197,11 +198,40 @@ def test_truth_json_is_the_shared_format():
         sf.truth_effects({"SIH_MASS": 1.2, "SIH_NOT_A_PARAM": 2.0})
 
 
+def test_patched_sih_changes_map_to_a_motor_and_a_centre_of_mass():
+    """missions/sih_effects/px4_sih_weak_motor_com.patch: SIH's u[i] is PX4's motor i+1, its CG is FRD; ours FLU."""
+    weak = sf.parse_sih(["SIH_MOT_WEAK=3", "SIH_MOT_EFF=0.85"])
+    assert sf.truth_effects(weak) == [{"name": "motor_efficiency", "params": {"motor": 3, "efficiency": 0.85}}]
+    cg = sf.parse_sih(["SIH_CG_X=0.02", "SIH_CG_Y=-0.01"])      # 0 and negative values are allowed here
+    assert sf.truth_effects(cg) == [{"name": "com_offset", "params": {"dx": 0.02, "dy": 0.01}}]
+    both = sf.truth_effects({**weak, "SIH_CG_X": 0.02})
+    assert [e["name"] for e in both] == ["motor_efficiency", "com_offset"]
+    # the patch adds exactly these parameters with these defaults (stock behaviour when unset)
+    text = (REPO / "missions" / "sih_effects" / "px4_sih_weak_motor_com.patch").read_text()
+    for name, default in sf.SIH_PATCHED.items():
+        kind = "INT32" if isinstance(default, int) else "FLOAT"
+        value = f"{default}" if kind == "INT32" else f"{float(default)}f"
+        assert f"+PARAM_DEFINE_{kind}({name}, {value});" in text
+    # the fleet proof names the declared changes of the patched fleet p01-p18 with the motor's number
+    sys.path.insert(0, str(REPO / "tools"))
+    import sih_fleet_proof
+
+    ids, decl = sih_fleet_proof.declared("p")
+    assert len(ids) == 18
+    assert [(d["flight"], d["expect"]) for d in decl] == [("p06", ["motor 3"]), ("p10", ["motor 3"]),
+                                                          ("p13", ["centre-of-mass shift"]),
+                                                          ("p17", ["centre-of-mass shift"])]
+
+
 @pytest.mark.parametrize("items, match", [
     (["SIH_MASS"], r"--sih: 'SIH_MASS': expected NAME=VALUE"),
     (["SIH_FOO=1"], r"--sih: SIH_FOO: expected one of SIH_MASS"),
     (["SIH_MASS=-1"], r"--sih: SIH_MASS: expected a positive number, got '-1'"),
     (["SIH_MASS=abc"], r"--sih: SIH_MASS: expected a positive number, got 'abc'"),
+    (["SIH_MOT_WEAK=5", "SIH_MOT_EFF=0.8"], r"--sih: SIH_MOT_WEAK: expected an integer in \[1, 4\] \(patched"),
+    (["SIH_MOT_WEAK=2.5", "SIH_MOT_EFF=0.8"], r"--sih: SIH_MOT_WEAK: expected an integer in \[1, 4\]"),
+    (["SIH_MOT_WEAK=2"], r"--sih: SIH_MOT_WEAK and SIH_MOT_EFF: expected both"),
+    (["SIH_CG_X=0.5"], r"--sih: SIH_CG_X: expected a number in \[-0.1, 0.1\]"),
 ])
 def test_bad_sih_changes_are_one_line_errors(items, match):
     with pytest.raises(TwinError, match=match):

@@ -62,6 +62,9 @@ def test_explain_names_a_pwm_range_change_and_a_weak_motor_and_a_com_shift():
     shares = {"motor_share_m1": (0.0, 0.01), "motor_share_m2": (0.004, 0.01), "motor_share_m3": (0.15, 0.01),
               "motor_share_m4": (-0.01, 0.01)}
     assert ch.explain({"kt_per_mass": (1.0, 0.01)}, shares)[0] == "weaker motor 3"
+    back = {k: (-d[0], d[1]) for k, d in shares.items()}   # the same motor replaced: its share down alone
+    name, why = ch.explain({"kt_per_mass": (1.0, 0.01)}, back)
+    assert name == "stronger motor 3" and "x1.18" in why    # 1 / (1 - 0.15)
     assert ch.explain({"kt_per_mass": (1.0, 0.01)}, {"com_dx_m": (0.02, 0.002)})[0] == "centre-of-mass shift"
 
 

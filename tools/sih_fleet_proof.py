@@ -1,14 +1,16 @@
 """Score a fleet report of the one-vehicle SIH fleet (missions/sih_effects/manifest.yaml, flights s01-s32) against
 what the manifest declared before it was flown (issue 25, part 6).
 
-    python tools/sih_fleet_proof.py REPORT_DIR/report.json [--prefix s]
+    python tools/sih_fleet_proof.py REPORT_DIR/report.json [--prefix s]     # s01-s32
+    python tools/sih_fleet_proof.py REPORT_DIR/report.json --prefix p       # p01-p18 (patched SIH: a motor, a CoM)
 
 A *declared change* is a flight whose SIH parameters differ from the previous flight's (a change made or undone);
 it is *found* when a ``change`` alarm starts within one flight of it and names every parameter group that changed
-there (SIH_MASS -> mass, SIH_T_MAX -> thrust, SIH_IXX/IYY -> inertia, SIH_Q_MAX -> yaw moment).  A discovered-effect
-alarm (payload, threshold, new_effect) is *true* when every flight it names carries the matching SIH change (mass ->
-SIH_MASS, thrust_coefficient -> SIH_T_MAX, inertia -> SIH_IXX/IYY/IZZ, yaw_moment -> SIH_Q_MAX).  Any other alarm is a
-*false alarm*.  Prints one line per declared change and per alarm, then the totals.
+there (SIH_MASS -> mass, SIH_T_MAX -> thrust, SIH_IXX/IYY -> inertia, SIH_Q_MAX -> yaw moment, SIH_MOT_WEAK/EFF ->
+motor i, SIH_CG_X/Y -> centre-of-mass shift).  A discovered-effect alarm (payload, threshold, new_effect) is *true*
+when every flight it names carries the matching SIH change (mass -> SIH_MASS, thrust_coefficient -> SIH_T_MAX,
+inertia -> SIH_IXX/IYY/IZZ, yaw_moment -> SIH_Q_MAX, motor_efficiency -> SIH_MOT_WEAK, com_offset -> SIH_CG_X/Y).
+Any other alarm is a *false alarm*.  Prints one line per declared change and per alarm, then the totals.
 """
 
 from __future__ import annotations
@@ -22,11 +24,12 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 NAMES = {"SIH_MASS": "mass", "SIH_T_MAX": "thrust", "SIH_IXX": "inertia", "SIH_IYY": "inertia", "SIH_IZZ": "inertia",
-         "SIH_Q_MAX": "yaw moment"}
+         "SIH_Q_MAX": "yaw moment", "SIH_MOT_WEAK": "weaker motor", "SIH_MOT_EFF": "weaker motor",
+         "SIH_CG_X": "centre-of-mass shift", "SIH_CG_Y": "centre-of-mass shift"}
 
 
 EFFECT_SIH = {"mass": {"SIH_MASS"}, "thrust_coefficient": {"SIH_T_MAX"}, "inertia": {"SIH_IXX", "SIH_IYY", "SIH_IZZ"},
-              "yaw_moment": {"SIH_Q_MAX"}}
+              "yaw_moment": {"SIH_Q_MAX"}, "motor_efficiency": {"SIH_MOT_WEAK"}, "com_offset": {"SIH_CG_X", "SIH_CG_Y"}}
 
 
 def sih_of(prefix: str = "s") -> dict[str, dict]:
@@ -42,7 +45,10 @@ def declared(prefix: str = "s") -> tuple[list[str], list[dict]]:
     for i, fid in enumerate(ids):
         sih = {k: v[-1] for k, v in (man["flights"][fid].get("sih") or {}).items()}
         if i and sih != prev:
-            groups = {NAMES[k] for k in set(sih) ^ set(prev) | {k for k in sih if prev.get(k) != sih[k]}}
+            keys = set(sih) ^ set(prev) | {k for k in sih if prev.get(k) != sih[k]}
+            # a weaker motor (made or undone) is named with its number: "weaker motor 3", "stronger motor 3"
+            motor = int(sih.get("SIH_MOT_WEAK") or prev.get("SIH_MOT_WEAK") or 0)
+            groups = {f"motor {motor}" if NAMES[k] == "weaker motor" else NAMES[k] for k in keys}
             out.append({"flight": fid, "index": i, "expect": sorted(groups), "sih": sih})
         prev = sih
     return ids, out

@@ -168,8 +168,8 @@ def explain(ratios: dict[str, tuple[float, float]], deltas: dict[str, tuple[floa
     measured on both sides), the trims' ``deltas`` ``{value: (delta, se)}`` and a PWM range ``(old span, new span)``
     [us] when the firmware's motor range changed there.  Names (several joined by " + " when they changed
     together): ``thrust range``, ``mass``, ``thrust``, ``thrust per mass``, ``inertia``, ``yaw moment``,
-    ``centre-of-mass shift``, ``weaker motor <i>``; ``unexplained`` when none fits.  ``stepped``: the values that
-    stepped (beyond their band on two flights in a row); when given, a change is named only from those (the others
+    ``centre-of-mass shift``, ``weaker motor <i>``, ``stronger motor <i>`` (a weak one replaced); ``unexplained``
+    when none fits.  ``stepped``: the values that stepped (beyond their band on two flights in a row); when given, a change is named only from those (the others
     still tell mass from thrust)."""
     if stepped is not None:
         keep = set(stepped) | ({"kt_per_mass"} if pwm else set())
@@ -258,6 +258,14 @@ def _motor_or_com(deltas: dict) -> tuple[str, str] | None:
             return f"weaker motor {motor}", (f"motor {motor}'s share of the steady-flight thrust command up by "
                                              f"{100 * v[i]:.1f} % alone (the others within {100 * np.abs(others).max():.1f} %): "
                                              f"it gives less thrust per command (efficiency about {1 / (1 + v[i]):.2f})")
+        j = int(np.argmin(v))
+        others = np.delete(v, j)
+        if v[j] < -0.04 and np.all(np.abs(others) < -v[j] / 2.5):
+            motor = list(shares)[j].rsplit("_m", 1)[1]
+            return f"stronger motor {motor}", (f"motor {motor}'s share of the steady-flight thrust command down by "
+                                               f"{-100 * v[j]:.1f} % alone (the others within "
+                                               f"{100 * np.abs(others).max():.1f} %): it gives more thrust per command "
+                                               f"than before (x{1 / (1 + v[j]):.2f}: a weak motor or propeller replaced?)")
     com = [(k, d) for k, d in deltas.items() if k.startswith("com_") and abs(d[0]) > 3 * max(d[1], 1e-9)]
     if com:
         return "centre-of-mass shift", "; ".join(f"{k[4:6]} {1000 * d[0]:+.1f} ± {1000 * d[1]:.1f} mm" for k, d in com)

@@ -39,6 +39,14 @@ MANIFEST = REPO / "missions" / "sih_effects" / "manifest.yaml"
 SIH_DEFAULTS = {"SIH_MASS": 1.0, "SIH_IXX": 0.025, "SIH_IYY": 0.025, "SIH_IZZ": 0.030, "SIH_T_MAX": 5.0,
                 "SIH_Q_MAX": 0.1, "SIH_L_ROLL": 0.2, "SIH_L_PITCH": 0.2, "SIH_KDV": 1.0, "SIH_KDW": 0.025,
                 "SIH_T_TAU": 0.05}
+#: parameters of missions/sih_effects/px4_sih_weak_motor_com.patch (not in stock PX4: a flight that sets one needs
+#: the patched build): one weaker motor (PX4 order 1..4, its thrust and torque factor) and a centre of mass off
+#: the rotors' centre (FRD body x forward, y right)
+SIH_PATCHED = {"SIH_MOT_WEAK": 0, "SIH_MOT_EFF": 1.0, "SIH_CG_X": 0.0, "SIH_CG_Y": 0.0}
+SIH_DEFAULTS.update(SIH_PATCHED)
+#: accepted values of those: (low, high, integer)
+_PATCHED_RANGE = {"SIH_MOT_WEAK": (1, 4, True), "SIH_MOT_EFF": (0.1, 1.0, False), "SIH_CG_X": (-0.1, 0.1, False),
+                  "SIH_CG_Y": (-0.1, 0.1, False)}
 ULOG_MAGIC = b"ULog\x01\x12\x35"
 
 
@@ -140,9 +148,16 @@ def parse_sih(items: list[str] | dict | None, where: str = "--sih") -> dict[str,
             x = float(v)
         except (TypeError, ValueError):
             x = math.nan
-        if not math.isfinite(x) or x <= 0.0:
+        if k in _PATCHED_RANGE:
+            lo, hi, integer = _PATCHED_RANGE[k]
+            if not (math.isfinite(x) and lo <= x <= hi and (not integer or x == int(x))):
+                raise TwinError(f"{where}: {k}: expected {'an integer' if integer else 'a number'} in "
+                                f"[{lo:g}, {hi:g}] (patched PX4 SIH), got {v!r}")
+        elif not math.isfinite(x) or x <= 0.0:
             raise TwinError(f"{where}: {k}: expected a positive number, got {v!r}")
         out[k] = x
+    if ("SIH_MOT_WEAK" in out) != ("SIH_MOT_EFF" in out):
+        raise TwinError(f"{where}: SIH_MOT_WEAK and SIH_MOT_EFF: expected both (which motor and its factor)")
     return out
 
 
@@ -168,6 +183,11 @@ def truth_effects(sih: dict[str, float]) -> list[dict]:
         return [{"name": "body_drag", "params": {"c_dx": c, "c_dy": c, "c_dz": c, "form": "linear"}}]
     if names == {"SIH_KDW"}:
         return [{"name": "angular_damping", "params": {"k_nm_s_rad": sih["SIH_KDW"]}}]
+    if names == {"SIH_MOT_WEAK", "SIH_MOT_EFF"}:
+        return [{"name": "motor_efficiency", "params": {"motor": int(sih["SIH_MOT_WEAK"]),
+                                                        "efficiency": sih["SIH_MOT_EFF"]}}]
+    if names <= {"SIH_CG_X", "SIH_CG_Y"}:   # FRD x forward, y right -> our dx forward, dy left
+        return [{"name": "com_offset", "params": {"dx": sih.get("SIH_CG_X", 0.0), "dy": -sih.get("SIH_CG_Y", 0.0)}}]
     if names <= {"SIH_L_ROLL", "SIH_L_PITCH"}:
         return [{"name": "arm_length", "params": {k[4:].lower() + "_m": v for k, v in sorted(sih.items())}}]
     groups = [g for g in _SIH_GROUPS if names & g]
@@ -181,12 +201,13 @@ def truth_effects(sih: dict[str, float]) -> list[dict]:
             out += eff
         return out
     raise TwinError(f"SIH changes {sorted(names)}: parameter groups (mass, T_MAX, Q_MAX, T_TAU, "
-                    "inertia, KDV, KDW, arm lengths)")
+                    "inertia, KDV, KDW, arm lengths; patched: one motor, centre of mass)")
 
 
 #: the SIH parameter groups a flight's truth is stated by (one effect each)
 _SIH_GROUPS = ({"SIH_MASS"}, {"SIH_T_MAX"}, {"SIH_Q_MAX"}, {"SIH_T_TAU"}, {"SIH_IXX", "SIH_IYY", "SIH_IZZ"},
-               {"SIH_KDV"}, {"SIH_KDW"}, {"SIH_L_ROLL", "SIH_L_PITCH"})
+               {"SIH_KDV"}, {"SIH_KDW"}, {"SIH_L_ROLL", "SIH_L_PITCH"}, {"SIH_MOT_WEAK", "SIH_MOT_EFF"},
+               {"SIH_CG_X", "SIH_CG_Y"})
 
 
 def truth_json(sih: dict[str, float], mission: str, ver_sw: str, logging: dict | None = None) -> dict:
@@ -429,6 +450,9 @@ def fly_sih(px4_dir: str | Path, plan_file: str | Path, sih: dict[str, float], o
     facts = log_facts(raw)
     for k, v in sih.items():
         got = facts["sih_params"].get(k)
+        if got is None and k in SIH_PATCHED:
+            raise TwinError(f"{raw}: {k}: not a parameter of this PX4 build: expected one built with "
+                            "missions/sih_effects/px4_sih_weak_motor_com.patch (docs/px4_sitl.md)")
         if got is None or not math.isclose(got, v, rel_tol=1e-5):
             raise TwinError(f"{raw}: {k} is {got} in the log, expected {v:g} (PX4_PARAM_{k} not applied)")
     others = {k: v for k, v in facts["sih_params"].items() if k in SIH_DEFAULTS and k not in sih
