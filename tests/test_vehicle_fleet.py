@@ -225,3 +225,18 @@ def test_a_thrust_finding_on_a_flight_whose_values_name_a_mass_backs_no_alarm():
     [a] = alarms(rows)
     assert a.kind == "threshold" and a.flight == "f3.ulg" and a.flights == ["f3.ulg"]
     assert alarms(rows[:3]) == []
+
+
+def test_prediction_rows_say_a_divergence():
+    """tools/vehicle_twin_prediction.py: a twin that left the flight is said beside its numbers."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("vtp", Path(__file__).resolve().parents[1] / "tools" /
+                                                  "vehicle_twin_prediction.py")
+    vtp = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(vtp)
+    assert vtp._divergence({"divergence": {"t_s": 12.5, "cause": "attitude", "detail": "x"}}) == \
+        "diverged: attitude at 12.5 s"
+    assert vtp._divergence({"divergence": None}) == "" and vtp._divergence({}) == ""
+    m = vtp._metrics({"throttle_rmse": 0.02, "motor_p75": [0.01, float("nan"), 0.05], "xy_rmse_m": 0.3})
+    assert m["motor_p75_max"] == 0.05 and math.isnan(m["z_rmse_m"])

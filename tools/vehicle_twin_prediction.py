@@ -34,6 +34,13 @@ def _metrics(m: dict) -> dict:
             "xy_rmse_m": m.get("xy_rmse_m", math.nan), "z_rmse_m": m.get("z_rmse_m", math.nan)}
 
 
+def _divergence(m: dict) -> str:
+    """The twin's divergence from the flight (time and cause), '' when none: a twin that left the flight's envelope
+    is said beside its numbers, never passed off as a plain prediction."""
+    d = m.get("divergence")
+    return f"diverged: {d.get('cause')} at {float(d.get('t_s', math.nan)):.1f} s" if d else ""
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("flights", nargs="+")
@@ -77,9 +84,14 @@ def main(argv=None) -> int:
         t0 = time.time()
         try:
             v, note = for_flight(vp, ref, log)
-            mt = _metrics(compare_log(log, v, mode="closed").metrics)
+            full_t = compare_log(log, v, mode="closed").metrics
+            mt = _metrics(full_t)
             own, _ = params_for_log(p, None, log=log)
-            mo = _metrics(compare_log(log, load_params(own), mode="closed").metrics)
+            full_o = compare_log(log, load_params(own), mode="closed").metrics
+            mo = _metrics(full_o)
+            div = "; ".join(f"{who} {d}" for who, d in (("twin", _divergence(full_t)),
+                                                          ("own nominal", _divergence(full_o))) if d)
+            note = "; ".join(x for x in (note, div) if x)
             err = ""
         except Exception as exc:  # one flight's failure is a row, the others go on
             mt, mo, note, err = {k: math.nan for k in BAR}, {k: math.nan for k in BAR}, "", f"{type(exc).__name__}: {exc}"
