@@ -240,3 +240,40 @@ def test_prediction_rows_say_a_divergence():
     assert vtp._divergence({"divergence": None}) == "" and vtp._divergence({}) == ""
     m = vtp._metrics({"throttle_rmse": 0.02, "motor_p75": [0.01, float("nan"), 0.05], "xy_rmse_m": 0.3})
     assert m["motor_p75_max"] == 0.05 and math.isnan(m["z_rmse_m"])
+
+
+def _fl(k, when, pwm, kt, dx=0.0):
+    return {"path": f"/v/f{k:02d}.ulg", "name": f"f{k:02d}", "when": when, "pwm": {"text": pwm},
+            "facts": {"kt_per_mass": kt, "kt_per_mass_se": 0.02, "com_dx_m": dx, "com_dx_m_se": 0.001,
+                      "com_dy_m": 0.0, "com_dy_m_se": 0.001}}
+
+
+def test_vehicle_twin_is_the_vehicle_as_it_last_flew():
+    """Eight flights on the old PWM range (the majority), then four on the new one, of which the last two carry a
+    payload: 'latest' pools the two payload flights (the latest change, dated at its first flight); 'all' the
+    majority's range.  Flights are ordered by date, not by the order given."""
+    from twin_nodes.base.errors import TwinError
+    from twin_nodes.fleet.vehicle_twin import select
+
+    rng = np.random.default_rng(3)
+    old = [_fl(k, f"2023-06-0{1 + k // 4}T10:{k:02d}:00+00:00", "MAIN1-4 1000-2000 us", 4.0 + rng.normal(0, .03))
+           for k in range(8)]
+    new = [_fl(8 + k, f"2023-06-2{k}T10:00:00+00:00", "MAIN1-4 1000-2200 us",
+               (5.0 if k < 2 else 4.2) + rng.normal(0, .03)) for k in range(4)]
+    flights = list(reversed(old + new))
+    got, out, note = select(flights, "latest")
+    assert [f["name"] for f in got] == ["f10", "f11"]
+    assert sum("motor PWM range" in o for o in out) == 8 and sum("before the vehicle's latest change" in o
+                                                                    for o in out) == 2
+    assert "kt_per_mass stepped" in note and "f10" in note
+    got, out, note = select(flights, "all")
+    assert sorted(f["name"] for f in got) == [f"f{k:02d}" for k in range(8)] and "majority" in note
+    # a trim step (a load hung off-centre) marks a change too; no step: every flight of the latest range
+    trim = [_fl(k, f"2023-07-{10 + k}T10:00:00+00:00", "AUX5-8 1000-2200 us", 5.0 + rng.normal(0, .03),
+                0.0 if k < 4 else 0.03) for k in range(7)]
+    got, _, note = select(trim, "latest")
+    assert [f["name"] for f in got] == ["f04", "f05", "f06"] and "com_dx_m" in note
+    got, out, _ = select(trim[:4], "latest")
+    assert len(got) == 4 and not out
+    with pytest.raises(TwinError, match="expected 'latest' or 'all'"):
+        select(trim, "newest")

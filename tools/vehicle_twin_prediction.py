@@ -1,9 +1,9 @@
 """Cross-flight prediction (issue 25): a vehicle twin built from some flights of one vehicle flies its other
 flights whole, closed loop, beside each flight's own nominal.
 
-    python tools/vehicle_twin_prediction.py FLIGHTS_OR_DIRS... [--seed 25] [--out DIR]
+    python tools/vehicle_twin_prediction.py FLIGHTS_OR_DIRS... [--seed 25 | --split date] [--pool latest|all] [--out DIR]
 
-The free flights (:func:`twin_nodes.fleet.facts.flight_kind`) are split by ``--seed`` into a build half and a
+The free flights (:func:`twin_nodes.fleet.facts.flight_kind`) are split by ``--seed`` (or by date) into a build half and a
 predict half *before* anything is fitted; the twin is pooled over the build half
 (:func:`twin_nodes.fleet.vehicle_twin.build`), then every predict flight is flown by it (rescaled to the
 flight's motor PWM range, :func:`~twin_nodes.fleet.vehicle_twin.for_flight`) and by its own nominal
@@ -45,6 +45,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("flights", nargs="+")
     ap.add_argument("--seed", type=int, default=25)
+    ap.add_argument("--split", choices=("seed", "date"), default="seed",
+                    help="seed: build and predict halves drawn by --seed; date: build on the earlier half by date, "
+                         "predict the later half (the twin of last week predicts today)")
+    ap.add_argument("--pool", choices=("latest", "all"), default="latest",
+                    help="the vehicle twin as it last flew in the build half (default) or the majority's PWM range")
     ap.add_argument("--out", default="out/vehicle_twin")
     a = ap.parse_args(argv)
     from twin_nodes.fleet.facts import actuator_tests, flight_kind
@@ -62,12 +67,22 @@ def main(argv=None) -> int:
         kind, _ = flight_kind(read_ulog(p), actuator_tests(p))
         if kind == "free flight":
             free.append(p)
-    perm = np.random.default_rng(a.seed).permutation(len(free))
     half = len(free) // 2
-    build_set = sorted(free[i] for i in perm[:half])
-    predict_set = sorted(free[i] for i in perm[half:])
-    print(f"{len(free)} free flights; seed {a.seed}: build {len(build_set)}, predict {len(predict_set)}")
-    vt = build(build_set)
+    if a.split == "date":
+        from twin_nodes.fleet.vehicle_twin import date_flights
+
+        rows = [{"path": p} for p in free]
+        date_flights(rows)
+        order = [r["path"] for r in sorted(rows, key=lambda r: (r["when"] or "", r["path"]))]
+        build_set, predict_set = order[:half], order[half:]
+        how = f"by date (build up to {Path(build_set[-1]).name})"
+    else:
+        perm = np.random.default_rng(a.seed).permutation(len(free))
+        build_set = sorted(free[i] for i in perm[:half])
+        predict_set = sorted(free[i] for i in perm[half:])
+        how = f"seed {a.seed}"
+    print(f"{len(free)} free flights; {how}: build {len(build_set)}, predict {len(predict_set)}")
+    vt = build(build_set, state=a.pool)
     yaml_path = out / "vehicle_twin.yaml"
     write_params(vt.params, yaml_path, vt.header)
     ref = read_vehicle_facts(yaml_path)
@@ -106,7 +121,7 @@ def main(argv=None) -> int:
     n = len(rows)
     summary = {k: sum(r["passes"][k] for r in rows) for k in BAR}
     print("passing the bar (of " + str(n) + "): " + ", ".join(f"{k} <= {v:g}: {summary[k]}" for k, v in BAR.items()))
-    (out / "prediction.json").write_text(json.dumps({"seed": a.seed, "build": build_set, "predict": predict_set,
+    (out / "prediction.json").write_text(json.dumps({"seed": a.seed, "split": a.split, "pool": a.pool, "build": build_set, "predict": predict_set,
                                                      "rows": rows, "passing": summary, "bar": BAR},
                                                     indent=1, default=float))
     return 0

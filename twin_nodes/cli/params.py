@@ -6,6 +6,7 @@
     rotortwin params check P.yaml
     rotortwin params export P.yaml [--sdf OUT.sdf] [--px4 OUT.params] [--airframe OUT]
     rotortwin params from-ulog FLIGHT.ulg --out P.yaml [--mass-kg M] [--arm-m L] [--name N]
+    rotortwin params from-ulog A.ulg B.ulg ... --out VEHICLE.yaml [--pool latest|all]   # the vehicle twin
 
 ``derive`` runs the Búho Negro pipeline (:mod:`twin_nodes.vehicle.derive`) on a
 derivation spec and prints each derived quantity with its formula; ``--out``
@@ -63,6 +64,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     f.add_argument("--mass-kg", type=MASS_KG, help="take-off mass [kg] (else the airframe's typical mass, stated)")
     f.add_argument("--arm-m", type=finite_float(0.01, 100.0, unit="m"), help="centre-to-rotor distance [m] for logs whose layout is normalised")
     f.add_argument("--name", help="vehicle name in the file")
+    f.add_argument("--pool", choices=("latest", "all"), default="latest",
+                   help="several logs: pool the vehicle as it last flew (its latest PWM range, the flights since its "
+                        "latest change; default) or every flight of the majority's PWM range (all)")
     f.set_defaults(func=_cmd_from_ulog)
 
 
@@ -149,7 +153,7 @@ def _cmd_from_ulog(args: argparse.Namespace) -> int:
     if len(args.ulog) > 1:
         from twin_nodes.fleet.vehicle_twin import build
 
-        vt = build(args.ulog, mass_kg=args.mass_kg, arm_m=args.arm_m, name=args.name)
+        vt = build(args.ulog, mass_kg=args.mass_kg, arm_m=args.arm_m, name=args.name, state=args.pool)
         print(vt.header)
         print()
         print(_summary(vt.params))

@@ -5,8 +5,12 @@
 (:func:`twin_nodes.identify.nominal.nominal_from_log`, one mass for all: the one given, else the airframe's
 assumed mass) and its values (:func:`twin_nodes.fleet.facts.identified`).  Per value:
 
-- a flight whose motor PWM range differs from the majority's is left out of every value (named: the same
-  command is another thrust there);
+- the twin is the vehicle *as it last flew*: the flights are put in date order (UTC; a file-name date corrected by
+  the vehicle's local offset, as the fleet report does), a flight whose motor PWM range differs from the latest
+  flight's is left out of every value (named: the same command is another thrust there), and so is every flight
+  before the vehicle's latest change (a step of the thrust per mass or of a trim on at least two flights in a row,
+  :func:`twin_nodes.fleet.changes.find_all`; named with the value that stepped).  ``state="all"`` pools every
+  flight of the majority's PWM range instead (the earlier behaviour);
 - a flight beyond ``max(3 x 1.4826 MAD, 3 se, floor)`` of the median is *disagreeing*: named, not averaged in;
 - the pooled value is the mean of the others, its uncertainty the scatter / sqrt(n) (at least the mean se),
   and the flight-to-flight scatter is reported beside it.
@@ -89,8 +93,62 @@ def pool(value: str, names: list[str], x: list[float], se: list[float]) -> Poole
     return out
 
 
+#: the values whose step marks a change of the vehicle for :func:`select` (thrust per mass: payload, propulsion,
+#: PWM range; the roll/pitch trims: where the load hangs)
+STATE_VALUES = ("kt_per_mass", "com_dx_m", "com_dy_m")
+
+
+def select(flights: list[dict], state: str = "latest") -> tuple[list[dict], list[str], str]:
+    """The flights to pool (see the module docstring), the left-out lines ("path: why") and one line on the choice.
+    ``flights``: dicts with ``path``, ``name``, ``when`` (UTC ISO text, '' unknown), ``pwm`` (``text``) and ``facts``."""
+    if state not in ("latest", "all"):
+        raise TwinError(f"vehicle twin: state {state!r}: expected 'latest' or 'all'")
+    if state == "all":
+        counts: dict[str, int] = {}
+        for f in flights:
+            counts[f["pwm"]["text"]] = counts.get(f["pwm"]["text"], 0) + 1
+        pwm_text = max(counts, key=lambda k: (counts[k], k))
+        note = f"every flight of the majority's motor PWM range ({pwm_text})"
+    else:
+        flights = sorted(flights, key=lambda f: (f.get("when") or "", f["path"]))
+        pwm_text = flights[-1]["pwm"]["text"]
+        note = f"the vehicle as it last flew ({flights[-1]['name']}, {flights[-1].get('when') or 'undated'})"
+    out = [f"{f['path']}: motor PWM range {f['pwm']['text']}, the twin's is {pwm_text} (the same command is another "
+           "thrust)" for f in flights if f["pwm"]["text"] != pwm_text]
+    same = [f for f in flights if f["pwm"]["text"] == pwm_text]
+    if state == "latest" and len(same) >= 3:
+        from twin_nodes.fleet.changes import find_all
+
+        series = find_all({v: ([f["facts"].get(v, math.nan) for f in same],
+                               [f["facts"].get(f"{v}_se", math.nan) for f in same]) for v in STATE_VALUES})
+        starts = [(st.first, v) for v, ser in series.items() for st in ser.steps]
+        if starts:
+            first, value = max(starts)
+            out += [f"{f['path']}: before the vehicle's latest change ({value} stepped at {same[first]['name']})"
+                    for f in same[:first]]
+            note += f"; since its latest change at {same[first]['name']} ({value} stepped)"
+            same = same[first:]
+    return same, out, note
+
+
+def date_flights(flights: list[dict]) -> None:
+    """Each flight's UTC time (``when``) from its header (or GPS, or file name corrected by the local offset)."""
+    from twin_nodes.fleet.changes import local_offset_h, when_utc
+    from twin_nodes.fleet.flight import identity
+
+    rows = []
+    for f in flights:
+        try:
+            rows.append(identity(f["path"]))
+        except TwinError:
+            rows.append({})
+    off = local_offset_h(rows)
+    for f, r in zip(flights, rows):
+        f["when"] = when_utc(r, off) if r else ""
+
+
 def build(paths: list[str | os.PathLike[str]], *, mass_kg: float | None = None, arm_m: float | None = None,
-          name: str | None = None) -> VehicleTwin:
+          name: str | None = None, state: str = "latest") -> VehicleTwin:
     """The vehicle twin of the free flights among ``paths`` (see the module docstring)."""
     from twin_nodes.fleet.facts import actuator_tests, flight_kind, identified, motor_pwm
     from twin_nodes.identify.nominal import nominal_from_log
@@ -117,14 +175,9 @@ def build(paths: list[str | os.PathLike[str]], *, mass_kg: float | None = None, 
     if not flights:
         raise TwinError("params from-ulog: no free flight among the logs to identify on: "
                         + " | ".join(left_out))
-    counts: dict[str, int] = {}
-    for f in flights:
-        counts[f["pwm"]["text"]] = counts.get(f["pwm"]["text"], 0) + 1
-    pwm_text = max(counts, key=lambda k: (counts[k], k))
-    for f in [f for f in flights if f["pwm"]["text"] != pwm_text]:
-        left_out.append(f"{f['path']}: motor PWM range {f['pwm']['text']}, the twin's is {pwm_text} (the same "
-                        "command is another thrust)")
-    flights = [f for f in flights if f["pwm"]["text"] == pwm_text]
+    date_flights(flights)
+    flights, dropped, state_note = select(flights, state)
+    left_out += dropped
     pooled = {}
     for v in POOLED:
         res = pool(v, [f["name"] for f in flights], [f["facts"].get(v, math.nan) for f in flights],
@@ -134,7 +187,7 @@ def build(paths: list[str | os.PathLike[str]], *, mass_kg: float | None = None, 
     pwm = next(f["pwm"] for f in flights)
     vp = _params(flights, pooled)
     return VehicleTwin(vp, pooled, [f["path"] for f in flights], left_out, pwm,
-                       _header(vp, pooled, flights, left_out, pwm))
+                       _header(vp, pooled, flights, left_out, pwm, state_note))
 
 
 def _params(flights: list[dict], pooled: dict[str, Pooled]) -> VehicleParams:
@@ -162,8 +215,9 @@ def _params(flights: list[dict], pooled: dict[str, Pooled]) -> VehicleParams:
 
 
 def _header(vp: VehicleParams, pooled: dict[str, Pooled], flights: list[dict], left_out: list[str],
-            pwm: dict) -> str:
-    lines = [f"Vehicle twin pooled over {len(flights)} free flight(s) by 'rotortwin params from-ulog'.",
+            pwm: dict, state_note: str = "") -> str:
+    lines = [f"Vehicle twin pooled over {len(flights)} free flight(s) by 'rotortwin params from-ulog'"
+             + (f": {state_note}." if state_note else "."),
              f"Motor PWM range of these flights: {pwm['text']}.",
              f"Mass {vp.mass_kg:g} kg (given or the airframe's assumed mass; thrust and inertia scale with it).",
              "Pooled values (mean ± uncertainty, flight-to-flight scatter, flights):"]
