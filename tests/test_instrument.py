@@ -179,6 +179,29 @@ def test_the_instrument_supplies_an_axis_a_finding_held_at_nominal_and_is_shown_
     assert attach_instrumented(far, iv, residual, nominal).startswith("disagrees")
 
 
+def test_the_rate_loop_replacing_holds_an_axis_it_reads_unchanged_at_the_model():
+    """PX4 SIH t010 (SIH_L_PITCH 0.15 -> Iyy x1.33, 50 Hz log): the equation error moved Ixx +14 % (t=3.0)
+    on the aliased commands; PX4's rate loop reads roll x1.02 +- 0.03 (not flagged), pitch x1.41.  Replacing,
+    the rate loop decides both axes: Iyy its value, Ixx the model's (the finding's own kept in own_params)."""
+    from twin_nodes.discovery.discover import attach_instrumented
+    nominal = np.array([0.025, 0.025, 0.03])
+    residual = {"residual": "rate_loop", "heldout_channel": "pitch", "heldout_improvement": 0.89}
+    iv = {"flagged": ["pitch"], "params": {"ixx": 0.025, "iyy": 0.03551, "izz": 0.03},
+          "axes": {"roll": {"scale": 1.018, "scale_se": 0.026}, "pitch": {"scale": 1.415, "scale_se": 0.015}}}
+    entry = {"name": "inertia", "verdict": "likely", "verdict_note": "corroborated",
+             "params": {"ixx": 0.02847, "iyy": 0.03253, "izz": 0.02945}, "residuals": {"equation": {}}}
+    assert attach_instrumented(dict(entry, params=dict(entry["params"])), iv, residual, nominal,
+                               replace=False).startswith("corroborates")
+    assert attach_instrumented(entry, iv, residual, nominal, replace=True) == "corroborates the likely finding"
+    assert entry["params"] == {"ixx": 0.025, "iyy": 0.03551, "izz": 0.02945}
+    assert entry["own_params"] == {"iyy": 0.03253, "ixx": 0.02847}
+    assert "ixx" in entry["held_at_nominal"] and "ixx held at the model's 0.025" in entry["verdict_note"]
+    # without replacing (the motors logged at the rate loop's rate) the finding's own Ixx stands
+    kept = {"name": "inertia", "verdict": "likely", "params": {"ixx": 0.02847, "iyy": 0.03253, "izz": 0.02945}}
+    attach_instrumented(kept, iv, residual, nominal)
+    assert kept["params"]["ixx"] == 0.02847
+
+
 def _projected(name: str, tau: float) -> dict:
     from twin_nodes.discovery.output_error import projected_view
     vp = shipped("px4_sih_quadx")
