@@ -319,9 +319,10 @@ def _instrument_reading(S: PreparedFlight, current: VehicleParams, nominal: Vehi
         I_nom = np.diag(effective_params(nominal).inertia)
         iv, not_used = flown(current.with_effect("inertia", ixx=float(I_nom[0]), iyy=float(I_nom[1]),
                                                  izz=float(I_cur[2])), ("roll", "pitch"))
-        if iv is None or iv.get("params") is None:
+        if iv is None:
             return None
         reference = I_nom
+        iv.setdefault("params", {"ixx": float(I_nom[0]), "iyy": float(I_nom[1]), "izz": float(I_cur[2])})
         for a, (k, j) in IV_AXIS_PARAM.items():
             if a not in iv["flagged"]:
                 iv["params"][k] = float(I_nom[j])
