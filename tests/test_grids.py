@@ -446,3 +446,47 @@ def test_a_lag_fitted_on_aliased_commands_is_read_again_by_the_rate_loop(monkeyp
     # a log whose motors are logged as fast as the rate loop runs: the finding's own fit stands
     S.data.motor_dt_s = 0.004
     assert motor_lag.read_finding(S, current, entry(), lambda v: None) is None
+
+
+def _sih_body_rate_dot(I: np.ndarray, arms: tuple[float, float], t_max: float, q_max: float, u: np.ndarray,
+                       w: np.ndarray, kdw: float) -> np.ndarray:
+    """PX4 SIH's quadrotor body-rate derivative, transcribed from simulator_sih/sih.cpp
+    (generate_force_and_torques, equations_of_motion): M = (L_ROLL T_MAX (-u0+u1+u2-u3),
+    L_PITCH T_MAX (u0-u1+u2-u3), Q_MAX (u0+u1-u2-u3)); w_dot = I^-1 (M - KDW w - w x I w)."""
+    M = np.array([arms[0] * t_max * (-u[0] + u[1] + u[2] - u[3]), arms[1] * t_max * (u[0] - u[1] + u[2] - u[3]),
+                  q_max * (u[0] + u[1] - u[2] - u[3])])
+    return np.linalg.solve(I, M - kdw * w - np.cross(w, I @ w))
+
+
+def test_sih_arm_length_and_inertia_map_to_one_per_axis_inertia():
+    """An arm length scales its axis's moment alone: SIH with (IXX, IYY, L_ROLL, L_PITCH) turns, for any
+    command, as SIH with the nominal arms and the per-axis inertia prove maps it to; an inertia and an
+    arm change together are one inertia truth (t016/t018 of batch 2: IXX_IYY with L_PITCH / L_ROLL)."""
+    from twin_nodes.prove import sih as prove_sih
+
+    vp = shipped("px4_sih_quadx")
+    rng = np.random.default_rng(3)
+    for ch in ({"SIH_L_ROLL": 0.17}, {"SIH_L_PITCH": 0.15}, {"SIH_IXX": 0.0325, "SIH_IYY": 0.0325, "SIH_L_PITCH": 0.17},
+               {"SIH_IXX": 0.0325, "SIH_IYY": 0.0325, "SIH_L_ROLL": 0.17}, {"SIH_IZZ": 0.039, "SIH_L_ROLL": 0.15}):
+        t = prove_sih.map_truth({"sih_changes": {k: [0.0, v] for k, v in ch.items()}}, vp)
+        assert t.hidden.name == "inertia"
+        eq = t.hidden.params
+        I_sih = np.diag([ch.get("SIH_IXX", 0.025), ch.get("SIH_IYY", 0.025), ch.get("SIH_IZZ", 0.030)])
+        arms = (ch.get("SIH_L_ROLL", 0.2), ch.get("SIH_L_PITCH", 0.2))
+        I_eq = np.diag([eq["ixx"], eq["iyy"], eq["izz"]])
+        for _ in range(5):
+            u = rng.uniform(0.2, 0.8, 4)
+            a = _sih_body_rate_dot(I_sih, arms, 5.0, 0.1, u, np.zeros(3), 0.0)
+            b = _sih_body_rate_dot(I_eq, (0.2, 0.2), 5.0, 0.1, u, np.zeros(3), 0.0)
+            assert b == pytest.approx(a, rel=1e-12, abs=1e-12)
+    # the closed forms, per axis
+    eq = prove_sih.map_truth({"sih_changes": {"SIH_IXX": [0.025, 0.0325], "SIH_IYY": [0.025, 0.0325],
+                                              "SIH_L_PITCH": [0.2, 0.17]}}, vp).hidden.params
+    assert eq == pytest.approx({"ixx": 0.0325, "iyy": 0.0325 * 0.2 / 0.17, "izz": 0.030})
+    tr = grid_prove._sih_truths({"sih": {"SIH_IXX": [0.025, 0.0325], "SIH_IYY": [0.025, 0.0325],
+                                         "SIH_L_ROLL": [0.2, 0.17]}}, vp)
+    assert [t.hidden.name for t in tr] == ["inertia"]
+    assert tr[0].hidden.params == pytest.approx({"ixx": 0.0325 * 0.2 / 0.17, "iyy": 0.0325, "izz": 0.030})
+    # other groups beside it stay their own truths
+    tr = grid_prove._sih_truths({"sih": {"SIH_KDW": [0.025, 0.05], "SIH_L_ROLL": [0.2, 0.17]}}, vp)
+    assert [t.hidden.name for t in tr] == ["angular_damping", "inertia"]

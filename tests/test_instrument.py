@@ -179,6 +179,52 @@ def test_the_instrument_supplies_an_axis_a_finding_held_at_nominal_and_is_shown_
     assert attach_instrumented(far, iv, residual, nominal).startswith("disagrees")
 
 
+def test_the_rate_loop_replacing_holds_an_axis_it_reads_unchanged_at_the_model():
+    """PX4 SIH t010 (SIH_L_PITCH 0.15 -> Iyy x1.33, 50 Hz log): the equation error moved Ixx +14 % (t=3.0)
+    on the aliased commands; PX4's rate loop reads roll x1.02 +- 0.03 (not flagged), pitch x1.41.  Replacing,
+    the rate loop decides both axes: Iyy its value, Ixx the model's (the finding's own kept in own_params)."""
+    from twin_nodes.discovery.discover import attach_instrumented
+    nominal = np.array([0.025, 0.025, 0.03])
+    residual = {"residual": "rate_loop", "heldout_channel": "pitch", "heldout_improvement": 0.89}
+    iv = {"flagged": ["pitch"], "params": {"ixx": 0.025, "iyy": 0.03551, "izz": 0.03},
+          "axes": {"roll": {"scale": 1.018, "scale_se": 0.026}, "pitch": {"scale": 1.415, "scale_se": 0.015}}}
+    entry = {"name": "inertia", "verdict": "likely", "verdict_note": "corroborated",
+             "params": {"ixx": 0.02847, "iyy": 0.03253, "izz": 0.02945}, "residuals": {"equation": {}}}
+    assert attach_instrumented(dict(entry, params=dict(entry["params"])), iv, residual, nominal,
+                               replace=False).startswith("corroborates")
+    assert attach_instrumented(entry, iv, residual, nominal, replace=True) == "corroborates the likely finding"
+    assert entry["params"] == {"ixx": 0.025, "iyy": 0.03551, "izz": 0.02945}
+    assert entry["own_params"] == {"iyy": 0.03253, "ixx": 0.02847}
+    assert "ixx" in entry["held_at_nominal"] and "ixx held at the model's 0.025" in entry["verdict_note"]
+    # without replacing (the motors logged at the rate loop's rate) the finding's own Ixx stands
+    kept = {"name": "inertia", "verdict": "likely", "params": {"ixx": 0.02847, "iyy": 0.03253, "izz": 0.02945}}
+    attach_instrumented(kept, iv, residual, nominal)
+    assert kept["params"]["ixx"] == 0.02847
+
+
+def test_the_rate_loop_on_a_4ms_log_holds_the_axis_it_does_not_flag():
+    """PX4 SIH s039 (SIH_L_PITCH 0.15 -> Iyy x1.33, M3, motors every 4 ms): the output error fitted Ixx +14 %,
+    Iyy +37 %; PX4's rate loop reads roll x0.90 +- 0.03 (not flagged), pitch x1.40 (flagged, agreeing within
+    x1.5).  Not replacing, the finding keeps its Iyy; its Ixx is held at the model's value.  The rate setpoint
+    as instrument (no ``method``) holds nothing: it is too weak to say an axis did not move."""
+    from twin_nodes.discovery.discover import attach_instrumented
+    nominal = np.array([0.025, 0.025, 0.03])
+    residual = {"residual": "rate_loop", "heldout_channel": "pitch", "heldout_improvement": 0.97}
+    axes = {"roll": {"scale": 0.902, "scale_se": 0.028, "gain": 1.109, "se": 0.03},
+            "pitch": {"scale": 1.401, "scale_se": 0.022, "gain": 0.714, "se": 0.01}}
+    iv = {"method": "rate_loop", "flagged": ["pitch"], "params": {"ixx": 0.025, "iyy": 0.03503, "izz": 0.0297},
+          "axes": axes}
+    entry = {"name": "inertia", "verdict": "confirmed", "verdict_note": "t=5.4",
+             "params": {"ixx": 0.0286, "iyy": 0.03416, "izz": 0.02967}}
+    assert attach_instrumented(entry, iv, residual, nominal) == "corroborates the confirmed finding"
+    assert entry["params"] == {"ixx": 0.025, "iyy": 0.03416, "izz": 0.02967}
+    assert entry["own_params"] == {"ixx": 0.0286} and "not borne out" in entry["held_at_nominal"]["ixx"]
+    assert entry["residuals"]["rate_loop"] is residual
+    weak = {"name": "inertia", "verdict": "confirmed", "params": {"ixx": 0.0286, "iyy": 0.03416, "izz": 0.02967}}
+    attach_instrumented(weak, {k: v for k, v in iv.items() if k != "method"}, residual, nominal)
+    assert weak["params"]["ixx"] == 0.0286
+
+
 def _projected(name: str, tau: float) -> dict:
     from twin_nodes.discovery.output_error import projected_view
     vp = shipped("px4_sih_quadx")

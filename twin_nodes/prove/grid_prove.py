@@ -171,13 +171,14 @@ def sih_jobs(half: str, cache: Path) -> tuple[list, list[str]]:
 
 
 def _sih_truths(fl: dict, nominal) -> list[Truth]:
-    from twin_nodes.prove.sih import map_truth
+    from twin_nodes.prove.sih import INERTIA_GROUP, map_truth
 
     ch = fl.get("sih") or {}
     groups: list[dict] = []
     for k, v in ch.items():
-        g = next((gr for gr in groups if {k, *gr} <= {"SIH_IXX", "SIH_IYY", "SIH_IZZ"} or
-                  {k, *gr} <= {"SIH_L_ROLL", "SIH_L_PITCH"}), None)
+        # an inertia and an arm length act on the same thing (each axis's turn rate per command): one
+        # inertia truth, per axis (prove.sih.inertia_equivalent)
+        g = next((gr for gr in groups if {k, *gr} <= INERTIA_GROUP), None)
         if g is None:
             groups.append({k: v})
         else:

@@ -19,6 +19,7 @@ SIH_IXX/IYY/IZZ ``inertia``: ixx, iyy, izz (an unchanged axis keeps the nominal 
 SIH_KDV         ``linear_drag``: k_n_s_m = KDV (world-frame isotropic drag; truth.json calls it body_drag, linear)
 SIH_KDW         ``angular_damping``: k_nm_s_rad = KDW
 SIH_L_ROLL/PITCH ``inertia`` equivalent: roll (pitch) moment per command scales with L, so ixx_eq = ixx L0/L
+                (with SIH_IXX/IYY changed too: one inertia, per axis IXX L0/L_ROLL, IYY L0/L_PITCH)
 ==============  =====================================================================================
 """
 
@@ -47,15 +48,38 @@ def shared_dir(given: str | Path | None = None) -> Path:
     return p
 
 
+#: the SIH parameters that change the body-rate dynamics per axis: one ``inertia`` truth together
+ARM_PARAMS = frozenset({"SIH_L_ROLL", "SIH_L_PITCH"})
+INERTIA_GROUP = frozenset({"SIH_IXX", "SIH_IYY", "SIH_IZZ"}) | ARM_PARAMS
+
+
+def inertia_equivalent(changes: dict[str, float], nominal: VehicleParams) -> dict[str, float]:
+    """The per-axis inertia our model (arms fixed at the nominal's) needs to turn as SIH turns with
+    ``changes`` (SIH_IXX/IYY/IZZ and SIH_L_ROLL/L_PITCH, the values flown).
+
+    SIH (``simulator_sih/sih.cpp``): ``M = (L_ROLL T_MAX (-u0+u1+u2-u3), L_PITCH T_MAX (u0-u1+u2-u3),
+    Q_MAX (u0+u1-u2-u3))`` and ``w_dot = I^-1 (M - KDW w - w x I w)``; PX4's mixer allocates with the
+    airframe's own rotor positions, which do not move.  An arm length scales that axis's moment per
+    command alone, so ``w_dot_x = (L_ROLL / L0) M0_x / IXX``: the axis turns as with an inertia
+    ``IXX L0 / L_ROLL`` (pitch likewise with IYY and L_PITCH; yaw untouched).  An inertia and an arm
+    change on the same axis combine in one: ``I_axis L0 / L_axis``.  Exact for the commanded
+    moment; the damping and gyroscopic terms are then read at ``L0 / L`` of their size (KDW 0.025:
+    < 0.5 % of the moment in these flights)."""
+    inertia = nominal.inertia
+    r = nominal.rotors
+    arm_roll, arm_pitch = abs(float(r.y_flu_m[0])), abs(float(r.x_flu_m[0]))
+    return {"ixx": float(changes.get("SIH_IXX", inertia[0, 0])) * arm_roll / float(changes.get("SIH_L_ROLL", arm_roll)),
+            "iyy": float(changes.get("SIH_IYY", inertia[1, 1])) * arm_pitch / float(changes.get("SIH_L_PITCH", arm_pitch)),
+            "izz": float(changes.get("SIH_IZZ", inertia[2, 2]))}
+
+
 def map_truth(truth: dict, nominal: VehicleParams) -> Truth:
     """``truth.json`` of one SIH flight -> the truth in our effect vocabulary."""
     changes = {k: float(v[1]) for k, v in (truth.get("sih_changes") or {}).items()}
     text = ", ".join(f"{k} {float(v[0]):g}->{float(v[1]):g}" for k, v in (truth.get("sih_changes") or {}).items())
     if not changes:
         return Truth(Hidden("none", {}), "no SIH change")
-    r = nominal.rotors
-    t_max0 = r.thrust_max_n
-    inertia = nominal.inertia
+    t_max0 = nominal.rotors.thrust_max_n
     names = set(changes)
     if names == {"SIH_MASS"}:
         return Truth(Hidden("mass", {"mass": changes["SIH_MASS"]}), text)
@@ -66,19 +90,13 @@ def map_truth(truth: dict, nominal: VehicleParams) -> Truth:
     if names == {"SIH_T_TAU"}:
         tau = changes["SIH_T_TAU"]
         return Truth(Hidden("motor_time_constant", {"tau_up": tau, "tau_down": tau}), text)
-    if names and names <= {"SIH_IXX", "SIH_IYY", "SIH_IZZ"}:
-        return Truth(Hidden("inertia", {"ixx": float(changes.get("SIH_IXX", inertia[0, 0])),
-                                        "iyy": float(changes.get("SIH_IYY", inertia[1, 1])),
-                                        "izz": float(changes.get("SIH_IZZ", inertia[2, 2]))}), text)
+    if names and names <= INERTIA_GROUP:
+        eq = inertia_equivalent(changes, nominal)
+        return Truth(Hidden("inertia", eq), text + (" (inertia equivalent)" if names & ARM_PARAMS else ""))
     if names == {"SIH_KDV"}:
         return Truth(Hidden("linear_drag", {"k_n_s_m": changes["SIH_KDV"]}), text)
     if names == {"SIH_KDW"}:
         return Truth(Hidden("angular_damping", {"k_nm_s_rad": changes["SIH_KDW"]}), text)
-    if names and names <= {"SIH_L_ROLL", "SIH_L_PITCH"}:
-        arm = abs(r.y_flu_m[0]), abs(r.x_flu_m[0])
-        return Truth(Hidden("inertia", {"ixx": inertia[0, 0] * arm[0] / changes.get("SIH_L_ROLL", arm[0]),
-                                        "iyy": inertia[1, 1] * arm[1] / changes.get("SIH_L_PITCH", arm[1]),
-                                        "izz": inertia[2, 2]}), text + " (inertia equivalent)")
     raise TwinError(f"truth.json: sih_changes: expected one SIH parameter group we map, got {sorted(names)}")
 
 

@@ -6,6 +6,7 @@ refit vehicle, the closed-loop check permitting (``InstrumentInput`` -> ``Instru
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -71,7 +72,10 @@ def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: 
     ``held_at_nominal`` loses them); else the disagreement is returned and nothing changes.  With
     ``replace`` (PX4's rate loop on a log whose motor commands are aliased, where the finding's own
     roll/pitch fit is biased) the same direction is agreement enough, and the rate loop's value
-    replaces the finding's (kept in ``own_params``).  Returns what happened, for the result's
+    replaces the finding's (kept in ``own_params``).  PX4's rate loop (``iv["method"] == "rate_loop"``,
+    either logging) also decides which axes moved: one it reads and does not flag is held at the model's
+    value (the finding's own kept in ``own_params``; PX4 SIH SIH_L_PITCH 0.15 on M3 at 4 ms: the output
+    error's Ixx +14 %, the rate loop's roll x0.90 +- 0.03).  Returns what happened, for the result's
     ``instrumented.verdict``."""
     params, ax = iv["params"], iv["axes"]
     agree = []
@@ -91,6 +95,21 @@ def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: 
             entry["params"][k] = params[k]
             entry.get("held_at_nominal", {}).pop(k, None)
             entry.setdefault("instrumented_params", {})[k] = params[k]
+    # PX4's rate loop (either logging; replacing, always) decides which of roll and pitch moved: an axis it
+    # reads and does not flag is held at the model's value, whatever the finding's own fit moved it to
+    unmoved = []
+    for a in ax if (replace or iv.get("method") == "rate_loop") else ():
+        k, j = IV_AXIS_PARAM[a]
+        if a in iv["flagged"] or not np.isfinite(ax[a].get("scale", math.nan)) or \
+                abs(entry["params"][k] - nominal_inertia[j]) <= 1e-9 * nominal_inertia[j]:
+            continue
+        entry.setdefault("own_params", {})[k] = entry["params"][k]
+        entry["params"][k] = float(nominal_inertia[j])
+        entry.setdefault("held_at_nominal", {})[k] = (
+            f"PX4's rate loop reads {a} inertia x{ax[a]['scale']:.2f} +- {ax[a]['scale_se']:.2f} (not flagged): the "
+            f"finding's {k} {entry['own_params'][k]:.4g} " + ("was fitted to motor commands logged slower than the rate "
+                                                               "loop runs" if replace else "is not borne out by it"))
+        unmoved.append((a, k))
     if "held_at_nominal" in entry and not entry["held_at_nominal"]:
         entry.pop("held_at_nominal")
     kind = residual.get("residual", "instrumented")
@@ -113,7 +132,11 @@ def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: 
     entry["verdict_note"] = (entry.get("verdict_note", "") + "; " + says
                              + ", ".join(f"{p_}, {k} {params[k]:.4g}" + how(k, held)
                                          for p_, (a, k, held, _) in zip(part, agree))
-                             + f"; {held_out}{100 * residual['heldout_improvement']:.0f} %)")
+                             + f"; {held_out}{100 * residual['heldout_improvement']:.0f} %)"
+                             + "".join(f"; {k} held at the model's {nominal_inertia[IV_AXIS_PARAM[a][1]]:.4g} (the rate "
+                                       f"loop reads {a} x{ax[a]['scale']:.2f} +- {ax[a]['scale_se']:.2f}; the finding's "
+                                       f"{entry['own_params'][k]:.4g} " + ("fitted to aliased commands)" if replace else
+                                                                            "not borne out)") for a, k in unmoved))
     return "corroborates the " + entry["verdict"] + " finding"
 
 
@@ -290,6 +313,20 @@ def _instrument_reading(S: PreparedFlight, current: VehicleParams, nominal: Vehi
                                                  izz=float(I_cur[2])), ("roll", "pitch"))
         replace = iv is not None
         reference = I_nom if replace else I_cur
+    elif finding and not allowed and nominal is not None:
+        # a confirmed finding fitted roll and pitch itself (motors logged at the rate loop's rate): PX4's
+        # rate loop reads both against the model's own inertia, a check of which axes moved
+        I_nom = np.diag(effective_params(nominal).inertia)
+        iv, not_used = flown(current.with_effect("inertia", ixx=float(I_nom[0]), iyy=float(I_nom[1]),
+                                                 izz=float(I_cur[2])), ("roll", "pitch"))
+        if iv is None:
+            return None
+        reference = I_nom
+        iv.setdefault("params", {"ixx": float(I_nom[0]), "iyy": float(I_nom[1]), "izz": float(I_cur[2])})
+        for a, (k, j) in IV_AXIS_PARAM.items():
+            if a not in iv["flagged"]:
+                iv["params"][k] = float(I_nom[j])
+        return iv, not_used, reference, False
     if not replace:
         if not allowed:
             return None
@@ -300,10 +337,12 @@ def _instrument_reading(S: PreparedFlight, current: VehicleParams, nominal: Vehi
     if iv is None:
         return None
     if replace and iv.get("params"):
-        # an axis the rate loop does not flag keeps the finding's value
+        # an axis the rate loop reads and does not flag is the model's: the finding's value for it was
+        # fitted to the aliased commands (SIH_L_PITCH 0.15 on a 50 Hz log: the equation error's Ixx +14 %
+        # at t=3.0, the rate loop's roll x1.02 +- 0.03)
         for a, (k, j) in IV_AXIS_PARAM.items():
             if a not in iv["flagged"]:
-                iv["params"][k] = float(I_cur[j])
+                iv["params"][k] = float(reference[j] if a in iv["axes"] else I_cur[j])
     return iv, not_used, reference, replace
 
 
@@ -394,17 +433,22 @@ def _instrument_entry(v: dict, iv: dict, out: dict, entry: dict | None, effects_
                 "fold_gains": [round(float(ax[main]["gain_fold1"]), 4), round(float(ax[main]["gain_fold2"]), 4)]}
     if entry is not None and entry["verdict"] != "rejected":
         # already a finding on its own residuals: the instrument is a third residual for its axes
-        refit = None
-        if entry["verdict"] == "confirmed":
-            # the refit vehicle takes the axes the confirmed fit held and the instrument supplies,
-            # unless the closed-loop twin says otherwise
-            refit = build(float(params["ixx"]), float(params["iyy"]))
-            against = guard(refit)
-            if against:
-                out["verdict"] = f"not supplied to the confirmed finding: {against}"
-                return out, None
+        before = copy.deepcopy(entry)
         out["verdict"] = attach_instrumented(entry, iv, residual, reference, replace)
-        return out, refit if out["verdict"].startswith("corroborates") else None
+        if not out["verdict"].startswith("corroborates"):
+            return out, None
+        if entry["verdict"] != "confirmed" or entry["params"] == before["params"]:
+            return out, None
+        # the refit vehicle takes the roll/pitch the instrument supplied or held, unless the closed-loop
+        # twin says otherwise (then the finding stays as it was)
+        refit = build(float(entry["params"]["ixx"]), float(entry["params"]["iyy"]))
+        against = guard(refit)
+        if against:
+            entry.clear()
+            entry.update(before)
+            out["verdict"] = f"not supplied to the confirmed finding: {against}"
+            return out, None
+        return out, refit
     # standard errors of the instrumented axes (from the fit part's gain: I/g, se_I = I se_g / g)
     params_se = {}
     for a in iv["flagged"]:
