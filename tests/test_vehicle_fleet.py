@@ -65,6 +65,14 @@ def test_explain_names_a_pwm_range_change_and_a_weak_motor_and_a_com_shift():
     back = {k: (-d[0], d[1]) for k, d in shares.items()}   # the same motor replaced: its share down alone
     name, why = ch.explain({"kt_per_mass": (1.0, 0.01)}, back)
     assert name == "stronger motor 3" and "x1.18" in why    # 1 / (1 - 0.15)
+    # the patched SIH fleet's motor 3 at 0.85 put back (p10, shares against p06-p09): the others move together
+    # by +1/3 of it, which the old "others within a fraction of it" test took for a pattern it does not name
+    d = dict(zip(shares, [(0.034, 0.01), (0.026, 0.01), (-0.116, 0.01), (0.054, 0.01)]))
+    name, why = ch.explain({"kt_per_mass": (1.0, 0.01)}, d)
+    assert name == "stronger motor 3" and "x1.17" in why    # (1 + 0.038) / (1 - 0.116): the truth 1/0.85 = 1.18
+    # a centre of mass 20 mm forward, 10 mm right (p13): every share moves, no single motor is named
+    d = dict(zip(shares, [(0.16, 0.01), (-0.146, 0.01), (0.04, 0.01), (-0.06, 0.01)]))
+    assert ch.explain({"kt_per_mass": (1.0, 0.01)}, d)[0] == "unexplained"
     assert ch.explain({"kt_per_mass": (1.0, 0.01)}, {"com_dx_m": (0.02, 0.002)})[0] == "centre-of-mass shift"
 
 

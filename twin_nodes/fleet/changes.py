@@ -249,23 +249,24 @@ def _yaw(ratios: dict) -> tuple[str, str] | None:
 
 def _motor_or_com(deltas: dict) -> tuple[str, str] | None:
     shares = {k: d for k, d in deltas.items() if k.startswith("motor_share_m")}
-    if shares:
+    if len(shares) >= 3:
+        # the shares are normalised to a mean of 1: one motor's change moves each other share by -1/(n-1) of it,
+        # so a single motor stands out as its change against the others' mean, the others moving together
         v = np.array([d[0] for d in shares.values()])
-        i = int(np.argmax(v))
+        contrast = np.array([v[i] - np.delete(v, i).mean() for i in range(v.size)])
+        i = int(np.argmax(np.abs(contrast)))
         others = np.delete(v, i)
-        if v[i] > 0.04 and np.all(np.abs(others) < v[i] / 2.5):
+        spread = float(np.abs(others - others.mean()).max())
+        if abs(contrast[i]) > 0.05 and spread < abs(contrast[i]) / 4:
             motor = list(shares)[i].rsplit("_m", 1)[1]
-            return f"weaker motor {motor}", (f"motor {motor}'s share of the steady-flight thrust command up by "
-                                             f"{100 * v[i]:.1f} % alone (the others within {100 * np.abs(others).max():.1f} %): "
-                                             f"it gives less thrust per command (efficiency about {1 / (1 + v[i]):.2f})")
-        j = int(np.argmin(v))
-        others = np.delete(v, j)
-        if v[j] < -0.04 and np.all(np.abs(others) < -v[j] / 2.5):
-            motor = list(shares)[j].rsplit("_m", 1)[1]
-            return f"stronger motor {motor}", (f"motor {motor}'s share of the steady-flight thrust command down by "
-                                               f"{-100 * v[j]:.1f} % alone (the others within "
-                                               f"{100 * np.abs(others).max():.1f} %): it gives more thrust per command "
-                                               f"than before (x{1 / (1 + v[j]):.2f}: a weak motor or propeller replaced?)")
+            factor = (1 + others.mean()) / (1 + v[i])   # its thrust per command, new over old
+            why = (f"motor {motor}'s share of the steady-flight thrust command {'up' if contrast[i] > 0 else 'down'} "
+                   f"by {100 * abs(contrast[i]):.1f} % against the others' (which moved together, within "
+                   f"{100 * spread:.1f} %): ")
+            if contrast[i] > 0:
+                return f"weaker motor {motor}", why + f"it gives less thrust per command (efficiency about {factor:.2f})"
+            return f"stronger motor {motor}", why + (f"it gives more thrust per command than before (x{factor:.2f}: a "
+                                                     "weak motor or propeller replaced?)")
     com = [(k, d) for k, d in deltas.items() if k.startswith("com_") and abs(d[0]) > 3 * max(d[1], 1e-9)]
     if com:
         return "centre-of-mass shift", "; ".join(f"{k[4:6]} {1000 * d[0]:+.1f} ± {1000 * d[1]:.1f} mm" for k, d in com)
