@@ -79,8 +79,9 @@ def _generate_source(registry: Sequence[type[Effect]]) -> str:
     defs.append((f"wrench_term(j, P, {_HOOKS['wrench_hooks'][1]})", body if chain else []))
     for signature, body in defs:
         # the command hook runs once per (fine) step of the rotor lag loops: inlined, as its kernels are;
-        # the other hooks stay calls (inlining them into deriv made the RK4 step slower)
-        inline = ', inline="always"' if signature.startswith("command_hooks") else ""
+        # wrench_term too (called per term and sample by wrench_terms only: a call cost 6x the arithmetic of
+        # the SIH quad's two drags); the other hooks stay calls (inlining them into deriv made the RK4 step slower)
+        inline = ', inline="always"' if signature.startswith(("command_hooks", "wrench_term(")) else ""
         hooks += (f"\n\n@njit(cache=True{inline})\ndef {signature}:\n"
                   + "".join(f"    {line}\n" for line in (body or ["pass"])))
     lines = inspect.getsource(stepper).splitlines(keepends=True)

@@ -53,7 +53,7 @@ def wrench_hooks(P, x, R, ext, omega, T, Fb, Mb, Fw):
     pass
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def wrench_term(j, P, x, R, ext, omega, T, Fb, Mb, Fw):
     pass
 # ---- end of hooks ----
