@@ -24,7 +24,7 @@ be shared.
 discovery's output-error kernel (``kernels.step_windows``: 200 windows of 0.4 s at 2 ms) on that
 vehicle and on the SIH quad with one motor's efficiency (its two drags and one candidate: what discovery
 flies most); each row prints the **ratio after / before** of the speeds (1.0: as fast; below: slower).
-``ROTORTWIN_BENCH_SMOKE=1``: 2 combinations, 0.2 s, one repeat.
+``ROTORTWIN_BENCH_SMOKE=1``: 1 combination, 0.2 s, one repeat.
 """
 
 from __future__ import annotations
@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     from _smoke import SMOKE as smoke
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--combos", type=int, default=2 if smoke else 12)
+    ap.add_argument("--combos", type=int, default=1 if smoke else 12)
     ap.add_argument("--paths", default="before,after")
     ap.add_argument("--hot-seconds", type=float, default=0.2 if smoke else 5.0)
     ap.add_argument("--repeat", type=int, default=1 if smoke else 5)
