@@ -9,7 +9,9 @@ Each run writes a fresh catalog (nothing skipped) on an embedded LocalCluster (o
 processes) with an empty cache of its own (``ROTORTWIN_CACHE``; ``--warm`` shares the user's); the time includes
 starting the cluster.  Prints flights/min per worker count and the
 2-worker / 1-worker scaling ratio (both measured in the same run), and the flight-minutes analysed (the logs'
-durations, from the catalog rows) per wall-minute per worker core.  Without ``--params`` each flight flies the
+durations, from the catalog rows) per wall-minute per worker core; beside them the CPU seconds of the run (this
+process and its ended worker processes: comparable on a shared machine, where wall time is not) and the load
+average before and after it.  Without ``--params`` each flight flies the
 params ``fleet discover`` picks for it (the shipped file for its airframe, else the nominal built from the log).  ``--synthetic`` measures the
 runner's own overhead and scaling with a task that burns ``--task-s`` seconds of CPU and writes a
 catalog row, no discovery; it is what runs without arguments (``make bench``).
@@ -43,6 +45,14 @@ def burn_task(path, catalog, mode, params, params_map, closed_loop_metrics):
            "flight_time_utc": "", "effects_json": "[]"}
     cat.write_row(catalog, row)
     return {"path": row["path"], "status": "ok", "error": ""}
+
+
+def _cpu_s() -> float:
+    """User + system CPU seconds of this process and of its ended children (the cluster's workers)."""
+    import resource
+
+    return sum(getattr(resource.getrusage(who), f) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+               for f in ("ru_utime", "ru_stime"))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -87,9 +97,12 @@ def main(argv: list[str] | None = None) -> int:
     for w in [int(x) for x in a.workers.split(",")]:
         if not a.warm:  # each worker count starts cold, as a user's first run: its own empty cache (numba, nominals)
             os.environ["ROTORTWIN_CACHE"] = str(tmp / f"cache_w{w}")
+        load0 = os.getloadavg()[0]
+        cpu0 = _cpu_s()
         t0 = time.perf_counter()
         res = run_fleet(flights, tmp / f"cat_w{w}", workers=w, progress=False, **kw)
         dt = time.perf_counter() - t0
+        cpu = _cpu_s() - cpu0
         ok = sum(d["status"] == "ok" for d in res["done"])
         rate[w] = len(flights) / dt * 60
         fmin = 0.0
@@ -98,7 +111,9 @@ def main(argv: list[str] | None = None) -> int:
             fmin = sum(float(r.get("duration_s") or 0.0) for r in load(tmp / f"cat_w{w}")) / 60.0
         print(f"workers={w}: {len(flights)} flights ({ok} ok) in {dt:.1f} s -> {rate[w]:.2f} flights/min"
               + (f"; {fmin:.1f} flight-minutes of logs -> {fmin / (dt / 60.0) / w:.1f} flight-min per wall-min "
-                 f"per core" if fmin else ""), flush=True)
+                 f"per core" if fmin else "")
+              + f"; {cpu:.1f} CPU s (this process and its workers); load average {load0:.2f} before, "
+                f"{os.getloadavg()[0]:.2f} after", flush=True)
     if 1 in rate and 2 in rate:
         print(f"scaling 2 workers / 1 worker: {rate[2] / rate[1]:.2f}x")
     return 0

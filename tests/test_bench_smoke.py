@@ -24,6 +24,7 @@ RATIO_LINES = {
     "bench_model.py": [r"ours, step\(\) per 1 ms\s+[\d.]+x\s+[\d.]+\s+[\d.]+x", r"RotorPy step\(\)\s+[\d.]+x"],
     "bench_lockstep.py": [r"ratio vs the first case run \(median, this run\):\s+[\d.]+x"],
     "bench_fleet.py": [r"scaling 2 workers / 1 worker: [\d.]+x"],
+    "bench_stepper.py": [r"ratio before/after \(cold, all combinations\): [\d.]+x"],
     "bench_replay.py": [r"ratio graph / offline\s+[\d.]+", r"dropped messages\s+0\b"],
     "bench_discover.py": [r"ratio before/after: wall [\d.]+x, cpu [\d.]+x", r"same result: True"],
     "bench_memory.py": [r"ratio compare: long / budget [\d.]+ \(within 2 GB\), long / short flight [\d.]+",

@@ -1,5 +1,7 @@
 """The generated stepper (twin_nodes.physics.model + stepper.py): cache safety and bit-identity.
 
+* the stepper dispatches on the effect table (one module for every set of effects;
+  tests/test_stepper_dispatch.py flies it against the per-combination stepper it replaced);
 * a cache file whose bytes differ from the generated source is never run (it is rewritten);
 * a cache folder that is a link, another user's, or writable by others is never used;
 * numba's on-disk cache of a generated module is reused by the next process;
@@ -47,16 +49,20 @@ def test_template_is_the_no_effect_stepper():
     assert model._generate_source(()) == inspect.getsource(stepper)
 
 
-def test_generated_hooks_slice_the_packed_vector():
+def test_generated_hooks_dispatch_on_the_effect_table():
     vp = shipped("buho_negro").with_effect("battery_sag").with_effect("linear_drag", k_n_s_m=0.1)
     m = Multirotor(vp)
-    src = model._generate_source([type(e) for e in m.kernel_effects])
-    assert "_k_battery_sag(E[0:2], ext, sref)" in src
-    assert "_k_linear_drag(E[2:3], x, R, ext, omega, T, Fb, Mb, Fw)" in src
-    assert "N_TERMS = 2\nCOMMAND_HOOKS, ROTOR_HOOKS, WRENCH_HOOKS = True, False, True\n" in src
-    assert "E = effect_params(P)" in src
+    registry = model._registry()
+    src = model._generate_source(registry)
+    code = {cls: i for i, cls in enumerate(registry)}
+    assert f"    if c == {code[EFFECTS['battery_sag']]}:\n            _k_battery_sag(P[s:s + 2], ext, sref)" in src
+    assert (f"if c == {code[EFFECTS['linear_drag']]}:\n            _k_linear_drag(P[s:s + 1], x, R, ext, omega, T, "
+            "Fb, Mb, Fw)") in src
+    assert f"N_KINDS = {len(registry)}\nCOMMAND_HOOKS, ROTOR_HOOKS, WRENCH_HOOKS = True, True, True\n" in src
+    assert m._mod is Multirotor(shipped("buho_negro"))._mod  # one module for every set of effects
     assert m.E == () and list(m.P[-3:]) == [12.6, 1.0, 0.1]
-    assert len(m.P) == len(Multirotor(shipped("buho_negro")).P) + 3
+    # the table: three counts and two (code, start) entries, then the two parameter vectors
+    assert len(m.P) == len(Multirotor(shipped("buho_negro")).P) + 4 + 3
 
 
 # ----------------------------------------------------------------------------- cache file
@@ -64,7 +70,7 @@ def test_generated_hooks_slice_the_packed_vector():
 
 def test_tampered_cache_file_is_not_run(private_cache, tmp_path, monkeypatch):
     vp = shipped("buho_negro").with_effect("linear_drag", k_n_s_m=0.3)
-    src = model._generate_source([EFFECTS["linear_drag"]])
+    src = model._generate_source(model._registry())
     name = model._module_name(src)
     marker = tmp_path / "tampered-code-ran"
     private_cache.mkdir(mode=0o700)

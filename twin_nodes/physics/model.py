@@ -1,12 +1,16 @@
 """The multirotor model: nominal core + plug-in effects, fixed-step RK4, batched.
 
-``Multirotor(vp)`` gets (once per distinct ordered set of effect kinds) a numba module: the
-stepper of :mod:`twin_nodes.physics.stepper` with its hook functions replaced by ones calling
-each effect's kernels, so an effect is added by writing a kernel in
-:mod:`twin_nodes.physics.effects`, never by editing the core.  The kernel effects' parameter
-vectors follow the packed vehicle in ``P``, each hook reading its effect's slice.  The module
-is written to a private cache folder so numba's on-disk cache works across processes; what
-runs is the generated text itself, never what that file holds.
+Every ``Multirotor`` steps through *one* numba module, the dispatch stepper: the stepper of
+:mod:`twin_nodes.physics.stepper` with hooks that loop over the vehicle's effect table (in ``P``,
+after the packed vehicle) and call each entry's kernel through an if-chain on its integer code.
+The codes come from a registry of effect kinds with kernels: every such kind of
+:mod:`twin_nodes.physics.effects` (in ``EFFECTS`` order), then kinds defined elsewhere (the prove
+suite's plant-only effects), registered when a model first uses one, together with every other
+kernel effect of its module.  So an effect is still added by writing a kernel, never by editing
+the core; the stepper is compiled once per registry (not once per combination of effects) and
+cached on disk: the module is written to a private cache folder so numba's on-disk cache works
+across processes; what runs is the generated text itself, never what that file holds.  A kind
+from outside physics makes another registry, hence one more module (compiled once, cached too).
 
 Commands ``u`` are PX4 ``actuator_motors`` values: normalised 0..1 per motor in
 PX4 order, NaN = stopped.  ``ext`` is ``[battery_v, wind_e, wind_n, wind_u]``.
@@ -32,39 +36,54 @@ from twin_nodes.physics.effects import EXT_SIZE, Effect, default_ext, effects_fr
 if TYPE_CHECKING:  # pragma: no cover - physics reads a VehicleParams but never imports vehicle/
     from twin_nodes.vehicle.params import VehicleParams
 
-# stepper.py's hooks: the Effect attribute holding the kernel, and the arguments after P.
-_HOOKS = {"command_hooks": ("command_kernel", "ext, sref"),
-          "rotor_hooks": ("rotor_kernel", "x, ext, omega, T, Q"),
-          "wrench_hooks": ("wrench_kernel", "x, R, ext, omega, T, Fb, Mb, Fw")}
+# stepper.py's hooks: the Effect attribute holding the kernel, the arguments after P, and where the
+# hook's entries start in the effect table (after the three counts, in pairs: command, rotor, wrench).
+_HOOKS = {"command_hooks": ("command_kernel", "ext, sref", "0"),
+          "rotor_hooks": ("rotor_kernel", "x, ext, omega, T, Q", "int(P[b])"),
+          "wrench_hooks": ("wrench_kernel", "x, R, ext, omega, T, Fb, Mb, Fw", "int(P[b]) + int(P[b + 1])")}
+_COUNT = {"command_hooks": 0, "rotor_hooks": 1, "wrench_hooks": 2}  # where each hook's count is in the table
 
 
-def _generate_source(kinds: Sequence[type[Effect]]) -> str:
-    """stepper.py with hooks calling each effect's kernels, in order, each on its slice of the
-    effect parameters ``E`` (which follow the vehicle in ``P``), and on ``P`` itself right after
-    that slice for an effect whose ``kernel_reads_vehicle`` is set."""
-    imports, calls, start = set(), {hook: [] for hook in _HOOKS}, 0
-    for cls in kinds:
-        vec = f"E[{start}:{start + len(cls.param_names)}]"
-        start += len(cls.param_names)
-        for hook, (attr, args) in _HOOKS.items():
-            kernel = getattr(cls, attr)  # an @njit function or None
-            if kernel is not None:
-                imports.add(f"from {kernel.__module__} import {kernel.__name__}\n")
-                vehicle = "P, " if cls.kernel_reads_vehicle else ""  # the packed vehicle (rotor positions)
-                calls[hook].append(f"{kernel.__name__}({vec}, {vehicle}{args})")
-    terms = calls["wrench_hooks"]
-    defs = [(f"{hook}(P, {args})", calls[hook]) for hook, (_, args) in _HOOKS.items()]
-    defs.append((f"wrench_term(j, P, {_HOOKS['wrench_hooks'][1]})",
-                 [line for j, call in enumerate(terms, 1) for line in (f"if j == {j}:", f"    {call}")]))
-    used = ", ".join(str(bool(calls[hook])) for hook in _HOOKS)
-    hooks = "".join(sorted(imports))
-    hooks += f"N_TERMS = {1 + len(terms)}\nCOMMAND_HOOKS, ROTOR_HOOKS, WRENCH_HOOKS = {used}\n"
+def _dispatch(registry: Sequence[type[Effect]], attr: str, args: str) -> list[str]:
+    """The if-chain calling, for the entry ``(c, s)``, the kernel ``attr`` of kind number ``c`` on
+    ``P[s:s + len(its parameters)]`` (and on ``P`` itself for a kind whose kernels read the vehicle)."""
+    lines = []
+    for code, cls in enumerate(registry):
+        kernel = getattr(cls, attr)
+        if kernel is None:
+            continue
+        vehicle = "P, " if cls.kernel_reads_vehicle else ""  # the packed vehicle (rotor positions)
+        lines += [f"{'if' if not lines else 'elif'} c == {code}:",
+                  f"    {kernel.__name__}(P[s:s + {len(cls.param_names)}], {vehicle}{args})"]
+    return lines
+
+
+def _generate_source(registry: Sequence[type[Effect]]) -> str:
+    """stepper.py with hooks dispatching on the effect table's codes, ``registry[c]`` being kind ``c``."""
+    imports = sorted({f"from {k.__module__} import {k.__name__}\n" for cls in registry
+                      for k in (cls.command_kernel, cls.rotor_kernel, cls.wrench_kernel) if k is not None})
+    used = {hook: any(getattr(cls, attr) is not None for cls in registry) for hook, (attr, _, _) in _HOOKS.items()}
+    hooks = "".join(imports) + f"N_KINDS = {len(registry)}\n"
+    hooks += "COMMAND_HOOKS, ROTOR_HOOKS, WRENCH_HOOKS = " + ", ".join(str(v) for v in used.values()) + "\n"
+    defs = []
+    for hook, (attr, args, first) in _HOOKS.items():
+        chain = _dispatch(registry, attr, args)
+        body = ["b = effect_table(P)", "e0 = b + 3" + (f" + 2 * ({first})" if first != "0" else ""),
+                f"for k in range(int(P[b{f' + {_COUNT[hook]}' if _COUNT[hook] else ''}])):",
+                "    c = int(P[e0 + 2 * k])", "    s = int(P[e0 + 2 * k + 1])", *(f"    {line}" for line in chain)]
+        defs.append((f"{hook}(P, {args})", body if chain else []))
+    chain = _dispatch(registry, "wrench_kernel", _HOOKS["wrench_hooks"][1])
+    first = _HOOKS["wrench_hooks"][2]
+    body = ["b = effect_table(P)", f"e = b + 3 + 2 * ({first} + j - 1)", "c = int(P[e])", "s = int(P[e + 1])",
+            *chain]
+    defs.append((f"wrench_term(j, P, {_HOOKS['wrench_hooks'][1]})", body if chain else []))
     for signature, body in defs:
-        body = ["E = effect_params(P)", *body] if body else ["pass"]
         # the command hook runs once per (fine) step of the rotor lag loops: inlined, as its kernels are;
-        # the other hooks stay calls (inlining them into deriv made the RK4 step slower)
-        inline = ', inline="always"' if signature.startswith("command_hooks") else ""
-        hooks += f"\n\n@njit(cache=True{inline})\ndef {signature}:\n" + "".join(f"    {line}\n" for line in body)
+        # wrench_term too (called per term and sample by wrench_terms only: a call cost 6x the arithmetic of
+        # the SIH quad's two drags); the other hooks stay calls (inlining them into deriv made the RK4 step slower)
+        inline = ', inline="always"' if signature.startswith(("command_hooks", "wrench_term(")) else ""
+        hooks += (f"\n\n@njit(cache=True{inline})\ndef {signature}:\n"
+                  + "".join(f"    {line}\n" for line in (body or ["pass"])))
     lines = inspect.getsource(stepper).splitlines(keepends=True)
     begin = next(i for i, line in enumerate(lines) if line.startswith("# ---- hooks"))
     end = lines.index("# ---- end of hooks ----\n")
@@ -117,17 +136,58 @@ def _import_source(name: str, src: str) -> types.ModuleType:
     return mod
 
 
+def _has_kernel(cls) -> bool:
+    return isinstance(cls, type) and issubclass(cls, Effect) and any(
+        getattr(cls, a) is not None for a in ("command_kernel", "rotor_kernel", "wrench_kernel"))
+
+
+#: kernel effect kinds of physics/effects.py, in EFFECTS order: codes 0.. of every registry
+_BUILTIN: tuple[type[Effect], ...] = tuple(c for c in effects_mod.EFFECTS.values() if _has_kernel(c))
+#: kernel effect kinds from elsewhere, registered as models first use them (sorted: module, name)
+_EXTRA: list[type[Effect]] = []
+
+
+def _registry(kinds: Sequence[type[Effect]] = ()) -> tuple[type[Effect], ...]:
+    """The registry covering ``kinds``: the built-in kinds, then the extra ones.  A kind not yet
+    registered is added with every kernel effect its module defines at top level (so the prove
+    suite's three plant-only effects make one registry, whichever is used first)."""
+    new = [k for k in kinds if k not in _BUILTIN and k not in _EXTRA]
+    for cls in new:
+        if cls in _EXTRA:
+            continue
+        module = sys.modules.get(cls.__module__)
+        more = [v for v in vars(module).values() if _has_kernel(v)] if module is not None else []
+        _EXTRA.extend(k for k in dict.fromkeys([cls, *more]) if k not in _BUILTIN and k not in _EXTRA)
+    if new:
+        _EXTRA.sort(key=lambda k: (k.__module__, k.__qualname__))
+    return _BUILTIN + tuple(_EXTRA)
+
+
 _MODULES: dict[tuple[type[Effect], ...], types.ModuleType] = {}
 
 
-def _load_generated(kinds: Sequence[type[Effect]]) -> types.ModuleType:
-    """The stepper module for this ordered set of effect kinds."""
-    kinds = tuple(kinds)
-    if kinds not in _MODULES:
-        src = _generate_source(kinds)
+def _load_generated(registry: Sequence[type[Effect]]) -> types.ModuleType:
+    """The dispatch stepper module for this registry."""
+    registry = tuple(registry)
+    if registry not in _MODULES:
+        src = _generate_source(registry)
         name = _module_name(src)
-        _MODULES[kinds] = sys.modules.get(name) or _import_source(name, src)
-    return _MODULES[kinds]
+        _MODULES[registry] = sys.modules.get(name) or _import_source(name, src)
+    return _MODULES[registry]
+
+
+def effect_table(kernel_effects: Sequence[Effect], registry: Sequence[type[Effect]], start: int) -> np.ndarray:
+    """The effect table (stepper.effect_table) for these effects, their vectors starting at ``P[start]``
+    after it: the counts, then each hook's ``(code, start)`` entries in effect order."""
+    starts, at = [], start + 3 + 2 * sum(
+        getattr(e, a) is not None for e in kernel_effects for a in ("command_kernel", "rotor_kernel", "wrench_kernel"))
+    for e in kernel_effects:
+        starts.append(at)
+        at += len(e.param_names)
+    code = {cls: i for i, cls in enumerate(registry)}
+    rows = [[(code[type(e)], s) for e, s in zip(kernel_effects, starts) if getattr(e, a) is not None]
+            for a in ("command_kernel", "rotor_kernel", "wrench_kernel")]
+    return np.array([*(len(r) for r in rows), *(v for r in rows for pair in r for v in pair)], dtype=np.float64)
 
 
 class Multirotor:
@@ -147,13 +207,20 @@ class Multirotor:
         self.params = params
         self.effects = effs
         self.kernel_effects = [e for e in effs if e.has_kernel]
-        self._mod = _load_generated([type(e) for e in self.kernel_effects])
-        # what the kernels read: the vehicle, then the kernel effects' parameters (stepper.py)
-        self.P = np.concatenate([pack(params), *(e.vector() for e in self.kernel_effects)])
+        self._bind()
         self.E = ()  # no other kernel arguments; kept for callers passing (P, *E, ...)
         self.n_rotors = params.rotors.count
         self.nx = NX_BODY + self.n_rotors
         self.term_names = ["rotors"] + [e.name for e in self.kernel_effects if e.wrench_kernel is not None]
+
+    def _bind(self) -> None:
+        """The dispatch stepper of the current registry, and ``P``: the vehicle, the effect table,
+        then the kernel effects' parameters (stepper.py)."""
+        registry = _registry([type(e) for e in self.kernel_effects])
+        self._mod = _load_generated(registry)
+        vehicle = pack(self.params)
+        table = effect_table(self.kernel_effects, registry, len(vehicle))
+        self.P = np.concatenate([vehicle, table, *(e.vector() for e in self.kernel_effects)])
 
     # ----------------------------------------------------------- properties
     @property
@@ -285,7 +352,7 @@ class Multirotor:
         """Body force and moment of each named term along a state history X (T, nx), FLU."""
         X = np.ascontiguousarray(np.atleast_2d(X), dtype=np.float64)
         ext_arr = self._ext(ext, X.shape[0]) if (ext is None or np.ndim(ext) == 1) else self._ext(ext)
-        nt = self._mod.N_TERMS
+        nt = len(self.term_names)
         F = np.zeros((X.shape[0], nt, 3))
         M = np.zeros((X.shape[0], nt, 3))
         self._mod.wrench_terms(self.P, X, ext_arr, F, M)
@@ -305,6 +372,9 @@ class MultirotorBatch:
         if len(set(kinds)) != 1 or len({m.n_rotors for m in models}) != 1:
             raise ValueError("a batch needs the same rotor count and the same effect kinds in every vehicle")
         self.models = list(models)
+        if len({id(m._mod) for m in models}) > 1:  # built before and after the registry grew: the newest one
+            for m in models:
+                m._bind()
         self._mod = models[0]._mod
         self.PB = np.stack([m.P for m in models])
         self.EB = ()  # as Multirotor.E

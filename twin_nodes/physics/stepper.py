@@ -1,14 +1,16 @@
-"""The fixed-step stepper (RK4) of a multirotor without effects, and the template of every stepper.
+"""The fixed-step stepper (RK4) of a multirotor without effects, and the template of the dispatch stepper.
 
-:mod:`twin_nodes.physics.model` makes the stepper for a set of effects from this file's text by
-replacing the section between the two ``hooks`` marker lines with hooks that call each effect's
-kernel, in order, on that effect's slice of ``effect_params(P)``; the rest is the same for every
-set.  As it stands the file is valid on its own: the model with no effects.
+:mod:`twin_nodes.physics.model` makes *one* stepper for every registered effect kind from this
+file's text by replacing the section between the two ``hooks`` marker lines with hooks that read
+the vehicle's effect table in ``P`` (which kinds, in which order, where each one's parameters
+start) and call each entry's kernel through an if-chain on its integer code; the rest is the same
+for every registry.  As it stands the file is valid on its own: the model with no effects.
 
-Arguments: ``P`` the packed vehicle (:func:`twin_nodes.physics.core.pack`) followed by the kernel
-effects' parameter vectors (none here); ``x`` a state, ``u`` motor commands (NaN = stopped),
-``ext = [battery_v, wind_e, wind_n, wind_u]``; a capital letter is a series or a batch of these.
-Hooks, scratch arrays and kernels are as in :mod:`twin_nodes.physics.effects`.
+Arguments: ``P`` the packed vehicle (:func:`twin_nodes.physics.core.pack`) followed by the effect
+table (:func:`effect_table`) and the kernel effects' parameter vectors; ``x`` a state, ``u`` motor
+commands (NaN = stopped), ``ext = [battery_v, wind_e, wind_n, wind_u]``; a capital letter is a
+series or a batch of these.  Hooks, scratch arrays and kernels are as in
+:mod:`twin_nodes.physics.effects`.
 """
 
 import numpy as np
@@ -19,17 +21,20 @@ from twin_nodes.physics.core import (I_G, I_MASS, I_N, I_ROT, I_TDN, I_TUP, NX_B
 
 
 @njit(cache=True, inline="always")
-def effect_params(P):
-    """The kernel effects' parameter vectors, concatenated: P after the rotor table."""
-    return P[I_ROT + 4 * int(P[I_N]):]
+def effect_table(P):
+    """Index in P of the effect table, right after the rotor table: ``[n_command, n_rotor, n_wrench]``,
+    then one ``(code, start)`` pair per hook entry (the command hook's entries, the rotor hook's,
+    the wrench hook's, each in the vehicle's effect order: ``code`` the kind's number in the
+    stepper's registry, ``start`` the index in P of its parameter vector), then the vectors."""
+    return I_ROT + 4 * int(P[I_N])
 
 
-# Hooks, each calling its effects' kernels in order; wrench_term(j, ...) adds the j-th wrench
-# effect alone.  N_TERMS counts the wrench terms (the rotors, then one per wrench effect); the
-# *_HOOKS flags say which hooks call anything: numba drops the call of one that does not (so its
-# unused arguments cost no reference counting in the hot loop).
+# Hooks, each calling the kernels of its entries in the effect table in order; wrench_term(j, ...)
+# adds the j-th wrench entry alone.  The *_HOOKS flags say whether any registered kind has a
+# kernel for that hook: numba drops the call of one that does not (so its unused arguments cost no
+# reference counting in the hot loop); the stepper also skips a hook whose vehicle has no entry.
 # ---- hooks: the generator replaces the lines from here to the end marker ----
-N_TERMS = 1
+N_KINDS = 0
 COMMAND_HOOKS, ROTOR_HOOKS, WRENCH_HOOKS = False, False, False
 
 
@@ -48,7 +53,7 @@ def wrench_hooks(P, x, R, ext, omega, T, Fb, Mb, Fw):
     pass
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def wrench_term(j, P, x, R, ext, omega, T, Fb, Mb, Fw):
     pass
 # ---- end of hooks ----
@@ -65,16 +70,19 @@ def reference(P, u, ext, sref):
 @njit(cache=True)
 def deriv(P, x, sref, ext, dx, R, omega, T, Q, Fb, Mb, Fw):
     n = int(P[I_N])
+    b = I_ROT + 4 * n  # effect_table(P)
     quat_to_R(x[6:10], R)
     rotor_outputs(P, x[NX_BODY:NX_BODY + n], omega, T, Q)
     if ROTOR_HOOKS:
-        rotor_hooks(P, x, ext, omega, T, Q)
+        if P[b + 1] > 0.0:
+            rotor_hooks(P, x, ext, omega, T, Q)
     Fb[:] = 0.0
     Mb[:] = 0.0
     Fw[:] = 0.0
     rotor_wrench(P, T, Q, Fb, Mb)
     if WRENCH_HOOKS:
-        wrench_hooks(P, x, R, ext, omega, T, Fb, Mb, Fw)
+        if P[b + 2] > 0.0:
+            wrench_hooks(P, x, R, ext, omega, T, Fb, Mb, Fw)
     rigid_body(P, x, R, Fb, Mb, Fw, sref, dx)
 
 
@@ -184,11 +192,12 @@ def specific_force(P, x, u, ext):
 
 @njit(cache=True)
 def wrench_terms(P, X, EXT, F, M):
-    """Per-term body force F (T, N_TERMS, 3) and moment M (T, N_TERMS, 3), FLU.
+    """Per-term body force F (T, 1 + n_wrench, 3) and moment M (T, 1 + n_wrench, 3), FLU.
 
     Term 0 is the rotors (thrust + reaction torque, after rotor-hook effects); term j>0 is
     the j-th wrench effect; world forces are rotated into the body frame."""
     n = int(P[I_N])
+    n_terms = 1 + int(P[effect_table(P) + 2])
     R = np.empty((3, 3))
     omega = np.empty(n)
     T = np.empty(n)
@@ -202,14 +211,15 @@ def wrench_terms(P, X, EXT, F, M):
         quat_to_R(x[6:10], R)
         rotor_outputs(P, x[NX_BODY:NX_BODY + n], omega, T, Q)
         if ROTOR_HOOKS:
-            rotor_hooks(P, x, ext, omega, T, Q)
+            if P[effect_table(P) + 1] > 0.0:
+                rotor_hooks(P, x, ext, omega, T, Q)
         fb[:] = 0.0
         mb[:] = 0.0
         rotor_wrench(P, T, Q, fb, mb)
         for c in range(3):
             F[t, 0, c] = fb[c]
             M[t, 0, c] = mb[c]
-        for j in range(1, N_TERMS):
+        for j in range(1, n_terms):
             fb[:] = 0.0
             mb[:] = 0.0
             fw[:] = 0.0
