@@ -123,3 +123,18 @@ def test_discover_cli_end_to_end_on_shipped_bag(tmp_path):
     from twin_nodes.vehicle.params import load_params
     refit = load_params(tmp_path / "refit.yaml")
     assert "motor_efficiency" in dict(refit.effects)
+
+
+def test_a_rotational_drag_left_out_of_the_nominal_is_named_not_a_yaw_moment():
+    """PX4 SIH firmware flies with a moment -KDW w (SIH_KDW 0.025 N m s/rad).  Given a nominal without it (as a
+    nominal built from a log is), discovery names the angular damping with SIH's value; before it was offered, the
+    yaw part of it was confirmed as a yaw moment km about half the true 0.02 (docs/fleet.md, the patched SIH fleet)."""
+    _need_shared()
+    log = read_ulog(SHARED / "flightlogs" / "sitl" / "px4sih_default_triangle.ulg")
+    vp = shipped("px4_sih_quadx")
+    vp = vp.replace(effects=tuple((n, p) for n, p in vp.effects if n != "angular_damping"))
+    res = discover(log, vp, closed_loop_metrics=False)
+    assert res["accepted"] and res["accepted"][0] == "angular_damping", res["accepted"]
+    damp = next(e for e in res["effects"] if e["name"] == "angular_damping")["params"]
+    assert damp["k_nm_s_rad"] == pytest.approx(0.025, rel=0.15)
+    assert "yaw_moment" not in res["accepted"]

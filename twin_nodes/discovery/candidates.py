@@ -132,6 +132,9 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
     add("com_offset", ["dx", "dy"], [0.0, 0.0], [-0.3 * arm, -0.3 * arm], [0.3 * arm, 0.3 * arm],
         lambda th: np.hypot(th[0], th[1]) > 0.01 * arm)
     ix, iy, iz = inertia[0, 0], inertia[1, 1], inertia[2, 2]
+    # a moment opposing the body rates (rotational drag, PX4 SIH's KDW): left out of a nominal, its yaw part reads
+    # as a weaker yaw moment on every turn; resolvable from a damping time constant I/k of 10 s down
+    add("angular_damping", ["k_nm_s_rad"], [0.0], [0.0], [50.0 * iz], lambda th: th[0] > 0.1 * iz)
     add("inertia", ["ixx", "iyy", "izz"], [ix, iy, iz], [0.2 * ix, 0.2 * iy, 0.2 * iz], [5 * ix, 5 * iy, 5 * iz],
         lambda th: max(_rel(th[0], ix), _rel(th[1], iy), _rel(th[2], iz)) > 0.03)
     if v_typ > 0.5:
