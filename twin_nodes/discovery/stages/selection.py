@@ -76,7 +76,7 @@ def _select(inp: SelectionInput, force: str | None = None) -> Selection | None:
         if rounds == 1:
             energy_1 = energy
         cs = candidates.run(candidates.CandidateQuery(current, data, rounds, done,
-                                                      _rescaled_gain(r1_gain, energy_1, energy)))
+                                                      _rescaled_gain(r1_gain, energy_1, energy), S.excitation))
         cs.first += [c for c in wind_with_drag(current, data) + nominal_refits(S.nominal, current)
                      if c.label not in done]
         oe_now = _oe_gain_now(oe_gain, energy_1, energy) if rounds > 1 else oe_gain
