@@ -159,6 +159,82 @@ def test_pair_scoring_needs_the_truth_in_it_and_a_flyable_plan():
     assert not none["passed"]
 
 
+def test_a_parameter_the_finding_holds_as_not_shown_is_named_not_scored():
+    # r050 (Ixx = Iyy x1.6 on a fast descent that never commands pitch): Ixx 0.04016, Iyy held at the model's 0.025
+    vp = shipped("px4_sih_quadx")
+    truth = [Truth(Hidden("inertia", {"ixx": 0.04, "iyy": 0.04, "izz": 0.03}))]
+    inertia = _eff("inertia", {"ixx": 0.04016, "iyy": 0.025, "izz": 0.03002})
+    r = grid_prove.score_grid_flight("f", truth, {"effects": [inertia]}, vp)
+    assert r["param_errors"]["inertia"] == pytest.approx(0.375) and not r["passed"]     # claimed: 37.5 % off
+    inertia["held_at_nominal"] = {"iyy": "held at nominal, not identified on this flight: ..."}
+    r = grid_prove.score_grid_flight("f", truth, {"effects": [inertia]}, vp)
+    assert r["param_errors"]["inertia"] == pytest.approx(0.004) and r["passed"]
+    assert r["param_text"]["inertia"] == "ixx 0.04016 vs 0.04; iyy not identified (held)"
+    # every true parameter held: nothing identified, no parameter error, not passed
+    inertia["held_at_nominal"] = {"ixx": "-", "iyy": "-", "izz": "-"}
+    r = grid_prove.score_grid_flight("f", truth, {"effects": [inertia]}, vp)
+    assert r["param_errors"]["inertia"] is None and not r["params_ok"] and not r["passed"]
+    # a held parameter of a pair's partner is not the partner's: the pair member is scored as given
+    pair = {"with": {"name": "inertia", "params": {"ixx": 0.04016, "iyy": 0.025, "izz": 0.03}},
+            "plan_flyable": True}
+    lag = dict(_eff("motor_time_constant", {"tau_up": 0.1, "tau_down": 0.1}, pair=pair), held_at_nominal={"iyy": "-"})
+    r = grid_prove.score_grid_flight("f", truth, {"effects": [lag]}, vp)
+    assert r["param_errors"]["inertia"] == pytest.approx(0.375)
+
+
+def test_a_pair_whose_rival_is_confirmed_on_its_own_is_told_apart():
+    # q017 (lag + inertia, both confirmed): the lag's pair carried the inertia fitted alone in its place (Ixx +11 %)
+    rival = {"with": {"name": "inertia", "params": {"ixx": 2.547e-05}}, "plan_flyable": True}
+    out = [_eff("motor_time_constant", {"tau_up": 0.118, "tau_down": 0.118}, pair=rival),
+           _eff("inertia", {"ixx": 2.282e-05, "iyy": 2.283e-05, "izz": 2.883e-05})]
+    verdicts.told_apart(out)
+    assert "not_told_apart" not in out[0] and out[0]["told_apart_from"]["name"] == "inertia"
+    vp = shipped("px4_sih_quadx")
+    truth = [Truth(Hidden("motor_time_constant", {"tau_up": 0.1152, "tau_down": 0.1152})),
+             Truth(Hidden("inertia", {"ixx": 2.288e-05, "iyy": 2.288e-05, "izz": 2.89e-05}))]
+    r = grid_prove.score_grid_flight("f", truth, {"effects": out}, vp)
+    assert r["param_errors"]["inertia"] == pytest.approx(0.0026, abs=1e-4) and r["passed"]
+    # a rival only `likely` on its own, or none: the pair stays
+    for second in ([_eff("inertia", {"ixx": 2.282e-05}, "likely")], []):
+        out = [_eff("motor_time_constant", {"tau_up": 0.118, "tau_down": 0.118}, pair=rival)] + second
+        verdicts.told_apart(out)
+        assert out[0]["not_told_apart"] is rival
+    # a drag rival is told apart by any confirmed drag (one class)
+    out = [_eff("wind", {"vx": 1.0, "vy": 0.0}, pair={"with": {"name": "body_drag", "params": {}}}),
+           _eff("rotor_drag", {"k_d": 1e-6})]
+    verdicts.told_apart(out)
+    assert "not_told_apart" not in out[0]
+
+
+def test_an_inertia_axis_the_flight_never_excites_is_held():
+    from twin_nodes.discovery.candidates import build_candidates
+    from twin_nodes.discovery.stages import candidates
+
+    vp = shipped("px4_sih_quadx")
+    n = 500
+    data = SimpleNamespace(v=np.tile([[3.0, 0.0, 0.0]], (n, 1)), valid=np.ones(n, bool), motor_dt_s=0.004,
+                           dt=0.02, height=np.full(n, 10.0), battery_v=np.full(n, np.nan))
+    c = next(c for c in build_candidates(vp, data) if c.name == "inertia")
+    ex = {"roll": {"blocks_flight": 18}, "pitch": {"blocks_flight": 0}, "yaw": {"blocks_flight": 12}}
+    h = candidates.hold_unexcited(c, ex)
+    assert h.param_names == ("ixx", "izz") and h.label == c.label
+    assert "pitch rate doublets" in h.held["iyy"]
+    full = h.params_dict(np.array([0.04, 0.031]))
+    assert full == {"ixx": 0.04, "iyy": pytest.approx(c.x0[1]), "izz": 0.031}
+    from twin_nodes.physics.effects import effective_params
+    assert np.diag(effective_params(h.build(np.array([0.04, 0.031]))).inertia) == pytest.approx([0.04, c.x0[1], 0.031])
+    # one excited block is enough; no excitation record (an older caller): unchanged; other effects unchanged
+    assert candidates.hold_unexcited(c, {**ex, "pitch": {"blocks_flight": 1}}) is c
+    assert candidates.hold_unexcited(c, {}) is c
+    km = next(c for c in build_candidates(vp, data) if c.name == "yaw_moment")
+    assert candidates.hold_unexcited(km, {"yaw": {"blocks_flight": 0}}) is km
+    # no axis excited (a hover's roll and pitch with a yaw that never turns): no inertia candidate at all
+    assert candidates.hold_unexcited(c, {a: {"blocks_flight": 0} for a in ("roll", "pitch", "yaw")}) is None
+    # and the round's candidates carry the restriction
+    cs = candidates.run(candidates.CandidateQuery(vp, data, 1, excitation=ex))
+    assert next(c for c in cs.first if c.name == "inertia").param_names == ("ixx", "izz")
+
+
 # ------------------------------------------------------------------ discovery: the second round's pruning
 
 
