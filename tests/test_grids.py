@@ -328,6 +328,32 @@ def test_veto_compares_with_its_own_noise_and_needs_standing():
     assert closed_loop._veto(_run(0.5 * base, t), before, before, (True, "")) == (False, None)
 
 
+def test_a_nominal_body_drag_refitted_where_the_flight_has_airspeed():
+    # RotorPy's 1-2 kg quad: the nominal carries RotorPy's parasitic drag (c 0.01 each, norm form), so the library
+    # offers no body drag and a changed one was found as nothing or a state term (r010, q028)
+    vp = shipped("px4_sih_quadx").replace(effects=()).with_effect("body_drag", c_dx=0.01, c_dy=0.01, c_dz=0.01,
+                                                                  norm=1.0)
+    n = 500
+    speed = np.linspace(0.0, 5.0, n)                 # 90th percentile 4.5 m/s
+    data = SimpleNamespace(v=np.column_stack([speed, np.zeros(n), np.zeros(n)]), valid=np.ones(n, bool))
+    (c,) = [c for c in selection.nominal_refits(vp, vp, data) if c.name == "body_drag"]
+    assert c.label == selection.BODY_DRAG_REFIT and c.param_names == ("c_dx", "c_dy", "c_dz")
+    assert c.x0 == pytest.approx([0.01] * 3) and c.fixed == {"norm": 1.0}
+    v90 = float(np.percentile(speed, 90))
+    floor = 0.01 * vp.mass_kg * vp.gravity_m_s2 / v90 ** 2
+    assert c.upper == pytest.approx([max(500 * floor, 0.2)] * 3)
+    assert c.floor(np.array([0.01, 0.01, 0.01 + 1.01 * floor])) and not c.floor(np.array([0.01 + 0.99 * floor] * 3))
+    built = dict(dict(c.build(np.array([0.047, 0.047, 0.084])).effects)["body_drag"])
+    assert built == {"c_dx": 0.047, "c_dy": 0.047, "c_dz": 0.084, "norm": 1.0}
+    assert c.params_dict(np.array([0.047, 0.047, 0.084]))["norm"] == 1.0
+    # a hover (no airspeed for a drag to act on), a refitted one already accepted, no body drag: none
+    hover = SimpleNamespace(v=np.zeros((n, 3)) + 0.1, valid=np.ones(n, bool))
+    assert not [c for c in selection.nominal_refits(vp, vp, hover) if c.name == "body_drag"]
+    assert not [c for c in selection.nominal_refits(vp, c.build(c.x0 * 3), data) if c.name == "body_drag"]
+    bare = vp.replace(effects=())
+    assert selection.nominal_refits(bare, bare, data) == []
+
+
 def test_nominal_law_refitted_only_where_the_nominal_has_it():
     vp = shipped("px4_sih_quadx")               # linear_drag 1.0 and angular_damping 0.025 (SIH_KDV, SIH_KDW)
     cands = {c.name: c for c in selection.nominal_refits(vp, vp)}
