@@ -328,6 +328,28 @@ def test_veto_compares_with_its_own_noise_and_needs_standing():
     assert closed_loop._veto(_run(0.5 * base, t), before, before, (True, "")) == (False, None)
 
 
+def test_what_the_flight_does_not_excite_is_said_with_the_manoeuvre():
+    from twin_nodes.discovery import report
+    from twin_nodes.discovery.stages import candidates
+
+    n = 500
+    hover = SimpleNamespace(v=np.full((n, 3), 0.1), valid=np.ones(n, bool), height=np.full(n, 10.0), dt=0.02)
+    ex = {"roll": {"blocks_flight": 3}, "pitch": {"blocks_flight": 0}, "yaw": {"blocks_flight": 12}}
+    out = candidates.not_excited(hover, ex)
+    assert [o["effects"] for o in out] == [["rotor_drag", "body_drag"], ["inertia (iyy)"], ["ground_effect"]]
+    assert out[0]["why"].startswith("90th-percentile speed 0.17 m/s") and out[0]["fly"].startswith("fast forward legs")
+    assert out[1]["fly"].startswith("pitch rate doublets")
+    # 1.2 s below 3 m and 4.5 m/s: every class can show; no excitation record: no inertia line
+    moving = SimpleNamespace(v=np.column_stack([np.linspace(0, 5, n), np.zeros(n), np.zeros(n)]),
+                             valid=np.ones(n, bool), height=np.r_[np.full(60, 1.0), np.full(n - 60, 10.0)], dt=0.02)
+    assert candidates.not_excited(moving, {**ex, "pitch": {"blocks_flight": 1}}) == []
+    assert candidates.not_excited(moving, {}) == []
+    res = {"log": "f.ulg", "params": "p", "method": {"fit_interval_s": [0, 1], "heldout_interval_s": [1, 2]},
+           "mismatch": [], "effects": [], "accepted": [], "likely": [], "not_excited": out[1:2]}
+    assert ("  not excited on this flight: inertia (iyy) (no block carries a pitch moment above its noise); to show "
+            "it fly pitch rate doublets") in report.summary_text(res)
+
+
 def test_a_nominal_body_drag_refitted_where_the_flight_has_airspeed():
     # RotorPy's 1-2 kg quad: the nominal carries RotorPy's parasitic drag (c 0.01 each, norm form), so the library
     # offers no body drag and a changed one was found as nothing or a state term (r010, q028)

@@ -79,3 +79,25 @@ def hold_unexcited(c: Candidate, excitation: dict) -> Candidate | None:
         out.held[p] = (f"held at nominal, not identified on this flight: no block of it carries a {ax} moment "
                        f"above its noise; to identify it fly {supply_for(ax)}")
     return out
+
+
+def not_excited(data, excitation: dict) -> list[dict]:
+    """The effect classes this flight cannot show, each with why and the manoeuvre that would (issue 26, item 3:
+    a hover neither drags nor turns its roll/pitch inertia; discovery says so instead of finding nothing silently).
+    The same thresholds as the candidates (``build_candidates``, :func:`hold_unexcited`)."""
+    out = []
+    speed = np.linalg.norm(data.v[data.valid], axis=1)
+    v_typ = float(np.percentile(speed, 90)) if speed.size else 0.0
+    if v_typ <= 0.5:
+        out.append({"effects": ["rotor_drag", "body_drag"], "why": f"90th-percentile speed {v_typ:.2f} m/s <= 0.5: "
+                    "no airspeed for a drag to act on", "fly": supply_for("force_x")})
+    for p, ax in _INERTIA_AXES.items():
+        n = (excitation.get(ax) or {}).get("blocks_flight")
+        if n is not None and n < MIN_AXIS_BLOCKS:
+            out.append({"effects": [f"inertia ({p})"], "why": f"no block carries a {ax} moment above its noise",
+                        "fly": supply_for(ax)})
+    low = data.valid & (data.height < 3.0)
+    if low.sum() <= 1.0 / data.dt:
+        out.append({"effects": ["ground_effect"], "why": "under 1 s flown below 3 m",
+                    "fly": "a low hover (hovering low and high: a ground effect fades with height)"})
+    return out
