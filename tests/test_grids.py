@@ -199,6 +199,11 @@ def test_a_pair_whose_rival_is_confirmed_on_its_own_is_told_apart():
         out = [_eff("motor_time_constant", {"tau_up": 0.118, "tau_down": 0.118}, pair=rival)] + second
         verdicts.told_apart(out)
         assert out[0]["not_told_apart"] is rival
+    # two collective effects both accepted are a combination, not a separation (PX4 SIH t006): the pair stays
+    sag = {"with": {"name": "thrust_coefficient", "params": {"kt_scale": 0.842}}, "plan_flyable": True}
+    out = [_eff("battery_sag", {"v_ref": 20.4, "exponent": 1.27}, pair=sag), _eff("thrust_coefficient", {"kt_scale": 1.10})]
+    verdicts.told_apart(out)
+    assert out[0]["not_told_apart"] is sag
     # a drag rival is told apart by any confirmed drag (one class)
     out = [_eff("wind", {"vx": 1.0, "vy": 0.0}, pair={"with": {"name": "body_drag", "params": {}}}),
            _eff("rotor_drag", {"k_d": 1e-6})]
