@@ -153,9 +153,11 @@ def _grid_flight(fid: str):
     pytest.importorskip("rotorpy", reason="RotorPy (dev dependency) not installed")
     from twin_nodes.prove import grid_prove, grid_rotorpy
 
-    # flown into the cache first where absent or made by other code (7-25 s in RotorPy), never skipped
-    grid_rotorpy.cached_flight(next(f for f in grid_rotorpy.load_grid(half="all") if f.id == fid), CACHE)
-    jobs, _ = grid_prove.rotorpy_jobs("all", CACHE)
+    # flown into the cache first where absent or made by other code (7-25 s in RotorPy), never skipped;
+    # batch 1 (r*) is the grid's "all", batch 2 (q*) its own manifest
+    half = "judge2" if fid.startswith("q") else "all"
+    grid_rotorpy.cached_flight(next(f for f in grid_rotorpy.load_grid(half=half) if f.id == fid), CACHE)
+    jobs, _ = grid_prove.rotorpy_jobs(half, CACHE)
     return grid_prove.run_one(next(j for j in jobs if j[1].id == fid))
 
 
