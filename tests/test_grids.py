@@ -159,6 +159,87 @@ def test_pair_scoring_needs_the_truth_in_it_and_a_flyable_plan():
     assert not none["passed"]
 
 
+def test_a_parameter_the_finding_holds_as_not_shown_is_named_not_scored():
+    # r050 (Ixx = Iyy x1.6 on a fast descent that never commands pitch): Ixx 0.04016, Iyy held at the model's 0.025
+    vp = shipped("px4_sih_quadx")
+    truth = [Truth(Hidden("inertia", {"ixx": 0.04, "iyy": 0.04, "izz": 0.03}))]
+    inertia = _eff("inertia", {"ixx": 0.04016, "iyy": 0.025, "izz": 0.03002})
+    r = grid_prove.score_grid_flight("f", truth, {"effects": [inertia]}, vp)
+    assert r["param_errors"]["inertia"] == pytest.approx(0.375) and not r["passed"]     # claimed: 37.5 % off
+    inertia["held_at_nominal"] = {"iyy": "held at nominal, not identified on this flight: ..."}
+    r = grid_prove.score_grid_flight("f", truth, {"effects": [inertia]}, vp)
+    assert r["param_errors"]["inertia"] == pytest.approx(0.004) and r["passed"]
+    assert r["param_text"]["inertia"] == "ixx 0.04016 vs 0.04; iyy not identified (held)"
+    # every true parameter held: nothing identified, no parameter error, not passed
+    inertia["held_at_nominal"] = {"ixx": "-", "iyy": "-", "izz": "-"}
+    r = grid_prove.score_grid_flight("f", truth, {"effects": [inertia]}, vp)
+    assert r["param_errors"]["inertia"] is None and not r["params_ok"] and not r["passed"]
+    # a held parameter of a pair's partner is not the partner's: the pair member is scored as given
+    pair = {"with": {"name": "inertia", "params": {"ixx": 0.04016, "iyy": 0.025, "izz": 0.03}},
+            "plan_flyable": True}
+    lag = dict(_eff("motor_time_constant", {"tau_up": 0.1, "tau_down": 0.1}, pair=pair), held_at_nominal={"iyy": "-"})
+    r = grid_prove.score_grid_flight("f", truth, {"effects": [lag]}, vp)
+    assert r["param_errors"]["inertia"] == pytest.approx(0.375)
+
+
+def test_a_pair_whose_rival_is_confirmed_on_its_own_is_told_apart():
+    # q017 (lag + inertia, both confirmed): the lag's pair carried the inertia fitted alone in its place (Ixx +11 %)
+    rival = {"with": {"name": "inertia", "params": {"ixx": 2.547e-05}}, "plan_flyable": True}
+    out = [_eff("motor_time_constant", {"tau_up": 0.118, "tau_down": 0.118}, pair=rival),
+           _eff("inertia", {"ixx": 2.282e-05, "iyy": 2.283e-05, "izz": 2.883e-05})]
+    verdicts.told_apart(out)
+    assert "not_told_apart" not in out[0] and out[0]["told_apart_from"]["name"] == "inertia"
+    vp = shipped("px4_sih_quadx")
+    truth = [Truth(Hidden("motor_time_constant", {"tau_up": 0.1152, "tau_down": 0.1152})),
+             Truth(Hidden("inertia", {"ixx": 2.288e-05, "iyy": 2.288e-05, "izz": 2.89e-05}))]
+    r = grid_prove.score_grid_flight("f", truth, {"effects": out}, vp)
+    assert r["param_errors"]["inertia"] == pytest.approx(0.0026, abs=1e-4) and r["passed"]
+    # a rival only `likely` on its own, or none: the pair stays
+    for second in ([_eff("inertia", {"ixx": 2.282e-05}, "likely")], []):
+        out = [_eff("motor_time_constant", {"tau_up": 0.118, "tau_down": 0.118}, pair=rival)] + second
+        verdicts.told_apart(out)
+        assert out[0]["not_told_apart"] is rival
+    # two collective effects both accepted are a combination, not a separation (PX4 SIH t006): the pair stays
+    sag = {"with": {"name": "thrust_coefficient", "params": {"kt_scale": 0.842}}, "plan_flyable": True}
+    out = [_eff("battery_sag", {"v_ref": 20.4, "exponent": 1.27}, pair=sag), _eff("thrust_coefficient", {"kt_scale": 1.10})]
+    verdicts.told_apart(out)
+    assert out[0]["not_told_apart"] is sag
+    # a drag rival is told apart by any confirmed drag (one class)
+    out = [_eff("wind", {"vx": 1.0, "vy": 0.0}, pair={"with": {"name": "body_drag", "params": {}}}),
+           _eff("rotor_drag", {"k_d": 1e-6})]
+    verdicts.told_apart(out)
+    assert "not_told_apart" not in out[0]
+
+
+def test_an_inertia_axis_the_flight_never_excites_is_held():
+    from twin_nodes.discovery.candidates import build_candidates
+    from twin_nodes.discovery.stages import candidates
+
+    vp = shipped("px4_sih_quadx")
+    n = 500
+    data = SimpleNamespace(v=np.tile([[3.0, 0.0, 0.0]], (n, 1)), valid=np.ones(n, bool), motor_dt_s=0.004,
+                           dt=0.02, height=np.full(n, 10.0), battery_v=np.full(n, np.nan))
+    c = next(c for c in build_candidates(vp, data) if c.name == "inertia")
+    ex = {"roll": {"blocks_flight": 18}, "pitch": {"blocks_flight": 0}, "yaw": {"blocks_flight": 12}}
+    h = candidates.hold_unexcited(c, ex)
+    assert h.param_names == ("ixx", "izz") and h.label == c.label
+    assert "pitch rate doublets" in h.held["iyy"]
+    full = h.params_dict(np.array([0.04, 0.031]))
+    assert full == {"ixx": 0.04, "iyy": pytest.approx(c.x0[1]), "izz": 0.031}
+    from twin_nodes.physics.effects import effective_params
+    assert np.diag(effective_params(h.build(np.array([0.04, 0.031]))).inertia) == pytest.approx([0.04, c.x0[1], 0.031])
+    # one excited block is enough; no excitation record (an older caller): unchanged; other effects unchanged
+    assert candidates.hold_unexcited(c, {**ex, "pitch": {"blocks_flight": 1}}) is c
+    assert candidates.hold_unexcited(c, {}) is c
+    km = next(c for c in build_candidates(vp, data) if c.name == "yaw_moment")
+    assert candidates.hold_unexcited(km, {"yaw": {"blocks_flight": 0}}) is km
+    # no axis excited (a hover's roll and pitch with a yaw that never turns): no inertia candidate at all
+    assert candidates.hold_unexcited(c, {a: {"blocks_flight": 0} for a in ("roll", "pitch", "yaw")}) is None
+    # and the round's candidates carry the restriction
+    cs = candidates.run(candidates.CandidateQuery(vp, data, 1, excitation=ex))
+    assert next(c for c in cs.first if c.name == "inertia").param_names == ("ixx", "izz")
+
+
 # ------------------------------------------------------------------ discovery: the second round's pruning
 
 
@@ -250,6 +331,54 @@ def test_veto_compares_with_its_own_noise_and_needs_standing():
     assert not vetoed and why.startswith("not vetoed") and "another controller" in why
     # better: no veto, nothing to say
     assert closed_loop._veto(_run(0.5 * base, t), before, before, (True, "")) == (False, None)
+
+
+def test_what_the_flight_does_not_excite_is_said_with_the_manoeuvre():
+    from twin_nodes.discovery import report
+    from twin_nodes.discovery.stages import candidates
+
+    n = 500
+    hover = SimpleNamespace(v=np.full((n, 3), 0.1), valid=np.ones(n, bool), height=np.full(n, 10.0), dt=0.02)
+    ex = {"roll": {"blocks_flight": 3}, "pitch": {"blocks_flight": 0}, "yaw": {"blocks_flight": 12}}
+    out = candidates.not_excited(hover, ex)
+    assert [o["effects"] for o in out] == [["rotor_drag", "body_drag"], ["inertia (iyy)"], ["ground_effect"]]
+    assert out[0]["why"].startswith("90th-percentile speed 0.17 m/s") and out[0]["fly"].startswith("fast forward legs")
+    assert out[1]["fly"].startswith("pitch rate doublets")
+    # 1.2 s below 3 m and 4.5 m/s: every class can show; no excitation record: no inertia line
+    moving = SimpleNamespace(v=np.column_stack([np.linspace(0, 5, n), np.zeros(n), np.zeros(n)]),
+                             valid=np.ones(n, bool), height=np.r_[np.full(60, 1.0), np.full(n - 60, 10.0)], dt=0.02)
+    assert candidates.not_excited(moving, {**ex, "pitch": {"blocks_flight": 1}}) == []
+    assert candidates.not_excited(moving, {}) == []
+    res = {"log": "f.ulg", "params": "p", "method": {"fit_interval_s": [0, 1], "heldout_interval_s": [1, 2]},
+           "mismatch": [], "effects": [], "accepted": [], "likely": [], "not_excited": out[1:2]}
+    assert ("  not excited on this flight: inertia (iyy) (no block carries a pitch moment above its noise); to show "
+            "it fly pitch rate doublets") in report.summary_text(res)
+
+
+def test_a_nominal_body_drag_refitted_where_the_flight_has_airspeed():
+    # RotorPy's 1-2 kg quad: the nominal carries RotorPy's parasitic drag (c 0.01 each, norm form), so the library
+    # offers no body drag and a changed one was found as nothing or a state term (r010, q028)
+    vp = shipped("px4_sih_quadx").replace(effects=()).with_effect("body_drag", c_dx=0.01, c_dy=0.01, c_dz=0.01,
+                                                                  norm=1.0)
+    n = 500
+    speed = np.linspace(0.0, 5.0, n)                 # 90th percentile 4.5 m/s
+    data = SimpleNamespace(v=np.column_stack([speed, np.zeros(n), np.zeros(n)]), valid=np.ones(n, bool))
+    (c,) = [c for c in selection.nominal_refits(vp, vp, data) if c.name == "body_drag"]
+    assert c.label == selection.BODY_DRAG_REFIT and c.param_names == ("c_dx", "c_dy", "c_dz")
+    assert c.x0 == pytest.approx([0.01] * 3) and c.fixed == {"norm": 1.0}
+    v90 = float(np.percentile(speed, 90))
+    floor = 0.01 * vp.mass_kg * vp.gravity_m_s2 / v90 ** 2
+    assert c.upper == pytest.approx([max(500 * floor, 0.2)] * 3)
+    assert c.floor(np.array([0.01, 0.01, 0.01 + 1.01 * floor])) and not c.floor(np.array([0.01 + 0.99 * floor] * 3))
+    built = dict(dict(c.build(np.array([0.047, 0.047, 0.084])).effects)["body_drag"])
+    assert built == {"c_dx": 0.047, "c_dy": 0.047, "c_dz": 0.084, "norm": 1.0}
+    assert c.params_dict(np.array([0.047, 0.047, 0.084]))["norm"] == 1.0
+    # a hover (no airspeed for a drag to act on), a refitted one already accepted, no body drag: none
+    hover = SimpleNamespace(v=np.zeros((n, 3)) + 0.1, valid=np.ones(n, bool))
+    assert not [c for c in selection.nominal_refits(vp, vp, hover) if c.name == "body_drag"]
+    assert not [c for c in selection.nominal_refits(vp, c.build(c.x0 * 3), data) if c.name == "body_drag"]
+    bare = vp.replace(effects=())
+    assert selection.nominal_refits(bare, bare, data) == []
 
 
 def test_nominal_law_refitted_only_where_the_nominal_has_it():

@@ -67,6 +67,8 @@ def summary_text(res: dict) -> str:
             e = ex[ch]
             man = ", ".join(f"{k} {v}" for k, v in list(e["manoeuvres"].items())[:3]) or "-"
             lines.append(f"    {ch:<9} {e['blocks_heldout']:3d}/{e['blocks_heldout_total']:<3d} {man}")
+    for n in res.get("not_excited") or []:
+        lines.append(f"  not excited on this flight: {', '.join(n['effects'])} ({n['why']}); to show it fly {n['fly']}")
     lines.append("  candidates (verdict; held-out cut in its channel on the residual that judges it; the other "
                  "residual's cut):")
     for e in res["effects"][:8]:

@@ -61,7 +61,9 @@ def score_grid_flight(flight: str, truths: list[Truth], result: dict, nominal, d
             hit = [(n, p) for n, p in _members(e) if effect_class(n) == c]
             if hit:
                 named.append(t.hidden.name)
-                err, text = compare(t, hit[0][0], hit[0][1], nominal, drag, per_mass)
+                # the finding's own parameters it says the flight does not show (held at the model's value)
+                held = frozenset(e.get("held_at_nominal") or {}) if hit[0][0] == e["name"] else frozenset()
+                err, text = compare(t, hit[0][0], hit[0][1], nominal, drag, per_mass, held)
                 errs[t.hidden.name], texts[t.hidden.name] = err, text
                 break
     ho = heldout_cut(top) if top else {}

@@ -39,17 +39,22 @@ def _vector_error(name: str, true: dict, found: dict) -> tuple[float, tuple[str,
     return float(np.linalg.norm(f - t) / max(float(np.linalg.norm(t)), 1e-9)), keys
 
 
-def _param_error(hidden: Hidden, found: dict) -> float | None:
+def _param_error(hidden: Hidden, found: dict, not_identified: frozenset = frozenset()) -> float | None:
     """Largest relative error over the hidden effect's identified parameters (motor index exact; a vector's
-    components as one vector, :data:`VECTOR_PARAMS`)."""
+    components as one vector, :data:`VECTOR_PARAMS`); ``not_identified``: parameters the finding says it held at
+    the model's value because the flight does not show them (its ``held_at_nominal``), not scored; None where
+    that leaves none."""
     if hidden.name == "none":
         return None
     errs = []
     vec = _vector_error(hidden.name, hidden.params, found)
     if vec is not None:
         errs.append(vec[0])
+    scored = [k for k in hidden.params if k not in not_identified and k != "gust_std"]
+    if not scored:
+        return None
     for k, true in hidden.params.items():
-        if k == "gust_std" or (vec is not None and k in vec[1]):
+        if k == "gust_std" or k in not_identified or (vec is not None and k in vec[1]):
             continue  # gust_std: a noise level, not a physical constant: reported, not scored
         if k not in found:
             return float("inf")
@@ -189,7 +194,8 @@ DRAG_COEFFICIENTS = {"linear_drag": ("k_n_s_m",), "rotor_drag": ("k_d",), "body_
 
 
 def compare(truth: Truth, found_name: str, found: dict, nominal: VehicleParams,
-            drag: DragContext | None = None, per_mass: float = 1.0) -> tuple[float | None, str]:
+            drag: DragContext | None = None, per_mass: float = 1.0,
+            not_identified: frozenset = frozenset()) -> tuple[float | None, str]:
     """Relative parameter error of a finding against the truth, and the comparison as text.
 
     Same effect: the largest relative error over the truth's parameters (as the ours suite always scored).
@@ -200,7 +206,10 @@ def compare(truth: Truth, found_name: str, found: dict, nominal: VehicleParams,
 
     ``per_mass``: the true mass over the model's where the flight's mass change was found as a thrust
     coefficient (the model keeps its own mass): a drag found beside it is a force per the model's mass, and the
-    IMU fixes only force per unit mass, so the found drag is read at the true mass (times ``per_mass``)."""
+    IMU fixes only force per unit mass, so the found drag is read at the true mass (times ``per_mass``).
+
+    ``not_identified``: the finding's own parameters it held at the model's value as not shown by the flight
+    (same effect only): not scored, named in the text (an inertia axis the flight never excites)."""
     h = truth.hidden
     if per_mass != 1.0 and effect_class(h.name) == "drag" and found_name == h.name and truth.drag_law is None:
         found = {k: v * per_mass if k in DRAG_COEFFICIENTS.get(found_name, ()) else v for k, v in found.items()}
@@ -229,7 +238,9 @@ def compare(truth: Truth, found_name: str, found: dict, nominal: VehicleParams,
         if h.name == "mass":
             return err, f"mass~{m0 / r_found:.4g} vs {h.params['mass']:.4g}"
         return err, f"kt_scale~{r_found:.4g} vs {h.params['kt_scale']:.4g}"
-    err = _param_error(h, found)
+    skip = frozenset(k for k in not_identified if k in h.params)
+    held_text = f"; {', '.join(sorted(skip))} not identified (held)" if skip else ""
+    err = _param_error(h, found, skip)
     vec = _vector_error(h.name, h.params, found)
     if vec is not None and err is not None and math.isfinite(err) and vec[0] >= err:
         keys = vec[1]
@@ -237,14 +248,14 @@ def compare(truth: Truth, found_name: str, found: dict, nominal: VehicleParams,
                      f" |error|/|truth|")
     worst, worst_e = None, -1.0
     for k, true in h.params.items():
-        if k in ("gust_std", "motor") or k not in found:
+        if k in ("gust_std", "motor") or k not in found or k in skip:
             continue
         e = abs(found[k] - true) / max(abs(true), 1e-9)
         if e > worst_e:
             worst, worst_e = k, e
     if err is None or not math.isfinite(err) or worst is None:
-        return err, "motor index wrong" if err is not None and not math.isfinite(err) else "-"
-    return err, f"{worst} {found[worst]:.4g} vs {h.params[worst]:.4g}"
+        return err, ("motor index wrong" if err is not None and not math.isfinite(err) else "-") + held_text
+    return err, f"{worst} {found[worst]:.4g} vs {h.params[worst]:.4g}{held_text}"
 
 
 def score_flight(flight: str, truth: Truth, result: dict, nominal: VehicleParams,

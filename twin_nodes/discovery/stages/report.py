@@ -16,6 +16,7 @@ from twin_nodes.discovery.locate import events
 from twin_nodes.discovery.output_error import HORIZON_S, MIN_AXIS_R2, STRIDE_S, authority_mismatch
 from twin_nodes.discovery.residuals import LOWPASS_HZ, residual_channels
 from twin_nodes.discovery.stages import closed_loop
+from twin_nodes.discovery.stages.candidates import not_excited
 from twin_nodes.discovery.stages.closed_loop import Checked
 from twin_nodes.discovery.stages.instrument import Instrumented
 from twin_nodes.discovery.stages.mismatch import Mismatch
@@ -58,6 +59,7 @@ def run(inp: ReportInput) -> Report:
         "mismatch": inp.mismatch.windows,
         "events": transients,
         "excitation": S.excitation,
+        "not_excited": not_excited(data, S.excitation),
         "effects": effects_out,
         "accepted": [f.candidate.name for f in accepted],
         "likely": likely,

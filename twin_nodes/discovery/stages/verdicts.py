@@ -79,7 +79,27 @@ def run(inp: GradeInput) -> Verdicts:
             e["heldout_contribution"] = {"cut": round(float(f.rel_improvement), 4), "residual": f.kind,
                                          "on_top_of": [g.candidate.name for g in accepted[:i]]}
     _instrumented_views(S, ranked, effects_out)
+    told_apart(effects_out)
     return Verdicts(ranked, effects_out, acc_labels)
+
+
+def told_apart(effects_out: list[dict]) -> None:
+    """A finding's ``not_told_apart`` rival that is itself confirmed (accepted beside it, fitted on top of it or
+    jointly) was told apart by the flight: the pair is dropped (kept as ``told_apart_from``, the rival's
+    single-fit values no finding claims).  q017 (a motor lag with an inertia, both confirmed): the lag's pair
+    carried the inertia as it was fitted alone in the lag's place (Ixx +11 %), beside the inertia's own finding.
+    Not between two effects on the collective force per unit mass (:data:`_COLLECTIVE`): the IMU does not tell
+    those apart, so both accepted is a combination, not a separation (PX4 SIH t006: a battery sag ~ thrust
+    coefficient 0.842 (truth 0.84), then a mass and a thrust coefficient 1.10 accepted on top of the sag)."""
+    kinds = {_kind(e["name"]) for e in effects_out if e.get("verdict") == "confirmed"}
+    for e in effects_out:
+        pair = e.get("not_told_apart")
+        if pair and {e["name"], pair["with"]["name"]} <= _COLLECTIVE:
+            continue
+        if pair and _kind(pair["with"]["name"]) in kinds - {_kind(e["name"])}:
+            e["told_apart_from"] = {"name": pair["with"]["name"],
+                                    "why": "confirmed as a finding of its own beside this one"}
+            del e["not_told_apart"]
 
 
 def given_the_others(v: Verdicts, eq: Judge, vp: VehicleParams, accepted: list[Fit]) -> None:
@@ -236,6 +256,10 @@ SEPARATING = {
                                                                       "fades with height"),
     frozenset({"yaw_moment", "inertia"}): ("yaw_sweeps", "yaw turns in place at several rates"),
 }
+
+
+#: effects that act on the collective force per unit mass alone, which the IMU cannot tell apart on their own
+_COLLECTIVE = {"mass", "thrust_coefficient", "battery_sag"}
 
 
 def _kind(name: str) -> str:
