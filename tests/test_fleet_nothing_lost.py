@@ -344,7 +344,7 @@ def test_survey_cli_markdown_lists_failed_flights(tmp_path, capsys):
 
 
 def test_file_date_from_name_then_mtime(tmp_path):
-    from twin_nodes.fleet.flight import file_date
+    from twin_nodes.fleet.identity import file_date
 
     assert file_date("/x/log_61_2023-6-21-08-32-12.ulg") == ("2023-06-21T08:32:12", "file_name")
     assert file_date("/x/2026-06-01/09_30_05.ulg") == ("2026-06-01T09:30:05", "file_name")

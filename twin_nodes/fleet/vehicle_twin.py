@@ -134,7 +134,7 @@ def select(flights: list[dict], state: str = "latest") -> tuple[list[dict], list
 def date_flights(flights: list[dict]) -> None:
     """Each flight's UTC time (``when``) from its header (or GPS, or file name corrected by the local offset)."""
     from twin_nodes.fleet.changes import local_offset_h, when_utc
-    from twin_nodes.fleet.flight import identity
+    from twin_nodes.fleet.identity import identity
 
     rows = []
     for f in flights:
