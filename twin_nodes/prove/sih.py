@@ -97,6 +97,13 @@ def map_truth(truth: dict, nominal: VehicleParams) -> Truth:
         return Truth(Hidden("linear_drag", {"k_n_s_m": changes["SIH_KDV"]}), text)
     if names == {"SIH_KDW"}:
         return Truth(Hidden("angular_damping", {"k_nm_s_rad": changes["SIH_KDW"]}), text)
+    # the patched SIH (missions/sih_effects/px4_sih_weak_motor_com.patch): one motor, PX4 order; a CoM in FRD
+    if names == {"SIH_MOT_WEAK", "SIH_MOT_EFF"}:
+        return Truth(Hidden("motor_efficiency", {"motor": float(changes["SIH_MOT_WEAK"]),
+                                                 "efficiency": changes["SIH_MOT_EFF"]}), text)
+    if names and names <= {"SIH_CG_X", "SIH_CG_Y"}:
+        return Truth(Hidden("com_offset", {"dx": changes.get("SIH_CG_X", 0.0), "dy": -changes.get("SIH_CG_Y", 0.0)}),
+                     text)
     raise TwinError(f"truth.json: sih_changes: expected one SIH parameter group we map, got {sorted(names)}")
 
 
