@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Fly issue 26's declared grids into a cache outside the repository, one flight at a time, nice'd.
-#   tools/fly_grids.sh rotorpy [tuning|judging|judge2|judge3|all]          -> ~/.cache/rotortwin/grids/rotorpy/<id>.ulg
-#   tools/fly_grids.sh sih PX4_DIR [tuning|judging|judge2|judge3|all]      -> ~/.cache/rotortwin/grids/sih/<id>/flight.ulg
+#   tools/fly_grids.sh rotorpy [tuning|judging|judge2|judge3|judge4|all]          -> ~/.cache/rotortwin/grids/rotorpy/<id>.ulg
+#   tools/fly_grids.sh sih PX4_DIR [tuning|judging|judge2|judge3|judge4|all]      -> ~/.cache/rotortwin/grids/sih/<id>/flight.ulg
 # (PX4 SIH on instance 1, speed factor 5, lockstep; flights already there are skipped.)
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -16,6 +16,7 @@ case "${1:-}" in
     MANIFEST=missions/sih_grid/manifest.yaml
     [ "$HALF" = judge2 ] && MANIFEST=missions/sih_grid/batch2.yaml
     [ "$HALF" = judge3 ] && MANIFEST=missions/sih_grid/batch3.yaml
+    [ "$HALF" = judge4 ] && MANIFEST=missions/sih_grid/batch4.yaml
     IDS=$("$PY" -c "
 from twin_nodes.prove.grid_sih import load_grid
 print(' '.join(k for k, v in load_grid(half='$HALF').items() if '$HALF' in ('all', v['half'])))")

@@ -59,8 +59,8 @@ def register(sub) -> None:
     q.add_argument("--grid", choices=("rotorpy", "px4sih"),
                    help="issue 26's declared grid of that source instead of --source (twin_nodes/prove/grids/"
                         "rotorpy_grid.yaml, missions/sih_grid/manifest.yaml), flights read from --grid-cache")
-    q.add_argument("--half", choices=("tuning", "judging", "judge2", "judge3", "all"), default="tuning",
-                   help="--grid: the half declared in the manifest (default tuning); judge2, judge3: the second, third "
+    q.add_argument("--half", choices=("tuning", "judging", "judge2", "judge3", "judge4", "all"), default="tuning",
+                   help="--grid: the half declared in the manifest (default tuning); judge2, judge3, judge4: the second to fourth "
                         "judging-only batch (rotorpy_grid_batchN.yaml, missions/sih_grid/batchN.yaml)")
     qio.input("--grid-cache", default=str(Path.home() / ".cache" / "rotortwin" / "grids"),
               help="--grid: where tools/fly_grids.sh put the flights (rotorpy/<id>.ulg, sih/<id>/flight.ulg)")

@@ -26,6 +26,8 @@ BATCHES = {
     "judge2": (BATCH2_SEED, BATCH2_PATH, "t", "2026-11-27, before the fifth session changed anything"),
     "judge3": (2828, REPO / "missions" / "sih_grid" / "batch3.yaml", "u",
                "2026-11-27 14:57 UTC, before the sixth session changed anything"),
+    "judge4": (2929, REPO / "missions" / "sih_grid" / "batch4.yaml", "y",
+               "2026-11-27 17:20 UTC, before the seventh session changed anything"),
 }
 BASE = REPO / "missions" / "sih_effects" / "manifest.yaml"
 #: each SIH parameter group that changes the physics, at two magnitudes (PX4 SIH defaults in sih_flight.SIH_DEFAULTS)
