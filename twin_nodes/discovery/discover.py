@@ -42,8 +42,8 @@ from twin_nodes.discovery.judging import (ALT_FRACTION, BLOCK_S, HELDOUT_FRACTIO
                                           _output_judge, _restrict_to_axes, _scales, _summary, _window_folds, assess,
                                           fit_candidate)
 from twin_nodes.discovery.locate import regimes
-from twin_nodes.discovery.stages import (closed_loop, instrument, mismatch, prepare, refit, report, selection, terms,
-                                        verdicts)
+from twin_nodes.discovery.stages import (closed_loop, ground, instrument, mismatch, prepare, refit, report, selection,
+                                        terms, verdicts)
 from twin_nodes.discovery.stages.closed_loop import CLOSED_LOOP_TOL_REL, _closed_loop_guard, _closed_loop_metrics, _worse
 from twin_nodes.discovery.stages.instrument import (INSTRUMENTED_BLOCKS_MISSING, _axis_tests, _equation_axes,
                                                     _instrumented, attach_instrumented)
@@ -85,11 +85,14 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         on_first=(lambda vp_1: closed_loop.prefetch(log, vp_1, flight)) if closed_loop_metrics else None))
     # 4. refit what is accepted, jointly; 5. keep what does not make the closed-loop twin worse
     joint = refit.run(refit.RefitInput(flight, chosen.accepted, chosen.current))
-    checked = closed_loop.run(closed_loop.CheckInput(log, flight, chosen.accepted, joint.vp, closed_loop_metrics))
+    # a ground effect's size from the take-off and the landing together (each fold sees one): stages.ground
+    joint_vp = ground.refit_accepted(flight, chosen.accepted, joint.vp)
+    checked = closed_loop.run(closed_loop.CheckInput(log, flight, chosen.accepted, joint_vp, closed_loop_metrics))
     # 6. grade: confirmed, likely (what it lacks), rejected (why)
     graded = verdicts.run(verdicts.GradeInput(flight, checked.accepted, chosen.last, chosen.first_rank,
                                               found.base_held))
     verdicts.given_the_others(graded, flight.eq, checked.current, checked.accepted)
+    ground.annotate(flight, graded.ranked, graded.effects)
     # 7. on PX4 logs: the inertia's roll/pitch axes and PX4's rate loop, the closed-loop twin permitting
     final = instrument.run(instrument.InstrumentInput(
         flight, graded, checked.current, closed_loop.guard(checked, log, flight, closed_loop_metrics)))
