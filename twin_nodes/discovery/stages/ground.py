@@ -8,28 +8,30 @@ its coefficient and height scale slide along the ridge c exp(-h/h_s) = const (0.
 
 So, once the cross-validated test has graded it (``confirmed`` or ``likely``: the acceptance is untouched), the
 ground effect's parameters are fitted again on both folds' fit rows, every usable sample of the flight (the
-take-off and the landing together), the other accepted effects held at their refitted values.  The entry says
-so (``params_fitted_on``) and says what the low flight pins (:func:`pinned`): a flight whose low samples sit at
-one height (a low hover) pins the gain at that height, not the coefficient and the height scale apart; the
-manoeuvre that would is a hover at two low heights.
+take-off and the landing together): an accepted one jointly with the other accepted equation-error effects (at
+cruise height a ground effect of a few arm lengths' scale is a near-constant thrust scale, which trades with a
+sag or a thrust coefficient), a ``likely`` one on the vehicle it was judged on.  The entry says so
+(``ground_fit``: what it was fitted on, the folds' own values) and what the flight pins (:func:`pinned`): a flight
+whose low samples sit at one height (a low hover) pins the extra thrust at that height, not the coefficient and
+the height scale apart; the manoeuvre that would is a hover at two low heights.
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 import numpy as np
 
 from twin_nodes.discovery.judging import Fit, fit_candidate
 from twin_nodes.discovery.stages.prepare import PreparedFlight
+from twin_nodes.discovery.stages.refit import _joint_refit
 from twin_nodes.vehicle.params import VehicleParams
 
 NAME = "ground_effect"
 #: samples within this many (fitted) height scales of the ground carry the effect (exp(-3) = 5 % of it)
 REACH_SCALES = 3.0
-#: the low samples' heights (10th to 90th percentile) must span at least this fraction of the height scale for
-#: the flight to tell the coefficient from the height scale (a low hover at one height pins only their product)
-MIN_SPAN_SCALES = 0.5
+#: the flight tells the coefficient from the height scale where its heights, weighted by the effect's squared
+#: sensitivity there (exp(-2h/h_s)), spread by at least this fraction of the height scale (a climb through the
+#: whole reach: 0.5; a low hover at one height pins only c exp(-h/h_s) there: under 0.1)
+MIN_SPREAD_SCALES = 0.25
 TWO_HEIGHTS = "hovering at two low heights (about 1 and 2 height scales up, a few seconds each)"
 
 
@@ -40,28 +42,31 @@ def gain(coefficient: float, height_scale: float, height) -> np.ndarray:
 
 
 def pinned(height: np.ndarray, coefficient: float, height_scale: float, dt: float) -> dict:
-    """What the low samples (``height``, m, one per ``dt`` s) pin of a ground effect ``coefficient``,
-    ``height_scale``: their time within reach, the span of their heights, and whether the two parameters are
-    told apart; where not, the gain c exp(-h_ref/h_s) at their median height is what the flight determines."""
+    """What the flight's samples (``height``, m, one per ``dt`` s) pin of a ground effect ``coefficient``,
+    ``height_scale``: their time within reach, their heights weighted by the effect's squared sensitivity
+    (exp(-2h/h_s), :data:`MIN_SPREAD_SCALES`), and whether the two parameters are told apart; where not, the
+    extra thrust c exp(-h_ref/h_s) at the weighted mean height h_ref is what the flight determines."""
     h = np.asarray(height, float)
-    low = h[np.isfinite(h) & (h < REACH_SCALES * height_scale)]
-    out = {"low_s": round(float(low.size * dt), 2)}
-    if low.size < 2:
+    h = np.maximum(h[np.isfinite(h)], 0.0)
+    near = h < REACH_SCALES * height_scale
+    out = {"low_s": round(float(near.sum() * dt), 2)}
+    if near.sum() < 2:
         out.update(determined=False, note=f"no usable sample within {REACH_SCALES:g} height scales of the ground; "
                    f"to size it fly {TWO_HEIGHTS}")
         return out
-    q10, h_ref, q90 = (float(v) for v in np.percentile(low, [10, 50, 90]))
-    span = (q90 - q10) / height_scale
-    out.update(h_ref_m=round(h_ref, 3), span_scales=round(span, 2),
+    w = np.exp(-2.0 * h / height_scale)
+    h_ref = float(np.sum(w * h) / np.sum(w))
+    spread = float(np.sqrt(np.sum(w * (h - h_ref) ** 2) / np.sum(w))) / height_scale
+    out.update(h_ref_m=round(h_ref, 3), spread_scales=round(spread, 3),
                gain_at_h_ref=round(float(gain(coefficient, height_scale, h_ref) - 1.0), 4))
-    if span >= MIN_SPAN_SCALES:
-        out.update(determined=True, note=f"coefficient and height scale from {out['low_s']:g} s flown between "
-                   f"{q10:.2f} and {q90:.2f} m")
+    if spread >= MIN_SPREAD_SCALES:
+        out.update(determined=True, note=(f"coefficient and height scale told apart: {out['low_s']:g} s within "
+                                          f"{REACH_SCALES:g} height scales, heights spread {spread:.2f} of it"))
     else:
         out.update(determined=False, note=(
-            f"the low samples sit near {h_ref:.2f} m (10-90 % within {q90 - q10:.2f} m, {span:.2f} height scales): "
-            f"they pin the extra thrust there ({100 * out['gain_at_h_ref']:.1f} %), the coefficient and height "
-            f"scale only along c exp(-{h_ref:.2f}/h_s); to tell them apart fly {TWO_HEIGHTS}"))
+            f"the low samples sit near {h_ref:.2f} m (spread {spread:.2f} height scales): they pin the extra "
+            f"thrust there ({100 * out['gain_at_h_ref']:.1f} %), the coefficient and height scale only along "
+            f"c exp(-{h_ref:.2f}/h_s); to tell them apart fly {TWO_HEIGHTS}"))
     return out
 
 
@@ -73,40 +78,39 @@ def _rows(flight: PreparedFlight) -> np.ndarray:
     return rows
 
 
-def _refit(f: Fit, flight: PreparedFlight, base: VehicleParams | None) -> None:
-    """``f``'s parameters fitted on both folds' fit rows on top of ``base`` (None: its own base); its fold
-    parameters are kept, the note of what was fitted where is set."""
-    c = f.candidate
-    if base is not None:
-        c = dataclasses.replace(c, build=lambda th, b=base, cc=f.candidate: cc.apply(b, th))
-    rows = _rows(flight)
-    theta, _, _ = fit_candidate(c, flight.eq, flight.nominal, rows)
+def _refit(f: Fit, flight: PreparedFlight) -> None:
+    """A graded ground effect that was not accepted (``likely``): its parameters fitted on both folds' fit rows
+    on its own base (the vehicle it was judged on top of)."""
     folds = [f.candidate.params_dict(t) for t in f.fold_thetas]
+    theta, _, _ = fit_candidate(f.candidate, flight.eq, flight.nominal, _rows(flight))
     f.theta = np.asarray(theta, float)
+    _note(f, flight, folds, [])
+
+
+def _note(f: Fit, flight: PreparedFlight, folds: list[dict], jointly: list[str]) -> None:
+    """What ``f``'s parameters were fitted on and what the flight pins of them (``f.ground_fit``)."""
     p = f.candidate.params_dict(f.theta)
-    low = flight.data.height[rows]
-    f.ground_fit = {"params_fitted_on": ("both folds' fit parts, every usable sample of the flight (the take-off "
-                                         "and the landing): each fold alone sees one of them"),
+    on = ("both folds' fit parts, every usable sample of the flight (the take-off and the landing; each fold "
+          "alone sees one of them)")
+    f.ground_fit = {"params_fitted_on": on + (f", jointly with {', '.join(jointly)}" if jointly else ""),
                     "fold_params": folds,
-                    **pinned(low, p["coefficient"], p["height_scale"], flight.data.dt)}
+                    **pinned(flight.data.height[_rows(flight)], p["coefficient"], p["height_scale"],
+                             flight.data.dt)}
 
 
 def refit_accepted(flight: PreparedFlight, accepted: list[Fit], current: VehicleParams) -> VehicleParams:
-    """The accepted equation-error ground effect refitted on the whole flight, every other accepted effect held at
-    its value in ``current``'s order (the joint refit's); returns the vehicle with all of them."""
+    """Where a ground effect is accepted on the equation error: every accepted equation-error effect refitted
+    jointly on both folds' fit rows (the joint refit of :mod:`.refit` on the whole flight), from their values in
+    ``current``.  Jointly, because at cruise height a ground effect of a few arm lengths' scale is a near-constant
+    thrust scale that trades with a sag's or a thrust coefficient's (w035: coefficient 0.355 with the sag held at
+    its fold-1 value, 0.385 with the true sag, truth 0.4).  Returns the vehicle with all of them."""
     ground = [f for f in accepted if f.candidate.name == NAME and f.kind == "equation"]
     if not ground:
         return current
-    base = flight.nominal
-    for f in accepted:
-        if f not in ground:
-            base = f.candidate.apply(base, f.theta)
+    folds = {id(f): [f.candidate.params_dict(t) for t in f.fold_thetas] for f in ground}
+    vp = _joint_refit(accepted, flight.data, flight.nominal, _rows(flight))
     for f in ground:
-        _refit(f, flight, base)
-    vp = base
-    for f in ground:
-        vp = f.candidate.apply(vp, f.theta)
-        f.vp = vp
+        _note(f, flight, folds[id(f)], [g.candidate.name for g in accepted if g is not f and g.kind == "equation"])
     return vp
 
 
@@ -117,7 +121,7 @@ def annotate(flight: PreparedFlight, ranked: list[Fit], effects: list[dict]) -> 
         if f.candidate.name != NAME or f.kind != "equation" or e.get("verdict") not in ("confirmed", "likely"):
             continue
         if getattr(f, "ground_fit", None) is None:
-            _refit(f, flight, None)
+            _refit(f, flight)
             p = f.candidate.params_dict(f.theta)
             e["evidence"] += (" Refitted on the whole flight: " + ", ".join(f"{k}={v:.4g}" for k, v in p.items())
                               + ".")
