@@ -86,6 +86,8 @@ def summary_text(res: dict) -> str:
         if verdict != "rejected":
             for k, why in (e.get("held_at_nominal") or {}).items():
                 lines.append(f"              {k}: {why}")
+            if (e.get("ground_fit") or {}).get("determined") is False:   # stages.ground: what the low flight pins
+                lines.append(f"              {e['ground_fit']['note']}")
     after = res.get("confirmed_on_followup") or []
     if after:
         lines.append(f"  confirmed on the follow-up flight: {', '.join(after)}")
