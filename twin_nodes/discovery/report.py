@@ -25,6 +25,15 @@ def _param_text(e: dict, name: str, value: float) -> str:
     held = (e.get("held_at_nominal") or {}).get(name)
     return f"{name}={value:.4g}" + (f" ({held})" if held else "")
 
+def _not_identified(e: dict) -> list[str]:
+    """A finding's parameters the flight did not identify: held at nominal, or (a ground effect, stages.ground)
+    only one combination pinned by the low flight."""
+    out = [f"              {k}: {why}" for k, why in (e.get("held_at_nominal") or {}).items()]
+    if (e.get("ground_fit") or {}).get("determined") is False:
+        out.append(f"              {e['ground_fit']['note']}")
+    return out
+
+
 def json_default(o):
     """``json.dumps`` fallback: numpy scalars and arrays as Python numbers and lists, anything else as str."""
     if isinstance(o, np.generic):
@@ -84,10 +93,7 @@ def summary_text(res: dict) -> str:
         if verdict == "likely" or (verdict == "rejected" and "confirmation" in e):
             lines.append(f"              {e.get('verdict_note', '')}")
         if verdict != "rejected":
-            for k, why in (e.get("held_at_nominal") or {}).items():
-                lines.append(f"              {k}: {why}")
-            if (e.get("ground_fit") or {}).get("determined") is False:   # stages.ground: what the low flight pins
-                lines.append(f"              {e['ground_fit']['note']}")
+            lines += _not_identified(e)
     after = res.get("confirmed_on_followup") or []
     if after:
         lines.append(f"  confirmed on the follow-up flight: {', '.join(after)}")

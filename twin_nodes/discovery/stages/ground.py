@@ -32,7 +32,7 @@ REACH_SCALES = 3.0
 #: sensitivity there (exp(-2h/h_s)), spread by at least this fraction of the height scale (a climb through the
 #: whole reach: 0.5; a low hover at one height pins only c exp(-h/h_s) there: under 0.1)
 MIN_SPREAD_SCALES = 0.25
-TWO_HEIGHTS = "hovering at two low heights (about 1 and 2 height scales up, a few seconds each)"
+TWO_HEIGHTS = "hovers at two low heights (about 1 and 2 height scales up, a few seconds each)"
 
 
 def gain(coefficient: float, height_scale: float, height) -> np.ndarray:
