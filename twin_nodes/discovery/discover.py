@@ -85,9 +85,10 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         on_first=(lambda vp_1: closed_loop.prefetch(log, vp_1, flight)) if closed_loop_metrics else None))
     # 4. refit what is accepted, jointly; 5. keep what does not make the closed-loop twin worse
     joint = refit.run(refit.RefitInput(flight, chosen.accepted, chosen.current))
-    # a ground effect's size from the take-off and the landing together (each fold sees one): stages.ground
-    joint_vp = ground.refit_accepted(flight, chosen.accepted, joint.vp)
-    checked = closed_loop.run(closed_loop.CheckInput(log, flight, chosen.accepted, joint_vp, closed_loop_metrics))
+    checked = closed_loop.run(closed_loop.CheckInput(log, flight, chosen.accepted, joint.vp, closed_loop_metrics))
+    # a ground effect's size from the take-off and the landing together (each fold sees one), after the check
+    # (which refits what it keeps on fold 1): stages.ground
+    checked.current = ground.refit_accepted(flight, checked.accepted, checked.current)
     # 6. grade: confirmed, likely (what it lacks), rejected (why)
     graded = verdicts.run(verdicts.GradeInput(flight, checked.accepted, chosen.last, chosen.first_rank,
                                               found.base_held))

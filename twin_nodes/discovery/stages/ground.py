@@ -99,7 +99,8 @@ def _note(f: Fit, flight: PreparedFlight, folds: list[dict], jointly: list[str])
 
 
 def refit_accepted(flight: PreparedFlight, accepted: list[Fit], current: VehicleParams) -> VehicleParams:
-    """Where a ground effect is accepted on the equation error: every accepted equation-error effect refitted
+    """Where a ground effect is accepted on the equation error (and kept by the closed-loop check, which refits
+    what it keeps on fold 1; its twin metrics are of those values): every accepted equation-error effect refitted
     jointly on both folds' fit rows (the joint refit of :mod:`.refit` on the whole flight), from their values in
     ``current``.  Jointly, because at cruise height a ground effect of a few arm lengths' scale is a near-constant
     thrust scale that trades with a sag's or a thrust coefficient's (w035: coefficient 0.355 with the sag held at
@@ -110,6 +111,7 @@ def refit_accepted(flight: PreparedFlight, accepted: list[Fit], current: Vehicle
     folds = {id(f): [f.candidate.params_dict(t) for t in f.fold_thetas] for f in ground}
     vp = _joint_refit(accepted, flight.data, flight.nominal, _rows(flight))
     for f in ground:
+        f.vp = vp
         _note(f, flight, folds[id(f)], [g.candidate.name for g in accepted if g is not f and g.kind == "equation"])
     return vp
 
