@@ -121,6 +121,8 @@ class TwinRunner(GroundHandling):
         #: progress 0..1 (1: flying; set to 0 by a grounded phase, so a log started in the air has none)
         self.takeoff_ramp_s = TAKEOFF_RAMP_S
         self.ramp = 1.0
+        #: the real vehicle has left the ground since the twin last rested on it (see _held_with_vehicle)
+        self._lifted = True
         #: how the last control step was flown (:data:`~twin_nodes.twin.flight_mode.FLOWN_AS`)
         self.flown_as = ""
         #: the pilot stand-in for the vertical axis in PX4's manual modes (None: the logged thrust alone)
@@ -317,6 +319,9 @@ class TwinRunner(GroundHandling):
         self.t += self.dt_c
         if self.mode != "open" and self.flown_as in ("grounded", "disarmed") and self.real_x is not None:
             self._hold_on_ground()
+            self._lifted = False
+        elif self.mode != "open" and self.real_x is not None:
+            self._held_with_vehicle()
         return resynced, applied
 
     def _piloted(self, how: str, thr: float) -> float:
