@@ -116,3 +116,46 @@ def test_a_twin_down_shortly_before_the_vehicle_is_no_crash(flight, t_force, cra
         assert d is not None and d["cause"] == "crash" and abs(d["t_s"] - t_force) < 0.05, d
     else:
         assert d is None, d
+
+
+#: the synthetic vehicle stands on its take-off spot until this [s] (land detector: airborne from arming, 1 s)
+T_LIFT_S = 8.0
+
+
+def _held_on_ground(tmp_path):
+    """STABILIZED at 1.2x the SIH quad's hover throttle from arming, level; the real vehicle stays on its
+    take-off spot until T_LIFT_S (held: a hand, a tether), then climbs 3 m at 1 m/s, holds, lands at 15-18 s."""
+    hov = load_params(PARAMS).hover_command
+
+    def edit(topics):
+        _status(15)(topics)
+        _attitude_setpoint(topics, thrust=1.2 * hov)
+        topics["vehicle_attitude_setpoint"]["thrust_body"][:, 2] = -1.2 * hov
+        topics["vehicle_thrust_setpoint"]["xyz"][:, 2] = -1.2 * hov
+        lp = topics["vehicle_local_position"]
+        s = (lp["timestamp"].astype(np.int64) - int(lp["timestamp"][0])) * 1e-6
+        h = np.clip(np.minimum(s - T_LIFT_S, 18.0 - s), 0.0, 3.0)
+        lp["z"] = (-h).astype(lp["z"].dtype)
+        lp["vz"] = (-np.gradient(h, s)).astype(lp["vz"].dtype)
+    return read_ulog(C.edited_flight(tmp_path / "held.ulg", edit))
+
+
+def test_the_twin_is_held_where_the_vehicle_is_held(tmp_path, monkeypatch):
+    """Without the pilot stand-in the twin flies the logged 1.2x hover thrust: free, it climbs at
+    0.2 g (less the SIH quad's 1 /s of drag: ~2 m/s) from arming while the vehicle stands; held, it stays
+    on the spot until the vehicle leaves it, then flies."""
+    import twin_nodes.twin.ground as gr
+    log = _held_on_ground(tmp_path)
+    vp = load_params(PARAMS)
+    run = run_twin_on_log(log, vp, mode="closed", pilot=False)
+    k = np.searchsorted(run.t, T_LIFT_S - 0.5)
+    g0 = run.info["ground_z"]
+    assert abs(run.x[k, 2] - g0) < 0.01 and abs(run.x[k, 5]) < 0.01
+    k2 = np.searchsorted(run.t, T_LIFT_S + 2.0)
+    assert run.x[k2, 2] - g0 > 1.0  # flies once the vehicle has left the ground
+    monkeypatch.setattr(gr, "HELD_M", -np.inf)  # never held (as before)
+    free = run_twin_on_log(log, vp, mode="closed", pilot=False)
+    kf = np.searchsorted(free.t, T_LIFT_S - 0.5)
+    # the closed form: 0.2 g of excess thrust against a linear drag of 1 /s: a terminal climb of 1.96 m/s
+    assert abs(free.x[kf, 5] - 0.2 * 9.80665 / 1.0) < 0.05, free.x[kf, 5]
+    assert free.x[kf, 2] - g0 > 10.0
