@@ -290,7 +290,7 @@ def detect(run: Any, log: Any, xy_controlled=None, z_controlled=None, t0: float 
         cxy = np.ones(t.shape, bool) if xy_controlled is None else xy_controlled(t)
         cz = np.ones(t.shape, bool) if z_controlled is None else z_controlled(t)
         with np.errstate(invalid="ignore"):
-            run_away = air & ((cxy & (exy > RUNAWAY_XY_M)) | (cz & (ez > RUNAWAY_Z_M)))
+            run_away = air & trusted & ((cxy & (exy > RUNAWAY_XY_M)) | (cz & (ez > RUNAWAY_Z_M)))
             # where the pilot held the height (manual modes: the twin's pilot stand-in holds the real
             # height), a twin that climbs or falls away beyond the stand-in's authority has left too
             run_away_pilot = air & ~cz & trusted & (ez_pilot > RUNAWAY_Z_PILOT_M)
