@@ -43,15 +43,15 @@ class Report:
 
 
 def _not_shown(data, S: PreparedFlight, effects: list[dict]) -> list[dict]:
-    """What this flight cannot show: no signal at all (``stages.candidates.not_excited``), and the inertia axes a
-    30 % change would move by less than ``visibility.MIN_VISIBILITY`` of their noise over the flight (issue 26
-    item 3: PX4 SIH's take-off and land), except an axis an accepted inertia finding identified."""
+    """What this flight cannot show: no signal at all (``stages.candidates.not_excited``), and the inertia axes
+    and yaw moment a 30 % change of which stands out of the noise by less than ``visibility.MIN_SNR`` over the
+    flight (issue 26 item 3: PX4 SIH's take-off and land), except a parameter a finding identified."""
     out = not_excited(data, S.excitation)
     if S.nominal is None:
         return out
     skip = {e.split("(")[1].rstrip(")") for n in out for e in n["effects"] if e.startswith("inertia (")}
     for e in effects:
-        if e.get("name") == "inertia" and e.get("verdict") in ("confirmed", "likely"):
+        if e.get("name") in ("inertia", "yaw_moment") and e.get("verdict") in ("confirmed", "likely"):
             skip |= set(e.get("params") or {}) - set(e.get("held_at_nominal") or {})
     return out + barely_excited(data, S.nominal, skip)
 
