@@ -108,3 +108,32 @@ def test_a_finding_s_own_axes_are_not_called_barely_excited():
              "held_at_nominal": {"iyy": "held"}}
     assert [n["effects"][0] for n in _not_shown(d, S, [found])] == ["inertia (iyy)", "yaw_moment"]
     assert all(n["fly"] and n["why"].startswith("barely excited: a 30 % change of ") for n in _not_shown(d, S, []))
+
+
+def test_the_rotor_drag_is_offered_on_a_hover_with_the_yaw_damping_floor():
+    # a hover's rotor drag acts only through the hubs' airspeed in yaw turns: a yaw damping k_d sum|omega_i| r_i^2;
+    # its floor is the angular damping's (0.1 Izz): k_d > 0.1 Izz / (omega_hover sum r_i^2).  RotorPy's rotor
+    # drag on q002 (k_d 8.7545e-5, hover with yaw) is exactly the angular damping found there (0.01397 for
+    # 8.7545e-5 x 700.36 rad/s x 0.2312 m^2 = 0.01418)
+    from types import SimpleNamespace
+
+    from twin_nodes.discovery.candidates import build_candidates
+    from twin_nodes.vehicle.params import shipped
+
+    vp = shipped("px4_sih_quadx")
+    r = vp.rotors
+    arm2 = float(np.sum(np.asarray(r.x_flu_m) ** 2 + np.asarray(r.y_flu_m) ** 2))
+    data = SimpleNamespace(v=np.full((100, 3), 0.1), valid=np.ones(100, bool), motor_dt_s=0.02, dt=0.02,
+                           height=np.full(100, 10.0), battery_v=np.full(100, np.nan))
+    (rd,) = [c for c in build_candidates(vp, data) if c.name == "rotor_drag"]
+    floor = 0.1 * vp.inertia[2, 2] / (vp.hover_omega_rad_s * arm2)
+    assert rd.floor(np.array([1.01 * floor])) and not rd.floor(np.array([0.99 * floor]))
+    assert rd.upper[0] == pytest.approx(1000 * floor)
+    # the yaw damping it stands for, at the floor: the angular damping's floor
+    assert floor * vp.hover_omega_rad_s * arm2 == pytest.approx(0.1 * vp.inertia[2, 2])
+    assert 8.7545e-5 * 700.357 * 0.2312 == pytest.approx(0.01397, rel=0.015)
+    # with airspeed the force floor of before (1 % of the weight at the 90th-percentile speed)
+    fast = SimpleNamespace(**{**vars(data), "v": np.tile([[5.0, 0.0, 0.0]], (100, 1))})
+    (rd,) = [c for c in build_candidates(vp, fast) if c.name == "rotor_drag"]
+    kd = 0.01 * vp.mass_kg * vp.gravity_m_s2 / (r.count * vp.hover_omega_rad_s * 5.0)
+    assert rd.floor(np.array([1.01 * kd])) and not rd.floor(np.array([0.99 * kd]))
