@@ -137,3 +137,20 @@ def test_the_rotor_drag_is_offered_on_a_hover_with_the_yaw_damping_floor():
     (rd,) = [c for c in build_candidates(vp, fast) if c.name == "rotor_drag"]
     kd = 0.01 * vp.mass_kg * vp.gravity_m_s2 / (r.count * vp.hover_omega_rad_s * 5.0)
     assert rd.floor(np.array([1.01 * kd])) and not rd.floor(np.array([0.99 * kd]))
+
+
+def test_the_summary_shows_a_kept_effect_s_rivals():
+    # q002's result (RotorPy rotor drag on a hover with yaw): the angular damping kept, the rotor drag its rival
+    from twin_nodes.discovery import report
+
+    ad = {"name": "angular_damping", "verdict": "confirmed", "accepted": True, "params": {"k_nm_s_rad": 0.01397},
+          "heldout_improvement": 0.974, "heldout_channel": "yaw", "residual": "equation",
+          "alternatives": [{"name": "rotor_drag", "params": {"k_d": 8.73e-5}, "residual": "equation",
+                            "cv_improvement": 0.9406},
+                           {"name": "battery_sag", "params": {"v_ref": 16.8}, "significant": False,
+                            "heldout_t_stat": 2.66, "cv_improvement": 0.98}]}
+    res = {"log": "q002.ulg", "params": "p", "method": {"fit_interval_s": [0, 1], "heldout_interval_s": [1, 2]},
+           "mismatch": [], "effects": [ad], "accepted": ["angular_damping"], "likely": []}
+    text = report.summary_text(res)
+    assert "              ~ rotor_drag k_d=8.73e-05 (explains the same on this flight, cross-validated cut 94 %)" in text
+    assert "~ battery_sag v_ref=16.8 (explains more, not yet significant: t 2.7)" in text
