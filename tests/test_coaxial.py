@@ -29,6 +29,12 @@ def test_the_effect_scales_only_the_lower_rotors_thrust_and_torque():
     (f0, mo0), (f1, mo1) = (m.wrench_terms(x)["rotors"] for m in (m0, m1))
     assert f1[0, 2] == pytest.approx(f0[0, 2] * (4 + 4 * 0.75) / 8, rel=1e-12)
     np.testing.assert_allclose(mo1[0, :2], 0.0, atol=1e-12)   # pairs at one place: still no roll/pitch moment
+    # thrust and reaction torque alike (Q = km T): one lower rotor alone gives 0.75 of both, an upper one all
+    for k, share in ((4, 0.75), (0, 1.0)):
+        x = m0.initial_state(position_enu=(0, 0, 10), rotor_state=np.eye(8)[k] * 0.5)
+        (f0, mo0), (f1, mo1) = (m.wrench_terms(x)["rotors"] for m in (m0, m1))
+        assert abs(mo0[0, 2]) > 1e-3
+        assert (f1[0, 2], mo1[0, 2]) == pytest.approx((share * f0[0, 2], share * mo0[0, 2]), rel=1e-12)
 
 
 def test_lower_rotor_of_each_pair_by_height_else_the_second():
@@ -90,3 +96,32 @@ def test_x8_flight_identifies_the_pairs_thrust_and_assumes_the_split(tmp_path):
     assert eff == {"efficiency": 0.8, "lower_mask": float(0b11110000)}
     assert nom.sources["effects.coaxial"].startswith("ASSUMED 0.8: not identifiable on any flight of this layout")
     assert nom.params.rotors.thrust_max_n * 1.8 == pytest.approx(5.0 * 1.75, rel=0.03)
+
+
+def test_x8_yaw_effectiveness_round_trips_with_a_km_unlike_the_assumed_one(tmp_path):
+    """The yaw response sees km/Izz only (Izz rests on the assumed km 0.02 m).  A simulated PX4 X8 whose rotors
+    have km 0.03 m (1.5x the assumed) and lower rotors at 0.75 of the upper's thrust and torque: the nominal's
+    yaw acceleration per unit of yaw differential, km T_max (4 + 4 eta) / Izz with its ASSUMED eta 0.8, is
+    the truth's, 0.03 x 5 N x (4 + 4 x 0.75) / Izz, within 5 % (the upper/lower split cannot show on an X8
+    and does not matter to yaw: both levels move alike), and so is roll's."""
+    from twin_nodes.identify.nominal import KM_ASSUMED_M, nominal_from_log
+    from twin_nodes.logs.flyable import read_flight
+    from twin_nodes.logs.ulog_write import write_px4_ulog
+    from twin_nodes.twin.simflight import Hidden, record_to_topics, simulate_flight
+    from twin_nodes.vehicle.export_px4 import simulated_log_params
+
+    vp = coax_vehicle("8c", 2.0).replace_rotors(km_m=0.03)
+    rec, battery, sp_hist = simulate_flight(vp, Hidden("coaxial", {"efficiency": 0.75, "lower_mask": 0b11110000}),
+                                            seed=5)
+    path = tmp_path / "x8_km.ulg"
+    write_px4_ulog(str(path), record_to_topics(rec, vp, battery, sp_hist, np.random.default_rng(12)),
+                   simulated_log_params(vp), {"sys_name": "test"})
+    nom = nominal_from_log(read_flight(str(path)), mass_kg=2.0)
+    r, inertia = nom.params.rotors, nom.params.inertia
+    assert r.km_m == KM_ASSUMED_M == 0.02 and nom.params.effect_dict["coaxial"]["efficiency"] == 0.8
+    truth = 0.03 * 5.0 * (4 + 4 * 0.75) / vp.inertia[2, 2]
+    assert r.km_m * r.thrust_max_n * (4 + 4 * 0.8) / inertia[2, 2] == pytest.approx(truth, rel=0.05)
+    assert inertia[2, 2] == pytest.approx(vp.inertia[2, 2] / 1.5, rel=0.06)   # Izz carries the km ratio
+    lever = 0.28 / np.sqrt(2.0)
+    roll_truth = 5.0 * lever * (4 + 4 * 0.75) / vp.inertia[0, 0]
+    assert r.thrust_max_n * lever * (4 + 4 * 0.8) / inertia[0, 0] == pytest.approx(roll_truth, rel=0.08)

@@ -143,6 +143,13 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
         cd_floor = 0.01 * weight / (v_typ ** 2)
         add("body_drag", ["c_dx", "c_dy", "c_dz"], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0],
             [500 * cd_floor] * 3, lambda th: max(th) > cd_floor)
+    else:
+        # a hover still turns its hubs through the air when it yaws: the H-force at each hub damps the yaw by
+        # k_d sum|omega_i| (x_i^2 + y_i^2) (RotorPy's rotor drag on a hover with yaw reads as exactly that: q002),
+        # so the rotor drag is offered with the angular damping's floor on that yaw damping
+        arm2 = float(np.sum(np.asarray(r.x_flu_m) ** 2 + np.asarray(r.y_flu_m) ** 2))
+        kd_floor = 0.1 * iz / max(omega_hover * arm2, 1e-12)
+        add("rotor_drag", ["k_d"], [0.0], [0.0], [1000 * kd_floor], lambda th: th[0] > kd_floor)
     if existing & {"linear_drag", "rotor_drag", "body_drag"}:
         # wind acts only through drag, on the airspeed: also on a flight that hovers (a hovering vehicle
         # in a steady wind leans into it, and its accelerometer reads the drag); the gust level is

@@ -43,6 +43,19 @@ def json_default(o):
     return str(o)
 
 
+def _alternative_lines(e: dict) -> list[str]:
+    """The rivals a kept effect is not told apart from on this flight (the pair ``prove`` reads), one line each."""
+    out = []
+    for a in e.get("alternatives") or []:
+        pretty = ", ".join(f"{k}={v:.4g}" for k, v in (a.get("params") or {}).items())
+        cut = a.get("cv_improvement")
+        cut = f", cross-validated cut {100 * cut:.0f} %" if isinstance(cut, (int, float)) else ""
+        why = (a["note"] if a.get("note") else f"explains more, not yet significant: t {a.get('heldout_t_stat', 0):.1f}"
+               if a.get("significant") is False else f"explains the same on this flight{cut}")
+        out.append(f"              ~ {a['name']} {pretty} ({why})")
+    return out
+
+
 def summary_text(res: dict) -> str:
     """The terminal summary: worst mismatch windows, ranked candidates, verdict, closed-loop before/after."""
     lines = [f"discover: {res['log']}  (nominal {res['params']})",
@@ -93,7 +106,7 @@ def summary_text(res: dict) -> str:
         if verdict == "likely" or (verdict == "rejected" and "confirmation" in e):
             lines.append(f"              {e.get('verdict_note', '')}")
         if verdict != "rejected":
-            lines += _not_identified(e)
+            lines += _not_identified(e) + _alternative_lines(e)
     after = res.get("confirmed_on_followup") or []
     if after:
         lines.append(f"  confirmed on the follow-up flight: {', '.join(after)}")

@@ -410,8 +410,9 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
                                np.array(layout.direction), float(abs(p.get("CA_ROTOR0_KM", 0.05)) or 0.05),
                                slope, tuple(inertia), km_physical_m=km)
     src["controller (outer loops)"] = "; ".join(sorted({s for s in gsrc.values()}))
-    src["controller (rate loop)"] = ("log parameters MC_*RATE_P/I/D/K converted from PX4's normalised torque "
-                                     "to rad/s^2 with PX4's allocation scaling, the thrust slope and the inertia")
+    src["controller (rate loop)"] = ("log parameters MC_*RATE_P/I/D/K and the integrators' limits MC_*R_INT_LIM "
+                                     "(each axis its own) converted from PX4's normalised torque to rad/s^2 with "
+                                     "PX4's allocation scaling, the thrust slope and the inertia")
     # The converted loop gain is PX4's only if the inertia is the real one; where it is a prior the
     # conversion can exceed what the identified motor lag holds (phase margin ~55 deg needs
     # Kp tau <= 0.7, as ControllerGains.auto_defaults), so it is capped there and said so.

@@ -53,7 +53,11 @@ class ControllerGains:
     rate_d: float = 0.12
     yawrate_p_1_s: float = 6.0
     yawrate_i_1_s2: float = 2.0
+    #: the rate integrators' limits (PX4's MC_RR/PR/YR_INT_LIM, normalised torque, as angular acceleration:
+    #: a from-log nominal converts them per axis; pitch and yaw default to the roll value where not given)
     rate_i_max_rad_s2: float = 10.0
+    pitchrate_i_max_rad_s2: float = 10.0
+    yawrate_i_max_rad_s2: float = 10.0
     vel_i_max_m_s2: float = 4.0
     airmode: float = 0.0                # MC_AIRMODE: 0 off, 1 roll/pitch, 2 roll/pitch/yaw
     #: desaturation skips rotors whose share of the desaturation direction is below this: 0.2 in PX4's
@@ -82,6 +86,9 @@ class ControllerGains:
             if isinstance(v, bool) or not isinstance(v, (int, float)):
                 raise ParamsError(vp.source, f"controller.{k}", f"expected a number, got {v!r}")
             kwargs[k] = float(v)
+        for axis in ("pitchrate_i_max_rad_s2", "yawrate_i_max_rad_s2"):
+            if "rate_i_max_rad_s2" in kwargs and axis not in kwargs:
+                kwargs[axis] = kwargs["rate_i_max_rad_s2"]
         g = cls(**{**cls.auto_defaults(vp), **kwargs})
         if g.rate_hz <= 0:
             raise ParamsError(vp.source, "controller.rate_hz", "expected > 0")
@@ -130,13 +137,17 @@ class ControllerGains:
 _G = {f.name: i for i, f in enumerate(fields(ControllerGains))}
 (G_XY_P, G_Z_P, G_XYV_P, G_XYV_I, G_XYV_D, G_ZV_P, G_ZV_I, G_ZV_D, G_XYV_MAX, G_ZV_UP, G_ZV_DN, G_TILT,
  G_THR_MIN, G_THR_MAX, G_ROLL_P, G_PITCH_P, G_YAW_P, G_YAW_W, G_RR_MAX, G_YR_MAX, G_R_P, G_R_I, G_R_D,
- G_YR_P, G_YR_I, G_R_IMAX, G_V_IMAX, G_AIRMODE, G_DESAT_EPS) = (
+ G_YR_P, G_YR_I, G_R_IMAX, G_P_IMAX, G_Y_IMAX, G_V_IMAX, G_AIRMODE, G_DESAT_EPS) = (
     _G[k] for k in ("xy_p_1_s", "z_p_1_s", "xy_vel_p_1_s", "xy_vel_i_1_s2", "xy_vel_d", "z_vel_p_1_s",
                     "z_vel_i_1_s2", "z_vel_d", "xy_vel_max_m_s", "z_vel_max_up_m_s", "z_vel_max_dn_m_s",
                     "tilt_max_deg", "thr_min", "thr_max", "roll_p_1_s", "pitch_p_1_s", "yaw_p_1_s", "yaw_weight",
                     "rollrate_max_deg_s", "yawrate_max_deg_s", "rate_p_1_s", "rate_i_1_s2", "rate_d",
-                    "yawrate_p_1_s", "yawrate_i_1_s2", "rate_i_max_rad_s2", "vel_i_max_m_s2",
+                    "yawrate_p_1_s", "yawrate_i_1_s2", "rate_i_max_rad_s2", "pitchrate_i_max_rad_s2",
+                    "yawrate_i_max_rad_s2", "vel_i_max_m_s2",
                     "airmode", "desat_min_effect"))
+
+#: PX4 RateControl::updateIntegral's I-gain reduction: the rate error [rad/s] at which it reaches 0
+I_FACTOR_RATE = float(np.radians(400.0))
 
 # Controller memory: vel integrator (3), rate integrator (3), previous velocity (3), previous rates (3), init flag,
 # the allocation's torque saturation per axis (+1 / -1: the last step could not give more / less; 0: achieved)
@@ -437,12 +448,15 @@ def _attitude_to_motors(G, C, P, J, A, x, thrust, qd, yawspeed, w_sp, dt, u, inf
         dw = (x[10 + k] - C[C_WPREV + k]) / dt
         C[C_WPREV + k] = x[10 + k]
         alpha[k] = kp * e + C[C_RI + k] - kd * dw
-        # PX4 RateControl::updateIntegral: no integration further into a torque the allocation could not give
+        # PX4 RateControl::updateIntegral: no integration further into a torque the allocation could not give,
+        # the I gain reduced with the rate error (i_factor: 1 - (e / 400 deg/s)^2), each axis's own limit
         if C[C_SAT + k] > 0.0:
             e = min(e, 0.0)
         elif C[C_SAT + k] < 0.0:
             e = max(e, 0.0)
-        C[C_RI + k] = min(max(C[C_RI + k] + ki * e * dt, -G[G_R_IMAX]), G[G_R_IMAX])
+        i_factor = max(0.0, 1.0 - (e / I_FACTOR_RATE) ** 2)
+        lim = G[G_R_IMAX] if k == 0 else (G[G_P_IMAX] if k == 1 else G[G_Y_IMAX])
+        C[C_RI + k] = min(max(C[C_RI + k] + i_factor * ki * e * dt, -lim), lim)
     w = x[10:13]
     Jw = J @ w
     tau = J @ alpha + np.cross(w, Jw)

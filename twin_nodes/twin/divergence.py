@@ -18,13 +18,22 @@ finds the first such divergence on the airborne part of the flight and names its
   :data:`RAIL_HI`) at least :data:`RAIL_SWITCHES` times within :data:`RAIL_WINDOW_S` while the real
   motors in that window span less than :data:`REAL_SPAN_MAX` (a twin limit cycle, not the vehicle's);
 - ``crash``: the twin within :data:`CRASH_H_M` of its ground (the take-off height) for
-  :data:`CRASH_SUSTAIN_S` while the real vehicle is more than :data:`CRASH_REAL_H_M` above it;
+  :data:`CRASH_SUSTAIN_S` while the real vehicle is more than :data:`CRASH_REAL_H_M` above it, unless the
+  vehicle itself comes down within :data:`CRASH_NEAR_S` (within :data:`VEHICLE_DOWN_M` of the ground, or its
+  land detector says landed): a twin that leads the vehicle's own descent to the ground by a second or two
+  has had no crash the vehicle did not have;
 - ``height run-away``: the height error above :data:`RUNAWAY_Z_PILOT_M` where the pilot, not PX4, held
   the height (manual modes, flown with the pilot stand-in), for :data:`RUNAWAY_SUSTAIN_S`;
 - ``position run-away``: the horizontal error above :data:`RUNAWAY_XY_M` where PX4 controlled the
   horizontal position, or the height error above :data:`RUNAWAY_Z_M` where it controlled the height,
   for :data:`RUNAWAY_SUSTAIN_S`;
 - ``non-finite state``: the twin's state became NaN/inf.
+
+The checks on the position (crash, run-aways) are not made where the vehicle's own position estimate failed
+(:mod:`twin_nodes.twin.estimate_check`): the real position is not known there, and a twin "away" from it says
+nothing.  Where the pilot held the height, it is compared with the estimate less its resets
+(:func:`~twin_nodes.twin.estimate_check.height_without_resets`: a reset moves the estimate's frame, not the
+vehicle; the pilot stand-in follows the same height).
 
 The thresholds are outside what a twin that follows its vehicle shows.  Measured on the 8 shared real
 logs (whole flights, airborne, ground phases excluded; 2026-11-27): tilt error ≤ 20°, but on climb35m,
@@ -39,6 +48,8 @@ import math
 from typing import Any
 
 import numpy as np
+
+from twin_nodes.twin.estimate_check import estimate_failed, height_without_resets
 
 __all__ = ["detect", "ATT_ERR_DEG", "ATT_SUSTAIN_S", "RUNAWAY_XY_M", "RUNAWAY_Z_M", "YAW_HELD_DEG"]
 
@@ -55,6 +66,11 @@ REAL_SPAN_MAX = 0.6
 CRASH_H_M = 0.15
 CRASH_REAL_H_M = 1.0
 CRASH_SUSTAIN_S = 0.5
+#: the vehicle's own touchdown within this after the twin's is no crash of the twin [s]: the pilot
+#: stand-in's closed-loop time constant 1 / OMEGA (2 s) plus the land detector's ~1 s
+CRASH_NEAR_S = 3.0
+#: the vehicle within this of its ground is down [m] (the metrics' take-off/touchdown margin)
+VEHICLE_DOWN_M = 0.5
 RUNAWAY_XY_M = 10.0
 RUNAWAY_Z_M = 5.0
 #: the height error where PX4 did not control the height but the pilot did (manual modes) [m]
@@ -74,6 +90,23 @@ def _first_sustained(t: np.ndarray, flag: np.ndarray, sustain_s: float) -> float
     ends = np.concatenate([idx[breaks], [idx[-1]]])
     for a, b in zip(starts, ends):
         if t[b] - t[a] >= sustain_s - 1e-9:
+            return float(t[a])
+    return None
+
+
+def _first_sustained_unless(t: np.ndarray, flag: np.ndarray, sustain_s: float, t_ex: np.ndarray,
+                            excuse: np.ndarray, within_s: float) -> float | None:
+    """:func:`_first_sustained` for the runs of ``flag`` that have no ``excuse`` (on its own times ``t_ex``,
+    which may reach past ``t``) within ``within_s`` after their start (a run that has one is skipped, the
+    next one checked)."""
+    idx = np.flatnonzero(flag)
+    if idx.size == 0:
+        return None
+    breaks = np.flatnonzero(np.diff(idx) > 1)
+    starts = np.concatenate([[idx[0]], idx[breaks + 1]])
+    ends = np.concatenate([idx[breaks], [idx[-1]]])
+    for a, b in zip(starts, ends):
+        if t[b] - t[a] >= sustain_s - 1e-9 and not excuse[(t_ex >= t[a]) & (t_ex <= t[a] + within_s)].any():
             return float(t[a])
     return None
 
@@ -225,6 +258,8 @@ def detect(run: Any, log: Any, xy_controlled=None, z_controlled=None, t0: float 
                               f"twin motor {osc[1] + 1} rail to rail >= {RAIL_SWITCHES} times in {RAIL_WINDOW_S:g} s "
                               f"while the real motors span < {REAL_SPAN_MAX:g}"))
     if pos is not None and len(pos):
+        # the position checks only where the vehicle's own estimate is trusted
+        trusted = ~estimate_failed(log, t)[0]
         p_real = pos.at(t, "linear")
         p_twin = twin(range(3))
         g_t = run.info.get("ground_z_t") if isinstance(run.info, dict) else None
@@ -233,24 +268,37 @@ def detect(run: Any, log: Any, xy_controlled=None, z_controlled=None, t0: float 
             z_ground = np.interp(t, run.t, g_t)
         h_twin = p_twin[:, 2] - z_ground
         h_real = p_real[:, 2] - z_ground
-        ts = _first_sustained(t, air & (h_twin < CRASH_H_M) & (h_real > CRASH_REAL_H_M), CRASH_SUSTAIN_S)
+        # whether the vehicle itself comes down: looked for up to CRASH_NEAR_S past the checked span
+        t_ex = np.arange(lo, min(hi + CRASH_NEAR_S, float(pos.t_s[-1])), 1.0 / RATE_HZ)
+        in_air = np.zeros(t_ex.shape, bool)
+        for a, b in iv or [(lo, hi)]:
+            in_air |= (t_ex >= a) & (t_ex <= b)
+        g_ex = np.interp(t_ex, t, z_ground) if np.ndim(z_ground) else z_ground
+        with np.errstate(invalid="ignore"):
+            down = (pos.at(t_ex, "linear")[:, 2] - g_ex < VEHICLE_DOWN_M) | ~in_air
+            ts = _first_sustained_unless(t, air & trusted & (h_twin < CRASH_H_M) & (h_real > CRASH_REAL_H_M),
+                                         CRASH_SUSTAIN_S, t_ex, down, CRASH_NEAR_S)
         if ts is not None:
             k = np.searchsorted(t, ts)
-            found.append((ts, "crash", f"the twin on the ground while the vehicle flew {h_real[k]:.1f} m above it"))
+            found.append((ts, "crash", f"the twin on the ground while the vehicle flew {h_real[k]:.1f} m above it "
+                                       f"and did not come down within {CRASH_NEAR_S:g} s"))
         exy = np.linalg.norm(p_twin[:, :2] - p_real[:, :2], axis=1)
         ez = np.abs(p_twin[:, 2] - p_real[:, 2])
+        # where the pilot held the height: against the vehicle's height without the resets of its estimate
+        # (a reset moves the estimate's frame, not the vehicle; the pilot stand-in follows the same height)
+        ez_pilot = np.abs(p_twin[:, 2] - height_without_resets(log, t)[0])
         cxy = np.ones(t.shape, bool) if xy_controlled is None else xy_controlled(t)
         cz = np.ones(t.shape, bool) if z_controlled is None else z_controlled(t)
         with np.errstate(invalid="ignore"):
-            run_away = air & ((cxy & (exy > RUNAWAY_XY_M)) | (cz & (ez > RUNAWAY_Z_M)))
+            run_away = air & trusted & ((cxy & (exy > RUNAWAY_XY_M)) | (cz & (ez > RUNAWAY_Z_M)))
             # where the pilot held the height (manual modes: the twin's pilot stand-in holds the real
             # height), a twin that climbs or falls away beyond the stand-in's authority has left too
-            run_away_pilot = air & ~cz & (ez > RUNAWAY_Z_PILOT_M)
+            run_away_pilot = air & ~cz & trusted & (ez_pilot > RUNAWAY_Z_PILOT_M)
         tp = _first_sustained(t, run_away_pilot, RUNAWAY_SUSTAIN_S)
         if tp is not None:
             k = np.searchsorted(t, tp)
             found.append((tp, "height run-away",
-                          f"twin {ez[k]:.1f} m from the vehicle's height where the pilot held it (a manual mode: "
+                          f"twin {ez_pilot[k]:.1f} m from the vehicle's height where the pilot held it (a manual mode: "
                           f"the pilot stand-in could not hold it; limit {RUNAWAY_Z_PILOT_M:g} m for "
                           f"{RUNAWAY_SUSTAIN_S:g} s)"))
         ts = _first_sustained(t, run_away, RUNAWAY_SUSTAIN_S)

@@ -16,7 +16,7 @@ import numpy as np
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.twin.control import G_ZV_P, G_ZV_UP
 
-__all__ = ["GROUNDED_THRUST", "GROUNDED_ENTER_M", "TAKEOFF_RAMP_S", "G_ACC", "GroundHandling", "log_takeoff_ramp_s"]
+__all__ = ["GROUNDED_THRUST", "GROUNDED_ENTER_M", "HELD_M", "TAKEOFF_RAMP_S", "G_ACC", "GroundHandling", "log_takeoff_ramp_s"]
 
 #: a logged collective thrust setpoint at or below this (0..1) in PX4's position-controlled modes: PX4
 #: commands no thrust, which it does only before its take-off ramp (``TakeoffHandling`` state below
@@ -25,6 +25,9 @@ __all__ = ["GROUNDED_THRUST", "GROUNDED_ENTER_M", "TAKEOFF_RAMP_S", "G_ACC", "Gr
 GROUNDED_THRUST = 0.02
 #: ... entered only with the real vehicle within this height [m] of the twin's ground plane
 GROUNDED_ENTER_M = 0.5
+#: the real vehicle above its ground plane by more than this has left the ground [m] (an EKF height on the
+#: ground wanders by 0.1 m; ZweiterFlugtag log_20 held: within 0.1 m for 12 s)
+HELD_M = 0.2
 #: PX4's take-off ramp (``MPC_TKO_RAMP_T``, 3 s by default since PX4 1.12): from the end of a grounded
 #: phase the upward velocity limit goes from -g / MPC_Z_VEL_P_ACC (zero thrust) to MPC_Z_VEL_MAX_UP
 TAKEOFF_RAMP_S = 3.0
@@ -98,6 +101,30 @@ class GroundHandling:
             return thr <= GROUNDED_THRUST
         u = self.real_u
         return bool(u.shape == (self.n,) and np.isfinite(u).all() and float(np.max(u)) <= GROUNDED_THRUST)
+
+    def _held_with_vehicle(self) -> None:
+        """Flying, but the real vehicle has not left the ground since the twin last rested on it (within
+        :data:`HELD_M` of the ground plane): the ground holds the twin where it holds the vehicle.  PX4 may
+        command full thrust to a vehicle that does not rise (a hand or a tether holding it, a skid caught,
+        an overloaded vehicle: ZweiterFlugtag log_20 sits on its take-off spot at a collective of 0.6-1.0 for
+        12 s while its land detector says airborne); a free twin would fly away and be compared with a
+        vehicle on the ground.  Only while the twin would be higher than the vehicle (a twin that stays down
+        by its own thrust is left alone): its position and velocity are the vehicle's; its controller runs on
+        (its velocity integrators wind up as PX4's did), and it flies on from there once the vehicle is
+        above HELD_M.  Not on a log that starts in
+        the air."""
+        h = float(self.real_x[2])
+        if self._lifted or not math.isfinite(h):
+            return
+        if h > HELD_M:
+            self._lifted = True
+            return
+        if self.x[2] <= max(h, 0.0):
+            return  # the twin on the ground too (or lower): nothing holds it, its own thrust does
+        # its position and velocity (the contact holds them); attitude and rates stay the twin's own (the
+        # real ones are noisy, and copying them would start a rate-only mode from a random tilt)
+        self.x[0:6] = self.real_x[0:6]
+        self.x[2] = max(self.x[2], 0.0)
 
     def _hold_on_ground(self) -> None:
         """Disarmed, or armed with PX4 commanding no thrust: the vehicle is not flying (it stands on the

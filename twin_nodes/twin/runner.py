@@ -38,6 +38,7 @@ from twin_nodes.twin.pilot import PilotStandIn
 from twin_nodes.twin.flight_mode import ALTCTL_NAV_STATE, fly_mode
 from twin_nodes.twin.ground import TAKEOFF_RAMP_S, GroundHandling, log_takeoff_ramp_s
 from twin_nodes.twin.inputs import log_feed
+from twin_nodes.twin.estimate_check import height_without_resets
 from twin_nodes.logs.ulog_io import MANUAL_NAV_STATES
 
 MODES = ("closed", "open")
@@ -120,10 +121,15 @@ class TwinRunner(GroundHandling):
         #: progress 0..1 (1: flying; set to 0 by a grounded phase, so a log started in the air has none)
         self.takeoff_ramp_s = TAKEOFF_RAMP_S
         self.ramp = 1.0
+        #: the real vehicle has left the ground since the twin last rested on it (see _held_with_vehicle)
+        self._lifted = True
         #: how the last control step was flown (:data:`~twin_nodes.twin.flight_mode.FLOWN_AS`)
         self.flown_as = ""
         #: the pilot stand-in for the vertical axis in PX4's manual modes (None: the logged thrust alone)
         self.pilot = PilotStandIn(self.model.params.hover_command, vp.gravity_m_s2) if pilot else None
+        #: the real height the pilot stand-in follows, less the real state's [m]: the resets of the vehicle's
+        #: height estimate taken out (:func:`~twin_nodes.twin.estimate_check.height_without_resets`)
+        self.pilot_shift_m = 0.0
 
     # ---------------------------------------------------------------- inputs
     def real_state(self, t: float, p_enu, v_enu, q_wxyz, w_flu) -> None:
@@ -313,6 +319,9 @@ class TwinRunner(GroundHandling):
         self.t += self.dt_c
         if self.mode != "open" and self.flown_as in ("grounded", "disarmed") and self.real_x is not None:
             self._hold_on_ground()
+            self._lifted = False
+        elif self.mode != "open" and self.real_x is not None:
+            self._held_with_vehicle()
         return resynced, applied
 
     def _piloted(self, how: str, thr: float) -> float:
@@ -325,7 +334,7 @@ class TwinRunner(GroundHandling):
                 or not math.isfinite(thr):
             p.reset()
             return thr
-        return thr + p.update(self.x[2], self.x[5], self.real_x[2], self.real_x[5], self.dt_c)
+        return thr + p.update(self.x[2], self.x[5], self.real_x[2] + self.pilot_shift_m, self.real_x[5], self.dt_c)
 
     def _carried_setpoint(self) -> np.ndarray:
         """The position setpoint carried along by the velocity and acceleration setpoints since the
@@ -409,6 +418,10 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
     rates_sp, offb = feed.rates_sp, feed.offboard
     n = len(t)
     model = runner.model
+    # the height the pilot stand-in follows: the estimate without its resets
+    dz_ref = height_without_resets(log, np.asarray(t, float))[0] - np.asarray(X, float)[:, 2] if n else np.zeros(0)
+    dz_ref = np.where(np.isfinite(dz_ref), dz_ref, 0.0)
+    no_reset = not np.any(dz_ref)
     # the outputs go into arrays made for the whole run (one row per control step) rather than lists of
     # per-step arrays (~0.5 kB a step in objects, then copied once more: 0.9 GB on a 1-hour flight)
     out = _Rows(n_steps=int((t[-1] - t[0]) * runner.rate_hz) + 2 if n else 0, nx=model.nx, n=runner.n)
@@ -425,6 +438,7 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
         runner.px4_mode(nav[k], thr[k])
         runner.att_q, runner.att_thrust, runner.att_yawrate = att_q[k], att_thr[k], att_yr[k]
         runner.rates_sp, runner.offboard_flags = rates_sp[k], offb[k]
+        runner.pilot_shift_m = 0.0 if no_reset else float(dz_ref[k])
         if np.isfinite(batt[k]):
             runner.battery(batt[k])
         if k + 1 < n and runner._initialised and runner.t is not None:

@@ -88,6 +88,7 @@ CONTROLLER_LIMITS: dict[str, tuple[float, float, bool, str]] = {
     **{k: _GAIN for k in ("xy_p_1_s", "z_p_1_s", "xy_vel_p_1_s", "xy_vel_i_1_s2", "xy_vel_d", "z_vel_p_1_s",
                           "z_vel_i_1_s2", "z_vel_d", "roll_p_1_s", "pitch_p_1_s", "yaw_p_1_s", "rate_p_1_s",
                           "rate_i_1_s2", "rate_d", "yawrate_p_1_s", "yawrate_i_1_s2", "rate_i_max_rad_s2",
+                          "pitchrate_i_max_rad_s2", "yawrate_i_max_rad_s2",
                           "vel_i_max_m_s2", "se3_kp_xy_1_s2", "se3_kp_z_1_s2", "se3_kd_xy_1_s", "se3_kd_z_1_s",
                           "se3_kp_att_1_s2", "se3_kd_att_1_s")},
     "xy_vel_max_m_s": (0.0, 1000.0, False, "m/s"),

@@ -417,6 +417,8 @@ class RateGainsPx4:
     yaw_p: float
     yaw_i: float
     sources: tuple[str, ...]
+    #: the integrators' limits MC_RR/PR/YR_INT_LIM (normalised torque, PX4's default 0.3 each)
+    int_lim: tuple[float, float, float] = (0.3, 0.3, 0.3)
 
     @classmethod
     def from_params(cls, params: Mapping[str, float]) -> "RateGainsPx4":
@@ -427,10 +429,15 @@ class RateGainsPx4:
         for k, d in defaults.items():
             vals[k], s = param(params, f"MC_{k}", d)
             srcs.append(s)
+        lims = []
+        for ax in ("RR", "PR", "YR"):
+            v, s = param(params, f"MC_{ax}_INT_LIM", 0.3)
+            lims.append(max(float(v), 0.0))
+            srcs.append(s)
         k_r, k_p, k_y = vals["ROLLRATE_K"], vals["PITCHRATE_K"], vals["YAWRATE_K"]
         return cls(k_r * vals["ROLLRATE_P"], k_r * vals["ROLLRATE_I"], k_r * vals["ROLLRATE_D"],
                    k_p * vals["PITCHRATE_P"], k_p * vals["PITCHRATE_I"], k_p * vals["PITCHRATE_D"],
-                   k_y * vals["YAWRATE_P"], k_y * vals["YAWRATE_I"], tuple(srcs))
+                   k_y * vals["YAWRATE_P"], k_y * vals["YAWRATE_I"], tuple(srcs), tuple(lims))
 
 
 def normalised_mix(x_flu: np.ndarray, y_flu: np.ndarray, direction: np.ndarray, km_m: float) -> np.ndarray:
@@ -481,7 +488,12 @@ def rate_gains_physical(px4: RateGainsPx4, x_flu: np.ndarray, y_flu: np.ndarray,
     ``km_m`` is PX4's own torque ratio (``CA_ROTORn_KM``): it shapes PX4's mix.  The yaw moment
     those motor changes make is the *vehicle's* ratio, ``km_physical_m`` (default ``km_m``): the
     twin's km, against which its Izz was identified.  Using PX4's 0.05 there for a twin with km
-    0.02 made every from-log twin's yaw rate gain 2.5x PX4's."""
+    0.02 made every from-log twin's yaw rate gain 2.5x PX4's.
+
+    The integrators' limits (``MC_*R_INT_LIM``, a normalised torque, not a gain) convert per axis by the
+    same factor: PX4 holds a steady moment of up to ``INT_LIM`` times the unit torque's moment on each axis
+    (a drag moment, a centre-of-mass offset), whatever that axis's inertia; one shared 10 rad/s^2 held
+    0.055 N m about a 0.0055 kg m^2 pitch axis where PX4 held 1.4 N m (mantis_follow_00018)."""
     a_roll, a_pitch, a_yaw = (torque_moments(x_flu, y_flu, direction, km_m, thrust_slope_n, km_physical_m)
                               / np.asarray(inertia_kg_m2, float))
     return {
@@ -490,6 +502,9 @@ def rate_gains_physical(px4: RateGainsPx4, x_flu: np.ndarray, y_flu: np.ndarray,
         "rate_d": 0.5 * (px4.roll_d * a_roll + px4.pitch_d * a_pitch),
         "yawrate_p_1_s": px4.yaw_p * a_yaw,
         "yawrate_i_1_s2": px4.yaw_i * a_yaw,
+        "rate_i_max_rad_s2": px4.int_lim[0] * a_roll,
+        "pitchrate_i_max_rad_s2": px4.int_lim[1] * a_pitch,
+        "yawrate_i_max_rad_s2": px4.int_lim[2] * a_yaw,
     }
 
 

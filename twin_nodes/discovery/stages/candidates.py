@@ -89,8 +89,10 @@ def not_excited(data, excitation: dict) -> list[dict]:
     speed = np.linalg.norm(data.v[data.valid], axis=1)
     v_typ = float(np.percentile(speed, 90)) if speed.size else 0.0
     if v_typ <= 0.5:
-        out.append({"effects": ["rotor_drag", "body_drag"], "why": f"90th-percentile speed {v_typ:.2f} m/s <= 0.5: "
-                    "no airspeed for a drag to act on", "fly": supply_for("force_x")})
+        # the rotor drag's yaw damping (its hubs' airspeed in yaw turns) is still fitted (candidates.build_candidates)
+        out.append({"effects": ["rotor_drag (force)", "body_drag"], "why": f"90th-percentile speed {v_typ:.2f} m/s "
+                    "<= 0.5: no airspeed for a drag to act on (a rotor drag's yaw damping in yaw turns is fitted)",
+                    "fly": supply_for("force_x")})
     for p, ax in _INERTIA_AXES.items():
         n = (excitation.get(ax) or {}).get("blocks_flight")
         if n is not None and n < MIN_AXIS_BLOCKS:

@@ -22,6 +22,7 @@ from twin_nodes.discovery.stages.instrument import Instrumented
 from twin_nodes.discovery.stages.mismatch import Mismatch
 from twin_nodes.discovery.stages.prepare import PreparedFlight
 from twin_nodes.discovery.stages.verdicts import Verdicts
+from twin_nodes.discovery.visibility import barely_excited
 
 
 @dataclass
@@ -39,6 +40,20 @@ class ReportInput:
 @dataclass
 class Report:
     result: dict                      # the JSON-ready result (its ``_series``: the arrays the plots use)
+
+
+def _not_shown(data, S: PreparedFlight, effects: list[dict]) -> list[dict]:
+    """What this flight cannot show: no signal at all (``stages.candidates.not_excited``), and the inertia axes
+    and yaw moment a 30 % change of which stands out of the noise by less than ``visibility.MIN_SNR`` over the
+    flight (issue 26 item 3: PX4 SIH's take-off and land), except a parameter a finding identified."""
+    out = not_excited(data, S.excitation)
+    if S.nominal is None:
+        return out
+    skip = {e.split("(")[1].rstrip(")") for n in out for e in n["effects"] if e.startswith("inertia (")}
+    for e in effects:
+        if e.get("name") in ("inertia", "yaw_moment") and e.get("verdict") in ("confirmed", "likely"):
+            skip |= set(e.get("params") or {}) - set(e.get("held_at_nominal") or {})
+    return out + barely_excited(data, S.nominal, skip)
 
 
 def run(inp: ReportInput) -> Report:
@@ -59,7 +74,7 @@ def run(inp: ReportInput) -> Report:
         "mismatch": inp.mismatch.windows,
         "events": transients,
         "excitation": S.excitation,
-        "not_excited": not_excited(data, S.excitation),
+        "not_excited": _not_shown(data, S, inp.verdicts.effects),
         "effects": effects_out,
         "accepted": [f.candidate.name for f in accepted],
         "likely": likely,
