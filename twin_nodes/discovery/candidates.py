@@ -68,15 +68,15 @@ def _rel(a: float, b: float) -> float:
     return abs(a - b) / max(abs(b), 1e-12)
 
 
-#: a lithium cell's voltage full (V) and the cell voltage that tells the cell count from a flight's highest reading
+#: a lithium cell's voltage full, and the most one reads (LiHV, full) [V]
 CELL_FULL_V = 4.2
-CELL_TYPICAL_V = 3.95
+CELL_MAX_V = 4.35
 
 
 def full_pack_voltage(volts: np.ndarray) -> float:
-    """The pack's full voltage: cells x 4.2 V, the cells read from the flight's highest voltage at 3.95 V a cell
-    (a 4S pack reads 13.5-17 V under load: 4 cells)."""
-    cells = max(1, int(round(float(np.nanmax(volts)) / CELL_TYPICAL_V)))
+    """The pack's full voltage: cells x 4.2 V, the cells the fewest that can read the flight's highest voltage
+    (a 4S pack reads 13-17.4 V: 4 cells)."""
+    cells = max(1, int(np.ceil(float(np.nanmax(volts)) / CELL_MAX_V - 1e-9)))
     return CELL_FULL_V * cells
 
 
