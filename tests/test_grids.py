@@ -213,11 +213,13 @@ def test_a_pair_whose_rival_is_confirmed_on_its_own_is_told_apart():
         out = [_eff("motor_time_constant", {"tau_up": 0.118, "tau_down": 0.118}, pair=rival)] + second
         verdicts.told_apart(out)
         assert out[0]["not_told_apart"] is rival
-    # two collective effects both accepted are a combination, not a separation (PX4 SIH t006): the pair stays
-    sag = {"with": {"name": "thrust_coefficient", "params": {"kt_scale": 0.842}}, "plan_flyable": True}
-    out = [_eff("battery_sag", {"v_ref": 20.4, "exponent": 1.27}, pair=sag), _eff("thrust_coefficient", {"kt_scale": 1.10})]
+    # two collective effects of one shape both accepted are a combination, not a separation (a mass and a thrust
+    # coefficient: force per unit mass): the pair stays.  A battery sag (the voltage's shape, its level held at the
+    # full pack) with a thrust coefficient is told apart: tests/test_one_channel_two_effects.py
+    kt = {"with": {"name": "thrust_coefficient", "params": {"kt_scale": 0.842}}, "plan_flyable": True}
+    out = [_eff("mass", {"mass": 1.19}, pair=kt), _eff("thrust_coefficient", {"kt_scale": 1.10})]
     verdicts.told_apart(out)
-    assert out[0]["not_told_apart"] is sag
+    assert out[0]["not_told_apart"] is kt
     # a drag rival is told apart by any confirmed drag (one class)
     out = [_eff("wind", {"vx": 1.0, "vy": 0.0}, pair={"with": {"name": "body_drag", "params": {}}}),
            _eff("rotor_drag", {"k_d": 1e-6})]

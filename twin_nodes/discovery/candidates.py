@@ -68,6 +68,18 @@ def _rel(a: float, b: float) -> float:
     return abs(a - b) / max(abs(b), 1e-12)
 
 
+#: a lithium cell's voltage full, and the most one reads (LiHV, full) [V]
+CELL_FULL_V = 4.2
+CELL_MAX_V = 4.35
+
+
+def full_pack_voltage(volts: np.ndarray) -> float:
+    """The pack's full voltage: cells x 4.2 V, the cells the fewest that can read the flight's highest voltage
+    (a 4S pack reads 13-17.4 V: 4 cells)."""
+    cells = max(1, int(np.ceil(float(np.nanmax(volts)) / CELL_MAX_V - 1e-9)))
+    return CELL_FULL_V * cells
+
+
 def _adder(vp: VehicleParams, existing: set[str], out: list[Candidate]):
     """``add(name, pnames, x0, lo, hi, floor, ...)``: append that candidate to ``out`` (not where ``vp``
     models the effect already)."""
@@ -162,7 +174,11 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
             lambda th: th[0] * np.exp(-0.3 / max(th[1], 1e-3)) > 0.03)
     batt = data.battery_v[data.valid]
     if np.isfinite(batt).mean() > 0.8 and np.nanmax(batt) - np.nanmin(batt) > 0.02 * np.nanmax(batt):
-        vmax = float(np.nanmax(batt))
-        add("battery_sag", ["v_ref", "exponent"], [vmax, 0.0], [0.5 * vmax, 0.0], [2.0 * vmax, 4.0],
-            lambda th, lo=float(np.nanmin(batt)), hi=vmax: abs((lo / th[0]) ** th[1] - (hi / th[0]) ** th[1]) > 0.03)
+        # the sag's shape only: v_ref held at the full pack, so the thrust at a full pack is the model's.  A free
+        # v_ref is a constant thrust scale ((V/v)^e = v^-e V^e), the same regressor as a thrust coefficient or a
+        # mass: beside one of those it absorbed it (w023, w033, issue 26), and the level is left to them
+        vmax, v_full = float(np.nanmax(batt)), full_pack_voltage(batt)
+        add("battery_sag", ["exponent"], [0.0], [0.0], [4.0],
+            lambda th, lo=float(np.nanmin(batt)), hi=vmax, v=v_full: abs((lo / v) ** th[0] - (hi / v) ** th[0]) > 0.03,
+            fixed={"v_ref": v_full})
     return out

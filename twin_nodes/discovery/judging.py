@@ -372,6 +372,9 @@ def assess(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, R0:
     stats = _block_stats(R0, Rcv, judge.blocks, OE_MIN_CHANGE if judge.lean else 0.0)
     rel = 1.0 - hcv / h0 if h0 > 0 else 0.0
     own = _own_channel_cut(R0[test_all], Rcv[test_all])
+    shared = getattr(c, "shared_mode", None)
+    if shared is not None:   # a second effect on a channel: what it explains there (stages.joint.shape_partners)
+        own = max(rel if own is None else own, _mode_cut(R0[test_all], Rcv[test_all], nominal, shared))
     # an estimate pinned to the edge of the physical range is not an identification
     span = c.upper - c.lower
     at_bound = bool(np.any((np.abs(theta - c.upper) < 0.01 * span) |
@@ -400,6 +403,14 @@ def assess(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, R0:
     k = int(np.argmax(r0 ** 2 - r1 ** 2))
     fit.judged = (mnames[k], float(r0[k]), float(r1[k]))
     return fit
+
+
+def _mode_cut(R0: np.ndarray, R1: np.ndarray, nominal: VehicleParams, mode: str) -> float:
+    """1 - RMS(R1) / RMS(R0) in one physical mode (throttle, yaw...; :func:`_mode_rms`)."""
+    r0, names = _mode_rms(R0, nominal)
+    r1, _ = _mode_rms(R1, nominal)
+    k = names.index(mode)
+    return float(1.0 - r1[k] / r0[k]) if r0[k] > 0 else 0.0
 
 
 def _own_channel_cut(R0: np.ndarray, R1: np.ndarray) -> float | None:

@@ -269,11 +269,17 @@ def sih_unfinished(flight_dir: Path) -> str | None:
     return None if "| mission finished | True" in md else "mission not finished (MANIFEST.md)"
 
 
-def run(source: str, half: str, out: Path, cache: Path = CACHE, progress: bool = True, reuse: bool = False) -> dict:
+def run(source: str, half: str, out: Path, cache: Path = CACHE, progress: bool = True, reuse: bool = False,
+        ids: list[str] | None = None) -> dict:
+    """``ids``: only these flights of the half (a subset to measure on; the rest are left out, not listed)."""
     from twin_nodes.base.errors import TwinError
 
     out.mkdir(parents=True, exist_ok=True)
     jobs, missing = (rotorpy_jobs(half, cache / "rotorpy") if source == "rotorpy" else sih_jobs(half, cache / "sih"))
+    if ids:
+        want = set(ids)
+        jobs = [j for j in jobs if (j[1].id if source == "rotorpy" else j[1][0]) in want]
+        missing = [m for m in missing if m.split()[0] in want]
     rows = []
     for j in jobs:
         key = j[1].id if source == "rotorpy" else j[1][0]
@@ -310,8 +316,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--cache", default=str(CACHE))
     ap.add_argument("--reuse", action="store_true", help="re-score a flight's result already in --out")
+    ap.add_argument("--ids", nargs="*", help="only these flights of the half")
     a = ap.parse_args(argv)
-    r = run(a.source, a.half, Path(a.out), Path(a.cache), reuse=a.reuse)
+    r = run(a.source, a.half, Path(a.out), Path(a.cache), reuse=a.reuse, ids=a.ids)
     print(r["table"])
     return 0
 

@@ -126,6 +126,8 @@ class _Joint(Candidate):
     lin: Linearized | None = None
     #: per fold (fit mask identity -> the plain candidate's fold fit): the start of the search
     starts: tuple = ()
+    #: offered as a second effect on this mode (:func:`shape_partners`): the share it explains is read there
+    shared_mode: str | None = None
 
     def params_dict(self, theta):
         return self.base.params_dict(theta[:len(self.base.param_names)])
@@ -164,8 +166,8 @@ def subset(lin: Linearized, blocks: tuple[int, ...]) -> Linearized:
                       lin.lower[idx], lin.upper[idx], lin.D[idx], [lin.fits[i] for i in blocks])
 
 
-def variant(c: Candidate, lin: Linearized, plain: list[Fit]) -> _Joint:
-    """``c`` with the accepted effects of ``lin`` refitted jointly."""
+def variant(c: Candidate, lin: Linearized, plain: list[Fit], shared_mode: str | None = None) -> _Joint:
+    """``c`` with the accepted effects of ``lin`` refitted jointly (``shared_mode``: :attr:`_Joint.shared_mode`)."""
     n = len(c.param_names)
     eq = next((f for f in plain if f.kind == "equation"), None)
 
@@ -186,6 +188,7 @@ def variant(c: Candidate, lin: Linearized, plain: list[Fit]) -> _Joint:
                f"{c.label} (+{', '.join(lin.names)} refitted)", unphysical, dict(c.held), dict(c.tied))
     j.base, j.lin = c, lin
     j.starts = tuple(eq.fold_thetas) if eq is not None else ()
+    j.shared_mode = shared_mode
     return j
 
 
@@ -206,6 +209,8 @@ def offer(accepted: list[Fit], cands: list[Candidate], per_label: dict[str, list
         if cut > MIN_PLAIN_CUT and (key not in best or cut > best[key][0]):
             best[key] = (cut, c)
     top = [c for _, c in sorted(best.values(), key=lambda x: -x[0])[:TOP_K]]
+    shared = shape_partners(accepted, cands, per_label)
+    top += [c for c in cands if c.label in shared and c not in top]
     lin = linearize(judge, current, accepted) if top else None
     if lin is None:
         return []
@@ -217,7 +222,39 @@ def offer(accepted: list[Fit], cands: list[Candidate], per_label: dict[str, list
     out = []
     for blocks, cs in groups.items():
         sub = subset(lin, blocks)
-        out.append(([variant(c, sub, per_label[c.label]) for c in cs], baseline(judge, current, sub)))
+        out.append(([variant(c, sub, per_label[c.label], shared.get(c.label)) for c in cs],
+                    baseline(judge, current, sub)))
+    return out
+
+
+#: what an effect's regressor looks like over a flight, per channel it shares with others (issue 26, "two effects
+#: on one channel"): on the collective a constant scale, the pack voltage, the height, the airspeed; on yaw a
+#: scale or the body rate.  Yaw in command units is Izz r' + k_d r = k_m du: homogeneous, so a yaw moment and a yaw
+#: inertia are one scale there (only k_m / Izz and k_d / Izz are read: PX4 SIH u017, damping, Izz and k_m all
+#: accepted came out 0.56x of the truth together).  Two effects of different shapes can both act; the first
+#: accepted takes up what it can of the other (a battery sag's level is a thrust deficit's), which then has little
+#: plain cut left and was not refitted jointly with it
+CHANNEL_SHAPES = {
+    "throttle": {"mass": "constant", "thrust_coefficient": "constant", "battery_sag": "voltage",
+                 "ground_effect": "height", "body_drag": "airspeed", "linear_drag": "airspeed",
+                 "rotor_drag": "airspeed"},
+    "yaw": {"yaw_moment": "scale", "inertia": "scale", "angular_damping": "rate"},
+}
+COLLECTIVE_SHAPES = CHANNEL_SHAPES["throttle"]
+
+
+def shape_partners(accepted: list[Fit], cands: list[Candidate], per_label: dict[str, list[Fit]]
+                   ) -> dict[str, str]:
+    """The candidates (label -> the mode they share) acting on a mode beside an accepted equation-error effect
+    there of another shape (:data:`CHANNEL_SHAPES`), offered jointly whatever their plain cut (it is what the
+    accepted one left), the share they explain read in that mode (the first one, of the same size, was judged
+    on every channel: a second one is a part of a part)."""
+    out: dict[str, str] = {}
+    for mode, shapes in CHANNEL_SHAPES.items():
+        taken = {shapes.get(a.candidate.name) for a in accepted if a.kind == "equation"} - {None}
+        if taken:
+            out.update({c.label: mode for c in cands if per_label.get(c.label) and " (+" not in c.label
+                        and c.label not in out and shapes.get(c.name) not in taken | {None}})
     return out
 
 

@@ -14,6 +14,7 @@ from twin_nodes.discovery.judging import (MIN_REL_IMPROVEMENT, MOTOR_DYNAMICS, T
                                           _mode_rms, _summary, _window_folds)
 from twin_nodes.discovery.output_error import projected_view
 from twin_nodes.discovery.stages.prepare import PreparedFlight
+from twin_nodes.discovery.stages.joint import COLLECTIVE_SHAPES
 from twin_nodes.discovery.verdicts import grade
 from twin_nodes.vehicle.params import VehicleParams
 
@@ -90,11 +91,14 @@ def told_apart(effects_out: list[dict]) -> None:
     carried the inertia as it was fitted alone in the lag's place (Ixx +11 %), beside the inertia's own finding.
     Not between two effects on the collective force per unit mass (:data:`_COLLECTIVE`): the IMU does not tell
     those apart, so both accepted is a combination, not a separation (PX4 SIH t006: a battery sag ~ thrust
-    coefficient 0.842 (truth 0.84), then a mass and a thrust coefficient 1.10 accepted on top of the sag)."""
+    coefficient 0.842 (truth 0.84), then a mass and a thrust coefficient 1.10 accepted on top of the sag), unless
+    their regressors differ in shape (a battery sag follows the voltage, its level held at the full pack, while a
+    thrust coefficient is constant: RotorPy w033, both confirmed and refitted jointly, kt 0.862 for 0.87)."""
     kinds = {_kind(e["name"]) for e in effects_out if e.get("verdict") == "confirmed"}
     for e in effects_out:
         pair = e.get("not_told_apart")
-        if pair and {e["name"], pair["with"]["name"]} <= _COLLECTIVE:
+        if pair and {e["name"], pair["with"]["name"]} <= _COLLECTIVE and \
+                COLLECTIVE_SHAPES[e["name"]] == COLLECTIVE_SHAPES[pair["with"]["name"]]:
             continue
         if pair and _kind(pair["with"]["name"]) in kinds - {_kind(e["name"])}:
             e["told_apart_from"] = {"name": pair["with"]["name"],
