@@ -101,6 +101,26 @@ def _adder(vp: VehicleParams, existing: set[str], out: list[Candidate]):
     return add
 
 
+
+def _add_drags(add, r, weight: float, v_typ: float, omega_hover: float, iz: float) -> None:
+    """The drag candidates: on a flight with air speed the rotor and body drag at a floor of 1 % of the weight at
+    its typical speed; on a hover the rotor drag alone, by the yaw damping of its hubs."""
+    n = r.count
+    if v_typ > 0.5:
+        kd_floor = 0.01 * weight / (n * omega_hover * v_typ)
+        add("rotor_drag", ["k_d"], [0.0], [0.0], [1000 * kd_floor], lambda th: th[0] > kd_floor)
+        cd_floor = 0.01 * weight / (v_typ ** 2)
+        add("body_drag", ["c_dx", "c_dy", "c_dz"], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0],
+            [500 * cd_floor] * 3, lambda th: max(th) > cd_floor)
+    else:
+        # a hover still turns its hubs through the air when it yaws: the H-force at each hub damps the yaw by
+        # k_d sum|omega_i| (x_i^2 + y_i^2) (RotorPy's rotor drag on a hover with yaw reads as exactly that: q002),
+        # so the rotor drag is offered with the angular damping's floor on that yaw damping
+        arm2 = float(np.sum(np.asarray(r.x_flu_m) ** 2 + np.asarray(r.y_flu_m) ** 2))
+        kd_floor = 0.1 * iz / max(omega_hover * arm2, 1e-12)
+        add("rotor_drag", ["k_d"], [0.0], [0.0], [1000 * kd_floor], lambda th: th[0] > kd_floor)
+
+
 def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
     """Every applicable candidate for this vehicle and this flight's data."""
     nominal = effective_params(vp)
@@ -149,19 +169,7 @@ def build_candidates(vp: VehicleParams, data) -> list[Candidate]:
     add("angular_damping", ["k_nm_s_rad"], [0.0], [0.0], [50.0 * iz], lambda th: th[0] > 0.1 * iz)
     add("inertia", ["ixx", "iyy", "izz"], [ix, iy, iz], [0.2 * ix, 0.2 * iy, 0.2 * iz], [5 * ix, 5 * iy, 5 * iz],
         lambda th: max(_rel(th[0], ix), _rel(th[1], iy), _rel(th[2], iz)) > 0.03)
-    if v_typ > 0.5:
-        kd_floor = 0.01 * weight / (n * omega_hover * v_typ)
-        add("rotor_drag", ["k_d"], [0.0], [0.0], [1000 * kd_floor], lambda th: th[0] > kd_floor)
-        cd_floor = 0.01 * weight / (v_typ ** 2)
-        add("body_drag", ["c_dx", "c_dy", "c_dz"], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0],
-            [500 * cd_floor] * 3, lambda th: max(th) > cd_floor)
-    else:
-        # a hover still turns its hubs through the air when it yaws: the H-force at each hub damps the yaw by
-        # k_d sum|omega_i| (x_i^2 + y_i^2) (RotorPy's rotor drag on a hover with yaw reads as exactly that: q002),
-        # so the rotor drag is offered with the angular damping's floor on that yaw damping
-        arm2 = float(np.sum(np.asarray(r.x_flu_m) ** 2 + np.asarray(r.y_flu_m) ** 2))
-        kd_floor = 0.1 * iz / max(omega_hover * arm2, 1e-12)
-        add("rotor_drag", ["k_d"], [0.0], [0.0], [1000 * kd_floor], lambda th: th[0] > kd_floor)
+    _add_drags(add, r, weight, v_typ, omega_hover, iz)
     if existing & {"linear_drag", "rotor_drag", "body_drag"}:
         # wind acts only through drag, on the airspeed: also on a flight that hovers (a hovering vehicle
         # in a steady wind leans into it, and its accelerometer reads the drag); the gust level is
