@@ -82,16 +82,7 @@ RATE_HZ = 50.0
 
 def _first_sustained(t: np.ndarray, flag: np.ndarray, sustain_s: float) -> float | None:
     """Time at which ``flag`` has been true without a break for ``sustain_s`` (its start), else None."""
-    idx = np.flatnonzero(flag)
-    if idx.size == 0:
-        return None
-    breaks = np.flatnonzero(np.diff(idx) > 1)
-    starts = np.concatenate([[idx[0]], idx[breaks + 1]])
-    ends = np.concatenate([idx[breaks], [idx[-1]]])
-    for a, b in zip(starts, ends):
-        if t[b] - t[a] >= sustain_s - 1e-9:
-            return float(t[a])
-    return None
+    return _first_sustained_unless(t, flag, sustain_s, t[:0], flag[:0], 0.0)
 
 
 def _first_sustained_unless(t: np.ndarray, flag: np.ndarray, sustain_s: float, t_ex: np.ndarray,
