@@ -364,15 +364,32 @@ def inertia(data, params: Mapping[str, float], vp: VehicleParams, t_split: float
     out["flagged"] = flagged
     if not flagged:
         return out
-    sy, sey = out.get("yaw_scale", math.nan), out.get("yaw_scale_se", math.nan)
-    same = [a for a in flagged if np.sign(axes[a]["scale"] - 1.0) == np.sign(sy - 1.0)]
-    out["motor_signature"] = bool(same and np.isfinite(sey) and abs(sy - 1.0) > max(MOTOR_YAW_CHANGE, MOTOR_YAW_SE * sey))
+    out["motor_signature"] = motor_signature(axes, flagged, out.get("yaw_scale", math.nan),
+                                             out.get("yaw_scale_se", math.nan))
     new = I0.copy()
     for a in flagged:
         j = IV_AXIS_PARAM[a][1]
         new[j] = I0[j] * (1.0 / axes[a]["gain_fold1"]) if np.isfinite(axes[a]["gain_fold1"]) else math.nan
     out["params"] = {"ixx": float(new[0]), "iyy": float(new[1]), "izz": float(I0[2])}
     return out
+
+
+def motor_signature(axes: dict, flagged: list[str], sy: float, sey: float) -> bool:
+    """Whether yaw (inertia scale ``sy`` +- ``sey``) reads off the same way as a flagged roll/pitch axis of
+    ``axes`` (beyond ``MOTOR_YAW_CHANGE`` and ``MOTOR_YAW_SE`` standard errors): the motors, not an inertia."""
+    same = [a for a in flagged if np.sign(axes[a]["scale"] - 1.0) == np.sign(sy - 1.0)]
+    return bool(same and np.isfinite(sey) and abs(sy - 1.0) > max(MOTOR_YAW_CHANGE, MOTOR_YAW_SE * sey))
+
+
+def yaw_scale(data, params: Mapping[str, float], vp: VehicleParams, t_split: float,
+              t_split2: float) -> tuple[float, float]:
+    """The yaw axis alone as :func:`inertia` reads it on ``vp``: (scale, standard error), NaN where it cannot."""
+    setup = _flight(data, params, vp, t_split, t_split2)
+    if setup is None:
+        return math.nan, math.nan
+    loop, idx, (every, _, _, _) = setup
+    R = residuals(loop, 2, data.w[idx, 2], data.w_sp[idx, 2], data.dt)
+    return fit_scale(R, SCALES, every)
 
 
 def _relative_sse(R: np.ndarray) -> list[float]:
@@ -478,5 +495,5 @@ def motor_lag(data, params: Mapping[str, float], vp: VehicleParams, t_split: flo
 
 
 __all__ = ["AXES", "DELAYS", "MIN_CHANGE", "MIN_SE", "MIN_TAU_CHANGE", "MOTOR_YAW_CHANGE", "MOTOR_YAW_SE", "RateLoop",
-           "SCALES", "TAUS", "WINDOW_S", "fit_scale", "inertia", "make_windows", "motor_lag", "projected", "rate_loop",
-           "residuals", "simulate"]
+           "SCALES", "TAUS", "WINDOW_S", "fit_scale", "inertia", "make_windows", "motor_lag", "motor_signature",
+           "projected", "rate_loop", "residuals", "simulate", "yaw_scale"]

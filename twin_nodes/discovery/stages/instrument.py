@@ -55,8 +55,9 @@ def run(inp: InstrumentInput) -> Instrumented:
     current = _equation_axes(S, v.ranked, v.effects, current, v.accepted_labels, guard) or current
     instrumented, refit = _instrumented(S, current, v.accepted_labels, v.effects, guard, S.nominal)
     current = refit or current
-    # where the rate loop says the motors are slow, not an inertia: how slow
-    lag = (motor_lag.rate_loop_lag(S, current, v.effects)
+    # where the rate loop says the motors are slow, not an inertia: how slow (on the vehicle its yaw was read on)
+    on = (_thrust_yaw_share_removed(current) or current) if (instrumented or {}).get("yaw_read_on") else current
+    lag = (motor_lag.rate_loop_lag(S, on, v.effects)
            if instrumented is not None and instrumented.get("method") == "rate_loop" and instrumented["motor_signature"]
            else None)
     return Instrumented(current, instrumented, lag)
@@ -278,13 +279,49 @@ def _instrumented(S: PreparedFlight, current: VehicleParams, accepted: list[str]
     if reading is None:
         return None, None
     iv, not_used, reference, replace = reading
+    yaw_note = _yaw_without_thrust_share(S, current, iv)
     out = _instrument_numbers(iv, not_used)
+    if yaw_note:
+        out["yaw_read_on"] = yaw_note
     if not iv["flagged"]:
         return out, None
     v = _instrument_verdict(iv, out, win, d, entry)
     if v is None:
         return out, None
     return _instrument_entry(v, iv, out, entry, effects_out, build, guard, reference, replace, d)
+
+
+def _thrust_yaw_share_removed(vp: VehicleParams) -> VehicleParams | None:
+    """``vp`` with the yaw torque its thrust coefficient scaled (``Q = km T``) put back to the model's, where it
+    has a thrust coefficient and no yaw moment of its own (None: not so).  The thrust coefficient is read on the
+    collective; its share of yaw is assumed, and a vehicle whose yaw torque is set apart from its thrust (PX4 SIH:
+    SIH_Q_MAX beside SIH_T_MAX) keeps its yaw authority."""
+    eff = dict(vp.effect_dict)
+    if "thrust_coefficient" not in eff or "yaw_moment" in eff or not eff["thrust_coefficient"]["kt_scale"] > 0:
+        return None
+    km = float(effective_params(vp).rotors.km_m)
+    return vp.with_effect("yaw_moment", km=km / float(eff["thrust_coefficient"]["kt_scale"]))
+
+
+def _yaw_without_thrust_share(S: PreparedFlight, current: VehicleParams, iv: dict) -> str | None:
+    """Where PX4's rate loop flags roll/pitch slow or fast but yaw does not read off the same way, yaw read again
+    with the yaw torque an accepted thrust coefficient scaled put back (:func:`_thrust_yaw_share_removed`): if
+    yaw then reads the motor signature, ``iv``'s yaw numbers and ``motor_signature`` are that reading's and a
+    note says so (returned; None: unchanged).  PX4 SIH y018/t013 (SIH_T_MAX x0.92 and SIH_T_TAU 0.05 -> 0.08):
+    yaw read 1.03/1.01 on the thrust coefficient's vehicle, whose yaw torque it cut 8 %, and the lag was lost."""
+    if iv.get("method") != "rate_loop" or not iv.get("flagged") or iv.get("motor_signature"):
+        return None
+    alt = _thrust_yaw_share_removed(current)
+    if alt is None:
+        return None
+    sy, sey = rate_loop.yaw_scale(S.data, S.log_params, alt, S.t_split, S.t_split2)
+    if not rate_loop.motor_signature(iv["axes"], iv["flagged"], sy, sey):
+        return None
+    g, sg = (1.0 / sy, sey / (sy * sy)) if sy > 0 else (math.nan, math.nan)
+    note = (f"yaw read with the yaw torque the thrust coefficient scaled put back: x{sy:.3f} +- {sey:.3f} "
+            f"(on the thrust coefficient's vehicle x{iv['yaw_scale']:.3f})")
+    iv.update(motor_signature=True, yaw_scale=sy, yaw_scale_se=sey, yaw_gain=g, yaw_se=sg)
+    return note
 
 
 def _instrument_reading(S: PreparedFlight, current: VehicleParams, nominal: VehicleParams | None, finding: bool,
