@@ -88,7 +88,7 @@ def test_the_pilot_stand_in_does_not_chase_a_reset(hover_pair, monkeypatch):
 
     def raw(log, t):
         return log.get("position_enu").at(np.asarray(t, float))[:, 2], np.ones(np.shape(t), bool)
-    monkeypatch.setattr(rn, "height_without_resets", raw)
+    monkeypatch.setattr(rn, "height_reset_shift", lambda log, t: np.zeros(np.shape(t)))
     monkeypatch.setattr(dv, "height_without_resets", raw)
     chased = run_twin_on_log(reset, vp, mode="closed")
     k = np.searchsorted(chased.t, T_RESET_S + 10.0)

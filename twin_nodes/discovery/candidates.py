@@ -101,7 +101,6 @@ def _adder(vp: VehicleParams, existing: set[str], out: list[Candidate]):
     return add
 
 
-
 def _add_drags(add, r, weight: float, v_typ: float, omega_hover: float, iz: float) -> None:
     """The drag candidates: on a flight with air speed the rotor and body drag at a floor of 1 % of the weight at
     its typical speed; on a hover the rotor drag alone, by the yaw damping of its hubs."""

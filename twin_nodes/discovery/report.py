@@ -25,6 +25,7 @@ def _param_text(e: dict, name: str, value: float) -> str:
     held = (e.get("held_at_nominal") or {}).get(name)
     return f"{name}={value:.4g}" + (f" ({held})" if held else "")
 
+
 def _not_identified(e: dict) -> list[str]:
     """A finding's parameters the flight did not identify: held at nominal, or (a ground effect, stages.ground)
     only one combination pinned by the low flight."""

@@ -21,7 +21,7 @@ import numpy as np
 from twin_nodes.base import frames
 
 __all__ = ["WINDOW_S", "DV_TOL_M_S", "DP_TOL_M", "estimate_failures", "failed_at", "estimate_failed",
-           "height_without_resets", "RESET_M"]
+           "height_reset_shift", "height_without_resets", "RESET_M"]
 
 #: window over which the velocity change is compared with the integrated IMU acceleration [s]
 WINDOW_S = 2.0
@@ -155,25 +155,33 @@ def estimate_failed(log, t: np.ndarray) -> tuple[np.ndarray, str]:
 RESET_M = 1.0
 
 
-def height_without_resets(log, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The vehicle's estimated height [m, ENU up] on the times ``t`` with the resets of its estimate taken
-    out, and where it is trusted (not :func:`estimate_failed`).  A reset is a step between two samples of
-    ``position_enu`` that the mean of their ``velocity_enu`` does not explain by more than :data:`RESET_M`
-    (toopazo_x8_log83: +49 m at 19.5 s with the motors at hover); from each one on the height is shifted
-    back by it (a reset moves the estimate's frame, not the vehicle).  Returns ``(z, trusted)``; NaN where
-    the log has no height.  Pure numpy."""
+def height_reset_shift(log, t: np.ndarray) -> np.ndarray:
+    """The sum of the resets of the vehicle's height estimate up to each time of ``t`` [m] (0 on a log without
+    any): a reset is a step between two samples of ``position_enu`` that the mean of their ``velocity_enu`` does
+    not explain by more than :data:`RESET_M` (toopazo_x8_log83: +49 m at 19.5 s with the motors at hover).  A
+    reset moves the estimate's frame, not the vehicle.  Pure numpy."""
     t = np.asarray(t, float)
     p, v = _series(log, "position_enu"), _series(log, "velocity_enu")
+    shift = np.zeros(t.shape)
+    if p is None or v is None or t.size == 0 or len(p.t_s) < 2:
+        return shift
+    ts, zs = np.asarray(p.t_s, float), np.asarray(p.values, float)[:, 2]
+    vz = v.at(ts)[:, 2]
+    with np.errstate(invalid="ignore"):
+        step = np.diff(zs) - 0.5 * (vz[1:] + vz[:-1]) * np.diff(ts)
+        jump = np.where(np.abs(step) > RESET_M, step, 0.0)
+    if not jump.any():
+        return shift
+    total = np.concatenate([[0.0], np.cumsum(jump)])
+    return total[np.clip(np.searchsorted(ts, t, side="right") - 1, 0, ts.size - 1)]
+
+
+def height_without_resets(log, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The vehicle's estimated height [m, ENU up] on the times ``t`` less :func:`height_reset_shift`, and
+    where it is trusted (not :func:`estimate_failed`).  Returns ``(z, trusted)``; NaN where the log has no
+    height.  Pure numpy."""
+    t = np.asarray(t, float)
+    p = _series(log, "position_enu")
     if p is None or t.size == 0:
         return np.full(t.shape, np.nan), np.ones(t.shape, bool)
-    ts, zs = np.asarray(p.t_s, float), np.asarray(p.values, float)[:, 2]
-    z = p.at(t)[:, 2].astype(float)
-    if v is not None and ts.size > 1:
-        vz = v.at(ts)[:, 2]
-        with np.errstate(invalid="ignore"):
-            step = np.diff(zs) - 0.5 * (vz[1:] + vz[:-1]) * np.diff(ts)
-            jump = np.where(np.abs(step) > RESET_M, step, 0.0)
-        if jump.any():
-            shift = np.concatenate([[0.0], np.cumsum(jump)])
-            z = z - shift[np.clip(np.searchsorted(ts, t, side="right") - 1, 0, ts.size - 1)]
-    return z, ~estimate_failed(log, t)[0]
+    return p.at(t)[:, 2].astype(float) - height_reset_shift(log, t), ~estimate_failed(log, t)[0]

@@ -16,7 +16,8 @@ import numpy as np
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.twin.control import G_ZV_P, G_ZV_UP
 
-__all__ = ["GROUNDED_THRUST", "GROUNDED_ENTER_M", "HELD_M", "TAKEOFF_RAMP_S", "G_ACC", "GroundHandling", "log_takeoff_ramp_s"]
+__all__ = ["GROUNDED_THRUST", "GROUNDED_ENTER_M", "HELD_M", "TAKEOFF_RAMP_S", "G_ACC", "GroundHandling",
+           "log_takeoff_ramp_s"]
 
 #: a logged collective thrust setpoint at or below this (0..1) in PX4's position-controlled modes: PX4
 #: commands no thrust, which it does only before its take-off ramp (``TakeoffHandling`` state below
@@ -111,8 +112,7 @@ class GroundHandling:
         vehicle on the ground.  Only while the twin would be higher than the vehicle (a twin that stays down
         by its own thrust is left alone): its position and velocity are the vehicle's; its controller runs on
         (its velocity integrators wind up as PX4's did), and it flies on from there once the vehicle is
-        above HELD_M.  Not on a log that starts in
-        the air."""
+        above HELD_M.  Not on a log that starts in the air."""
         h = float(self.real_x[2])
         if self._lifted or not math.isfinite(h):
             return

@@ -38,7 +38,7 @@ from twin_nodes.twin.pilot import PilotStandIn
 from twin_nodes.twin.flight_mode import ALTCTL_NAV_STATE, fly_mode
 from twin_nodes.twin.ground import TAKEOFF_RAMP_S, GroundHandling, log_takeoff_ramp_s
 from twin_nodes.twin.inputs import log_feed
-from twin_nodes.twin.estimate_check import height_without_resets
+from twin_nodes.twin.estimate_check import height_reset_shift
 from twin_nodes.logs.ulog_io import MANUAL_NAV_STATES
 
 MODES = ("closed", "open")
@@ -128,7 +128,7 @@ class TwinRunner(GroundHandling):
         #: the pilot stand-in for the vertical axis in PX4's manual modes (None: the logged thrust alone)
         self.pilot = PilotStandIn(self.model.params.hover_command, vp.gravity_m_s2) if pilot else None
         #: the real height the pilot stand-in follows, less the real state's [m]: the resets of the vehicle's
-        #: height estimate taken out (:func:`~twin_nodes.twin.estimate_check.height_without_resets`)
+        #: height estimate taken out (minus :func:`~twin_nodes.twin.estimate_check.height_reset_shift`)
         self.pilot_shift_m = 0.0
 
     # ---------------------------------------------------------------- inputs
@@ -419,9 +419,7 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
     n = len(t)
     model = runner.model
     # the height the pilot stand-in follows: the estimate without its resets
-    dz_ref = height_without_resets(log, np.asarray(t, float))[0] - np.asarray(X, float)[:, 2] if n else np.zeros(0)
-    dz_ref = np.where(np.isfinite(dz_ref), dz_ref, 0.0)
-    no_reset = not np.any(dz_ref)
+    dz_ref = -height_reset_shift(log, np.asarray(t, float))
     # the outputs go into arrays made for the whole run (one row per control step) rather than lists of
     # per-step arrays (~0.5 kB a step in objects, then copied once more: 0.9 GB on a 1-hour flight)
     out = _Rows(n_steps=int((t[-1] - t[0]) * runner.rate_hz) + 2 if n else 0, nx=model.nx, n=runner.n)
@@ -438,7 +436,7 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
         runner.px4_mode(nav[k], thr[k])
         runner.att_q, runner.att_thrust, runner.att_yawrate = att_q[k], att_thr[k], att_yr[k]
         runner.rates_sp, runner.offboard_flags = rates_sp[k], offb[k]
-        runner.pilot_shift_m = 0.0 if no_reset else float(dz_ref[k])
+        runner.pilot_shift_m = float(dz_ref[k])
         if np.isfinite(batt[k]):
             runner.battery(batt[k])
         if k + 1 < n and runner._initialised and runner.t is not None:
