@@ -636,3 +636,15 @@ def test_sih_arm_length_and_inertia_map_to_one_per_axis_inertia():
     # other groups beside it stay their own truths
     tr = grid_prove._sih_truths({"sih": {"SIH_KDW": [0.025, 0.05], "SIH_L_ROLL": [0.2, 0.17]}}, vp)
     assert [t.hidden.name for t in tr] == ["angular_damping", "inertia"]
+
+
+def test_both_grids_name_the_same_judging_batches_and_the_cli_takes_each():
+    from twin_nodes.cli import build_parser
+
+    assert set(grid_rotorpy.BATCHES) == set(grid_sih.BATCHES)
+    assert grid_sih.HALVES == ("tuning", "judging", *grid_sih.BATCHES, "all")
+    p = build_parser()
+    for h in grid_sih.HALVES:
+        assert p.parse_args(["prove", "--grid", "px4sih", "--half", h]).half == h
+    with pytest.raises(SystemExit):
+        p.parse_args(["prove", "--grid", "px4sih", "--half", "judge99"])

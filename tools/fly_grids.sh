@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Fly issue 26's declared grids into a cache outside the repository, one flight at a time, nice'd.
-#   tools/fly_grids.sh rotorpy [tuning|judging|judge2|judge3|judge4|all]          -> ~/.cache/rotortwin/grids/rotorpy/<id>.ulg
-#   tools/fly_grids.sh sih PX4_DIR [tuning|judging|judge2|judge3|judge4|all]      -> ~/.cache/rotortwin/grids/sih/<id>/flight.ulg
+#   tools/fly_grids.sh rotorpy [tuning|judging|judgeN|all]          -> ~/.cache/rotortwin/grids/rotorpy/<id>.ulg
+#   tools/fly_grids.sh sih PX4_DIR [tuning|judging|judgeN|all]      -> ~/.cache/rotortwin/grids/sih/<id>/flight.ulg
 # (PX4 SIH on instance 1, speed factor 5, lockstep; flights already there are skipped.)
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -13,10 +13,9 @@ case "${1:-}" in
     exec nice -n 10 "$PY" -m twin_nodes.prove.grid_rotorpy fly --cache "$CACHE/rotorpy" --half "${2:-all}" ;;
   sih)
     PX4="${2:?PX4 dir}"; HALF="${3:-all}"
-    MANIFEST=missions/sih_grid/manifest.yaml
-    [ "$HALF" = judge2 ] && MANIFEST=missions/sih_grid/batch2.yaml
-    [ "$HALF" = judge3 ] && MANIFEST=missions/sih_grid/batch3.yaml
-    [ "$HALF" = judge4 ] && MANIFEST=missions/sih_grid/batch4.yaml
+    MANIFEST=$("$PY" -c "
+from twin_nodes.prove.grid_sih import BATCHES, GRID_PATH, REPO
+print((BATCHES['$HALF'][1] if '$HALF' in BATCHES else GRID_PATH).relative_to(REPO))")
     IDS=$("$PY" -c "
 from twin_nodes.prove.grid_sih import load_grid
 print(' '.join(k for k, v in load_grid(half='$HALF').items() if '$HALF' in ('all', v['half'])))")

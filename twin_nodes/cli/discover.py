@@ -12,6 +12,7 @@ from twin_nodes.base.outputs import shown
 from twin_nodes.cli.paths import declare
 from twin_nodes.cli.options import WORKERS, finite_float, seed
 from twin_nodes.discovery.report import json_default, summary_text, write_report
+from twin_nodes.prove.grid_sih import HALVES
 
 
 def register(sub) -> None:
@@ -59,9 +60,9 @@ def register(sub) -> None:
     q.add_argument("--grid", choices=("rotorpy", "px4sih"),
                    help="issue 26's declared grid of that source instead of --source (twin_nodes/prove/grids/"
                         "rotorpy_grid.yaml, missions/sih_grid/manifest.yaml), flights read from --grid-cache")
-    q.add_argument("--half", choices=("tuning", "judging", "judge2", "judge3", "judge4", "all"), default="tuning",
-                   help="--grid: the half declared in the manifest (default tuning); judge2, judge3, judge4: the second to fourth "
-                        "judging-only batch (rotorpy_grid_batchN.yaml, missions/sih_grid/batchN.yaml)")
+    q.add_argument("--half", choices=HALVES, default="tuning",
+                   help="--grid: the half declared in the manifest (default tuning); judgeN: the Nth, judging-only "
+                        "batch (rotorpy_grid_batchN.yaml, missions/sih_grid/batchN.yaml)")
     qio.input("--grid-cache", default=str(Path.home() / ".cache" / "rotortwin" / "grids"),
               help="--grid: where tools/fly_grids.sh put the flights (rotorpy/<id>.ulg, sih/<id>/flight.ulg)")
     q.set_defaults(func=_prove)

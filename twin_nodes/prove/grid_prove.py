@@ -312,7 +312,9 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(prog="python -m twin_nodes.prove.grid_prove")
     ap.add_argument("--source", choices=["rotorpy", "px4sih"], required=True)
-    ap.add_argument("--half", choices=["tuning", "judging", "judge2", "judge3", "judge4", "all"], required=True)
+    from twin_nodes.prove.grid_sih import HALVES
+
+    ap.add_argument("--half", choices=HALVES, required=True)
     ap.add_argument("--out", required=True)
     ap.add_argument("--cache", default=str(CACHE))
     ap.add_argument("--reuse", action="store_true", help="re-score a flight's result already in --out")

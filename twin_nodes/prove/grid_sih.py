@@ -29,6 +29,9 @@ BATCHES = {
     "judge4": (2929, REPO / "missions" / "sih_grid" / "batch4.yaml", "y",
                "2026-11-27 17:20 UTC, before the seventh session changed anything"),
 }
+#: the halves ``prove --grid`` takes: batch 1's two, each judging-only batch (the same names in both grids:
+#: grid_rotorpy.BATCHES, tests/test_grids.py), or all
+HALVES = ("tuning", "judging", *BATCHES, "all")
 BASE = REPO / "missions" / "sih_effects" / "manifest.yaml"
 #: each SIH parameter group that changes the physics, at two magnitudes (PX4 SIH defaults in sih_flight.SIH_DEFAULTS)
 GROUPS = {
