@@ -64,17 +64,20 @@ def test_third_batches_are_their_declarations_new_ids_all_judging():
     assert not set(flights) & (set(grid_sih.load_grid(half="judge2")) | set(grid_sih.load_grid()))
 
 
-def test_fourth_batches_are_their_declarations_new_ids_all_judging():
-    seed, _, prefix, _ = grid_rotorpy.BATCHES["judge4"]
-    b = grid_rotorpy.declare_batch2(seed, prefix, "judge4")
-    assert grid_rotorpy.load_grid(half="judge4") == b and len(b) == 41 and {f.half for f in b} == {"judge4"}
-    earlier = {f.id for h in ("all", "judge2", "judge3") for f in grid_rotorpy.load_grid(half=h)}
+@pytest.mark.parametrize("batch", ["judge4", "judge5"])
+def test_later_batches_are_their_declarations_new_ids_all_judging(batch):
+    names = list(grid_rotorpy.BATCHES)
+    before = ["all", *names[:names.index(batch)]]
+    seed, _, prefix, _ = grid_rotorpy.BATCHES[batch]
+    b = grid_rotorpy.declare_batch2(seed, prefix, batch)
+    assert grid_rotorpy.load_grid(half=batch) == b and len(b) == 41 and {f.half for f in b} == {batch}
+    earlier = {f.id for h in before for f in grid_rotorpy.load_grid(half=h)}
     assert not {f.id for f in b} & earlier
-    seed, _, prefix, _ = grid_sih.BATCHES["judge4"]
-    rows = grid_sih.declare_batch2(seed, prefix, "judge4")
-    flights = grid_sih.load_grid(half="judge4")
-    assert [r["id"] for r in rows] == list(flights) and {f["half"] for f in flights.values()} == {"judge4"}
-    earlier = set(grid_sih.load_grid()) | set(grid_sih.load_grid(half="judge2")) | set(grid_sih.load_grid(half="judge3"))
+    seed, _, prefix, _ = grid_sih.BATCHES[batch]
+    rows = grid_sih.declare_batch2(seed, prefix, batch)
+    flights = grid_sih.load_grid(half=batch)
+    assert [r["id"] for r in rows] == list(flights) and {f["half"] for f in flights.values()} == {batch}
+    earlier = set(grid_sih.load_grid()).union(*(grid_sih.load_grid(half=h) for h in before[1:]))
     assert not set(flights) & earlier
 
 
