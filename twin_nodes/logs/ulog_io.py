@@ -1150,8 +1150,18 @@ def _yaw_from_attitude_setpoint(att: _Topic | None, ts: _Topic, out: dict[str, S
     through unchanged (``PositionControl::getAttitudeSetpoint``: ``yaw_body`` = the setpoint's yaw,
     ``yaw_sp_move_rate`` = its yawspeed); the 5 Hz subsample of a 45 deg/s yaw ramp misses where
     the ramp ends by up to 9 deg, so a twin carrying the last sample by its feed-forward turned past
-    the end and back.  Used only while the trajectory's own yaw is finite (elsewhere PX4 holds its
-    last yaw setpoint, or a manual mode makes the attitude setpoint from the sticks)."""
+    the end and back.  Used while the trajectory's own yaw is finite.
+
+    Where the trajectory's yaw is NaN and its yawspeed finite (a rate-only yaw: the pilot's yaw stick in
+    POSCTL, FlightTaskAutoFollowTarget, a take-off), ``PositionControl`` holds the heading the vehicle has
+    (``_yaw_sp = _yaw``) and the vehicle turns by the feed-forward alone, at the controller rate.  The yaw
+    setpoint stays NaN there (the twin holds its own heading, as PX4); its feed-forward is the mean of
+    PX4's over each interval between two attitude setpoint samples: the slope of ``yaw_body`` (the heading
+    PX4 held at each) to the next (:func:`_rate_only_slope`).  The logged yawspeed is one instant of a
+    signal that swings +-160 deg/s sample to sample on the Mantis follow flights (2.4 Hz); a twin
+    integrating those samples random-walked 90 deg off its vehicle's heading (mantis_follow_00018).
+    Elsewhere (both NaN) PX4 holds its last yaw setpoint, or a manual mode makes the attitude setpoint
+    from the sticks."""
     if att is None or not att.has("yaw_sp_move_rate") or not ts.has("yaw") or len(att.t_us) < 2:
         return
     if att.has("yaw_body"):
@@ -1164,18 +1174,44 @@ def _yaw_from_attitude_setpoint(att: _Topic | None, ts: _Topic, out: dict[str, S
         return
     t = att.t_s
     j = np.searchsorted(ts.t_us, att.t_us, side="right") - 1
-    yaw_ts = ts.col("yaw")
-    controlled = (j >= 0) & np.isfinite(yaw_ts[np.clip(j, 0, None)])
-    yaw = np.where(controlled, frames.yaw_ned_to_enu(yaw_ned), np.nan)
-    rate = np.where(controlled, frames.yawspeed_ned_to_enu(att.col("yaw_sp_move_rate")), np.nan)
-    if not np.isfinite(yaw).any():
+    jc = np.clip(j, 0, None)
+    controlled = (j >= 0) & np.isfinite(ts.col("yaw")[jc])
+    rate_only = np.zeros(t.shape, bool)
+    if ts.has("yawspeed"):
+        rate_only = (j >= 0) & ~controlled & np.isfinite(ts.col("yawspeed")[jc])
+    heading = frames.yaw_ned_to_enu(yaw_ned)
+    yaw = np.where(controlled, heading, np.nan)
+    rate = np.where(controlled | rate_only, frames.yawspeed_ned_to_enu(att.col("yaw_sp_move_rate")), np.nan)
+    if not (np.isfinite(yaw).any() or rate_only.any()):
         return
+    n_slope = _rate_only_slope(t, heading, rate, rate_only)
     out["setpoint_yaw_enu"] = _series("setpoint_yaw_enu", t, yaw,
                                       f"vehicle_attitude_setpoint.{field} (NED heading) where "
                                       "trajectory_setpoint.yaw is finite")
     out["setpoint_yawspeed"] = _series("setpoint_yawspeed", t, rate,
                                        "vehicle_attitude_setpoint.yaw_sp_move_rate (NED heading rate) where "
-                                       "trajectory_setpoint.yaw is finite")
+                                       "trajectory_setpoint.yaw or .yawspeed is finite" + (
+                                           f"; where only its yawspeed is (rate-only yaw), {n_slope} samples: the "
+                                           f"slope of {field} to the next sample" if n_slope else ""))
+
+
+#: a rate-only yaw's feed-forward is the slope to the next attitude setpoint sample only within this [s]
+RATE_ONLY_SLOPE_MAX_S = 0.5
+
+
+def _rate_only_slope(t: np.ndarray, heading: np.ndarray, rate: np.ndarray, rate_only: np.ndarray) -> int:
+    """In place: ``rate`` (ENU yaw rate, rad/s) where the yaw is rate-only (trajectory yaw NaN, yawspeed
+    finite) replaced by the slope of the logged ``heading`` (ENU, rad) to the next rate-only sample within
+    :data:`RATE_ONLY_SLOPE_MAX_S` (the heading change over the interval, wrapped, over its length: the mean
+    of PX4's feed-forward there).  The number of samples replaced."""
+    if len(t) < 2:
+        return 0
+    dt = np.diff(t)
+    dyaw = np.angle(np.exp(1j * np.diff(heading)))
+    ok = rate_only[:-1] & rate_only[1:] & (dt > 0) & (dt <= RATE_ONLY_SLOPE_MAX_S) & np.isfinite(dyaw)
+    k = np.flatnonzero(ok)
+    rate[k] = dyaw[k] / dt[k]
+    return int(k.size)
 
 
 #: offboard_control_mode flags, in the order of the ``offboard_mode`` series' columns (older PX4 names
