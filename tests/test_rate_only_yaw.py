@@ -4,6 +4,9 @@ PX4's PositionControl holds the heading the vehicle has and turns it by the feed
 the twin no heading there and, as the feed-forward, the slope of the attitude setpoint's heading between two of
 its samples (the mean of PX4's feed-forward over the interval), not the logged instant.  The corpus check needs
 mantis_follow_00018 fetched (tools/corpus_fetch.py) and skips with one line when it is absent.
+
+With it: discovery's closed-loop guard vetoes an effect or term with which the twin leaves the flight where it did
+not without it (on that flight a translational-lift term cut the throttle RMSE while the motors went rail to rail).
 """
 from __future__ import annotations
 
@@ -103,3 +106,23 @@ def test_the_follow_flight_keeps_its_heading():
     err = np.degrees(np.abs(np.angle(np.exp(1j * (yaw(run.x[k, 6:10]) - yaw(q_real))))))
     assert np.percentile(err, 95) < 45.0
     assert err.max() < 70.0
+
+
+def test_a_change_that_makes_the_twin_leave_the_flight_is_vetoed_whatever_the_throttle():
+    """discovery's closed-loop guard (discovery/stages/closed_loop._veto): a twin that diverges with an effect or
+    term where it did not without it loses it, even at a better held-out throttle RMSE; a divergence already
+    there before is no reason (the throttle rule decides), and none after is none."""
+    from twin_nodes.discovery.stages import closed_loop
+
+    t = np.arange(0.0, 20.0, 0.02)
+    base = 0.01 * np.sin(2 * np.pi * t / 3.0)
+    before = {"throttle_rmse": float(np.sqrt(np.mean(base ** 2))), "_throttle_err": (t, base), "divergence": None}
+    div = {"t_s": 158.82, "cause": "motors oscillating", "detail": "..."}
+    better_but_gone = {"throttle_rmse": 0.5 * before["throttle_rmse"], "_throttle_err": (t, 0.5 * base),
+                       "divergence": div}
+    vetoed, why = closed_loop._veto(better_but_gone, before, before, (True, "the twin's controller flew this flight"))
+    assert vetoed and why == "the twin leaves the flight with it (motors oscillating at 158.8 s), not without"
+    # the same run where the twin had already left the flight: the throttle decides (better: no veto)
+    was_gone = dict(before, divergence={"t_s": 101.7, "cause": "heading", "detail": "..."})
+    assert closed_loop._veto(better_but_gone, was_gone, was_gone, (True, "")) == (False, None)
+    assert closed_loop._veto(dict(better_but_gone, divergence=None), before, before, (True, "")) == (False, None)
