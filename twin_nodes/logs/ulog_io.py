@@ -1155,9 +1155,12 @@ def _yaw_from_attitude_setpoint(att: _Topic | None, ts: _Topic, out: dict[str, S
     Where the trajectory's yaw is NaN and its yawspeed finite (a rate-only yaw: the pilot's yaw stick in
     POSCTL, FlightTaskAutoFollowTarget, a take-off), ``PositionControl`` holds the heading the vehicle has
     (``_yaw_sp = _yaw``) and the vehicle turns by the feed-forward alone, at the controller rate.  The yaw
-    setpoint stays NaN there (the twin holds its own heading, as PX4); its feed-forward is the mean of
-    PX4's over each interval between two attitude setpoint samples: the slope of ``yaw_body`` (the heading
-    PX4 held at each) to the next (:func:`_rate_only_slope`).  The logged yawspeed is one instant of a
+    setpoint stays NaN there (the twin holds its own heading, as PX4); its feed-forward is the mean of PX4's
+    over each interval between two attitude setpoint samples: the slope of ``yaw_body`` (the heading PX4 held
+    at each) to the next, where the logged feed-forward around the interval can explain it
+    (:func:`_rate_only_slope`); elsewhere the vehicle turned by something else (an overloaded Quad X out of
+    yaw authority spins against a zero or opposite yawspeed: ZweiterFlugtag log_30, log_38), and the logged
+    feed-forward is kept.  The logged yawspeed is one instant of a
     signal that swings +-160 deg/s sample to sample on the Mantis follow flights (2.4 Hz); a twin
     integrating those samples random-walked 90 deg off its vehicle's heading (mantis_follow_00018).
     Elsewhere (both NaN) PX4 holds its last yaw setpoint, or a manual mode makes the attitude setpoint
@@ -1200,17 +1203,26 @@ RATE_ONLY_SLOPE_MAX_S = 0.5
 
 
 def _rate_only_slope(t: np.ndarray, heading: np.ndarray, rate: np.ndarray, rate_only: np.ndarray) -> int:
-    """In place: ``rate`` (ENU yaw rate, rad/s) where the yaw is rate-only (trajectory yaw NaN, yawspeed
-    finite) replaced by the slope of the logged ``heading`` (ENU, rad) to the next rate-only sample within
-    :data:`RATE_ONLY_SLOPE_MAX_S` (the heading change over the interval, wrapped, over its length: the mean
-    of PX4's feed-forward there).  The number of samples replaced."""
+    """In place: ``rate`` (the logged feed-forward, ENU yaw rate, rad/s) where the yaw is rate-only (trajectory
+    yaw NaN, yawspeed finite) replaced by the slope of the logged ``heading`` (ENU, rad) to the next rate-only
+    sample within :data:`RATE_ONLY_SLOPE_MAX_S` (the heading change over the interval, wrapped, over its length:
+    the mean of PX4's feed-forward there), where that slope lies within the range of the logged feed-forward
+    at the interval's two samples and their neighbours (what PX4 fed forward can explain the turn; a vehicle
+    spinning out of yaw authority against a zero or opposite yawspeed keeps the logged one).  The number of
+    samples replaced."""
     if len(t) < 2:
         return 0
     dt = np.diff(t)
     dyaw = np.angle(np.exp(1j * np.diff(heading)))
     ok = rate_only[:-1] & rate_only[1:] & (dt > 0) & (dt <= RATE_ONLY_SLOPE_MAX_S) & np.isfinite(dyaw)
     k = np.flatnonzero(ok)
-    rate[k] = dyaw[k] / dt[k]
+    slope = dyaw[k] / dt[k]
+    n = len(t)
+    near = np.column_stack([rate[np.clip(k + d, 0, n - 1)] for d in (-1, 0, 1, 2)])
+    with np.errstate(invalid="ignore"):
+        inside = (slope >= np.nanmin(near, axis=1)) & (slope <= np.nanmax(near, axis=1))
+    k = k[inside]
+    rate[k] = slope[inside]
     return int(k.size)
 
 
