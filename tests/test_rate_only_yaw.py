@@ -7,7 +7,7 @@ feed-forward around the interval can explain that turn (a vehicle out of yaw aut
 mantis_follow_00018 fetched (tools/corpus_fetch.py) and skips with one line when it is absent.
 
 With it: discovery's closed-loop guard vetoes an effect or term with which the twin leaves the flight where it did
-not without it (on that flight a translational-lift term cut the throttle RMSE while the motors went rail to rail).
+not without it (fleet ZweiterFlugtag log_39: a yaw-moment refit whose twin lost its heading at 6.5 s was accepted).
 """
 from __future__ import annotations
 

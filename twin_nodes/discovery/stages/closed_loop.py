@@ -129,10 +129,9 @@ def rise_significance(after: dict, best: dict) -> tuple[float, float]:
 
 def _veto(m: dict, best: dict, before: dict, standing: tuple[bool, str]) -> tuple[bool, str | None]:
     """(vetoed, what to say): a twin that leaves the flight with the change where it did not without it
-    (``divergence`` of the metrics: a divergence the vehicle did not have, whatever the throttle says; on
-    mantis_follow_00018 a translational-lift term cut the held-out throttle RMSE 5.9 -> 4.6 % while the twin's
-    motors went rail to rail at 158.8 s); else the rise beyond the tolerance, beyond its own noise, and the
-    twin's standing."""
+    (``divergence`` of the metrics: a divergence the vehicle did not have, whatever the throttle says; on the
+    fleet's ZweiterFlugtag log_39 a yaw-moment refit was accepted whose twin lost its heading at 6.5 s, per-motor
+    P75 22.4 -> 44.8 %); else the rise beyond the tolerance, beyond its own noise, and the twin's standing."""
     new_div, old_div = m.get("divergence"), best.get("divergence") or before.get("divergence")
     if new_div and not old_div:
         return True, (f"the twin leaves the flight with it ({new_div['cause']} at {new_div['t_s']:.1f} s), "
