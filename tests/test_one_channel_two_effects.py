@@ -182,3 +182,22 @@ def test_a_seen_two_effect_flight_on_the_collective(source, half, fid, truth, mo
     assert set(row["named"]) == truth, row["findings"]
     assert all(e is not None and e <= 0.10 for e in row["param_errors"].values()), row["param_text"]
     assert row["passed"]
+
+
+def test_a_what_if_vehicle_out_of_range_is_said_not_a_failed_flight(monkeypatch, tmp_path):
+    """The real fleet's overloaded Quad X (23_juni log_20, motors at their bound for 31 of 34 s): battery sag,
+    mass and thrust coefficient accepted together; mass's contribution given the others asks for the others
+    refitted with mass at its nominal, a vehicle whose rotors cannot lift it (4 x 2.98 N < 14.7 N).  That
+    what-if is said in its row and the flight is surveyed; it used to fail the whole flight with a ParamsError."""
+    from conftest import shared_log
+
+    from twin_nodes.discovery.survey import survey_flight
+
+    monkeypatch.setenv("ROTORTWIN_CACHE", str(tmp_path))
+    monkeypatch.setenv("ROTORTWIN_DISCOVER_WORKERS", "1")
+    row = survey_flight(shared_log("fleet_quadx_v6c/23_juni", "log_20_2023-6-23-11-05-22.ulg"), None)
+    assert row["status"] == "ok"
+    given = {e["name"]: e["heldout_contribution"]["given_the_others"] for e in row["accepted"]
+             if "given_the_others" in e.get("heldout_contribution", {})}
+    assert given["mass"]["cut"] is None and "cannot lift the vehicle" in given["mass"]["not_computed"]
+    assert given["thrust_coefficient"]["cut"] > 0.3 and given["battery_sag"]["cut"] > 0.1
