@@ -109,3 +109,35 @@ def test_side_pass_of_an_unreadable_file_falls_back(tmp_path):
 
     side = side_reader(bad)
     assert _gps_time(bad, side) == _gps_time(bad) and actuator_tests(bad, side) == actuator_tests(bad) == 0
+
+
+def test_hooked_rotor_states_reused_only_where_the_kernel_reads_the_same():
+    """A vehicle with a command-path hook (battery sag): the rotor states are kept per flight and given again
+    for a candidate that leaves the command path alone (a mass), bit for bit what a fresh integration gives;
+    another sag exponent, another motor lag or another exogenous series (a wind) integrate anew."""
+    from twin_nodes.discovery import residuals as rs
+    from twin_nodes.logs.ulog_io import read_ulog
+    from twin_nodes.physics.model import Multirotor
+    from twin_nodes.vehicle.params import shipped
+
+    log = read_ulog(ROOT / "bags" / "sim_quadx_weak_motor3.ulg")
+    vp = shipped("px4_sih_quadx").with_effect("battery_sag", v_ref=16.0, exponent=0.9)
+    data = rs.prepare(log, vp)
+
+    def fresh(v):
+        data.cache.clear()
+        return np.array(rs.model_rotor_states(Multirotor(v), data))
+
+    variants = {"sag": vp, "mass": vp.with_effect("mass", mass=1.3 * vp.mass_kg),
+                "exponent": vp.with_effect("battery_sag", v_ref=16.0, exponent=1.1),
+                "lag": vp.with_effect("motor_time_constant", tau_up=0.08, tau_down=0.08),
+                "wind": vp.with_effect("wind", vx=2.0, vy=0.0, gust_std=0.5)}
+    want = {k: fresh(v) for k, v in variants.items()}
+    data.cache.clear()
+    first = rs.model_rotor_states(Multirotor(vp), data)
+    again = rs.model_rotor_states(Multirotor(variants["mass"]), data)
+    assert again is first and np.array_equal(again, want["mass"]) and np.array_equal(want["mass"], want["sag"])
+    for k in ("exponent", "lag", "wind", "sag", "mass"):
+        got = rs.model_rotor_states(Multirotor(variants[k]), data)
+        assert np.array_equal(got, want[k], equal_nan=True), k
+    assert not np.array_equal(want["exponent"], want["sag"]) and not np.array_equal(want["lag"], want["sag"])
