@@ -249,6 +249,27 @@ def _command_path_key(model: Multirotor, data: EquationData, delay_steps: int) -
     return ("rotor", model.P[_COMMAND_PATH_P].tobytes(), int(delay_steps))
 
 
+def _hooked_path_key(model: Multirotor, data: EquationData, delay_steps: int) -> tuple | None:
+    """For a vehicle whose command path has effect hooks (battery sag): everything the hooked
+    rotor-state kernel (``kernels.lag_states``) reads besides the logged commands and the exogenous
+    series (compared on a hit): the core's command-path entries of ``P``, the delay, the stepper
+    module (its kind codes) and each command-hook effect's kind and parameter vector in table order.
+    Most candidates leave all of these alone (a mass, a drag, an inertia), so the series is reused."""
+    if not isinstance(getattr(data, "cache", None), dict):
+        return None
+    hooks = tuple((type(e).__name__, np.asarray(e.vector(), float).tobytes())
+                  for e in model.kernel_effects if e.command_kernel is not None)
+    return ("rotor_hooked", model._mod.__name__, model.P[_COMMAND_PATH_P].tobytes(), int(delay_steps), hooks)
+
+
+def _keep(data: EquationData, key: tuple, value) -> None:
+    """Store ``value`` under ``key`` in the flight's cache, at most ``_ROTOR_CACHE_SIZE`` of its kind."""
+    old = [k for k in data.cache if isinstance(k, tuple) and k[0] == key[0]]
+    if len(old) >= _ROTOR_CACHE_SIZE:
+        del data.cache[old[0]]
+    data.cache[key] = value
+
+
 @njit(cache=True)
 def lag_states(P, U, dt, delay_steps, s0, up, n_out):
     """Every ``up``-th rotor state (n_out, N) from commands U (T, N) on a grid of step dt: what
@@ -321,10 +342,18 @@ def model_rotor_states(model: Multirotor, data: EquationData) -> np.ndarray:
         u = fine_commands(data)
         S = lag_states(model.P, u, dt_f, delay_steps, s0, up, min(data.n, -(-len(u) // up)))
     else:
-        ext = exogenous(model, data, len(data.u_fine), up)
+        ext = np.ascontiguousarray(exogenous(model, data, len(data.u_fine), up))
+        hooked = _hooked_path_key(model, data, delay_steps)
+        hit = data.cache.get(hooked) if hooked is not None else None
+        if hit is not None and hit[0].shape == ext.shape and np.array_equal(hit[0], ext, equal_nan=True):
+            return hit[1]
         u = fine_commands(data)
-        S = kernels(model).lag_states(model.P, u, np.ascontiguousarray(ext), dt_f, delay_steps, s0, up,
+        S = kernels(model).lag_states(model.P, u, ext, dt_f, delay_steps, s0, up,
                                       min(data.n, -(-len(u) // up)))
+        if hooked is not None:
+            S.flags.writeable = False
+            ext.flags.writeable = False
+            _keep(data, hooked, (ext, S))
     if key is not None:
         S.flags.writeable = False
         old = [k for k in data.cache if isinstance(k, tuple) and k[0] == "rotor"]

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -73,17 +73,22 @@ IGNORED_PREFIXES = ("CAL_", "SENS_", "LND_FLIGHT_T", "COM_FLIGHT_UUID", "BAT1_V_
                     "EKF2_GYRBIAS", "EKF2_ACCBIAS", "EKF2_BARO_", "FW_", "SYS_HITL", "MAV_USEHILGPS")
 
 
-def actuator_tests(path: str) -> int:
+def actuator_tests(path: str, side: Callable[[], Any] | None = None) -> int:
     """Number of actuator/motor test commands (:data:`ACTUATOR_TEST_COMMANDS`) in the log's
-    ``vehicle_command`` (0 when it has none or the topic is absent)."""
+    ``vehicle_command`` (0 when it has none or the topic is absent; ``side``: the fleet runner's
+    :func:`~twin_nodes.fleet.identity.side_reader`, read once for this and the GPS time)."""
     from pyulog import ULog
 
-    try:
-        u = ULog(str(path), ["vehicle_command"])
-    except Exception:  # unreadable topic data: no evidence either way
-        return 0
+    u = side() if side is not None else None
+    if u is None:
+        try:
+            u = ULog(str(path), ["vehicle_command"])
+        except Exception:  # unreadable topic data: no evidence either way
+            return 0
     n = 0
     for d in u.data_list:
+        if d.name != "vehicle_command":
+            continue
         cmd = d.data.get("command")
         if cmd is not None:
             n += int(np.isin(np.asarray(cmd, int), list(ACTUATOR_TEST_COMMANDS)).sum())
@@ -258,11 +263,11 @@ def _steady_throttle(log: FlightLog) -> tuple[float, float] | None:
     return float(np.median(x)), 1.25 * mad / math.sqrt(x.size / 10.0)  # ~10 independent samples per s at most
 
 
-def flight_facts(path: str, log: FlightLog) -> dict[str, Any]:
+def flight_facts(path: str, log: FlightLog, side: Callable[[], Any] | None = None) -> dict[str, Any]:
     """Catalog columns for one log: ``flight_kind``, ``kind_reason``, ``motor_pwm``, ``motor_pwm_min_us``,
     ``motor_pwm_max_us``, ``params_json`` (every firmware parameter), ``fact_<name>`` (+ ``_se``) for a free
     flight, the battery values for any airborne log, and ``facts_error`` where the identification failed."""
-    n_tests = actuator_tests(path)
+    n_tests = actuator_tests(path, side)
     kind, why = flight_kind(log, n_tests)
     pwm = motor_pwm(log.params, int(log.n_motors))
     row: dict[str, Any] = {"flight_kind": kind, "kind_reason": why, "actuator_tests": n_tests,

@@ -20,7 +20,7 @@ from typing import Any
 from twin_nodes.base.errors import TwinError
 from twin_nodes.discovery.survey import failure_reason as reason
 from twin_nodes.fleet.catalog import effect_columns, file_key, now_utc, verdict, write_row
-from twin_nodes.fleet.identity import fallback_identity, identity
+from twin_nodes.fleet.identity import fallback_identity, identity, side_reader
 
 
 def resolve_params(path: str | os.PathLike[str], vehicle_id: str, params: str | None,
@@ -64,17 +64,17 @@ class NotAFlight(Exception):
 
 
 def analyse(path: str, mode: str, params: str | None, params_map: dict | None,
-            closed_loop_metrics: bool, ident: dict | None = None) -> dict:
+            closed_loop_metrics: bool, ident: dict | None = None, side=None) -> dict:
     """The row of one flight (raises TwinError on a bad flight); ``ident`` as :func:`identity`
-    returns it, read here when not given."""
+    returns it, read here when not given; ``side``: a :func:`~twin_nodes.fleet.identity.side_reader`."""
     from twin_nodes.fleet.facts import flight_facts
     from twin_nodes.logs.flyable import check_flyable
     from twin_nodes.logs.ulog_io import read_ulog
     from twin_nodes.vehicle.params import load_params
 
-    ident = identity(path) if ident is None else ident
+    ident = identity(path, side) if ident is None else ident
     log = read_ulog(path)  # loaded once
-    row = {**ident, "duration_s": float(log.duration_s), **flight_facts(path, log)}
+    row = {**ident, "duration_s": float(log.duration_s), **flight_facts(path, log, side)}
     if row["flight_kind"] != "free flight":  # a ground test, too short, no GPS: a row saying so, not a failure
         raise NotAFlight(row)
     try:
@@ -120,14 +120,15 @@ def process_flight(path: str, catalog: str, mode: str = "discover", params: str 
     t0 = time.time()
     key = file_key(path)
     row = {**key, "mode": mode, "status": "ok", "error": ""}
+    side = side_reader(path)  # the GPS time and the actuator tests: one pass over the file
     try:
-        ident = identity(path)
+        ident = identity(path, side)
     except Exception as exc:  # unreadable header: the row still says which vehicle (folder) and when (mtime)
         row.update(fallback_identity(path), status="failed", error=reason(path, exc))
     else:
         row.update(ident)
         try:
-            row.update(analyse(path, mode, params, params_map, closed_loop_metrics, ident))
+            row.update(analyse(path, mode, params, params_map, closed_loop_metrics, ident, side))
         except NotAFlight as nf:  # recognised, recorded with its kind and reason; done (not retried)
             row.update(nf.row, status="not_flight", error=nf.row.get("kind_reason", ""))
         except Exception as exc:  # a bad flight, or a bug on one flight: recorded, one line; the fleet goes on

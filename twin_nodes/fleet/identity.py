@@ -4,15 +4,42 @@ and by the vehicle twin (:mod:`twin_nodes.fleet.vehicle_twin`), which orders a v
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
+import functools
+import io
 import os
 import re
 from pathlib import Path
+from typing import Any, Callable
 
 from twin_nodes.base.errors import TwinError
 
 
-def identity(path: str | os.PathLike[str]) -> dict:
+#: the topics of a log's side pass: the first GPS fix time (:func:`identity`) and the actuator-test commands
+#: (:func:`twin_nodes.fleet.facts.actuator_tests`), read in one pyulog pass by the fleet runner
+SIDE_TOPICS = ("vehicle_gps_position", "sensor_gps", "vehicle_command")
+GPS_TOPICS = ("vehicle_gps_position", "sensor_gps")
+
+
+def side_reader(path: str | os.PathLike[str]) -> Callable[[], Any]:
+    """A function giving the pyulog ULog of the log's :data:`SIDE_TOPICS`, read on its first call, or None
+    where that read fails or finds the file corrupt (each reader then reads its own topics alone, as it does
+    without a side reader): one pass over the file instead of two."""
+    from pyulog import ULog
+
+    @functools.cache
+    def side():
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):  # pyulog prints what it finds corrupt
+                u = ULog(str(path), list(SIDE_TOPICS))
+        except Exception:
+            return None
+        return None if u.file_corruption else u
+    return side
+
+
+def identity(path: str | os.PathLike[str], side: Callable[[], Any] | None = None) -> dict:
     """Vehicle identity and flight date from the ULog header (pyulog, header only).
 
     ``vehicle_id``: ``sys_uuid`` if logged, else the hardware id (``ver_hw`` + ``ver_hw_subtype``)
@@ -41,7 +68,7 @@ def identity(path: str | os.PathLike[str]) -> dict:
     if isinstance(ref, (int, float)) and ref > 0:
         t, src = float(ref), "time_ref_utc"
     else:
-        t, src = _gps_time(path), "gps"
+        t, src = _gps_time(path, side), "gps"
     named, nsrc = file_date(path)
     out["file_name_time"] = named if nsrc == "file_name" else ""  # local time of the downloader: see report
     if t is None:
@@ -89,15 +116,19 @@ def fallback_identity(path: str | os.PathLike[str]) -> dict:
             "file_name_time": when if src == "file_name" else ""}
 
 
-def _gps_time(path) -> float | None:
-    """The first valid GPS UTC time in the log [s], or None."""
+def _gps_time(path, side: Callable[[], Any] | None = None) -> float | None:
+    """The first valid GPS UTC time in the log [s], or None (``side``: :func:`side_reader`'s)."""
     from pyulog import ULog
 
-    try:
-        u = ULog(str(path), ["vehicle_gps_position", "sensor_gps"])
-    except Exception:
-        return None
-    for d in u.data_list:
+    u = side() if side is not None else None
+    if u is None:
+        try:
+            u = ULog(str(path), list(GPS_TOPICS))
+        except Exception:
+            return None
+    for d in u.data_list:  # sorted by name (pyulog): the same order whatever else was read
+        if d.name not in GPS_TOPICS:
+            continue
         t = d.data.get("time_utc_usec")
         if t is not None:
             ok = t[t > 1_000_000_000_000_000]

@@ -168,10 +168,11 @@ class TwinRunner(GroundHandling):
             return
         # a new sample is one whose logged values differ (the same sample taken again in a moved ground
         # plane's frame keeps its time: its trajectory is carried on from where it was logged)
-        if not np.array_equal(sp[0:9], self._sp_raw[0:9], equal_nan=True):
+        new, old = sp.tolist(), self._sp_raw.tolist()
+        if not _same(new[0:9], old[0:9]):
             self.sp_t = self.t  # a new setpoint sample: the trajectory is carried on from here
             self._sp_rates = None  # its velocity and acceleration terms, made when first carried
-        if not np.array_equal(sp[9:11], self._sp_raw[9:11], equal_nan=True):
+        if not _same(new[9:11], old[9:11]):
             self.yaw_t = self.t  # a new yaw sample: carried by its feed-forward from here
             self._sp_rates = None
         self._sp_raw = sp.copy()
@@ -348,10 +349,12 @@ class TwinRunner(GroundHandling):
             return sp
         if self._sp_rates is None:
             # once per setpoint sample, not per control step (the sample is held for 10-50 steps)
-            finite = np.isfinite(sp[0:6])
-            turning = bool(np.isfinite(sp[9]) and np.isfinite(sp[10]) and sp[10] != 0.0)
-            self._sp_rates = (bool(finite[3:6].any()), np.nan_to_num(sp[3:6]), 0.5 * np.nan_to_num(sp[6:9]),
-                              bool(finite.any()), turning)
+            finite = np.isfinite(sp[0:9])
+            turning = bool(math.isfinite(sp[9]) and math.isfinite(sp[10]) and sp[10] != 0.0)
+            # np.nan_to_num only where a value is not finite (per step: its call costs more than the step)
+            vel = sp[3:6].copy() if finite[3:6].all() else np.nan_to_num(sp[3:6])
+            acc = sp[6:9].copy() if finite[6:9].all() else np.nan_to_num(sp[6:9])
+            self._sp_rates = (bool(finite[3:6].any()), vel, 0.5 * acc, bool(finite[0:6].any()), turning)
         moving, vel, half_acc, _, turning = self._sp_rates
         if not (moving or turning):
             return sp
@@ -385,6 +388,16 @@ class TwinRunner(GroundHandling):
                     q = self.real_x[6:10]
                     sp[9] = np.arctan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
         return sp
+
+
+
+def _same(a: list, b: list) -> bool:
+    """``np.array_equal(a, b, equal_nan=True)`` for two equally long lists of floats (the setpoint's
+    entries, compared every control step: a numpy call costs more than the comparison)."""
+    for x, y in zip(a, b):
+        if x != y and (x == x or y == y):  # differ, and not both NaN
+            return False
+    return True
 
 
 @dataclass

@@ -244,7 +244,15 @@ class VehicleParams:
         _check_effect(self.source, name, params, self.rotors.count)
         eff = [e for e in self.effects if e[0] != name]
         eff.append((name, tuple((k, float(v)) for k, v in params.items())))
-        return self.replace(effects=tuple(eff))
+        if not _known_valid(self):
+            return self.replace(effects=tuple(eff))
+        # self passed validate() and only its effects change: every check validate() would make on the copy
+        # is one it made on self, but the new effect's, made here as validate() makes it (a fit's every
+        # evaluation comes here: the full check cost more than the evaluation's model)
+        _check_effect(self.source, name, dict(eff[-1][1]), self.rotors.count)
+        new = dataclasses.replace(self, effects=tuple(eff))
+        _mark_valid(new)
+        return new
 
     def to_ros_dict(self) -> dict[str, Any]:
         """The ``ros__parameters`` mapping that ``from_ros_dict`` reads back."""
@@ -618,9 +626,26 @@ def _in(v: float, lo: float, hi: float) -> bool:
     return bool(np.isfinite(v) and lo <= v <= hi)
 
 
+def _mark_valid(p: VehicleParams) -> None:
+    """Note on ``p`` that it passed :func:`validate` (with the controller gains it had then: the one field
+    that is a mutable mapping; the others are frozen)."""
+    object.__setattr__(p, "_valid_controller", dict(p.controller or {}))
+
+
+def _known_valid(p: VehicleParams) -> bool:
+    """Whether ``p`` passed :func:`validate` and its controller gains are still those it had then."""
+    seen = p.__dict__.get("_valid_controller")
+    return seen is not None and seen == dict(p.controller or {})
+
+
 def validate(p: VehicleParams) -> None:
     """Re-check invariants of an in-memory parameter set (used after edits): the
     physical ranges of :data:`LIMITS`, finite numbers, valid effect parameters."""
+    _validate(p)
+    _mark_valid(p)
+
+
+def _validate(p: VehicleParams) -> None:
     path = p.source
     lo, hi = LIMITS["mass_kg"]
     if not _in(p.mass_kg, lo, hi):

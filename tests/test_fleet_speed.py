@@ -1,0 +1,143 @@
+"""The fleet throughput shortcuts give the answers of the paths they short-cut (docs/fleet.md, Throughput).
+
+- the closed-loop runner compares setpoint samples with ``runner._same`` instead of ``np.array_equal``;
+- ``VehicleParams.with_effect`` on a validated parent checks only the new effect (the rest was checked);
+- ``fleet discover`` reads a log's GPS time and its actuator-test commands in one pass (``side_topics``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from twin_nodes.base.errors import ParamsError
+from twin_nodes.twin.runner import _same
+from twin_nodes.vehicle.params import _known_valid, load_params, validate
+
+ROOT = Path(__file__).resolve().parents[1]
+FLEET = ROOT.parent / "shared" / "flightlogs" / "fleet_quadx_v6c"
+
+
+def test_same_is_array_equal_with_nan():
+    rng = np.random.default_rng(7)
+    pool = np.array([0.0, -0.0, 1.0, -1.5, np.nan, np.inf, -np.inf, 2.5e-300])
+    n_diff = 0
+    for _ in range(3000):
+        a = rng.choice(pool, size=9)
+        b = a.copy()
+        if rng.random() < 0.6:  # change a few entries (NaN for NaN too: equal again)
+            idx = rng.integers(0, 9, size=rng.integers(1, 4))
+            b[idx] = rng.choice(pool, size=idx.size)
+        want = bool(np.array_equal(a, b, equal_nan=True))
+        n_diff += not want
+        assert _same(a.tolist(), b.tolist()) is want, (a, b)
+    assert 300 < n_diff < 2700  # both answers were exercised
+
+
+def test_with_effect_on_a_validated_parent_checks_as_validate_does():
+    vp = load_params(ROOT / "params" / "px4_sih_quadx.yaml")
+    assert _known_valid(vp)
+    new = vp.with_effect("body_drag", c_dx=0.1, c_dy=0.2, c_dz=0.05).with_effect("motor_efficiency", motor=2,
+                                                                                  efficiency=0.8)
+    assert _known_valid(new)
+    assert new.effect_dict == {**vp.effect_dict, "body_drag": {"c_dx": 0.1, "c_dy": 0.2, "c_dz": 0.05},
+                               "motor_efficiency": {"motor": 2.0, "efficiency": 0.8}}
+    validate(new)  # the full check agrees
+    # a bad value of the new effect: the same one-line error as the full check gives
+    bad = [("linear_drag", {"k_n_s_m": -1.0}), ("linear_drag", {"k_n_s_m": float("nan")}),
+           ("motor_efficiency", {"motor": 9, "efficiency": 0.8}), ("linear_drag", {"k": 1.0})]
+    for name, params in bad:
+        with pytest.raises(ParamsError) as fast:
+            vp.with_effect(name, **params)
+        with pytest.raises(ParamsError) as full:
+            vp.replace(effects=tuple(e for e in vp.effects if e[0] != name)
+                       + ((name, tuple((k, float(v)) for k, v in params.items())),))
+        assert str(fast.value) == str(full.value)
+
+
+def test_with_effect_after_a_controller_edit_validates_everything():
+    vp = load_params(ROOT / "params" / "px4_sih_quadx.yaml")
+    edited = vp.replace(controller={**dict(vp.controller or {}), "rate_hz": 250.0})
+    assert _known_valid(edited)
+    edited.controller["rate_hz"] = 0.0  # the one mutable field, changed after its check: no shortcut
+    assert not _known_valid(edited)
+    with pytest.raises(ParamsError, match="controller.rate_hz"):
+        edited.with_effect("linear_drag", k_n_s_m=0.1)
+
+
+def _shared_logs() -> list[Path]:
+    if not FLEET.is_dir():
+        if os.environ.get("CI") == "true":
+            pytest.fail(f"{FLEET}: expected the shared real fleet (../shared) on CI")
+        pytest.skip(f"{FLEET} absent (../shared not mounted)")
+    logs = sorted(FLEET.rglob("*.ulg"))
+    # a ground/bench test with actuator-test commands (23 Jun log_11), a free flight, a flight without GPS fix
+    pick = [p for p in logs if p.name.startswith(("log_11_2023-6-23", "log_15_2023-6-23", "log_59_2023-6-21"))]
+    assert len(pick) == 3, pick
+    return pick
+
+
+def test_one_side_pass_gives_what_the_two_reads_gave():
+    """Identity (date from the first GPS fix) and the actuator-test count, hence the flight kind, from the one
+    side pass equal those of the separate reads, on a bench test, a free flight and a flight without GPS."""
+    from twin_nodes.fleet.facts import actuator_tests, flight_kind
+    from twin_nodes.fleet.identity import identity, side_reader
+    from twin_nodes.logs.ulog_io import read_ulog
+
+    kinds = []
+    for p in _shared_logs():
+        side = side_reader(p)
+        assert side() is not None and side() is side()  # read once
+        assert identity(p, side) == identity(p)
+        n = actuator_tests(p, side)
+        assert n == actuator_tests(p)
+        log = read_ulog(p)
+        kinds.append(flight_kind(log, n)[0])
+        assert kinds[-1] == flight_kind(log, actuator_tests(p))[0]
+    assert kinds == ["ground/bench test", "free flight", "no GPS"]
+    assert identity(_shared_logs()[1], side_reader(_shared_logs()[1]))["date_source"] == "gps"
+
+
+def test_side_pass_of_an_unreadable_file_falls_back(tmp_path):
+    bad = tmp_path / "bad.ulg"
+    bad.write_bytes(b"ULog\x01\x12\x35\x01" + b"\x00" * 40)
+    from twin_nodes.fleet.facts import actuator_tests
+    from twin_nodes.fleet.identity import _gps_time, side_reader
+
+    side = side_reader(bad)
+    assert _gps_time(bad, side) == _gps_time(bad) and actuator_tests(bad, side) == actuator_tests(bad) == 0
+
+
+def test_hooked_rotor_states_reused_only_where_the_kernel_reads_the_same():
+    """A vehicle with a command-path hook (battery sag): the rotor states are kept per flight and given again
+    for a candidate that leaves the command path alone (a mass), bit for bit what a fresh integration gives;
+    another sag exponent, another motor lag or another exogenous series (a wind) integrate anew."""
+    from twin_nodes.discovery import residuals as rs
+    from twin_nodes.logs.ulog_io import read_ulog
+    from twin_nodes.physics.model import Multirotor
+    from twin_nodes.vehicle.params import shipped
+
+    log = read_ulog(ROOT / "bags" / "sim_quadx_weak_motor3.ulg")
+    vp = shipped("px4_sih_quadx").with_effect("battery_sag", v_ref=16.0, exponent=0.9)
+    data = rs.prepare(log, vp)
+
+    def fresh(v):
+        data.cache.clear()
+        return np.array(rs.model_rotor_states(Multirotor(v), data))
+
+    variants = {"sag": vp, "mass": vp.with_effect("mass", mass=1.3 * vp.mass_kg),
+                "exponent": vp.with_effect("battery_sag", v_ref=16.0, exponent=1.1),
+                "lag": vp.with_effect("motor_time_constant", tau_up=0.08, tau_down=0.08),
+                "wind": vp.with_effect("wind", vx=2.0, vy=0.0, gust_std=0.5)}
+    want = {k: fresh(v) for k, v in variants.items()}
+    data.cache.clear()
+    first = rs.model_rotor_states(Multirotor(vp), data)
+    again = rs.model_rotor_states(Multirotor(variants["mass"]), data)
+    assert again is first and np.array_equal(again, want["mass"]) and np.array_equal(want["mass"], want["sag"])
+    for k in ("exponent", "lag", "wind", "sag", "mass"):
+        got = rs.model_rotor_states(Multirotor(variants[k]), data)
+        assert np.array_equal(got, want[k], equal_nan=True), k
+    assert not np.array_equal(want["exponent"], want["sag"]) and not np.array_equal(want["lag"], want["sag"])
