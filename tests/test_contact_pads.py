@@ -5,8 +5,8 @@ before a contact sample (a touchdown) both keep 0.5 s."""
 import numpy as np
 
 from twin_nodes.discovery.locate import modes
-from twin_nodes.discovery.residuals import (CONTACT_PAD_AFTER_S, CONTACT_PAD_BEFORE_S, THROTTLE_PAD_AFTER_S,
-                                            EquationData, contact_pads, residual_channels)
+from twin_nodes.discovery.residuals import (CLIMB_OUT_M_S, CONTACT_PAD_AFTER_S, CONTACT_PAD_BEFORE_S,
+                                            THROTTLE_PAD_AFTER_S, EquationData, contact_pads, residual_channels)
 from twin_nodes.vehicle.params import shipped
 
 RATE = 50.0
@@ -21,7 +21,7 @@ def _lift_off_and_land(n=700, lift=100, touch=600):
 
 
 def test_pads_on_a_synthetic_lift_off_and_landing_keep_these_samples():
-    assert (CONTACT_PAD_BEFORE_S, CONTACT_PAD_AFTER_S, THROTTLE_PAD_AFTER_S) == (0.5, 0.5, 0.1)
+    assert (CONTACT_PAD_BEFORE_S, CONTACT_PAD_AFTER_S, THROTTLE_PAD_AFTER_S, CLIMB_OUT_M_S) == (0.5, 0.5, 0.1, 0.3)
     throttle, attitude = contact_pads(_lift_off_and_land(), RATE)
     # the vertical force: 5 samples (0.1 s) after the last contact sample 99, 25 (0.5 s) before touchdown at 600
     assert np.flatnonzero(~throttle).tolist() == list(range(105, 575))
@@ -30,6 +30,19 @@ def test_pads_on_a_synthetic_lift_off_and_landing_keep_these_samples():
     # 20 more samples (0.4 s) of the climb out for the vertical force, none for the attitude
     assert int((~throttle).sum() - (~attitude).sum()) == 20
     assert not (~attitude & throttle).any()
+
+
+def test_the_shorter_pad_holds_only_where_the_vehicle_climbs_away():
+    """A vehicle that leaves the contact test while still spinning up on the ground (no climb for the
+    first 0.3 s after it) gets the vertical force back only from its climb-out on (sample 115)."""
+    climbing = np.zeros(700, bool)
+    climbing[115:300] = True
+    throttle, attitude = contact_pads(_lift_off_and_land(), RATE, climbing)
+    assert np.flatnonzero(~throttle).tolist() == list(range(115, 575))
+    assert np.flatnonzero(~attitude).tolist() == list(range(125, 575))
+    # never climbing: the long pad, as for the attitude
+    throttle, _ = contact_pads(_lift_off_and_land(), RATE, np.zeros(700, bool))
+    assert np.flatnonzero(~throttle).tolist() == list(range(125, 575))
 
 
 def test_pads_of_a_flight_with_no_contact_and_a_bounce():

@@ -132,16 +132,22 @@ def _fine_commands(ms, lo: float, n: int, dt: float, oversample: int, command_ho
 CONTACT_PAD_BEFORE_S = 0.5
 CONTACT_PAD_AFTER_S = 0.5
 THROTTLE_PAD_AFTER_S = 0.1
+#: climbing away (m/s up, the contact test's speed): the vertical force's shorter pad after a contact
+#: sample holds only there; a real vehicle spinning up on the ground can leave the contact test early
+#: (S500: thrust 0.72 of the weight, its EKF height 0.10 m, supported, for 0.4 s more)
+CLIMB_OUT_M_S = 0.3
 
 
-def contact_pads(contact: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+def contact_pads(contact: np.ndarray, rate_hz: float, climbing: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """The contact samples padded per channel: (vertical force, attitude).
 
     Both are padded by ``CONTACT_PAD_BEFORE_S`` before each contact sample.  After a contact sample
-    (a lift-off) the vertical force keeps ``THROTTLE_PAD_AFTER_S`` only: once the vehicle climbs, the
-    normal force is gone, and a Crazyflie climbs through its whole reach of ground effect in 0.5 s.
-    The moment and horizontal force channels keep ``CONTACT_PAD_AFTER_S``: an attitude flattened on
-    the ground (RotorPy) or a skid's friction is let go at the lift-off and settles after it."""
+    (a lift-off) the vertical force keeps ``THROTTLE_PAD_AFTER_S`` only where the vehicle climbs away
+    (``climbing``; None: everywhere): once it climbs, the normal force is gone, and a Crazyflie climbs
+    through its whole reach of ground effect in 0.5 s.  The moment and horizontal force channels keep
+    ``CONTACT_PAD_AFTER_S``: an attitude flattened on the ground (RotorPy) or a skid's friction is let
+    go at the lift-off and settles after it."""
     c = np.asarray(contact, bool)
     cs = np.concatenate([[0], np.cumsum(c)])
     n = len(c)
@@ -152,7 +158,11 @@ def contact_pads(contact: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.nd
         lo, hi = np.maximum(i - a, 0), np.minimum(i + b + 1, n)
         return (cs[hi] - cs[lo]) > 0
 
-    return padded(CONTACT_PAD_BEFORE_S, THROTTLE_PAD_AFTER_S), padded(CONTACT_PAD_BEFORE_S, CONTACT_PAD_AFTER_S)
+    attitude = padded(CONTACT_PAD_BEFORE_S, CONTACT_PAD_AFTER_S)
+    throttle = padded(CONTACT_PAD_BEFORE_S, THROTTLE_PAD_AFTER_S)
+    if climbing is not None:
+        throttle |= attitude & ~np.asarray(climbing, bool)
+    return throttle, attitude
 
 
 def _ground_contact(vp: VehicleParams, data: EquationData, height: np.ndarray, rate_hz: float
@@ -168,7 +178,7 @@ def _ground_contact(vp: VehicleParams, data: EquationData, height: np.ndarray, r
     # read 1 m for seconds): far too little thrust to fly, yet the accelerometer reads a supported
     # vehicle, not a falling one
     contact |= (thrust < 0.6 * weight) & (vp.mass_kg * data.f[:, 2] - thrust > 0.3 * weight)
-    return contact_pads(contact, rate_hz)
+    return contact_pads(contact, rate_hz, data.v[:, 2] >= CLIMB_OUT_M_S)
 
 
 def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample: int = 10) -> EquationData:
