@@ -121,7 +121,7 @@ def _iv_inertia(name):
     vp = shipped("px4_sih_quadx")
     data = prepare(read_ulog(shared_log("sitl_effects", f"{name}/flight.ulg")), vp)
     win = judge_axes(data, make_windows(data), vp)
-    t = data.t[data.valid]
+    t = data.t[data.valid_attitude]  # the splits as stages.prepare draws them
     t1 = t[0] + 0.65 * (t[-1] - t[0])
     t2 = t[0] + 0.35 * (t[-1] - t[0])
     return instrumented_inertia(data, win, vp, (win.t_end < t1, win.t >= t1), (win.t >= t2, win.t_end < t2),

@@ -96,6 +96,12 @@ def channel_signals(R: np.ndarray, vp: VehicleParams, names: list[str]) -> dict[
     return out
 
 
+def _rows(data: EquationData, channel: str) -> np.ndarray:
+    """The samples a channel is read on: the vertical force's (``valid``) for the throttle, the longer
+    ground-contact pad after a lift-off for the attitude channels (``residuals.contact_pads``)."""
+    return data.valid if channel == "throttle" else data.valid_attitude
+
+
 def _floor(raw: np.ndarray, valid: np.ndarray, fs: float) -> float:
     """Noise floor of a channel after the LOWPASS_HZ filter, from its sample-to-sample differences."""
     hf = np.diff(raw[valid])
@@ -113,11 +119,12 @@ def locate(data: EquationData, R: np.ndarray, raw: np.ndarray, names: list[str],
     per = max(int(round(window_s * fs)), 2)
     out = []
     for ch, lp in lp_ch.items():
-        floor = _floor(raw_ch[ch], data.valid, fs)
+        rows = _rows(data, ch)
+        floor = _floor(raw_ch[ch], rows, fs)
         flagged = []
         for k0 in range(0, data.n - per + 1, per):
             sl = slice(k0, k0 + per)
-            ok = data.valid[sl]
+            ok = rows[sl]
             if ok.sum() < per // 2:
                 continue
             rms = float(np.sqrt(np.mean(lp[sl][ok] ** 2)))
@@ -274,7 +281,8 @@ def excitation(data: EquationData, vp: VehicleParams, names: list[str], blocks: 
     held_blocks = blocks if held_blocks is None else held_blocks
     out = {}
     for ch, sig in command_channels(data, vp, names).items():
-        s = np.where(data.valid, sig, np.nan)
+        rows = _rows(data, ch)
+        s = np.where(rows, sig, np.nan)
         trim = float(np.nanmedian(s)) if np.isfinite(s).any() else 0.0
         fill = np.where(np.isfinite(s), s, trim)
         lp = sosfiltfilt(sos, fill - trim)
@@ -282,7 +290,7 @@ def excitation(data: EquationData, vp: VehicleParams, names: list[str], blocks: 
         # cruise keeps every channel a little busy; a manoeuvre is what stands out of that)
         rms = np.array([np.sqrt(np.mean(lp[b] ** 2)) for b in blocks]) if blocks else np.zeros(0)
         typical = float(np.median(rms)) if rms.size else 0.0
-        floor = max(_floor(sig, data.valid, fs), typical / 1.5)
+        floor = max(_floor(sig, rows, fs), typical / 1.5)
 
         def excited(bl):
             return [b for b in bl if np.sqrt(np.mean(lp[b] ** 2)) > EXCITED_FACTOR * floor]

@@ -92,7 +92,8 @@ def make_windows(data: EquationData, horizon_s: float = HORIZON_S, stride_s: flo
     """Windows whose whole horizon is valid and flown (logged height above ``MIN_HEIGHT_M``)."""
     h = max(int(round(horizon_s / data.dt)), 2)
     stride = max(int(round(stride_s / data.dt)), 1)
-    ok = data.valid & (data.height > MIN_HEIGHT_M)
+    # the attitude's samples: the windows integrate the rates, which the ground holds until after a lift-off
+    ok = data.valid_attitude & (data.height > MIN_HEIGHT_M)
     bad = np.concatenate([[0], np.cumsum(~ok)])
     k = np.arange(0, data.n - h - 1, stride)
     keep = k[(bad[k + h + 1] - bad[k]) == 0]

@@ -302,7 +302,7 @@ def _flight(data, params: Mapping[str, float], vp: VehicleParams, t_split: float
     loop = rate_loop(params, vp)
     if loop is None or data.w_sp is None:
         return None
-    starts, n = make_windows(data.t, data.valid, data.w, data.w_sp, data.dt)
+    starts, n = make_windows(data.t, data.valid_attitude, data.w, data.w_sp, data.dt)
     if starts.size < 20:
         return None
     idx = starts[:, None] + np.arange(n + 1)[None, :]

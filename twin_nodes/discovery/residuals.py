@@ -63,6 +63,9 @@ class EquationData:
     info: dict = field(default_factory=dict)
     #: (T, 3) the rate loop's setpoint, FLU rad/s (None: not logged); an instrument, never a residual
     w_sp: np.ndarray | None = None
+    #: (T,) bool: where the attitude channels (moments, horizontal force) are usable, a subset of
+    #: ``valid`` (the longer ground-contact pad after a lift-off, :func:`contact_pads`); None: ``valid``
+    attitude_valid: np.ndarray | None = None
     #: what every candidate evaluation reuses (see :func:`model_rotor_states`, :func:`exogenous`,
     #: :func:`residual_channels`); derived from the fields above, never changes a result
     cache: dict = field(default_factory=dict, repr=False, compare=False)
@@ -74,6 +77,11 @@ class EquationData:
     @property
     def n(self) -> int:
         return len(self.t)
+
+    @property
+    def valid_attitude(self) -> np.ndarray:
+        """The samples the moment and horizontal force channels are read on."""
+        return self.valid if self.attitude_valid is None else self.attitude_valid
 
 
 @functools.lru_cache(maxsize=32)
@@ -118,8 +126,48 @@ def _fine_commands(ms, lo: float, n: int, dt: float, oversample: int, command_ho
     return u_fine, motor_dt
 
 
-def _ground_contact(vp: VehicleParams, data: EquationData, height: np.ndarray, rate_hz: float) -> np.ndarray:
-    """The grid samples in ground contact (padded by 0.5 s either side)."""
+#: the ground-contact pads (s): before a contact sample (touchdown transients, the 2 Hz low-pass's
+#: spread of the normal force) and after one (a lift-off); the attitude (moment and horizontal force)
+#: channels keep the long pad after a lift-off too, the vertical force only the short one
+CONTACT_PAD_BEFORE_S = 0.5
+CONTACT_PAD_AFTER_S = 0.5
+THROTTLE_PAD_AFTER_S = 0.1
+#: climbing away (m/s up, the contact test's speed): the vertical force's shorter pad after a contact
+#: sample holds only there; a real vehicle spinning up on the ground can leave the contact test early
+#: (S500: thrust 0.72 of the weight, its EKF height 0.10 m, supported, for 0.4 s more)
+CLIMB_OUT_M_S = 0.3
+
+
+def contact_pads(contact: np.ndarray, rate_hz: float, climbing: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The contact samples padded per channel: (vertical force, attitude).
+
+    Both are padded by ``CONTACT_PAD_BEFORE_S`` before each contact sample.  After a contact sample
+    (a lift-off) the vertical force keeps ``THROTTLE_PAD_AFTER_S`` only where the vehicle climbs away
+    (``climbing``; None: everywhere): once it climbs, the normal force is gone, and a Crazyflie climbs
+    through its whole reach of ground effect in 0.5 s.  The moment and horizontal force channels keep
+    ``CONTACT_PAD_AFTER_S``: an attitude flattened on the ground (RotorPy) or a skid's friction is let
+    go at the lift-off and settles after it."""
+    c = np.asarray(contact, bool)
+    cs = np.concatenate([[0], np.cumsum(c)])
+    n = len(c)
+    i = np.arange(n)
+
+    def padded(before: float, after: float) -> np.ndarray:
+        b, a = int(round(before * rate_hz)), int(round(after * rate_hz))
+        lo, hi = np.maximum(i - a, 0), np.minimum(i + b + 1, n)
+        return (cs[hi] - cs[lo]) > 0
+
+    attitude = padded(CONTACT_PAD_BEFORE_S, CONTACT_PAD_AFTER_S)
+    throttle = padded(CONTACT_PAD_BEFORE_S, THROTTLE_PAD_AFTER_S)
+    if climbing is not None:
+        throttle |= attitude & ~np.asarray(climbing, bool)
+    return throttle, attitude
+
+
+def _ground_contact(vp: VehicleParams, data: EquationData, height: np.ndarray, rate_hz: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The grid samples in ground contact, padded per channel (:func:`contact_pads`)."""
     model = Multirotor(vp)
     S = model_rotor_states(model, data)
     thrust = model.params.rotors.thrust_from_state(np.maximum(S, 0)).sum(1)
@@ -130,10 +178,7 @@ def _ground_contact(vp: VehicleParams, data: EquationData, height: np.ndarray, r
     # read 1 m for seconds): far too little thrust to fly, yet the accelerometer reads a supported
     # vehicle, not a falling one
     contact |= (thrust < 0.6 * weight) & (vp.mass_kg * data.f[:, 2] - thrust > 0.3 * weight)
-    # pad contact by 0.5 s either side (touchdown transients)
-    pad = int(round(0.5 * rate_hz))
-    contact = np.convolve(contact.astype(float), np.ones(2 * pad + 1), mode="same") > 0
-    return contact
+    return contact_pads(contact, rate_hz, data.v[:, 2] >= CLIMB_OUT_M_S)
 
 
 def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample: int = 10) -> EquationData:
@@ -199,9 +244,11 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
                         motor_dt_s=motor_dt,
                         info={"airborne": (t0, t1), "ground_enu_z": ground, "timing": timing.describe()})
     # exclude ground contact: low, slow, and the model's thrust well below the weight
-    contact = _ground_contact(vp, data, height, rate_hz)
+    contact, contact_attitude = _ground_contact(vp, data, height, rate_hz)
+    data.attitude_valid = data.valid & ~contact_attitude
     data.valid &= ~contact
     data.info["contact_samples"] = int(contact.sum())
+    data.info["contact_samples_attitude"] = int(contact_attitude.sum())
     rs = log.get("setpoint_rates_flu")
     if rs is not None and len(rs.t_s) > 1:
         data.w_sp = rs.at(t)
@@ -422,6 +469,13 @@ def residual_channels(data: EquationData, vp: VehicleParams, norm_params: Vehicl
     mF, mM = _measured(data, model.params)
     rF = mF - F
     rM = mM - M
+    if data.attitude_valid is not None:
+        # the attitude channels say nothing on the ground or just after a lift-off: zeroed before the
+        # low-pass, so what the ground does to them (RotorPy's flattening) does not spread into the
+        # samples the vertical force is read on
+        off = ~data.attitude_valid
+        rM = np.where(off[:, None], 0.0, rM)
+        rF = np.column_stack([np.where(off, 0.0, rF[:, 0]), np.where(off, 0.0, rF[:, 1]), rF[:, 2]])
     A, tmax, n_rot = _normalisation(data, nominal)
     per_motor = np.column_stack([rF[:, 2], rM]) @ A.T / tmax
     horiz = rF[:, :2] / (n_rot * tmax)

@@ -46,7 +46,8 @@ def band_noise(raw: np.ndarray, low: np.ndarray, dt: float) -> np.ndarray:
 
 def _band_noise(data: EquationData, vp: VehicleParams, M_lp: np.ndarray) -> np.ndarray:
     M_raw, _ = modes(residual_channels(data, vp, lowpass_hz=None), vp)
-    return band_noise(M_raw[data.valid], M_lp[data.valid], data.dt)
+    ok = data.valid_attitude
+    return band_noise(M_raw[ok], M_lp[ok], data.dt)
 
 
 def _changed(vp: VehicleParams) -> dict[str, tuple[VehicleParams, int, str]]:
@@ -66,7 +67,7 @@ def visibility(data: EquationData, vp: VehicleParams) -> dict[str, float]:
     """Per parameter (the inertia axes ``ixx``, ``iyy``, ``izz`` and the yaw moment coefficient ``km``): the
     signal-to-noise ratio over the flight of the change a x1.3 of it makes in its moment channel (the module
     doc).  NaN where it cannot be read."""
-    ok = data.valid
+    ok = data.valid_attitude  # moment channels
     changed = _changed(vp)
     if ok.sum() < 10:
         return {p: float("nan") for p in changed}

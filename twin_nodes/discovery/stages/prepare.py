@@ -58,7 +58,9 @@ def run(inp: FlightInput) -> PreparedFlight:
     log, vp, heldout_fraction, output_error = inp.log, inp.nominal, inp.heldout_fraction, inp.output_error
     data = prepare(log, vp)
     names = channel_names(vp.rotors.count)
-    valid_t = data.t[data.valid]
+    # the splits where the attitude channels are read (the longer ground-contact pad): the vertical force's
+    # extra samples after a lift-off fall before the first split, into fold 1's fit and fold 2's held-out part
+    valid_t = data.t[data.valid_attitude]
     t_split = valid_t[0] + (1.0 - heldout_fraction) * (valid_t[-1] - valid_t[0])
     fit_mask = data.valid & (data.t < t_split)
     held_mask = data.valid & (data.t >= t_split)
