@@ -46,11 +46,13 @@ from twin_nodes.identify.fit_mask import contact_mask, fit_mask
 from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
                                            rotor_states_from_commands, thrust_regressor, translational_regression,
                                            world_to_body)
+from twin_nodes.identify.rate_bound import GAIN_MARGIN_MIN, gain_margin, lag_bound
 from twin_nodes.identify.static_trims import ComSupport, Trims, com_verdict, model_trims
 from twin_nodes.identify.yaw_gain import applied_yaw_gain, yaw_gain_for_twin
 from twin_nodes.logs.flyable import MIN_HORIZONTAL_FRACTION, check_flyable, read_flight
 from twin_nodes.logs.ulog_io import FlightLog
 from twin_nodes.physics.core import NX_BODY
+from twin_nodes.twin.control import ControllerGains
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 from twin_nodes.vehicle.px4_params import int_param  # noqa: I001 - a log integer, range-checked
 from twin_nodes.vehicle.px4_params import (AIRFRAMES, RateGainsPx4, lower_rotors, outer_loop_gains, param,
@@ -415,12 +417,16 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
                                      "PX4's allocation scaling, the thrust slope and the inertia")
     # The converted loop gain is PX4's only if the inertia is the real one; where it is a prior the
     # conversion can exceed what the identified motor lag holds (phase margin ~55 deg needs
-    # Kp tau <= 0.7, as ControllerGains.auto_defaults), so it is capped there and said so.
+    # Kp tau <= 0.7, as ControllerGains.auto_defaults), so it is capped there and said so.  Where the
+    # lag is ASSUMED the flight bounds it instead: the vehicle flew stably with these gains, so a lag
+    # that leaves them no margin is not the vehicle's; the lag becomes min(assumed, 0.7/Kp, 0.3/Kp_yaw)
+    # and PX4's gains are kept, wherever the twin's own discrete rate loop holds them (rate_bound.py).
+    tau, cap_why = _lag_for_flown_gains(tau, rate, src, float(ControllerGains().rate_hz))
     for key, limit in (("rate_p_1_s", 0.7 / tau), ("yawrate_p_1_s", 0.3 / tau)):
-        if rate[key] > limit:
+        if rate[key] > limit * (1 + 1e-9):
             scale = limit / rate[key]
             src["controller (rate loop)"] += (f"; {key} {rate[key]:.3g} capped at {limit:.3g} ({'0.7' if key[0] == 'r' else '0.3'}"
-                                             f"/tau for the identified lag), its I/D scaled alike")
+                                             f"/tau for the {cap_why}), its I/D scaled alike")
             for k in ((key, "rate_i_1_s2", "rate_d") if key == "rate_p_1_s" else (key, "yawrate_i_1_s2")):
                 rate[k] *= scale
     gains.update(rate)
@@ -479,6 +485,28 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
         if k in p:
             src[f"log {k}"] = f"{p[k]:g} (recorded, not modelled)"
     return Nominal(vp, log.path, src, fits)
+
+
+def _lag_for_flown_gains(tau: float, rate: dict, src: dict, rate_hz: float) -> tuple[float, str]:
+    """The motor lag to fly and why the rate gains may still be capped (see the caller): an identified
+    lag is kept; an ASSUMED one is lowered to the flown gains' bound (rate_bound.lag_bound) where the
+    twin's discrete rate loop keeps a gain margin >= 2 with PX4's gains at it, and the source says so."""
+    key = "rotors.tau_up_s/tau_down_s"
+    if not src[key].startswith("ASSUMED"):
+        return tau, "identified lag"
+    bound = lag_bound(rate["rate_p_1_s"], rate["yawrate_p_1_s"])
+    if bound >= tau:
+        return tau, "assumed lag"
+    margin = gain_margin(rate["rate_p_1_s"], rate["rate_i_1_s2"], rate["rate_d"], bound, 1.0 / rate_hz)
+    if margin < GAIN_MARGIN_MIN:
+        src[key] += (f"; the flown rate gains would bound it at {bound:.3g} s, but the twin's {rate_hz:g} Hz rate loop "
+                     f"holds PX4's gains there with a gain margin of only {margin:.2g} (< {GAIN_MARGIN_MIN:g}): "
+                     f"the assumed lag is kept and the gains capped")
+        return tau, "assumed lag"
+    src[key] += (f"; lowered to {bound:.3g} s: the vehicle flew stably with PX4's rate gains (roll/pitch "
+                 f"{rate['rate_p_1_s']:.3g}, yaw {rate['yawrate_p_1_s']:.3g} 1/s), which keep their phase margin only "
+                 f"with a lag <= min(0.7/Kp, 0.3/Kp_yaw) (the twin's {rate_hz:g} Hz rate loop: gain margin {margin:.2g})")
+    return bound, "lag the flown gains bound"
 
 
 def _model_states(log: FlightLog, vp: VehicleParams, t: np.ndarray, sig: dict, segs: list[slice], tau: float,
@@ -795,7 +823,8 @@ def _hover_command(total_thrust_max_n: float, mass_kg: float, f: float, g: float
 _CODE_KEY = b"".join(inspect.getsource(sys.modules[name]).encode() for name in
                      (__name__, "twin_nodes.identify.regression", "twin_nodes.identify.yaw_gain",
                       "twin_nodes.vehicle.px4_params", "twin_nodes.logs.ulog_io", "twin_nodes.identify.fit_mask",
-                      "twin_nodes.identify.coaxial", "twin_nodes.identify.static_trims"))
+                      "twin_nodes.identify.coaxial", "twin_nodes.identify.static_trims",
+                      "twin_nodes.identify.rate_bound"))
 
 #: PX4 airframes (SYS_AUTOSTART) with a shipped params file: (stem, what it is)
 SHIPPED_AIRFRAMES = {10040: "px4_sih_quadx", 1100: "px4_sih_quadx"}

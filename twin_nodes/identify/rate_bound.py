@@ -1,0 +1,66 @@
+"""The motor lag a flight bounds through the rate gains it flew with, and the twin's discrete rate loop.
+
+Where the flight does not determine the motor lag (nominal.py ASSUMES one), the vehicle still flew
+stably with PX4's own rate gains: a lag with which those gains would leave the rate loop with little
+phase margin (Kp tau > 0.7, ~55 deg; yaw Kp tau > 0.3) is not the vehicle's.  :func:`lag_bound`
+gives that bound; :func:`rate_loop_radius` is the spectral radius of the twin's own single-axis
+discrete rate loop (controller.py's PID at the controller rate, zero-order hold, a first-order motor
+lag, a rigid-body integrator), used to say whether flown gains hold in the twin.  Pure numpy/scipy."""
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import expm
+
+#: Kp tau at which the rate loop keeps ~55 deg of phase margin (ControllerGains.auto_defaults); yaw 0.3
+KP_TAU_ROLL = 0.7
+KP_TAU_YAW = 0.3
+#: the gain margin the twin's discrete rate loop must keep with flown gains for them to be kept (classical 6 dB)
+GAIN_MARGIN_MIN = 2.0
+
+
+def lag_bound(rate_p_1_s: float, yawrate_p_1_s: float) -> float:
+    """The largest motor lag [s] with which the flown rate gains keep their phase margin:
+    min(0.7 / Kp_roll/pitch, 0.3 / Kp_yaw); inf where no gain is positive."""
+    b = [k_tau / kp for k_tau, kp in ((KP_TAU_ROLL, rate_p_1_s), (KP_TAU_YAW, yawrate_p_1_s)) if kp > 0]
+    return float(min(b)) if b else float("inf")
+
+
+def rate_loop_radius(kp: float, ki: float, kd: float, tau_s: float, dt_s: float) -> float:
+    """Spectral radius of one axis of the twin's rate loop: every ``dt_s`` the controller sets
+    alpha_cmd = kp e + I - kd (w - w_prev) / dt_s (e = -w), held over the step; the rotors follow it
+    with the first-order lag ``tau_s``; w integrates the achieved angular acceleration; then
+    I += ki e dt_s (control.py's order).  Below 1: stable."""
+    tau = max(float(tau_s), 1e-6)
+    ac = np.array([[0.0, 1.0], [0.0, -1.0 / tau]])
+    bc = np.array([[0.0], [1.0 / tau]])
+    # exact zero-order-hold discretisation via the augmented exponential
+    m = np.zeros((3, 3))
+    m[:2, :2], m[:2, 2:] = ac * dt_s, bc * dt_s
+    e = expm(m)
+    phi, gam = e[:2, :2], e[:2, 2]
+    # state [w, a, w_prev, I]; u = -(kp + kd/dt) w + (kd/dt) w_prev + I
+    u = np.array([-(kp + kd / dt_s), 0.0, kd / dt_s, 1.0])
+    a = np.zeros((4, 4))
+    a[:2, :] = np.hstack([phi, np.zeros((2, 2))]) + np.outer(gam, u)
+    a[2, 0] = 1.0
+    a[3, 0], a[3, 3] = -ki * dt_s, 1.0
+    if ki == 0.0:
+        a = a[:3, :3]  # no integral action: the integrator is a constant, not a mode of the loop
+    return float(np.max(np.abs(np.linalg.eigvals(a))))
+
+
+def gain_margin(kp: float, ki: float, kd: float, tau_s: float, dt_s: float, g_max: float = 64.0) -> float:
+    """The factor by which the whole PID (kp, ki, kd together) can grow before the twin's discrete rate
+    loop (:func:`rate_loop_radius`) goes unstable; ``g_max`` where it never does up to there, 0 where it
+    is unstable as given.  Bisection on the radius, to 1 %."""
+    def unstable(g: float) -> bool:
+        return rate_loop_radius(g * kp, g * ki, g * kd, tau_s, dt_s) >= 1.0
+    if unstable(1.0):
+        return 0.0
+    if not unstable(g_max):
+        return float(g_max)
+    lo, hi = 1.0, g_max
+    while hi / lo > 1.01:
+        mid = float(np.sqrt(lo * hi))
+        lo, hi = (lo, mid) if unstable(mid) else (mid, hi)
+    return lo
