@@ -37,14 +37,16 @@ def _rate(kp, kp_yaw=1.0):
             "yawrate_i_1_s2": 0.1 * kp_yaw}
 
 
-def test_an_assumed_lag_is_lowered_to_the_flown_gains_bound():
+def test_an_assumed_lag_keeps_px4s_gains_where_the_twins_loop_holds_them():
     src = {"rotors.tau_up_s/tau_down_s": ASSUMED_SRC}
-    tau, why = _lag_for_flown_gains(TAU_ASSUMED_S, _rate(125.0), src, 250.0)
-    assert tau == pytest.approx(0.7 / 125.0) and why == "lag the flown gains bound"
-    assert "lowered to 0.0056 s" in src["rotors.tau_up_s/tau_down_s"]
-    # gains the assumed lag already holds: nothing changes
-    tau, why = _lag_for_flown_gains(TAU_ASSUMED_S, _rate(10.0), src, 250.0)
-    assert tau == TAU_ASSUMED_S and why == "assumed lag"
+    # 125 1/s at the assumed 0.05 s (Kp tau 6.25 > 0.7): the twin's 250 Hz loop still has a margin >= 2
+    assert gain_margin(125.0, 125.0, 1.25, TAU_ASSUMED_S, 0.004) >= 2.0
+    assert _lag_for_flown_gains(TAU_ASSUMED_S, _rate(125.0), src, 250.0) == (TAU_ASSUMED_S, None)
+    assert "PX4's rate gains kept (roll/pitch 125" in src["rotors.tau_up_s/tau_down_s"]
+    # gains the assumed lag holds anyway: nothing said, nothing capped
+    src = {"rotors.tau_up_s/tau_down_s": ASSUMED_SRC}
+    assert _lag_for_flown_gains(TAU_ASSUMED_S, _rate(10.0), src, 250.0) == (TAU_ASSUMED_S, "assumed lag")
+    assert src["rotors.tau_up_s/tau_down_s"] == ASSUMED_SRC
 
 
 def test_an_identified_lag_is_kept_and_absurd_gains_still_capped():
@@ -53,7 +55,7 @@ def test_an_identified_lag_is_kept_and_absurd_gains_still_capped():
     # a conversion gone wrong (1.5e4 1/s, a prior inertia far off): the twin's 250 Hz loop cannot hold it
     src = {"rotors.tau_up_s/tau_down_s": ASSUMED_SRC}
     assert _lag_for_flown_gains(TAU_ASSUMED_S, _rate(1.46e4), src, 250.0) == (TAU_ASSUMED_S, "assumed lag")
-    assert "gain margin of only 0" in src["rotors.tau_up_s/tau_down_s"]
+    assert "gain margin of only 0 (< 2): they are capped" in src["rotors.tau_up_s/tau_down_s"]
 
 
 TROPIC = Path(os.path.expanduser("~/.cache/rotortwin/corpus/judging/fr_tropic_ekf_failure.ulg"))
@@ -66,5 +68,6 @@ def test_fr_tropic_keeps_px4s_rate_gains():
     nom = nominal_from_log(read_flight(str(TROPIC), horizontal=False))
     c, r = nom.params.controller, nom.params.rotors
     assert c["rate_p_1_s"] == pytest.approx(125.0, rel=0.01)          # MC_ROLLRATE_P converted, not 14
-    assert r.tau_up_s == pytest.approx(min(0.7 / c["rate_p_1_s"], 0.3 / c["yawrate_p_1_s"]), rel=1e-6)
-    assert "capped" not in nom.sources["controller (rate loop)"].split("; yaw_p")[0]
+    assert c["yawrate_p_1_s"] == pytest.approx(51.6, rel=0.01)
+    assert r.tau_up_s == TAU_ASSUMED_S                                  # the lag is still the assumed one
+    assert "capped" not in nom.sources["controller (rate loop)"]

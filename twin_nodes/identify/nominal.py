@@ -418,12 +418,11 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     # The converted loop gain is PX4's only if the inertia is the real one; where it is a prior the
     # conversion can exceed what the identified motor lag holds (phase margin ~55 deg needs
     # Kp tau <= 0.7, as ControllerGains.auto_defaults), so it is capped there and said so.  Where the
-    # lag is ASSUMED the flight bounds it instead: the vehicle flew stably with these gains, so a lag
-    # that leaves them no margin is not the vehicle's; the lag becomes min(assumed, 0.7/Kp, 0.3/Kp_yaw)
-    # and PX4's gains are kept, wherever the twin's own discrete rate loop holds them (rate_bound.py).
+    # lag is only ASSUMED the rule of thumb has nothing to stand on: the vehicle flew stably with these
+    # gains, so they are kept wherever the twin's own discrete rate loop holds them (rate_bound.py).
     tau, cap_why = _lag_for_flown_gains(tau, rate, src, float(ControllerGains().rate_hz))
     for key, limit in (("rate_p_1_s", 0.7 / tau), ("yawrate_p_1_s", 0.3 / tau)):
-        if rate[key] > limit * (1 + 1e-9):
+        if cap_why and rate[key] > limit * (1 + 1e-9):
             scale = limit / rate[key]
             src["controller (rate loop)"] += (f"; {key} {rate[key]:.3g} capped at {limit:.3g} ({'0.7' if key[0] == 'r' else '0.3'}"
                                              f"/tau for the {cap_why}), its I/D scaled alike")
@@ -487,26 +486,26 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     return Nominal(vp, log.path, src, fits)
 
 
-def _lag_for_flown_gains(tau: float, rate: dict, src: dict, rate_hz: float) -> tuple[float, str]:
-    """The motor lag to fly and why the rate gains may still be capped (see the caller): an identified
-    lag is kept; an ASSUMED one is lowered to the flown gains' bound (rate_bound.lag_bound) where the
-    twin's discrete rate loop keeps a gain margin >= 2 with PX4's gains at it, and the source says so."""
+def _lag_for_flown_gains(tau: float, rate: dict, src: dict, rate_hz: float) -> tuple[float, str | None]:
+    """The motor lag to fly and why the rate gains are capped (None: PX4's gains kept; see the caller):
+    an identified lag caps them; with an ASSUMED one PX4's gains are kept where the twin's discrete rate
+    loop (rate_bound.gain_margin) holds them at that lag with a gain margin >= 2, and the source says so."""
     key = "rotors.tau_up_s/tau_down_s"
     if not src[key].startswith("ASSUMED"):
         return tau, "identified lag"
     bound = lag_bound(rate["rate_p_1_s"], rate["yawrate_p_1_s"])
     if bound >= tau:
         return tau, "assumed lag"
-    margin = gain_margin(rate["rate_p_1_s"], rate["rate_i_1_s2"], rate["rate_d"], bound, 1.0 / rate_hz)
+    margin = gain_margin(rate["rate_p_1_s"], rate["rate_i_1_s2"], rate["rate_d"], tau, 1.0 / rate_hz)
     if margin < GAIN_MARGIN_MIN:
-        src[key] += (f"; the flown rate gains would bound it at {bound:.3g} s, but the twin's {rate_hz:g} Hz rate loop "
-                     f"holds PX4's gains there with a gain margin of only {margin:.2g} (< {GAIN_MARGIN_MIN:g}): "
-                     f"the assumed lag is kept and the gains capped")
+        src[key] += (f"; the twin's {rate_hz:g} Hz rate loop holds PX4's rate gains (roll/pitch "
+                     f"{rate['rate_p_1_s']:.3g} 1/s) at this lag with a gain margin of only {margin:.2g} "
+                     f"(< {GAIN_MARGIN_MIN:g}): they are capped")
         return tau, "assumed lag"
-    src[key] += (f"; lowered to {bound:.3g} s: the vehicle flew stably with PX4's rate gains (roll/pitch "
-                 f"{rate['rate_p_1_s']:.3g}, yaw {rate['yawrate_p_1_s']:.3g} 1/s), which keep their phase margin only "
-                 f"with a lag <= min(0.7/Kp, 0.3/Kp_yaw) (the twin's {rate_hz:g} Hz rate loop: gain margin {margin:.2g})")
-    return bound, "lag the flown gains bound"
+    src[key] += (f"; PX4's rate gains kept (roll/pitch {rate['rate_p_1_s']:.3g}, yaw {rate['yawrate_p_1_s']:.3g} 1/s, "
+                 f"past 0.7/tau and 0.3/tau for this lag): the vehicle flew stably with them and the lag is not "
+                 f"known; the twin's {rate_hz:g} Hz rate loop holds them with a gain margin of {margin:.2g}")
+    return tau, None
 
 
 def _model_states(log: FlightLog, vp: VehicleParams, t: np.ndarray, sig: dict, segs: list[slice], tau: float,

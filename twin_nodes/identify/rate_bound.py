@@ -1,11 +1,12 @@
-"""The motor lag a flight bounds through the rate gains it flew with, and the twin's discrete rate loop.
+"""PX4's flown rate gains against the motor lag, and the twin's own discrete rate loop.
 
-Where the flight does not determine the motor lag (nominal.py ASSUMES one), the vehicle still flew
-stably with PX4's own rate gains: a lag with which those gains would leave the rate loop with little
-phase margin (Kp tau > 0.7, ~55 deg; yaw Kp tau > 0.3) is not the vehicle's.  :func:`lag_bound`
-gives that bound; :func:`rate_loop_radius` is the spectral radius of the twin's own single-axis
-discrete rate loop (controller.py's PID at the controller rate, zero-order hold, a first-order motor
-lag, a rigid-body integrator), used to say whether flown gains hold in the twin.  Pure numpy/scipy."""
+The continuous rule of thumb (Kp tau <= 0.7 for ~55 deg of phase margin, yaw 0.3) is what
+ControllerGains.auto_defaults uses and what caps converted gains where the lag is identified.
+:func:`lag_bound` is the largest lag the flown gains meet that rule with.  Where the lag is only
+ASSUMED the vehicle's stable flight with its gains outranks the rule of thumb (it ignores PX4's D
+term, which acts as added inertia); :func:`rate_loop_radius` / :func:`gain_margin` say whether the
+twin's single-axis discrete rate loop (control.py's PID at the controller rate, zero-order hold, a
+first-order motor lag, a rigid-body integrator) holds those gains.  Pure numpy/scipy."""
 from __future__ import annotations
 
 import numpy as np
