@@ -46,13 +46,12 @@ from twin_nodes.identify.fit_mask import contact_mask, fit_mask
 from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
                                            rotor_states_from_commands, thrust_regressor, translational_regression,
                                            world_to_body)
-from twin_nodes.identify.rate_bound import GAIN_MARGIN_MIN, gain_margin, lag_bound
+from twin_nodes.identify.rate_bound import gain_margin
 from twin_nodes.identify.static_trims import ComSupport, Trims, com_verdict, model_trims
 from twin_nodes.identify.yaw_gain import applied_yaw_gain, yaw_gain_for_twin
 from twin_nodes.logs.flyable import MIN_HORIZONTAL_FRACTION, check_flyable, read_flight
 from twin_nodes.logs.ulog_io import FlightLog
 from twin_nodes.physics.core import NX_BODY
-from twin_nodes.twin.control import ControllerGains
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 from twin_nodes.vehicle.px4_params import int_param  # noqa: I001 - a log integer, range-checked
 from twin_nodes.vehicle.px4_params import (AIRFRAMES, RateGainsPx4, lower_rotors, outer_loop_gains, param,
@@ -65,6 +64,8 @@ TAU_SCAN_S = np.round(np.arange(0.02, 0.2501, 0.01), 3)
 #: the lag counts as identified when the scan's near-best range is no wider than this [s]
 TAU_SPREAD_MAX_S = 0.08
 TAU_ASSUMED_S = 0.05
+#: the twin's controller rate (ControllerGains.rate_hz; identify may not import twin, tests/test_layout.py)
+TWIN_CONTROL_HZ = 250.0
 GRID_HZ = 50.0
 #: a steady wind below this [m/s] is not told apart from the estimate's floor: the PX4 SIH flights
 #: (no wind) give 0.02-0.11 m/s
@@ -417,15 +418,19 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
                                      "PX4's allocation scaling, the thrust slope and the inertia")
     # The converted loop gain is PX4's only if the inertia is the real one; where it is a prior the
     # conversion can exceed what the identified motor lag holds (phase margin ~55 deg needs
-    # Kp tau <= 0.7, as ControllerGains.auto_defaults), so it is capped there and said so.  Where the
-    # lag is only ASSUMED the rule of thumb has nothing to stand on: the vehicle flew stably with these
-    # gains, so they are kept wherever the twin's own discrete rate loop holds them (rate_bound.py).
-    tau, cap_why = _lag_for_flown_gains(tau, rate, src, float(ControllerGains().rate_hz))
+    # Kp tau <= 0.7, as ControllerGains.auto_defaults), so it is capped there and said so.
+    # Where the lag is ASSUMED the cap stands on no measured lag; lifting it there (PX4's gains kept, the
+    # twin's discrete loop holds them) was measured and not adopted (docs/identify_results.md): the
+    # header says which lag it is and what margin PX4's own gains would keep in the twin's rate loop.
+    lag_is = "ASSUMED" if src["rotors.tau_up_s/tau_down_s"].startswith("ASSUMED") else "identified"
+    margin = gain_margin(rate["rate_p_1_s"], rate["rate_i_1_s2"], rate["rate_d"], tau,
+                         1.0 / TWIN_CONTROL_HZ)
     for key, limit in (("rate_p_1_s", 0.7 / tau), ("yawrate_p_1_s", 0.3 / tau)):
-        if cap_why and rate[key] > limit * (1 + 1e-9):
+        if rate[key] > limit:
             scale = limit / rate[key]
+            held = f"; PX4's gains would keep a gain margin of {margin:.2g} in the twin's rate loop" if key[0] == "r" else ""
             src["controller (rate loop)"] += (f"; {key} {rate[key]:.3g} capped at {limit:.3g} ({'0.7' if key[0] == 'r' else '0.3'}"
-                                             f"/tau for the {cap_why}), its I/D scaled alike")
+                                             f"/tau for the {lag_is} lag{held}), its I/D scaled alike")
             for k in ((key, "rate_i_1_s2", "rate_d") if key == "rate_p_1_s" else (key, "yawrate_i_1_s2")):
                 rate[k] *= scale
     gains.update(rate)
@@ -484,28 +489,6 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
         if k in p:
             src[f"log {k}"] = f"{p[k]:g} (recorded, not modelled)"
     return Nominal(vp, log.path, src, fits)
-
-
-def _lag_for_flown_gains(tau: float, rate: dict, src: dict, rate_hz: float) -> tuple[float, str | None]:
-    """The motor lag to fly and why the rate gains are capped (None: PX4's gains kept; see the caller):
-    an identified lag caps them; with an ASSUMED one PX4's gains are kept where the twin's discrete rate
-    loop (rate_bound.gain_margin) holds them at that lag with a gain margin >= 2, and the source says so."""
-    key = "rotors.tau_up_s/tau_down_s"
-    if not src[key].startswith("ASSUMED"):
-        return tau, "identified lag"
-    bound = lag_bound(rate["rate_p_1_s"], rate["yawrate_p_1_s"])
-    if bound >= tau:
-        return tau, "assumed lag"
-    margin = gain_margin(rate["rate_p_1_s"], rate["rate_i_1_s2"], rate["rate_d"], tau, 1.0 / rate_hz)
-    if margin < GAIN_MARGIN_MIN:
-        src[key] += (f"; the twin's {rate_hz:g} Hz rate loop holds PX4's rate gains (roll/pitch "
-                     f"{rate['rate_p_1_s']:.3g} 1/s) at this lag with a gain margin of only {margin:.2g} "
-                     f"(< {GAIN_MARGIN_MIN:g}): they are capped")
-        return tau, "assumed lag"
-    src[key] += (f"; PX4's rate gains kept (roll/pitch {rate['rate_p_1_s']:.3g}, yaw {rate['yawrate_p_1_s']:.3g} 1/s, "
-                 f"past 0.7/tau and 0.3/tau for this lag): the vehicle flew stably with them and the lag is not "
-                 f"known; the twin's {rate_hz:g} Hz rate loop holds them with a gain margin of {margin:.2g}")
-    return tau, None
 
 
 def _model_states(log: FlightLog, vp: VehicleParams, t: np.ndarray, sig: dict, segs: list[slice], tau: float,

@@ -1,30 +1,15 @@
-"""PX4's flown rate gains against the motor lag, and the twin's own discrete rate loop.
+"""The twin's own discrete rate loop against PX4's flown rate gains.
 
 The continuous rule of thumb (Kp tau <= 0.7 for ~55 deg of phase margin, yaw 0.3) is what
-ControllerGains.auto_defaults uses and what caps converted gains where the lag is identified.
-:func:`lag_bound` is the largest lag the flown gains meet that rule with.  Where the lag is only
-ASSUMED the vehicle's stable flight with its gains outranks the rule of thumb (it ignores PX4's D
-term, which acts as added inertia); :func:`rate_loop_radius` / :func:`gain_margin` say whether the
-twin's single-axis discrete rate loop (control.py's PID at the controller rate, zero-order hold, a
-first-order motor lag, a rigid-body integrator) holds those gains.  Pure numpy/scipy."""
+ControllerGains.auto_defaults uses and what caps the converted PX4 gains in nominal.py.  It ignores
+PX4's D term (which acts as added inertia) and the controller's sample time; :func:`rate_loop_radius`
+and :func:`gain_margin` give the single-axis discrete loop the twin really flies (control.py's PID at
+the controller rate, zero-order hold, a first-order motor lag, a rigid-body integrator), so a cap can
+say what margin PX4's own gains would have kept.  Pure numpy/scipy."""
 from __future__ import annotations
 
 import numpy as np
 from scipy.linalg import expm
-
-#: Kp tau at which the rate loop keeps ~55 deg of phase margin (ControllerGains.auto_defaults); yaw 0.3
-KP_TAU_ROLL = 0.7
-KP_TAU_YAW = 0.3
-#: the gain margin the twin's discrete rate loop must keep with flown gains for them to be kept (classical 6 dB)
-GAIN_MARGIN_MIN = 2.0
-
-
-def lag_bound(rate_p_1_s: float, yawrate_p_1_s: float) -> float:
-    """The largest motor lag [s] with which the flown rate gains keep their phase margin:
-    min(0.7 / Kp_roll/pitch, 0.3 / Kp_yaw); inf where no gain is positive."""
-    b = [k_tau / kp for k_tau, kp in ((KP_TAU_ROLL, rate_p_1_s), (KP_TAU_YAW, yawrate_p_1_s)) if kp > 0]
-    return float(min(b)) if b else float("inf")
-
 
 def rate_loop_radius(kp: float, ki: float, kd: float, tau_s: float, dt_s: float) -> float:
     """Spectral radius of one axis of the twin's rate loop: every ``dt_s`` the controller sets
