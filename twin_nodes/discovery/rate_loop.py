@@ -229,7 +229,10 @@ def residuals(loop: RateLoop, axis: int, w: np.ndarray, sp: np.ndarray, dt: floa
     A = np.moveaxis(B, 1, -1)                                           # (S,K,n,3)
     AtA = np.einsum("skni,sknj->skij", A, A) + 1e-12 * np.eye(3)
     Aty = np.einsum("skni,skn->ski", A, Y)
-    c = np.linalg.solve(AtA, Aty[..., None])[..., 0]
+    try:
+        c = np.linalg.solve(AtA, Aty[..., None])[..., 0]
+    except np.linalg.LinAlgError:  # a scale whose loop diverges (flown gains at too small an inertia): least norm
+        c = (np.linalg.pinv(AtA) @ Aty[..., None])[..., 0]
     return Y - np.einsum("skni,ski->skn", A, c)
 
 

@@ -46,6 +46,7 @@ from twin_nodes.identify.fit_mask import contact_mask, fit_mask
 from twin_nodes.identify.regression import (RotorGeometry, fit_linear, lowpass,
                                            rotor_states_from_commands, thrust_regressor, translational_regression,
                                            world_to_body)
+from twin_nodes.identify.rate_bound import gain_margin
 from twin_nodes.identify.static_trims import ComSupport, Trims, com_verdict, model_trims
 from twin_nodes.identify.yaw_gain import applied_yaw_gain, yaw_gain_for_twin
 from twin_nodes.logs.flyable import MIN_HORIZONTAL_FRACTION, check_flyable, read_flight
@@ -63,6 +64,8 @@ TAU_SCAN_S = np.round(np.arange(0.02, 0.2501, 0.01), 3)
 #: the lag counts as identified when the scan's near-best range is no wider than this [s]
 TAU_SPREAD_MAX_S = 0.08
 TAU_ASSUMED_S = 0.05
+#: the twin's controller rate (ControllerGains.rate_hz; identify may not import twin, tests/test_layout.py)
+TWIN_CONTROL_HZ = 250.0
 GRID_HZ = 50.0
 #: a steady wind below this [m/s] is not told apart from the estimate's floor: the PX4 SIH flights
 #: (no wind) give 0.02-0.11 m/s
@@ -416,11 +419,18 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     # The converted loop gain is PX4's only if the inertia is the real one; where it is a prior the
     # conversion can exceed what the identified motor lag holds (phase margin ~55 deg needs
     # Kp tau <= 0.7, as ControllerGains.auto_defaults), so it is capped there and said so.
+    # Where the lag is ASSUMED the cap stands on no measured lag; lifting it there (PX4's gains kept, the
+    # twin's discrete loop holds them) was measured and not adopted (docs/identify_results.md): the
+    # header says which lag it is and what margin PX4's own gains would keep in the twin's rate loop.
+    lag_is = "ASSUMED" if src["rotors.tau_up_s/tau_down_s"].startswith("ASSUMED") else "identified"
+    margin = gain_margin(rate["rate_p_1_s"], rate["rate_i_1_s2"], rate["rate_d"], tau,
+                         1.0 / TWIN_CONTROL_HZ)
     for key, limit in (("rate_p_1_s", 0.7 / tau), ("yawrate_p_1_s", 0.3 / tau)):
         if rate[key] > limit:
             scale = limit / rate[key]
+            held = f"; PX4's gains would keep a gain margin of {margin:.2g} in the twin's rate loop" if key[0] == "r" else ""
             src["controller (rate loop)"] += (f"; {key} {rate[key]:.3g} capped at {limit:.3g} ({'0.7' if key[0] == 'r' else '0.3'}"
-                                             f"/tau for the identified lag), its I/D scaled alike")
+                                             f"/tau for the {lag_is} lag{held}), its I/D scaled alike")
             for k in ((key, "rate_i_1_s2", "rate_d") if key == "rate_p_1_s" else (key, "yawrate_i_1_s2")):
                 rate[k] *= scale
     gains.update(rate)
@@ -795,7 +805,8 @@ def _hover_command(total_thrust_max_n: float, mass_kg: float, f: float, g: float
 _CODE_KEY = b"".join(inspect.getsource(sys.modules[name]).encode() for name in
                      (__name__, "twin_nodes.identify.regression", "twin_nodes.identify.yaw_gain",
                       "twin_nodes.vehicle.px4_params", "twin_nodes.logs.ulog_io", "twin_nodes.identify.fit_mask",
-                      "twin_nodes.identify.coaxial", "twin_nodes.identify.static_trims"))
+                      "twin_nodes.identify.coaxial", "twin_nodes.identify.static_trims",
+                      "twin_nodes.identify.rate_bound"))
 
 #: PX4 airframes (SYS_AUTOSTART) with a shipped params file: (stem, what it is)
 SHIPPED_AIRFRAMES = {10040: "px4_sih_quadx", 1100: "px4_sih_quadx"}
