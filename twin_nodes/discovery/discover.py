@@ -43,7 +43,7 @@ from twin_nodes.discovery.judging import (ALT_FRACTION, BLOCK_S, HELDOUT_FRACTIO
                                           fit_candidate)
 from twin_nodes.discovery.locate import regimes
 from twin_nodes.discovery.stages import (closed_loop, ground, instrument, mismatch, prepare, refit, report, selection,
-                                        terms, verdicts)
+                                        terms, verdicts, yaw_pair)
 from twin_nodes.discovery.stages.closed_loop import CLOSED_LOOP_TOL_REL, _closed_loop_guard, _closed_loop_metrics, _worse
 from twin_nodes.discovery.stages.instrument import (INSTRUMENTED_BLOCKS_MISSING, _axis_tests, _equation_axes,
                                                     _instrumented, attach_instrumented)
@@ -101,5 +101,8 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     result = report.run(report.ReportInput(log, flight, found, checked, graded, final, closed_loop_metrics,
                                            t_start)).result
     # 9. physics outside the effect list: the structured residual test, a sparse term, named and flown
-    return terms.run(terms.TermsInput(log, flight, checked.accepted, final.current, result,
-                                      closed_loop_metrics)).result
+    result = terms.run(terms.TermsInput(log, flight, checked.accepted, final.current, result,
+                                        closed_loop_metrics)).result
+    # 10. a yaw moment or yaw inertia beside a damping: the yaw axis gives their ratios only, roll/pitch choose
+    yaw_pair.apply(result, flight)
+    return result

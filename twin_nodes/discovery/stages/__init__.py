@@ -15,4 +15,6 @@ runs them in order:
 8. :mod:`.report`: the JSON-ready result (``ReportInput`` -> ``Report``)
 9. :mod:`.terms`: physics outside the effect list: the structured residual test, a sparse term named,
    flown and graded (``TermsInput`` -> ``Terms``, adds ``terms`` to the result)
+10. :mod:`.yaw_pair`: a yaw moment or yaw inertia beside a damping, read on roll/pitch (``apply`` on the
+    result; adds ``yaw_pair``)
 """

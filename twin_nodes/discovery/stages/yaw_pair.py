@@ -1,0 +1,115 @@
+"""Stage 10, the yaw pair beside an angular damping, read on roll and pitch (``apply`` on the result).
+
+On the yaw axis a yaw moment and a yaw inertia are one ratio, km / Izz, and an angular damping enters as
+k_d / Izz: with both a damping and one yaw-scale effect (``yaw_moment``, or ``inertia`` with Ixx and Iyy at the
+model's) accepted, the joint refit gives one of two readings that fit yaw equally,
+
+    (km x s, k_d)  or  (Izz / s, k_d / s),
+
+and the damping it reports is the truth's only if it picked the vehicle's reading (PX4 SIH u017, SIH_Q_MAX x1.3 +
+SIH_KDW x2: Izz x0.746 with k_d 0.0385 for km x1.34 with 0.0517; the truth 0.026 and 0.05).  Roll and pitch carry
+k_d alone (their inertia and arms are the model's), so they choose: the other reading is taken when it lowers the
+roll + pitch equation error over the flight's blocks beyond ``T_CRIT`` (the choice fits nothing on roll/pitch) and
+also on the held-out part.  The result's ``yaw_pair`` holds the numbers either way."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from twin_nodes.discovery.blocktest import _block_stats
+from twin_nodes.discovery.judging import BLOCK_S, T_CRIT, _blocks
+from twin_nodes.discovery.residuals import modes, residual_channels
+from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
+
+#: the roll and pitch modes of :func:`~twin_nodes.discovery.residuals.modes`
+ROLL_PITCH = [1, 2]
+
+
+def _without(vp: VehicleParams, name: str) -> VehicleParams:
+    return vp.replace(effects=tuple(e for e in vp.effects if e[0] != name))
+
+
+def other_reading(current: VehicleParams, nominal: VehicleParams) -> tuple[VehicleParams, str, str, float] | None:
+    """(the vehicle with the yaw pair's other reading, the yaw effect it had, the one it gets, s) where
+    ``current`` has an angular damping and exactly one yaw-scale effect; None otherwise."""
+    eff = current.effect_dict
+    if "angular_damping" not in eff:
+        return None
+    km0 = float(nominal.rotors.km_m)
+    i0 = np.diag(nominal.inertia).astype(float)
+    k = float(eff["angular_damping"]["k_nm_s_rad"])
+    if "yaw_moment" in eff and "inertia" not in eff:
+        s = float(eff["yaw_moment"]["km"]) / km0
+        alt = _without(current, "yaw_moment").with_effect("inertia", ixx=i0[0], iyy=i0[1], izz=i0[2] / s)
+        return alt.with_effect("angular_damping", k_nm_s_rad=k / s), "yaw_moment", "inertia", s
+    if "inertia" in eff and "yaw_moment" not in eff:
+        p = eff["inertia"]
+        if not (math.isclose(p["ixx"], i0[0], rel_tol=1e-6) and math.isclose(p["iyy"], i0[1], rel_tol=1e-6)):
+            return None
+        s = float(i0[2] / p["izz"])
+        alt = _without(current, "inertia").with_effect("yaw_moment", km=km0 * s)
+        return alt.with_effect("angular_damping", k_nm_s_rad=k * s), "inertia", "yaw_moment", s
+    return None
+
+
+def roll_pitch_test(data, nominal: VehicleParams, held_mask: np.ndarray, current: VehicleParams,
+                    alt: VehicleParams) -> dict:
+    """The roll + pitch equation error of ``alt`` against ``current``: the block test over the flight's
+    blocks (t, blocks) and the held-out part's RMS cut."""
+    m0 = modes(residual_channels(data, current, nominal), nominal)[0][:, ROLL_PITCH]
+    m1 = modes(residual_channels(data, alt, nominal), nominal)[0][:, ROLL_PITCH]
+    st = _block_stats(m0, m1, _blocks(data.t, data.valid, BLOCK_S))
+    r0 = float(np.sqrt(np.mean(m0[held_mask] ** 2)))
+    r1 = float(np.sqrt(np.mean(m1[held_mask] ** 2)))
+    return {"t": round(float(st["t"]), 2), "blocks": int(st["n"]),
+            "heldout_before": round(r0, 6), "heldout_after": round(r1, 6),
+            "heldout_cut": round(1.0 - r1 / r0, 4) if r0 > 0 else 0.0}
+
+
+def takes_other(test: dict) -> bool:
+    """Whether roll/pitch choose the other reading: beyond ``T_CRIT`` over the flight, and lower on the held-out part."""
+    return test["t"] > T_CRIT and test["heldout_cut"] > 0.0
+
+
+def apply(result: dict, flight) -> VehicleParams | None:
+    """Read the yaw pair on roll/pitch where a damping and one yaw-scale effect are confirmed; where roll/pitch
+    choose the other reading, the result's entries, ``accepted`` and ``refit_params`` take it (returned; None:
+    unchanged)."""
+    accepted = list(result.get("accepted") or [])
+    if "angular_damping" not in accepted or not result.get("refit_params") or flight.nominal is None:
+        return None
+    current = from_ros_dict(result["refit_params"])
+    other = other_reading(current, flight.nominal)
+    if other is None or other[1] not in accepted:
+        return None
+    alt, was, becomes, s = other
+    test = roll_pitch_test(flight.data, flight.nominal, flight.held_mask, current, alt)
+    switched = takes_other(test)
+    result["yaw_pair"] = {"reported": was, "other": becomes, "yaw_scale": round(s, 4), "roll_pitch": test,
+                          "switched": switched}
+    if not switched:
+        return None
+    note = (f"read on roll/pitch (the yaw axis gives km/Izz and k_d/Izz only): {becomes} with the damping x"
+            f"{s if becomes == 'yaw_moment' else 1 / s:.3f} lowers the roll+pitch equation error (t={test['t']:.1f} "
+            f"over {test['blocks']} blocks, held-out {100 * test['heldout_cut']:.1f} %) against {was}")
+    new = alt.effect_dict
+    for e in result["effects"]:
+        if e.get("verdict") != "confirmed":
+            continue
+        if e["name"] == was:
+            e["read_as"] = {"was": was, "params": e.get("params"), **{k: e.pop(k) for k in
+                                                                    ("held_at_nominal", "equation_axes") if k in e}}
+            e["name"], e["params"] = becomes, dict(new[becomes])
+            e["verdict_note"] = f"{e.get('verdict_note', '')}; {note}"
+        elif e["name"] == "angular_damping":
+            e["read_as"] = {"params": e.get("params")}
+            e["params"] = dict(new["angular_damping"])
+            e["verdict_note"] = f"{e.get('verdict_note', '')}; {note}"
+    result["accepted"] = [becomes if n == was else n for n in accepted]
+    result["refit_params"] = alt.to_ros_dict()
+    return alt
+
+
+__all__ = ["ROLL_PITCH", "apply", "other_reading", "roll_pitch_test", "takes_other"]
