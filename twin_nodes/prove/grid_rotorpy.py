@@ -49,7 +49,7 @@ BATCHES = {
     "judge4": (2929, Path(__file__).resolve().parent / "grids" / "rotorpy_grid_batch4.yaml", "v",
                "2026-11-27 17:20 UTC, before the seventh session changed anything"),
     "judge5": (3030, Path(__file__).resolve().parent / "grids" / "rotorpy_grid_batch5.yaml", "g",
-               "2026-11-27 20:05 UTC, before the eighth session changed anything"),
+               "2026-11-27 19:57 UTC, before the eighth session changed anything"),
 }
 VEHICLES = ("crazyflie", "px4_sihsim_quadx")   # RotorPy's Crazyflie (30 g) and its 1.0 kg PX4 SIH quad preset
 MISSION_KINDS = {"RP1": "waypoints", "RP2": "figure-eight", "RP3": "circle", "RP4": "hover with yaw",
