@@ -110,6 +110,23 @@ def test_new_effect_alarm_needs_repeat():
     assert alarms(rows) == [] and len(trends(rows)) == 1
 
 
+def test_trend_of_a_term_whose_parameters_differ_between_flights():
+    """A stage-9 term keeps other terms on other flights (the real fleet: c_climb on one, c_mu2 on another):
+    each parameter's trend reads 'not found' where that flight's term has no such parameter (was a KeyError
+    that stopped `fleet report`)."""
+    terms = [{"c_one": 0.1, "c_climb": 0.05}, {"c_one": 0.2, "c_mu2": 0.3}, None]
+    rows = [{"path": f"/f{k}.ulg", "status": "ok", "vehicle_id": "v", "flight_time_utc": DAY.format(k + 1),
+             "nominal_mass_kg": 1.0,
+             "effects_json": json.dumps([{"name": "state_term", "verdict": "confirmed", "params": tp}] if tp else [])}
+            for k, tp in enumerate(terms)]
+    tr = {t.param: t for t in trends(rows)}
+    assert set(tr) == {"c_one", "c_climb", "c_mu2"}
+    assert tr["c_climb"].verdicts == ["confirmed", "not found", "not found"] and tr["c_climb"].values[0] == 0.05
+    assert tr["c_mu2"].verdicts == ["not found", "confirmed", "not found"] and tr["c_mu2"].values[1] == 0.3
+    assert tr["c_one"].values[:2] == [0.1, 0.2]
+    alarms(rows)
+
+
 # --- the runner, with a cheap task in place of discovery (pickled by value to the workers) ----
 
 def fake_task(path, catalog, mode, params, params_map, closed_loop_metrics):

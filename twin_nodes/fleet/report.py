@@ -144,11 +144,15 @@ def trends(rows: list[dict]) -> list[Trend]:
                     t.nominal = float(r.get("nominal_mass_kg") or 0) or None
                 elif rule and rule[0] == p:
                     t.nominal = rule[3]
-                val = float(hit["params"][p]) if hit else t.nominal
+                # an effect whose parameters differ from flight to flight (a stage-9 term's terms: c_climb on one
+                # flight, c_mu2 on the next) has this parameter on some flights only: not found on the others
+                x = (hit.get("params") or {}).get(p) if hit else None
+                has = isinstance(x, (int, float))
+                val = float(x) if has else t.nominal
                 t.flights.append(names[r["path"]])
                 t.dates.append(r.get("flight_time_utc") or "")
                 t.values.append(float("nan") if val is None else val)
-                t.verdicts.append(hit["verdict"] if hit else "not found")
+                t.verdicts.append(hit["verdict"] if has else "not found")
                 t.vehicle_twin.append(_against_twin(r))
                 t.since.append(str(r.get("since_twin") or ""))
             out.append(t)
