@@ -141,3 +141,7 @@ def test_hooked_rotor_states_reused_only_where_the_kernel_reads_the_same():
         got = rs.model_rotor_states(Multirotor(variants[k]), data)
         assert np.array_equal(got, want[k], equal_nan=True), k
     assert not np.array_equal(want["exponent"], want["sag"]) and not np.array_equal(want["lag"], want["sag"])
+    # what is kept is the rotor states alone, on the residual's grid: the exogenous series (10x finer) by its
+    # digest (16 kept copies of it took a 60-min flight's discovery over its memory budget)
+    kept = [v for k, v in data.cache.items() if isinstance(k, tuple) and k[0] == "rotor_hooked"]
+    assert kept and all(isinstance(v, np.ndarray) and v.shape == first.shape for v in kept)
