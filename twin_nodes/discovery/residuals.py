@@ -407,10 +407,7 @@ def model_rotor_states(model: Multirotor, data: EquationData) -> np.ndarray:
             _keep(data, hooked, S)
     if key is not None:
         S.flags.writeable = False
-        old = [k for k in data.cache if isinstance(k, tuple) and k[0] == "rotor"]
-        if len(old) >= _ROTOR_CACHE_SIZE:
-            del data.cache[old[0]]
-        data.cache[key] = S
+        _keep(data, key, S)
     return S
 
 
@@ -437,10 +434,7 @@ def _measured(data: EquationData, vp: VehicleParams) -> tuple[np.ndarray, np.nda
         w = data.w
         rF = vp.mass_kg * data.f
         rM = data.alpha @ J.T + np.cross(w, w @ J.T)
-        old = [k for k in data.cache if isinstance(k, tuple) and k[0] == "measured"]
-        if len(old) >= _ROTOR_CACHE_SIZE:
-            del data.cache[old[0]]
-        data.cache[key] = (rF, rM)
+        _keep(data, key, (rF, rM))
     return data.cache[key]
 
 
@@ -478,8 +472,8 @@ def residual_channels(data: EquationData, vp: VehicleParams, norm_params: Vehicl
         # low-pass, so what the ground does to them (RotorPy's flattening) does not spread into the
         # samples the vertical force is read on
         off = ~data.attitude_valid
-        rM = np.where(off[:, None], 0.0, rM)
-        rF = np.column_stack([np.where(off, 0.0, rF[:, 0]), np.where(off, 0.0, rF[:, 1]), rF[:, 2]])
+        rM[off] = 0.0
+        rF[off, :2] = 0.0
     A, tmax, n_rot = _normalisation(data, nominal)
     per_motor = np.column_stack([rF[:, 2], rM]) @ A.T / tmax
     horiz = rF[:, :2] / (n_rot * tmax)

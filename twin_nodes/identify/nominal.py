@@ -423,12 +423,14 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     # twin's discrete loop holds them) was measured and not adopted (docs/identify_results.md): the
     # header says which lag it is and what margin PX4's own gains would keep in the twin's rate loop.
     lag_is = "ASSUMED" if src["rotors.tau_up_s/tau_down_s"].startswith("ASSUMED") else "identified"
-    margin = gain_margin(rate["rate_p_1_s"], rate["rate_i_1_s2"], rate["rate_d"], tau,
-                         1.0 / TWIN_CONTROL_HZ)
     for key, limit in (("rate_p_1_s", 0.7 / tau), ("yawrate_p_1_s", 0.3 / tau)):
         if rate[key] > limit:
             scale = limit / rate[key]
-            held = f"; PX4's gains would keep a gain margin of {margin:.2g} in the twin's rate loop" if key[0] == "r" else ""
+            held = ""
+            if key == "rate_p_1_s":
+                margin = gain_margin(rate["rate_p_1_s"], rate["rate_i_1_s2"], rate["rate_d"], tau,
+                                     1.0 / TWIN_CONTROL_HZ)
+                held = f"; PX4's gains would keep a gain margin of {margin:.2g} in the twin's rate loop"
             src["controller (rate loop)"] += (f"; {key} {rate[key]:.3g} capped at {limit:.3g} ({'0.7' if key[0] == 'r' else '0.3'}"
                                              f"/tau for the {lag_is} lag{held}), its I/D scaled alike")
             for k in ((key, "rate_i_1_s2", "rate_d") if key == "rate_p_1_s" else (key, "yawrate_i_1_s2")):

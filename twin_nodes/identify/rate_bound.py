@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import expm
 
+
 def rate_loop_radius(kp: float, ki: float, kd: float, tau_s: float, dt_s: float) -> float:
     """Spectral radius of one axis of the twin's rate loop: every ``dt_s`` the controller sets
     alpha_cmd = kp e + I - kd (w - w_prev) / dt_s (e = -w), held over the step; the rotors follow it

@@ -390,7 +390,6 @@ class TwinRunner(GroundHandling):
         return sp
 
 
-
 def _same(a: list, b: list) -> bool:
     """``np.array_equal(a, b, equal_nan=True)`` for two equally long lists of floats (the setpoint's
     entries, compared every control step: a numpy call costs more than the comparison)."""

@@ -247,9 +247,8 @@ class VehicleParams:
         if not _known_valid(self):
             return self.replace(effects=tuple(eff))
         # self passed validate() and only its effects change: every check validate() would make on the copy
-        # is one it made on self, but the new effect's, made here as validate() makes it (a fit's every
-        # evaluation comes here: the full check cost more than the evaluation's model)
-        _check_effect(self.source, name, dict(eff[-1][1]), self.rotors.count)
+        # is one it made on self, but the new effect's, made above (a fit's every evaluation comes here: the
+        # full check cost more than the evaluation's model)
         new = dataclasses.replace(self, effects=tuple(eff))
         _mark_valid(new)
         return new

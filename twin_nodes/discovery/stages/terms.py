@@ -158,7 +158,7 @@ def _verdict(fit: T.TermFit, heldout_cut: float, why: list[str]) -> tuple[str, l
         why.append(f"not significant on held-out blocks (t={fit.t_stat:.1f} over {fit.n_blocks})")
     if fit.cut < MIN_REL_IMPROVEMENT:
         why.append(f"explains only {100 * fit.cut:.0f} % of the held-out residual")
-    flown_short = heldout_cut < MIN_REL_IMPROVEMENT
+    flown_short = not heldout_cut >= MIN_REL_IMPROVEMENT  # NaN (no held-out residual): not shown, so short
     if flown_short:
         why.append(f"the term as flown (fitted on the fit part) cuts the held-out part's throttle residual by "
                    f"{100 * heldout_cut:.0f} % < {int(100 * MIN_REL_IMPROVEMENT)} %")
