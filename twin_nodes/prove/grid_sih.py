@@ -30,6 +30,8 @@ BATCHES = {
                "2026-11-27 17:20 UTC, before the seventh session changed anything"),
     "judge5": (3030, REPO / "missions" / "sih_grid" / "batch5.yaml", "h",
                "2026-11-27 19:57 UTC, before the eighth session changed anything"),
+    "judge6": (3131, REPO / "missions" / "sih_grid" / "batch6.yaml", "m",
+               "2026-11-27 22:58 UTC, before the ninth session changed anything"),
 }
 #: the halves ``prove --grid`` takes: batch 1's two, each judging-only batch (the same names in both grids:
 #: grid_rotorpy.BATCHES, tests/test_grids.py), or all
