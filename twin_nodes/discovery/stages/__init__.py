@@ -7,6 +7,8 @@ runs them in order:
 3. :mod:`.selection`: greedy forward selection (``SelectionInput`` -> ``Selection``); each round runs
    3a. :mod:`.candidates` (``CandidateQuery`` -> ``CandidateSet``) and
    3b. :mod:`.judge` (``JudgeQuery`` -> ``JudgedFits``, the fits per residual)
+   (where nothing passes but a ``likely`` fit is solid, one provisional round on top of it:
+   :mod:`.provisional`)
 4. :mod:`.refit`: the accepted effects refitted jointly (``RefitInput`` -> ``Refit``)
 5. :mod:`.closed_loop`: the closed-loop check (``CheckInput`` -> ``Checked``)
 6. :mod:`.verdicts`: confirmed / likely / rejected (``GradeInput`` -> ``Verdicts``)

@@ -21,6 +21,7 @@ from twin_nodes.discovery.stages.closed_loop import Checked
 from twin_nodes.discovery.stages.instrument import Instrumented
 from twin_nodes.discovery.stages.mismatch import Mismatch
 from twin_nodes.discovery.stages.prepare import PreparedFlight
+from twin_nodes.discovery.stages.provisional import is_provisional
 from twin_nodes.discovery.stages.verdicts import Verdicts
 from twin_nodes.discovery.visibility import barely_excited
 
@@ -76,7 +77,7 @@ def run(inp: ReportInput) -> Report:
         "excitation": S.excitation,
         "not_excited": _not_shown(data, S, inp.verdicts.effects),
         "effects": effects_out,
-        "accepted": [f.candidate.name for f in accepted],
+        "accepted": [f.candidate.name for f in accepted if not is_provisional(f)],
         "likely": likely,
         "after": {"equation_error_heldout": {k: round(float(v), 5) for k, v in zip(names, after_held)}},
         "refit_params": current.to_ros_dict() if accepted else None,

@@ -17,6 +17,7 @@ from twin_nodes.discovery.judging import (ALT_FRACTION, MAX_EFFECTS, MIN_REL_IMP
 from twin_nodes.discovery.stages import candidates, judge
 from twin_nodes.discovery.stages.joint import in_place, merged, offer, own_params
 from twin_nodes.discovery.stages.prepare import PreparedFlight
+from twin_nodes.discovery.stages.provisional import Provisional, held_at_one_side, is_provisional, provisional_seed
 from twin_nodes.discovery.verdicts import corroboration, likely_failures
 from twin_nodes.vehicle.params import VehicleParams
 
@@ -61,13 +62,12 @@ def _select(inp: SelectionInput, force: str | None = None) -> Selection | None:
     first_rank: list[str] = []
     oe_gain: dict[str, float] = {}   # round-1 output-error gain, to skip hopeless refits later
     r1_gain: dict[str, float] = {}   # round-1 best gain per candidate
-    rounds = 0
-    energy_1 = None
-    pbar = None
+    rounds, limit, energy_1, pbar = 0, inp.max_effects, None, None
+    prov: Provisional | None = None   # a likely effect the rounds after it are judged on top of (class B)
     if inp.progress:
         from tqdm import tqdm
         pbar = tqdm(desc="discover", unit="fit", mininterval=0.5, leave=False)
-    while rounds < inp.max_effects:
+    while rounds < limit:
         rounds += 1
         R0 = eq.residual(current)
         R0_oe = oe.residual(current) if oe else None
@@ -109,11 +109,18 @@ def _select(inp: SelectionInput, force: str | None = None) -> Selection | None:
                 last[_entry_key(f)] = f
         winner = _winner(kept, blocks)
         if winner is None:
+            if prov is None and force is None:
+                prov = provisional_seed(kept, accepted, current, last)
+                if prov is not None:   # one more round, on top of it; it does not count as an effect
+                    accepted, current, limit = accepted + [prov.fit], prov.fit.vp, limit + 1
+                    continue
+            elif prov is not None and accepted[-1] is prov.fit:
+                accepted, current, last = prov.withdraw()   # nothing found on top of it: as before it
             break
         _carry_refit(winner, accepted)
         accepted.append(winner)
         current = winner.vp
-        if inp.on_first is not None and len(accepted) == 1:
+        if inp.on_first is not None and sum(not is_provisional(f) for f in accepted) == 1:
             inp.on_first(winner.vp)
     if pbar is not None:
         pbar.close()
@@ -194,9 +201,11 @@ def _first_gain(fits: list[Fit]) -> float:
     cross-validation (the two folds disagree).  That candidate explained nothing because the residual it was
     fitted on carried another effect it tried to take up (rotor drag beside a 13 % thrust coefficient: the drag
     fitted the throttle error with its vertical term and lost on held-out data, issue 26's r057), not because
-    there is nothing of it: it is refitted once that effect is accepted.  One that stayed at nominal is pruned."""
+    there is nothing of it: it is refitted once that effect is accepted.  One that stayed at nominal is pruned,
+    unless its nominal is an edge of its range and it stayed there (:func:`held_at_one_side`)."""
     g = max(f.rel_improvement for f in fits)
-    if g < PRUNE_GAIN and any(f.above_floor and not f.at_bound and f.rel_improvement < 0 for f in fits):
+    if g < PRUNE_GAIN and any((f.above_floor and not f.at_bound and f.rel_improvement < 0) or held_at_one_side(f)
+                              for f in fits):
         return PRUNE_GAIN
     return g
 

@@ -14,6 +14,7 @@ from twin_nodes.discovery.judging import (MIN_REL_IMPROVEMENT, MOTOR_DYNAMICS, T
                                           _mode_rms, _summary, _window_folds)
 from twin_nodes.discovery.output_error import projected_view
 from twin_nodes.discovery.stages.prepare import PreparedFlight
+from twin_nodes.discovery.stages.provisional import is_provisional
 from twin_nodes.discovery.stages.joint import COLLECTIVE_SHAPES
 from twin_nodes.discovery.verdicts import grade
 from twin_nodes.vehicle.params import VehicleParams
@@ -43,11 +44,13 @@ def run(inp: GradeInput) -> Verdicts:
     """Grade, rank and describe every candidate's latest fit."""
     S, accepted, last = inp.flight, inp.accepted, inp.last
     eq, oe, vp, names, base_held = S.eq, S.oe, S.nominal, S.names, inp.base_held
-    # grades: confirmed (accepted and kept), likely, rejected (with why)
-    acc_labels = [f.candidate.label for f in accepted]
+    # grades: confirmed (accepted and kept), likely, rejected (with why); a provisional base (stages.provisional)
+    # is in the model but graded on its own fit, never confirmed for what was found on top of it
+    found = [f for f in accepted if not is_provisional(f)]
+    acc_labels = [f.candidate.label for f in found]
     side_base: dict[tuple[int, str], np.ndarray] = {}   # (base vehicle, residual) -> that residual of it
     for f in last.values():
-        if f in accepted:
+        if f in found:
             f.accepted = True
         elif f.accepted:
             f.accepted = False
@@ -79,6 +82,9 @@ def run(inp: GradeInput) -> Verdicts:
             i = accepted.index(f)
             e["heldout_contribution"] = {"cut": round(float(f.rel_improvement), 4), "residual": f.kind,
                                          "on_top_of": [g.candidate.name for g in accepted[:i]]}
+        if f in accepted and is_provisional(f):
+            e["provisional"] = ("kept in the model as the base the effects after it were judged on; graded on its "
+                                "own fit")
     _instrumented_views(S, ranked, effects_out)
     told_apart(effects_out)
     return Verdicts(ranked, effects_out, acc_labels)
