@@ -94,7 +94,10 @@ class OldModel:
         self.params = params
         kernel_effects = [e for e in effs if e.has_kernel]
         self.mod = load([type(e) for e in kernel_effects])
-        self.P = np.concatenate([pack(params), *(e.vector() for e in kernel_effects)])
+        # the vehicle packed as today's Multirotor packs it (rotor positions about a com_offset's centre of
+        # mass, since the ninth session): this file keeps the old *generator*, the physics is today's
+        com = np.sum([e.com_flu_m() for e in effs], axis=0) if effs else np.zeros(3)
+        self.P = np.concatenate([pack(params, com), *(e.vector() for e in kernel_effects)])
         self.n_rotors = params.rotors.count
         self.nx = NX_BODY + self.n_rotors
         self.term_names = ["rotors"] + [e.name for e in kernel_effects if e.wrench_kernel is not None]

@@ -216,19 +216,81 @@ def test_rotor_tilt_yaw_moment_is_lever_times_total_thrust(buho):
     np.testing.assert_allclose(m.wrench_terms(x)["rotor_tilt"][1][0], [0.0, 0.0, lever * tz], rtol=1e-12)
 
 
-def test_com_offset_moment_equals_rotor_geometry_about_the_shifted_com(buho):
-    """Thrust about a CoM at (dx, dy) = the nominal model with every rotor moved by (-dx, -dy)."""
+def test_com_offset_thrust_moment_is_minus_d_cross_f_as_before(buho):
+    """Thrust only (no rotor drag): a CoM at (dx, dy) adds -d x F = (-dy Tz, dx Tz, 0) to the rotors' moment (the
+    closed form of the former thrust-only kernel, unchanged) and leaves the force alone; it is geometry, not a
+    wrench term of its own."""
     dx, dy = 0.03, -0.02
-    m = Multirotor(buho.with_effect("com_offset", dx=dx, dy=dy))
-    r = buho.rotors
-    shifted = Multirotor(buho.replace_rotors(x_flu_m=tuple(np.array(r.x_flu_m) - dx),
-                                             y_flu_m=tuple(np.array(r.y_flu_m) - dy)))
+    bare = buho.replace(effects=())
+    nominal, m = Multirotor(bare), Multirotor(bare.with_effect("com_offset", dx=dx, dy=dy))
+    assert m.term_names == nominal.term_names == ["rotors"]
     omega = np.array([300.0, 280.0, 260.0, 240.0])
-    x = m.initial_state(position_enu=(0.0, 0.0, 50.0), rotor_state=omega)
-    moment = sum(mm for _, mm in m.wrench_terms(x).values())
-    np.testing.assert_allclose(moment, shifted.wrench_terms(x)["rotors"][1], rtol=1e-12, atol=1e-12)
-    tz = r.kt_n_s2_rad2 * np.sum(omega**2)
-    np.testing.assert_allclose(m.wrench_terms(x)["com_offset"][1][0], [-dy * tz, dx * tz, 0.0], rtol=1e-12)
+    x = probe_state(m, omega)
+    (f0, m0), (f, mom) = nominal.wrench_terms(x)["rotors"], m.wrench_terms(x)["rotors"]
+    tz = bare.rotors.kt_n_s2_rad2 * np.sum(omega**2)
+    np.testing.assert_allclose(mom[0] - m0[0], [-dy * tz, dx * tz, 0.0], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(f[0], f0[0], rtol=0, atol=0)
+    # the controller's geometry is not moved (PX4's mixer does not know where the CoM is)
+    assert m.params.rotors.x_flu_m == bare.rotors.x_flu_m
+
+
+def test_com_offset_turns_the_rotor_drag_about_the_moved_com_in_forward_flight(buho):
+    """Pure translation (no rates) through the air with rotor drag: the H-forces are the same (the hubs' airspeed
+    is v_air at every hub), the force too, and about the moved CoM they add the yaw moment -(d x H)_z
+    = -(dx H_y - dy H_x), H = -k_d sum|omega_i| v_air,xy; roll/pitch change by the thrust's -d x F alone."""
+    kd, dx, dy = 1e-3, 0.04, 0.025
+    vp = buho.replace(effects=()).with_effect("rotor_drag", k_d=kd)
+    nominal, m = Multirotor(vp), Multirotor(vp.with_effect("com_offset", dx=dx, dy=dy))
+    omega = np.array([300.0, 310.0, 290.0, 305.0])
+    x = m.initial_state(position_enu=(0.0, 0.0, 20.0), velocity_enu=(6.0, -2.0, 0.5), yaw_enu_rad=0.7,
+                        rotor_state=omega)
+    wind = (1.0, 0.5, 0.2)
+    vb = air_body(x, wind)
+    H = -kd * np.sum(omega) * vb[:2]
+    tz = vp.rotors.kt_n_s2_rad2 * np.sum(omega**2)
+    t0, t1 = nominal.wrench_terms(x, ext_of(wind=wind)), m.wrench_terms(x, ext_of(wind=wind))
+    np.testing.assert_allclose(t1["rotor_drag"][0][0], [H[0], H[1], 0.0], rtol=1e-12)
+    np.testing.assert_allclose(t1["rotor_drag"][0][0], t0["rotor_drag"][0][0], rtol=1e-12)
+    np.testing.assert_allclose(t1["rotor_drag"][1][0] - t0["rotor_drag"][1][0],
+                               [0.0, 0.0, -(dx * H[1] - dy * H[0])], rtol=1e-12, atol=1e-15)
+    assert abs(dx * H[1] - dy * H[0]) > 1e-3  # a moment the former thrust-only offset left out
+    total = sum(v[1][0] for v in t1.values()) - sum(v[1][0] for v in t0.values())
+    np.testing.assert_allclose(total, [-dy * tz, dx * tz, -(dx * H[1] - dy * H[0])], rtol=1e-12, atol=1e-15)
+
+
+def test_com_offset_moves_the_hubs_yaw_airspeed_and_damping(buho):
+    """Hovering, no wind, yawing at r with rotor drag, equal rotor speeds: each hub moves at w x (r_i - d), so the
+    H-forces no longer cancel: their sum is k_d sum|omega_i| r (-dy, dx) (sum r_i = 0); and the yaw damping is -k_d r sum|omega_i| |r_i - d|^2."""
+    kd, dx, dy, rate = 1e-3, 0.04, -0.03, 0.7
+    vp = buho.replace(effects=()).with_effect("rotor_drag", k_d=kd).with_effect("com_offset", dx=dx, dy=dy)
+    m = Multirotor(vp)
+    omega = np.full(4, 300.0)  # equal speeds on a symmetric frame: without the offset the H-forces cancel
+    x = m.initial_state(position_enu=(0.0, 0.0, 20.0), yaw_enu_rad=0.3, rates_flu=(0.0, 0.0, rate),
+                        rotor_state=omega)
+    f, mom = m.wrench_terms(x)["rotor_drag"]
+    r = vp.rotors
+    np.testing.assert_allclose([np.sum(r.x_flu_m), np.sum(r.y_flu_m)], 0.0, atol=1e-12)
+    moved2 = (np.asarray(r.x_flu_m) - dx) ** 2 + (np.asarray(r.y_flu_m) - dy) ** 2
+    np.testing.assert_allclose(f[0], [kd * np.sum(omega) * rate * -dy, kd * np.sum(omega) * rate * dx, 0.0],
+                               rtol=1e-12)
+    np.testing.assert_allclose(mom[0][2], -kd * rate * np.sum(omega * moved2), rtol=1e-12)
+
+
+def test_com_offset_flies_as_the_rotors_moved_by_minus_d(buho):
+    """With rotor drag, wind and rates, a vehicle with a CoM offset flies what the nominal with every rotor moved
+    by (-dx, -dy) flies (RotorPy's com_offset, prove/grid_rotorpy.py), bit for bit."""
+    dx, dy = 0.03, -0.02
+    vp = buho.with_effect("rotor_drag", k_d=5e-4).with_effect("body_drag", c_dx=0.05, c_dy=0.05, c_dz=0.1)
+    r = vp.rotors
+    m = Multirotor(vp.with_effect("com_offset", dx=dx, dy=dy))
+    moved = Multirotor(vp.replace_rotors(x_flu_m=tuple(np.array(r.x_flu_m) - dx),
+                                         y_flu_m=tuple(np.array(r.y_flu_m) - dy)))
+    x0 = probe_state(m, "hover")
+    U = np.tile(np.array([0.52, 0.55, 0.5, 0.53]), (300, 1))
+    ext = ext_of(wind=(2.0, -1.0, 0.0))
+    X = m.simulate(x0, U, 0.002, ext)
+    np.testing.assert_array_equal(X, moved.simulate(x0, U, 0.002, ext))
+    assert np.ptp(X[:, 10:13]) > 0.1  # it turned
 
 
 # ----------------------------------------------------------------------------- wind

@@ -361,7 +361,7 @@ def test_wrench_terms_sum_to_the_dynamics():
           .with_effect("body_drag", c_dx=0.05, c_dy=0.08, c_dz=0.1).with_effect("com_offset", dx=0.002, dy=-0.001)
           .with_effect("ground_effect", coefficient=0.3, height_scale=1.0))
     m = Multirotor(vp)
-    assert m.term_names == ["rotors", "linear_drag", "angular_damping", "rotor_drag", "body_drag", "com_offset"]
+    assert m.term_names == ["rotors", "linear_drag", "angular_damping", "rotor_drag", "body_drag"]
     h = 0.001
     t = np.arange(1000) * h
     base = 0.55 * (1.0 + 0.2 * np.sin(2 * np.pi * 0.5 * t))

@@ -14,7 +14,8 @@ was 80 % of the trim's, and the twin's yaw split was 1.1 % of full output where 
 the trims) gives with the logged commands and state, less the moment the measured motion needs
 (``I alpha + w x I w``), and makes ``com_offset`` (roll/pitch, ``-d x F`` of the total thrust) and
 ``rotor_tilt`` (yaw, lever x total thrust) of what is left: by construction the twin's steady moment
-balance is the vehicle's.
+balance is the vehicle's.  The offset moves every rotor (its rotor drag too: a yaw moment ``-d x H`` in
+wind), so the lever is read with the offset in the model.
 
 A centre of mass far off (a payload hanging off-centre, 0.10-0.12 m on a 0.23 m arm on the 23 Jun 2023
 V6C flights) is a trim only where the flight shows it: within 30 % of the arm as before; beyond, where
@@ -37,6 +38,11 @@ __all__ = ["TRIM_EFFECTS", "ComSupport", "Trims", "com_verdict", "model_trims", 
 
 #: the effects the trims are made of (replaced, not added to)
 TRIM_EFFECTS = ("com_offset", "rotor_tilt")
+
+
+#: fixed-point steps for the centre-of-mass trim (see model_trims) and the change [m] at which they stop
+_TRIM_STEPS = 8
+_TRIM_TOL_M = 1e-12
 
 
 @dataclass(frozen=True)
@@ -66,30 +72,40 @@ def model_trims(vp: VehicleParams, states: np.ndarray, alpha: np.ndarray | None 
     ``battery_sag`` effect.  Medians over the samples: a steady flight's outliers (a gust, a turn)
     move them little."""
     base = without_trims(vp)
-    model = Multirotor(base)
     X = np.ascontiguousarray(np.atleast_2d(states), dtype=float)
-    if X.shape[1] != model.nx:
-        raise ValueError(f"model_trims: states need {model.nx} columns, got {X.shape[1]}")
     t = np.arange(X.shape[0], dtype=float)
-    ext = model.exogenous(t, np.random.default_rng(0), battery_v)
-    terms = model.wrench_terms(X, ext)
-    m_model = sum(v[1] for v in terms.values())
-    thrust_z = terms["rotors"][0][:, 2]
     J = vp.inertia
     w = X[:, 10:13]
     need = np.cross(w, w @ J.T)
     if alpha is not None:
         need = need + np.asarray(alpha, float) @ J.T
-    trim_m = need - m_model                     # what the trims must give, per sample
-    ok = np.isfinite(trim_m).all(axis=1) & (thrust_z > 1e-6)
-    if not ok.any():
-        raise ValueError("model_trims: no steady sample with thrust")
-    per_n = trim_m[ok] / thrust_z[ok, None]     # per newton of total thrust
-    # com_offset gives (-dy Tz, dx Tz, 0); rotor_tilt (0, 0, lever Tz)
-    dy = -float(np.median(per_n[:, 0]))
-    dx = float(np.median(per_n[:, 1]))
+    # The offset moves every rotor (physics/core.pack): besides -d x F of the thrust it turns the rotor drag's
+    # H-forces about the moved centre of mass (a yaw moment -d x H) and changes the hubs' airspeed w x (r - d).
+    # So (dx, dy) is found by fixed-point steps on the roll/pitch moment per newton (exact for the thrust part,
+    # which dominates: one or two steps), and the lever from the yaw moment left with that offset in the model.
+    dx = dy = 0.0
+    for step in range(_TRIM_STEPS):
+        trial = base if step == 0 else base.with_effect("com_offset", dx=dx, dy=dy)
+        model = Multirotor(trial)
+        if X.shape[1] != model.nx:
+            raise ValueError(f"model_trims: states need {model.nx} columns, got {X.shape[1]}")
+        ext = model.exogenous(t, np.random.default_rng(0), battery_v)
+        terms = model.wrench_terms(X, ext)
+        m_model = sum(v[1] for v in terms.values())
+        thrust_z = terms["rotors"][0][:, 2]
+        trim_m = need - m_model                     # what the trims must still give, per sample
+        ok = np.isfinite(trim_m).all(axis=1) & (thrust_z > 1e-6)
+        if not ok.any():
+            raise ValueError("model_trims: no steady sample with thrust")
+        if step == 0:  # the rest of the model, without any trim
+            other = tuple(float(v) for v in np.median(m_model[ok] - need[ok], axis=0))
+        per_n = trim_m[ok] / thrust_z[ok, None]     # per newton of total thrust
+        # a further offset (ex, ey) gives (-ey Tz, ex Tz, 0) of the thrust; rotor_tilt gives (0, 0, lever Tz)
+        ex, ey = float(np.median(per_n[:, 1])), -float(np.median(per_n[:, 0]))
+        if not math.hypot(ex, ey) > _TRIM_TOL_M or step == _TRIM_STEPS - 1:  # converged (or NaN, or the last step)
+            break
+        dx, dy = dx + ex, dy + ey
     lever = float(np.median(per_n[:, 2]))
-    other = tuple(float(v) for v in np.median(m_model[ok] - need[ok], axis=0))
     return Trims(dx, dy, lever, other, int(ok.sum()))
 
 

@@ -32,11 +32,17 @@ ROTORS = slice(13, None)
 # Layout of the packed vehicle vector P.
 I_MASS, I_G, I_J, I_JINV, I_MODE, I_KT, I_KM, I_WMIN, I_WCMD, I_WMAX, I_TUP, I_TDN, I_TMAX, I_FAC, I_N = (
     0, 1, 2, 11, 20, 21, 22, 23, 24, 25, 26, 27, 28, 29, 30)
-I_ROT = 31  # then x[N], y[N], z[N], direction[N]
+I_ROT = 31  # then x[N], y[N], z[N] (relative to the centre of mass), direction[N]
 
 
-def pack(vp: VehicleParams) -> np.ndarray:
-    """Pack a (validated) parameter set into the kernel vector ``P``."""
+def pack(vp: VehicleParams, com_flu_m=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Pack a (validated) parameter set into the kernel vector ``P``.
+
+    ``com_flu_m``: where the centre of mass is [m, body FLU] relative to the point the rotor positions
+    of ``vp`` are given about (a ``com_offset`` effect).  ``P`` holds the rotor positions relative to the
+    centre of mass, so every kernel that reads them (the thrust's moment, the rotor drag's hub airspeed
+    ``w x r`` and its moment) acts about the centre of mass.  The controllers pack the nominal geometry
+    (PX4's mixer does not know where the centre of mass is)."""
     r = vp.rotors
     n = r.count
     p = np.zeros(I_ROT + 4 * n)
@@ -56,9 +62,10 @@ def pack(vp: VehicleParams) -> np.ndarray:
     p[I_TMAX] = r.thrust_max_n
     p[I_FAC] = r.thr_mdl_fac
     p[I_N] = n
-    p[I_ROT:I_ROT + n] = r.x_flu_m
-    p[I_ROT + n:I_ROT + 2 * n] = r.y_flu_m
-    p[I_ROT + 2 * n:I_ROT + 3 * n] = r.z_flu_m
+    cx, cy, cz = (float(c) for c in com_flu_m)
+    p[I_ROT:I_ROT + n] = np.asarray(r.x_flu_m, float) - cx
+    p[I_ROT + n:I_ROT + 2 * n] = np.asarray(r.y_flu_m, float) - cy
+    p[I_ROT + 2 * n:I_ROT + 3 * n] = np.asarray(r.z_flu_m, float) - cz
     p[I_ROT + 3 * n:I_ROT + 4 * n] = r.direction
     return p
 

@@ -14,8 +14,11 @@ core is never edited to add an effect):
     centre of mass, and/or a world force ``Fw`` [N, ENU].
 
 Other effects are parameter changes (``apply_to_params``: mass, thrust
-coefficient, inertia...), a command delay (``command_delay_s``) or an
-exogenous input (``exogenous``: wind velocity).
+coefficient, inertia...), a command delay (``command_delay_s``), an
+exogenous input (``exogenous``: wind velocity) or a displaced centre of mass
+(``com_flu_m``: the model packs every rotor position relative to it, so each
+rotor-force term -- thrust, rotor drag and its hub airspeed ``w x r`` -- acts
+about the moved centre of mass; the controller keeps the nominal geometry).
 
 Arguments: ``p`` the effect's parameter vector (order of ``param_names``), then, for an
 effect with ``kernel_reads_vehicle``, ``P`` the packed vehicle (:func:`twin_nodes.physics.core.pack`:
@@ -121,6 +124,11 @@ class Effect:
     def command_delay_s(self) -> float:
         return 0.0
 
+    def com_flu_m(self) -> tuple[float, float, float]:
+        """Where this effect puts the centre of mass [m, body FLU] relative to the point the rotor positions
+        are given about (summed over the effects; :func:`twin_nodes.physics.core.pack`)."""
+        return (0.0, 0.0, 0.0)
+
     def exogenous(self, t: np.ndarray, ext: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Fill/modify the exogenous input series ``ext`` (shape (T, EXT_SIZE)) for times ``t``."""
         return ext
@@ -203,17 +211,6 @@ def _k_body_drag(p, x, R, ext, omega, T, Fb, Mb, Fw):
     Fb[0] -= p[0] * s0 * vb0
     Fb[1] -= p[1] * s1 * vb1
     Fb[2] -= p[2] * s2 * vb2
-
-
-@njit(cache=True)
-def _k_com_offset(p, x, R, ext, omega, T, Fb, Mb, Fw):
-    # Thrust (body +z) acting at rotors measured from a CoM displaced by d=(dx,dy,0):
-    # extra moment -d x F = (-dy*Tz, dx*Tz, 0).
-    tz = 0.0
-    for i in range(T.shape[0]):
-        tz += T[i]
-    Mb[0] -= p[1] * tz
-    Mb[1] += p[0] * tz
 
 
 @njit(cache=True)
@@ -411,8 +408,12 @@ class ComOffset(Effect):
     defaults = {"dx": 0.0, "dy": 0.0}
     units = {"dx": "m (body forward)", "dy": "m (body left)"}
     ranges = {"dx": (-100.0, 100.0), "dy": (-100.0, 100.0)}
-    description = "centre of mass displaced from the geometric centre the rotors are placed about"
-    wrench_kernel = staticmethod(_k_com_offset)
+    description = ("centre of mass displaced from the geometric centre the rotors are placed about: every rotor "
+                   "sits at r_i - d from it, so the thrust (-d x F), the rotor drag's H-forces (-d x H, and the "
+                   "hubs' airspeed w x (r_i - d)) all act about the moved centre of mass")
+
+    def com_flu_m(self) -> tuple[float, float, float]:
+        return (self.params["dx"], self.params["dy"], 0.0)
 
 
 class RotorTilt(Effect):

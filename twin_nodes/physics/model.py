@@ -218,7 +218,8 @@ class Multirotor:
         then the kernel effects' parameters (stepper.py)."""
         registry = _registry([type(e) for e in self.kernel_effects])
         self._mod = _load_generated(registry)
-        vehicle = pack(self.params)
+        com = np.sum([e.com_flu_m() for e in self.effects], axis=0) if self.effects else np.zeros(3)
+        vehicle = pack(self.params, com)  # rotor positions relative to the (moved) centre of mass
         table = effect_table(self.kernel_effects, registry, len(vehicle))
         self.P = np.concatenate([vehicle, table, *(e.vector() for e in self.kernel_effects)])
 
