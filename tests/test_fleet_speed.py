@@ -1,6 +1,8 @@
 """The fleet throughput shortcuts give the answers of the paths they short-cut (docs/fleet.md, Throughput).
 
 - the closed-loop runner compares setpoint samples with ``runner._same`` instead of ``np.array_equal``;
+- the offline closed-loop run decides what each log row flies, whether its setpoint sample is new and its
+  carried terms once for all rows (``runner._row_decisions``) instead of per control step (ninth session);
 - ``VehicleParams.with_effect`` on a validated parent checks only the new effect (the rest was checked);
 - ``fleet discover`` reads a log's GPS time and its actuator-test commands in one pass (``side_topics``).
 """
@@ -14,7 +16,9 @@ import pytest
 from conftest import missing_shared
 
 from twin_nodes.base.errors import ParamsError
-from twin_nodes.twin.runner import _same
+from twin_nodes.twin.flight_mode import fly_mode, fly_modes
+from twin_nodes.twin.inputs import LogFeed
+from twin_nodes.twin.runner import TwinRunner, _row_decisions, _same, _same_as_previous
 from twin_nodes.vehicle.params import _known_valid, load_params, validate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,6 +39,71 @@ def test_same_is_array_equal_with_nan():
         n_diff += not want
         assert _same(a.tolist(), b.tolist()) is want, (a, b)
     assert 300 < n_diff < 2700  # both answers were exercised
+
+
+def test_same_as_previous_is_same_row_by_row():
+    rng = np.random.default_rng(11)
+    pool = np.array([0.0, -0.0, 1.0, np.nan, np.inf, -np.inf])
+    rows = rng.choice(pool, size=(400, 9))
+    rows[1::3] = rows[0:-1:3]  # repeats
+    rows[2::5, :4] = np.nan  # NaN for NaN
+    got = _same_as_previous(rows)
+    prev = np.vstack([np.full((1, 9), np.nan), rows[:-1]])
+    want = [_same(a.tolist(), b.tolist()) for a, b in zip(rows, prev)]
+    assert got.tolist() == want
+    assert 50 < sum(want) < 350
+    assert _same_as_previous(np.zeros((0, 2))).shape == (0,)
+
+
+def _random_feed(rng, n: int) -> LogFeed:
+    """Log rows that exercise every branch of fly_mode: the manual, ACRO, ALTCTL, OFFBOARD and AUTO nav states,
+    thrust, attitude, rate and trajectory setpoints and offboard flags each present, partly NaN or absent."""
+    def maybe_nan(a, p=0.3):
+        a = np.array(a, float)
+        a[rng.random(a.shape) < p] = np.nan
+        return a
+    sp = maybe_nan(rng.choice([0.0, -0.0, 1.5, -2.0], size=(n, 11)), 0.4)
+    sp[1::4] = sp[0:-1:4]  # repeated samples
+    flags = rng.choice([0.0, 1.0], size=(n, 6))
+    flags[rng.random(n) < 0.3] = np.nan
+    return LogFeed(t=np.arange(n) * 0.004, x=np.zeros((n, 13)), finite=np.ones(n, bool), motors=np.zeros((n, 4)),
+                   sp=sp, repeated=np.zeros(n, bool), armed=np.ones(n), battery_v=np.full(n, np.nan),
+                   nav_state=rng.choice([np.nan, 0.0, 1.0, 2.0, 3.0, 10.0, 14.0, 15.0, 16.0], size=n),
+                   throttle=maybe_nan(rng.random(n)), att_q=maybe_nan(rng.random((n, 4)), 0.1),
+                   att_thrust=maybe_nan(rng.random(n)), att_yawrate=maybe_nan(rng.random(n)),
+                   rates_sp=maybe_nan(rng.random((n, 3)), 0.1), offboard=flags)
+
+
+def test_row_decisions_are_the_runners_per_step_ones():
+    """What ``run_twin_on_log`` decides per row equals what the runner decides per control step: fly_mode,
+    the attitude setpoint's finiteness, new trajectory / yaw samples (``_same`` on the previous row) and the
+    carried terms the runner makes from its (ground-shifted) setpoint."""
+    rng = np.random.default_rng(5)
+    feed = _random_feed(rng, 3000)
+    rows = _row_decisions(feed)
+    modes, _ = fly_modes(feed.nav_state, feed.throttle, feed.att_q, feed.att_thrust, feed.rates_sp,
+                         feed.offboard, feed.sp)
+    seen = set()
+    runner = TwinRunner(load_params(ROOT / "params" / "px4_sih_quadx.yaml"))
+    prev = np.full(11, np.nan)
+    for k, (how, q_ok, same, rates) in enumerate(rows):
+        want = fly_mode(feed.nav_state[k], feed.throttle[k], feed.att_q[k], feed.att_thrust[k], feed.rates_sp[k],
+                        feed.offboard[k], feed.sp[k], True)
+        assert how == modes[k] == want, k
+        seen.add(how)
+        assert q_ok == bool(np.isfinite(feed.att_q[k]).all())
+        new, old = feed.sp[k].tolist(), prev.tolist()
+        assert same == (_same(new[0:9], old[0:9]), _same(new[9:11], old[9:11])), k
+        prev = feed.sp[k]
+        # the runner's own terms from the row shifted by a ground height (as _take_setpoint shifts it)
+        runner.sp = feed.sp[k].copy()
+        runner.sp[2] -= 0.7
+        runner.sp_t, runner.yaw_t, runner.t, runner._sp_rates, runner._row_rates = 0.0, 0.0, 0.0, None, None
+        runner._carried_setpoint()
+        mine = runner._sp_rates
+        assert (mine[0], mine[3], mine[4]) == (rates[0], rates[3], rates[4]), k
+        assert np.array_equal(mine[1], rates[1]) and np.array_equal(mine[2], rates[2]), k
+    assert seen == {"attitude", "rates", "real_attitude", "cascade"}
 
 
 def test_with_effect_on_a_validated_parent_checks_as_validate_does():

@@ -639,6 +639,16 @@ class Controller:
                           np.ascontiguousarray(sp, dtype=np.float64), q, float(dt), u, info)
         return u, info
 
+    def update_unchecked(self, x13: np.ndarray, sp: np.ndarray, dt: float, q_att: np.ndarray | None
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`update` without converting its arguments (a control loop's hot path): ``x13`` (13,), ``sp``
+        (SP_SIZE,) and ``q_att`` (4,) float64 arrays already, ``dt`` a float.  The same kernel, the same numbers."""
+        u = np.empty(self.n)
+        info = np.empty(INFO_SIZE)
+        controller_update(self.G, self.C, self.P, self.J, self.A, x13, sp, _NO_Q if q_att is None else q_att, dt,
+                          u, info)
+        return u, info
+
 
 def setpoint(position_enu=None, velocity_enu=None, accel_enu=None, yaw_enu=None, yawspeed=None) -> np.ndarray:
     """Build a setpoint vector; anything left None is not controlled (NaN)."""

@@ -16,7 +16,7 @@ import numpy as np
 from twin_nodes.logs.ulog_io import MANUAL_NAV_STATES
 from twin_nodes.twin.estimate_check import estimate_failed
 
-__all__ = ["ACRO_NAV_STATE", "ALTCTL_NAV_STATE", "OFFBOARD_NAV_STATE", "FLOWN_AS", "fly_mode", "controlled_axes"]
+__all__ = ["ACRO_NAV_STATE", "ALTCTL_NAV_STATE", "OFFBOARD_NAV_STATE", "FLOWN_AS", "fly_mode", "decide_mode", "fly_modes", "controlled_axes"]
 
 #: PX4 nav_state values with their own setpoint: ACRO flies the rate setpoint, OFFBOARD what its flags say
 ACRO_NAV_STATE = 10.0
@@ -35,9 +35,21 @@ def fly_mode(nav: float, real_throttle: float, att_q: np.ndarray, att_thrust: fl
     ``att_q`` (4,) with its thrust ``att_thrust``, rate setpoint ``rates_sp`` (3,) FLU, offboard flags (6,)
     (position, velocity, acceleration, attitude, body_rate, thrust; NaN: not logged) and the twin's setpoint
     ``sp`` (SP_SIZE,); ``has_real_state``: a real state has been received."""
-    thr_ok = math.isfinite(real_throttle)
-    q_ok = bool(np.isfinite(att_q).all())
-    w_ok = bool(np.isfinite(rates_sp).all())
+    f = offboard_flags
+    f_ok = bool(np.isfinite(f).all())
+    return decide_mode(nav, math.isfinite(real_throttle), bool(np.isfinite(att_q).all()), math.isfinite(att_thrust),
+                       bool(np.isfinite(rates_sp).all()), f_ok, f_ok and bool((f[0:3] > 0).any()),
+                       f_ok and bool(f[3] > 0), f_ok and bool(f[4] > 0), bool(np.isfinite(sp[0:9]).any()),
+                       has_real_state)
+
+
+def decide_mode(nav: float, thr_ok: bool, q_ok: bool, att_thr_ok: bool, w_ok: bool, f_ok: bool, f_pos: bool,
+                f_att: bool, f_rate: bool, traj: bool, has_real_state: bool) -> str:
+    """:func:`fly_mode` on what it reads of its inputs: the thrust setpoint finite (``thr_ok``), the attitude
+    setpoint all finite (``q_ok``) and its thrust (``att_thr_ok``), the rate setpoint all finite (``w_ok``),
+    the offboard flags all finite (``f_ok``) and then a position/velocity/acceleration flag, the attitude
+    flag and the body-rate flag set (``f_pos``, ``f_att``, ``f_rate``), a trajectory setpoint (``traj``:
+    any of sp[0:9] finite).  The offline run decides these once per log row (:func:`fly_modes`)."""
     if nav == ACRO_NAV_STATE:
         if w_ok and thr_ok:
             return "rates"
@@ -45,17 +57,15 @@ def fly_mode(nav: float, real_throttle: float, att_q: np.ndarray, att_thrust: fl
         if q_ok and thr_ok:
             return "attitude"
     elif nav == OFFBOARD_NAV_STATE:
-        f = offboard_flags
-        traj = bool(np.isfinite(sp[0:9]).any())
-        if np.isfinite(f).all():
-            if (f[0:3] > 0).any() and traj:
+        if f_ok:
+            if f_pos and traj:
                 return "cascade"
-            if f[3] > 0 and q_ok and (thr_ok or math.isfinite(att_thrust)):
+            if f_att and q_ok and (thr_ok or att_thr_ok):
                 return "attitude"
-            if f[4] > 0 and w_ok and thr_ok:
+            if f_rate and w_ok and thr_ok:
                 return "rates"
         elif not traj:
-            if q_ok and (thr_ok or math.isfinite(att_thrust)):
+            if q_ok and (thr_ok or att_thr_ok):
                 return "attitude"
             if w_ok and thr_ok:
                 return "rates"
@@ -64,6 +74,22 @@ def fly_mode(nav: float, real_throttle: float, att_q: np.ndarray, att_thrust: fl
         return "cascade"
     # a manual mode without the setpoint this log would need: the pilot's throttle and the real attitude
     return "real_attitude" if thr_ok and has_real_state else "cascade"
+
+
+def fly_modes(nav: np.ndarray, real_throttle: np.ndarray, att_q: np.ndarray, att_thrust: np.ndarray,
+              rates_sp: np.ndarray, offboard_flags: np.ndarray, sp: np.ndarray) -> tuple[list[str], list[bool]]:
+    """:func:`fly_mode` for each of n rows of the same inputs ((n,), (n, 4), (n, 3), (n, 6), (n, SP_SIZE)),
+    with a real state received, and whether each row's attitude setpoint is all finite: the per-row tests
+    vectorised once instead of per control step."""
+    fin = np.isfinite
+    f = np.asarray(offboard_flags, float)
+    f_ok = fin(f).all(axis=1)
+    q_ok = fin(att_q).all(axis=1).tolist()
+    rows = zip(np.asarray(nav, float).tolist(), fin(real_throttle).tolist(), q_ok, fin(att_thrust).tolist(),
+               fin(rates_sp).all(axis=1).tolist(), f_ok.tolist(), (f_ok & (f[:, 0:3] > 0).any(axis=1)).tolist(),
+               (f_ok & (f[:, 3] > 0)).tolist(), (f_ok & (f[:, 4] > 0)).tolist(),
+               fin(sp[:, 0:9]).any(axis=1).tolist())
+    return [decide_mode(*r, True) for r in rows], q_ok
 
 
 def controlled_axes(log, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:

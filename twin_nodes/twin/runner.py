@@ -35,7 +35,7 @@ from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.model import Multirotor
 from twin_nodes.twin.sim import DelayLine
 from twin_nodes.twin.pilot import PilotStandIn
-from twin_nodes.twin.flight_mode import ALTCTL_NAV_STATE, fly_mode
+from twin_nodes.twin.flight_mode import ALTCTL_NAV_STATE, fly_mode, fly_modes
 from twin_nodes.twin.ground import TAKEOFF_RAMP_S, GroundHandling, log_takeoff_ramp_s
 from twin_nodes.twin.inputs import log_feed
 from twin_nodes.twin.estimate_check import height_reset_shift
@@ -130,6 +130,11 @@ class TwinRunner(GroundHandling):
         #: the real height the pilot stand-in follows, less the real state's [m]: the resets of the vehicle's
         #: height estimate taken out (minus :func:`~twin_nodes.twin.estimate_check.height_reset_shift`)
         self.pilot_shift_m = 0.0
+        #: the offline run's per-row decision (:func:`~twin_nodes.twin.flight_mode.fly_modes`): what PX4 flies
+        #: and whether its attitude setpoint is all finite, for the inputs now held (None: decided per step)
+        self._row_mode: tuple[str, bool] | None = None
+        #: ... and its setpoint sample's carried terms (as ``_sp_rates``; None: made from ``sp`` when first carried)
+        self._row_rates: tuple | None = None
 
     # ---------------------------------------------------------------- inputs
     def real_state(self, t: float, p_enu, v_enu, q_wxyz, w_flu) -> None:
@@ -161,18 +166,22 @@ class TwinRunner(GroundHandling):
             raise ValueError(f"setpoint must have {SP_SIZE} entries")
         self._take_setpoint(sp, False)
 
-    def _take_setpoint(self, sp: np.ndarray, repeated: bool) -> None:
+    def _take_setpoint(self, sp: np.ndarray, repeated: bool, same: tuple[bool, bool] | None = None) -> None:
         """The setpoint sample ``sp`` (SP_SIZE,), not modified; ``repeated``: bit for bit the sample of
-        the previous call (then nothing changes while the ground height has not)."""
+        the previous call (then nothing changes while the ground height has not); ``same``: whether its
+        trajectory (sp[0:9]) and its yaw (sp[9:11]) equal the previous call's (NaN = NaN) where the caller
+        knows (the offline run compares all rows at once, :func:`_same_as_previous`)."""
         if repeated and self._sp_ground_z == self.ground_z:
             return
         # a new sample is one whose logged values differ (the same sample taken again in a moved ground
         # plane's frame keeps its time: its trajectory is carried on from where it was logged)
-        new, old = sp.tolist(), self._sp_raw.tolist()
-        if not _same(new[0:9], old[0:9]):
+        if same is None:
+            new, old = sp.tolist(), self._sp_raw.tolist()
+            same = _same(new[0:9], old[0:9]), _same(new[9:11], old[9:11])
+        if not same[0]:
             self.sp_t = self.t  # a new setpoint sample: the trajectory is carried on from here
             self._sp_rates = None  # its velocity and acceleration terms, made when first carried
-        if not _same(new[9:11], old[9:11]):
+        if not same[1]:
             self.yaw_t = self.t  # a new yaw sample: carried by its feed-forward from here
             self._sp_rates = None
         self._sp_raw = sp.copy()
@@ -216,7 +225,9 @@ class TwinRunner(GroundHandling):
 
     def _fly_mode(self) -> str:
         """What PX4 flies now, by ``nav_state`` and what the log carries
-        (:func:`~twin_nodes.twin.flight_mode.fly_mode`)."""
+        (:func:`~twin_nodes.twin.flight_mode.fly_mode`; the offline run decides it once per row)."""
+        if self._row_mode is not None:
+            return self._row_mode[0]
         return fly_mode(self.nav_state, self.real_throttle, self.att_q, self.att_thrust, self.rates_sp,
                         self.offboard_flags, self.sp, self.real_x is not None)
 
@@ -292,7 +303,8 @@ class TwinRunner(GroundHandling):
                 # a manual mode in a log without an attitude setpoint: the real attitude stands for it
                 u, info = self.ctrl.update_manual(self.x[:13], self.real_x[6:10], thr, self.dt_c)
             elif how == "cascade":
-                q_att = self.att_q if np.isfinite(self.att_q).all() else None
+                q_ok = self._row_mode[1] if self._row_mode is not None else bool(np.isfinite(self.att_q).all())
+                q_att = self.att_q if q_ok else None
                 sp = self._effective_setpoint()
                 if sp[9] != sp[9] and sp[10] != sp[10] and math.isfinite(self.att_yawrate):
                     # no yaw setpoint (the pilot yawing in POSCTL/ALTCTL): PX4 holds its current heading and
@@ -301,6 +313,9 @@ class TwinRunner(GroundHandling):
                     sp[10] = self.att_yawrate
                 if self.ramp < 1.0 and self.ctrl.law == "px4":  # PX4's take-off ramp; other laws have none
                     u, info = self._ramped_update(sp, q_att)
+                elif self.ctrl.law == "px4":
+                    # the runner's own float64 arrays: the controller's unchecked entry point
+                    u, info = self.ctrl.update_unchecked(self.x[:13], sp, self.dt_c, q_att)
                 else:
                     u, info = self.ctrl.update(self.x[:13], sp, self.dt_c, q_att=q_att)
             elif how == "grounded":
@@ -347,21 +362,30 @@ class TwinRunner(GroundHandling):
         sp = self.sp
         if (self.sp_t is None and self.yaw_t is None) or self.t is None:
             return sp
-        if self._sp_rates is None:
+        if self._sp_rates is None and self._row_rates is not None:
+            self._sp_rates = self._row_rates  # the offline run's, made for all rows at once (the same values)
+        elif self._sp_rates is None:
             # once per setpoint sample, not per control step (the sample is held for 10-50 steps)
             finite = np.isfinite(sp[0:9])
             turning = bool(math.isfinite(sp[9]) and math.isfinite(sp[10]) and sp[10] != 0.0)
             # np.nan_to_num only where a value is not finite (per step: its call costs more than the step)
-            vel = sp[3:6].copy() if finite[3:6].all() else np.nan_to_num(sp[3:6])
-            acc = sp[6:9].copy() if finite[6:9].all() else np.nan_to_num(sp[6:9])
-            self._sp_rates = (bool(finite[3:6].any()), vel, 0.5 * acc, bool(finite[0:6].any()), turning)
+            # as plain floats (the per-step arithmetic below on 3-vectors costs more in numpy calls than in
+            # float operations; each operation is the same IEEE one, so the same numbers)
+            vel = (sp[3:6] if finite[3:6].all() else np.nan_to_num(sp[3:6])).tolist()
+            acc = (sp[6:9] if finite[6:9].all() else np.nan_to_num(sp[6:9])).tolist()
+            half_acc = [0.5 * a for a in acc]
+            self._sp_rates = (bool(finite[3:6].any()), vel, half_acc, bool(finite[0:6].any()), turning)
         moving, vel, half_acc, _, turning = self._sp_rates
         if not (moving or turning):
             return sp
         out = sp.copy()
         if moving and self.sp_t is not None:
             dt = min(max(self.t - self.sp_t, 0.0), 1.0)
-            out[0:3] = sp[0:3] + vel * dt + half_acc * dt * dt
+            p0, p1, p2 = sp[0:3].tolist()
+            # sp[0:3] + vel * dt + half_acc * dt * dt, element by element (the same operations in the same order)
+            out[0] = p0 + vel[0] * dt + half_acc[0] * dt * dt
+            out[1] = p1 + vel[1] * dt + half_acc[1] * dt * dt
+            out[2] = p2 + vel[2] * dt + half_acc[2] * dt * dt
         if turning and self.yaw_t is not None:
             # the yaw setpoint carried by its yaw-rate feed-forward, as PX4's flight task integrates it
             # at the controller rate (held, it would lag the feed-forward and pull the yaw back)
@@ -397,6 +421,34 @@ def _same(a: list, b: list) -> bool:
         if x != y and (x == x or y == y):  # differ, and not both NaN
             return False
     return True
+
+
+def _row_decisions(feed) -> list[tuple]:
+    """What the closed-loop runner decides from each row of a log's feed (:class:`~twin_nodes.twin.inputs.LogFeed`)
+    alone, made for all rows at once: (what PX4 flies, :func:`~twin_nodes.twin.flight_mode.fly_modes`; its attitude
+    setpoint all finite; (the trajectory sp[0:9] the same as the row before, the yaw sp[9:11] the same), as
+    :meth:`TwinRunner._take_setpoint` compares them; the row's carried terms as
+    :meth:`TwinRunner._carried_setpoint` makes them: (moving, velocity, half the acceleration, a position or
+    velocity target, turning), none changed by the ground plane's shift of sp[2]).  The same values the runner
+    makes per control step (``tests/test_fleet_speed.py``), without a numpy call per step."""
+    sp = feed.sp
+    modes, q_ok = fly_modes(feed.nav_state, feed.throttle, feed.att_q, feed.att_thrust, feed.rates_sp,
+                            feed.offboard, sp)
+    same = zip(_same_as_previous(sp[:, 0:9]).tolist(), _same_as_previous(sp[:, 9:11]).tolist())
+    fin = np.isfinite(sp)
+    rates = zip(fin[:, 3:6].any(axis=1).tolist(), np.nan_to_num(sp[:, 3:6]).tolist(),
+                (0.5 * np.nan_to_num(sp[:, 6:9])).tolist(), fin[:, 0:6].any(axis=1).tolist(),
+                (fin[:, 9] & fin[:, 10] & (sp[:, 10] != 0.0)).tolist())
+    return list(zip(modes, q_ok, same, rates))
+
+
+def _same_as_previous(rows: np.ndarray) -> np.ndarray:
+    """For each row of ``rows`` (n, k): :func:`_same` with the row before it (the first against a row of NaN,
+    the runner's setpoint before any sample)."""
+    if not len(rows):
+        return np.zeros(0, bool)
+    prev = np.vstack([np.full((1, rows.shape[1]), np.nan), rows[:-1]])
+    return ((rows == prev) | (np.isnan(rows) & np.isnan(prev))).all(axis=1)
 
 
 @dataclass
@@ -440,20 +492,32 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
     if progress:
         from tqdm import tqdm
         it = tqdm(it, desc=f"twin ({mode} loop)", unit="step", mininterval=0.5, leave=False)
+    # each row's decisions, made for all rows at once (None: per control step, as the live twin makes them)
+    rows = _row_decisions(feed) if mode == "closed" and n else None
+    # the per-row scalars as Python floats and bools (the same values; no numpy scalar per step)
+    U = np.asarray(U, float)
+    t_l, finite_l, repeated_l, armed_l = t.tolist(), finite.tolist(), repeated.tolist(), armed.tolist()
+    nav_l, thr_l, dz_l, batt_l = (np.asarray(a, float).tolist() for a in (nav, thr, dz_ref, batt))
     for k in it:
-        runner._take_real_state(t[k], X[k].copy(), bool(finite[k]))
-        runner.real_motors(U[k])
-        runner._take_setpoint(sp[k], bool(repeated[k]))
-        runner.armed(float(armed[k]))
-        runner.px4_mode(nav[k], thr[k])
+        runner._take_real_state(t_l[k], X[k].copy(), finite_l[k])
+        runner.real_u = U[k]
+        if rows is not None:
+            how, q_ok, same, runner._row_rates = rows[k]
+            runner._row_mode = (how, q_ok)
+            runner._take_setpoint(sp[k], repeated_l[k], same)
+        else:
+            runner._take_setpoint(sp[k], repeated_l[k])
+        runner.armed(armed_l[k])
+        runner.nav_state, runner.real_throttle = nav_l[k], thr_l[k]
         runner.att_q, runner.att_thrust, runner.att_yawrate = att_q[k], att_thr[k], att_yr[k]
         runner.rates_sp, runner.offboard_flags = rates_sp[k], offb[k]
-        runner.pilot_shift_m = float(dz_ref[k])
-        if np.isfinite(batt[k]):
-            runner.battery(batt[k])
+        runner.pilot_shift_m = dz_l[k]
+        b = batt_l[k]
+        if b == b and b not in (math.inf, -math.inf):
+            runner.battery(b)
         if k + 1 < n and runner._initialised and runner.t is not None:
             # advance_to(t[k + 1]) without its per-sample objects (the same steps, the same numbers)
-            t_next = t[k + 1] + 1e-9
+            t_next = t_l[k + 1] + 1e-9
             while runner.t + runner.dt_c <= t_next:
                 _, applied = runner._step()
                 flown[runner.flown_as] = flown.get(runner.flown_as, 0) + 1
