@@ -163,6 +163,22 @@ def test_two_effect_scoring():
     assert r["n_named"] == 2 and not r["params_ok"] and not r["passed"]     # 16.7 % off on mass
 
 
+def test_a_true_effect_confirmed_on_its_own_is_scored_on_that_finding_not_a_pair_partner():
+    # RotorPy w023 (battery sag 1.0 + mass 1.15), ninth session: the sag's pair partner thrust_coefficient 0.712
+    # (mass~1.404) was read for the mass confirmed on its own at 1.1497
+    vp = shipped("px4_sih_quadx")
+    truths = [Truth(Hidden("battery_sag", {"v_ref": 16.8, "exponent": 1.0})), Truth(Hidden("mass", {"mass": 1.15}))]
+    kt = {"with": {"name": "thrust_coefficient", "params": {"kt_scale": 0.7121}}, "plan_flyable": True}
+    res = {"effects": [_eff("battery_sag", {"v_ref": 16.8, "exponent": 1.001}, pair=kt),
+                       _eff("mass", {"mass": 1.1497})]}
+    r = grid_prove.score_grid_flight("f", truths, res, vp)
+    assert r["param_errors"]["mass"] == pytest.approx(0.0003, abs=1e-4) and r["passed"]
+    # without the mass finding the pair partner still names it (and is scored)
+    res["effects"].pop()
+    r = grid_prove.score_grid_flight("f", truths, res, vp)
+    assert r["named"] == ["battery_sag", "mass"] and r["param_errors"]["mass"] > 0.1
+
+
 def test_pair_scoring_needs_the_truth_in_it_and_a_flyable_plan():
     vp = shipped("px4_sih_quadx")
     truth = [Truth(Hidden("actuator_delay", {"delay": 0.04}))]
