@@ -80,7 +80,7 @@ def test_row_decisions_are_the_runners_per_step_ones():
     carried terms the runner makes from its (ground-shifted) setpoint."""
     rng = np.random.default_rng(5)
     feed = _random_feed(rng, 3000)
-    rows = _row_decisions(feed)
+    rows = list(_row_decisions(feed, chunk=1000))  # several chunks
     modes, _ = fly_modes(feed.nav_state, feed.throttle, feed.att_q, feed.att_thrust, feed.rates_sp,
                          feed.offboard, feed.sp)
     seen = set()
@@ -212,3 +212,16 @@ def test_hooked_rotor_states_reused_only_where_the_kernel_reads_the_same():
     # digest (16 kept copies of it took a 60-min flight's discovery over its memory budget)
     kept = [v for k, v in data.cache.items() if isinstance(k, tuple) and k[0] == "rotor_hooked"]
     assert kept and all(isinstance(v, np.ndarray) and v.shape == first.shape for v in kept)
+
+
+def test_row_scalars_chunked_are_the_rows_and_the_next_time():
+    """The offline run's per-row scalars, made a chunk at a time (bounded memory on long logs): every row's
+    values as Python scalars and the next row's time (None after the last), whatever the chunk."""
+    from twin_nodes.twin.runner import _row_scalars
+    t = np.linspace(0.0, 1.0, 11)
+    flags = t > 0.45
+    for chunk in (1, 3, 10, 11, 50):
+        rows = list(_row_scalars([t, flags], chunk=chunk))
+        assert [r[0] for r in rows] == t.tolist() and [r[1] for r in rows] == flags.tolist()
+        assert [r[2] for r in rows] == t.tolist()[1:] + [None]
+        assert all(type(r[0]) is float and type(r[1]) is bool for r in rows)

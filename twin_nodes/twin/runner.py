@@ -423,23 +423,45 @@ def _same(a: list, b: list) -> bool:
     return True
 
 
-def _row_decisions(feed) -> list[tuple]:
+#: rows of a log whose per-row decisions and scalars are made at once (as Python objects, ~0.3 kB a row: made
+#: for every row of a 1-hour log at once they took ~0.5 GB; ``make bench``'s memory budget found it)
+ROW_CHUNK = 4096
+
+
+def _row_decisions(feed, chunk: int = ROW_CHUNK):
     """What the closed-loop runner decides from each row of a log's feed (:class:`~twin_nodes.twin.inputs.LogFeed`)
-    alone, made for all rows at once: (what PX4 flies, :func:`~twin_nodes.twin.flight_mode.fly_modes`; its attitude
-    setpoint all finite; (the trajectory sp[0:9] the same as the row before, the yaw sp[9:11] the same), as
-    :meth:`TwinRunner._take_setpoint` compares them; the row's carried terms as
-    :meth:`TwinRunner._carried_setpoint` makes them: (moving, velocity, half the acceleration, a position or
-    velocity target, turning), none changed by the ground plane's shift of sp[2]).  The same values the runner
-    makes per control step (``tests/test_fleet_speed.py``), without a numpy call per step."""
+    alone, made ``chunk`` rows at a time and yielded row by row: (what PX4 flies,
+    :func:`~twin_nodes.twin.flight_mode.fly_modes`; its attitude setpoint all finite; (the trajectory sp[0:9] the
+    same as the row before, the yaw sp[9:11] the same), as :meth:`TwinRunner._take_setpoint` compares them; the
+    row's carried terms as :meth:`TwinRunner._carried_setpoint` makes them: (moving, velocity, half the
+    acceleration, a position or velocity target, turning), none changed by the ground plane's shift of sp[2]).
+    The same values the runner makes per control step (``tests/test_fleet_speed.py``), without a numpy call per
+    step."""
     sp = feed.sp
-    modes, q_ok = fly_modes(feed.nav_state, feed.throttle, feed.att_q, feed.att_thrust, feed.rates_sp,
-                            feed.offboard, sp)
-    same = zip(_same_as_previous(sp[:, 0:9]).tolist(), _same_as_previous(sp[:, 9:11]).tolist())
+    same_traj, same_yaw = _same_as_previous(sp[:, 0:9]), _same_as_previous(sp[:, 9:11])
     fin = np.isfinite(sp)
-    rates = zip(fin[:, 3:6].any(axis=1).tolist(), np.nan_to_num(sp[:, 3:6]).tolist(),
-                (0.5 * np.nan_to_num(sp[:, 6:9])).tolist(), fin[:, 0:6].any(axis=1).tolist(),
-                (fin[:, 9] & fin[:, 10] & (sp[:, 10] != 0.0)).tolist())
-    return list(zip(modes, q_ok, same, rates))
+    moving, target = fin[:, 3:6].any(axis=1), fin[:, 0:6].any(axis=1)
+    turning = fin[:, 9] & fin[:, 10] & (sp[:, 10] != 0.0)
+    for c0 in range(0, len(sp), chunk):
+        s = slice(c0, c0 + chunk)
+        modes, q_ok = fly_modes(feed.nav_state[s], feed.throttle[s], feed.att_q[s], feed.att_thrust[s],
+                                feed.rates_sp[s], feed.offboard[s], sp[s])
+        same = zip(same_traj[s].tolist(), same_yaw[s].tolist())
+        rates = zip(moving[s].tolist(), np.nan_to_num(sp[s, 3:6]).tolist(),
+                    (0.5 * np.nan_to_num(sp[s, 6:9])).tolist(), target[s].tolist(), turning[s].tolist())
+        yield from zip(modes, q_ok, same, rates)
+
+
+def _row_scalars(columns: list, chunk: int = ROW_CHUNK):
+    """Each row of the equal-length 1-d ``columns`` as a tuple of Python scalars (the same values), made
+    ``chunk`` rows at a time, plus the first column's next value (None after the last row)."""
+    n = len(columns[0])
+    for c0 in range(0, n, chunk):
+        c1 = min(c0 + chunk, n)
+        cols = [np.asarray(c[c0:c1]).tolist() for c in columns]
+        nxt = np.asarray(columns[0][c0 + 1:c1 + 1]).tolist()
+        nxt += [None] * (c1 - c0 - len(nxt))  # the last row has no next
+        yield from zip(*cols, nxt)
 
 
 def _same_as_previous(rows: np.ndarray) -> np.ndarray:
@@ -492,32 +514,31 @@ def run_twin_on_log(log, vp: VehicleParams, mode: str = "closed", horizon_s: flo
     if progress:
         from tqdm import tqdm
         it = tqdm(it, desc=f"twin ({mode} loop)", unit="step", mininterval=0.5, leave=False)
-    # each row's decisions, made for all rows at once (None: per control step, as the live twin makes them)
+    # each row's decisions and scalars as Python objects, made a chunk of rows at a time (None: decided per
+    # control step, as the live twin decides them)
     rows = _row_decisions(feed) if mode == "closed" and n else None
-    # the per-row scalars as Python floats and bools (the same values; no numpy scalar per step)
     U = np.asarray(U, float)
-    t_l, finite_l, repeated_l, armed_l = t.tolist(), finite.tolist(), repeated.tolist(), armed.tolist()
-    nav_l, thr_l, dz_l, batt_l = (np.asarray(a, float).tolist() for a in (nav, thr, dz_ref, batt))
-    for k in it:
-        runner._take_real_state(t_l[k], X[k].copy(), finite_l[k])
+    scalars = _row_scalars([t, finite, repeated, armed, np.asarray(nav, float), np.asarray(thr, float),
+                            dz_ref, np.asarray(batt, float)])
+    for k, (t_k, finite_k, repeated_k, armed_k, nav_k, thr_k, dz_k, b, t_after) in zip(it, scalars):
+        runner._take_real_state(t_k, X[k].copy(), finite_k)
         runner.real_u = U[k]
         if rows is not None:
-            how, q_ok, same, runner._row_rates = rows[k]
+            how, q_ok, same, runner._row_rates = next(rows)
             runner._row_mode = (how, q_ok)
-            runner._take_setpoint(sp[k], repeated_l[k], same)
+            runner._take_setpoint(sp[k], repeated_k, same)
         else:
-            runner._take_setpoint(sp[k], repeated_l[k])
-        runner.armed(armed_l[k])
-        runner.nav_state, runner.real_throttle = nav_l[k], thr_l[k]
+            runner._take_setpoint(sp[k], repeated_k)
+        runner.armed(armed_k)
+        runner.nav_state, runner.real_throttle = nav_k, thr_k
         runner.att_q, runner.att_thrust, runner.att_yawrate = att_q[k], att_thr[k], att_yr[k]
         runner.rates_sp, runner.offboard_flags = rates_sp[k], offb[k]
-        runner.pilot_shift_m = dz_l[k]
-        b = batt_l[k]
+        runner.pilot_shift_m = dz_k
         if b == b and b not in (math.inf, -math.inf):
             runner.battery(b)
-        if k + 1 < n and runner._initialised and runner.t is not None:
+        if t_after is not None and runner._initialised and runner.t is not None:
             # advance_to(t[k + 1]) without its per-sample objects (the same steps, the same numbers)
-            t_next = t_l[k + 1] + 1e-9
+            t_next = t_after + 1e-9
             while runner.t + runner.dt_c <= t_next:
                 _, applied = runner._step()
                 flown[runner.flown_as] = flown.get(runner.flown_as, 0) + 1
