@@ -55,6 +55,8 @@ def run(inp: InstrumentInput) -> Instrumented:
     current = _equation_axes(S, v.ranked, v.effects, current, v.accepted_labels, guard) or current
     instrumented, refit = _instrumented(S, current, v.accepted_labels, v.effects, guard, S.nominal)
     current = refit or current
+    # a motor lag beside an inertia: the two read again together on the rate loop (the lag was fitted without it)
+    current = motor_lag.beside_inertia(S, current, v.effects, guard) or current
     # where the rate loop says the motors are slow, not an inertia: how slow (on the vehicle its yaw was read on)
     on = (_thrust_yaw_share_removed(current) or current) if (instrumented or {}).get("yaw_read_on") else current
     lag = (motor_lag.rate_loop_lag(S, on, v.effects)

@@ -12,6 +12,7 @@ import numpy as np
 
 from twin_nodes.discovery import rate_loop
 from twin_nodes.discovery.judging import MOTOR_DYNAMICS, _GRADE_ORDER
+from twin_nodes.discovery.output_error import IV_AXIS_PARAM
 from twin_nodes.discovery.plans import RATE_LOOP_LOG_S
 from twin_nodes.discovery.stages.prepare import PreparedFlight
 from twin_nodes.discovery.verdicts import LIKELY_MIN_CUT
@@ -114,6 +115,7 @@ def rate_loop_lag(S: PreparedFlight, current: VehicleParams, effects_out: list[d
         if delay is None or {n for n, _ in current.effects if n in MOTOR_DYNAMICS} != {"actuator_delay"}:
             return None
         current = current.replace(effects=tuple(e for e in current.effects if e[0] != "actuator_delay"))
+    current = _with_inertia_finding(current, effects_out)
     r = rate_loop.motor_lag(S.data, S.log_params, current, S.t_split, S.t_split2)
     if r is None:
         return None
@@ -134,6 +136,19 @@ def rate_loop_lag(S: PreparedFlight, current: VehicleParams, effects_out: list[d
     if delay is not None:
         return _beside_the_delay(r, out, delay)
     return _rate_loop_lag_entry(r, out, cut, effects_out)
+
+
+def _with_inertia_finding(current: VehicleParams, effects_out: list[dict]) -> VehicleParams:
+    """``current`` carrying a ``likely`` inertia finding's roll/pitch (a ``likely`` finding is not in the refit
+    vehicle), so that the rate loop reads the motors' lag on the vehicle with it, not on one whose roll/pitch
+    is the nominal's and whose slowness it would read as the motors' (PX4 SIH SIH_T_TAU 0.08 with SIH_L_PITCH
+    0.17, m017: 0.088 s on the nominal inertia); unchanged when the vehicle already carries an inertia."""
+    e = next((e for e in effects_out if e["name"] == "inertia" and e["verdict"] == "likely"), None)
+    if e is None or "inertia" in dict(current.effect_dict):
+        return current
+    I0 = np.diag(effective_params(current).inertia).astype(float)
+    return current.with_effect("inertia", ixx=float(e["params"].get("ixx", I0[0])),
+                               iyy=float(e["params"].get("iyy", I0[1])), izz=float(I0[2]))
 
 
 def _beside_the_delay(r: dict, out: dict, delay: dict) -> dict:
@@ -210,3 +225,72 @@ def _rate_loop_lag_entry(r: dict, out: dict, cut: float, effects_out: list[dict]
               or (e["verdict"] == "likely" and (e.get("cv_improvement") or 0) < new["cv_improvement"])), len(effects_out))
     effects_out.insert(k, new)
     return out
+
+
+def beside_inertia(S: PreparedFlight, current: VehicleParams, effects_out: list[dict],
+                   guard: Callable[[VehicleParams], str | None]) -> VehicleParams | None:
+    """A motor lag found beside an inertia, both read again together by PX4's rate loop flown on the model.
+
+    The flight's own residuals fit the lag before the inertia is in the model, so a slower roll/pitch (a larger
+    inertia, a shorter arm) is partly read as slower motors (PX4 SIH SIH_T_TAU 0.08 s with IXX/IYY x1.3, h019:
+    the output error's lag 0.098 s), and the inertia, read on that vehicle, comes out short (x1.21).  Here the
+    lag is read by the rate loop on the refit vehicle, which carries the inertia (h019: 0.083 s), the roll/pitch
+    inertia the finding moved is read again on that lag, and the lag once more on that inertia (alternating
+    the two one-parameter reads).  The new lag is used where it passes :func:`_lag_checks` and lies more than
+    ``rate_loop.MIN_SE`` standard errors from the finding's; the closed-loop check permitting.  Returns the new
+    refit vehicle (None: unchanged)."""
+    lag_e, in_e = (next((e for e in effects_out if e["name"] == n and e["verdict"] in ("confirmed", "likely")), None)
+                   for n in ("motor_time_constant", "inertia"))
+    eff = dict(current.effect_dict)
+    if lag_e is None or in_e is None or "motor_time_constant" not in eff or "inertia" not in eff or S.nominal is None:
+        return None
+    I_nom = np.diag(effective_params(S.nominal).inertia).astype(float)
+    moved = [a for a, (k, j) in IV_AXIS_PARAM.items()
+             if abs(float(in_e["params"].get(k, I_nom[j])) - I_nom[j]) > 1e-9 * I_nom[j]]
+    own = 0.5 * (eff["motor_time_constant"]["tau_up"] + eff["motor_time_constant"]["tau_down"])
+    d, p = S.data, S.log_params
+    r = rate_loop.motor_lag(d, p, current, S.t_split, S.t_split2)
+    if r is None:
+        return None
+    why, cut = _lag_checks(r)
+    if not abs(r["tau"] - own) > rate_loop.MIN_SE * r["se"]:
+        why.append(f"the lag {r['tau']:.3f} +- {r['se']:.3f} s is within {rate_loop.MIN_SE:g} standard errors of "
+                   f"the finding's {own:.3f} s")
+    if why:
+        lag_e["rate_loop_beside_inertia"] = {"tau": round(float(r["tau"]), 5), "se": round(float(r["se"]), 5),
+                                             "not_used": why}
+        return None
+    new, inertia = current, dict(eff["inertia"])
+    for _ in range(2):
+        tau = float(r["tau_fold1"])
+        new = new.with_effect("motor_time_constant", tau_up=tau, tau_down=tau)
+        iv = rate_loop.inertia(d, p, new, S.t_split, S.t_split2, axes_allowed=tuple(moved)) if moved else None
+        for a in moved if iv is not None and not iv.get("pinned") else ():
+            k, j = IV_AXIS_PARAM[a]
+            g = iv["axes"][a]["gain_fold1"]
+            inertia[k] = float(inertia[k] / g) if np.isfinite(g) and g > 0 else inertia[k]
+        new = new.with_effect("inertia", **inertia)
+        r2 = rate_loop.motor_lag(d, p, new, S.t_split, S.t_split2)
+        if r2 is None or not np.isfinite(r2["tau_fold1"]):
+            break
+        r = r2
+    against = guard(new)
+    if against:
+        lag_e["rate_loop_beside_inertia"] = {"tau": round(float(r["tau"]), 5), "se": round(float(r["se"]), 5),
+                                             "not_used": [against]}
+        return None
+    tau = float(dict(new.effect_dict)["motor_time_constant"]["tau_up"])
+    lag_e.setdefault("own_params", dict(lag_e["params"]))
+    lag_e["params"] = {"tau_up": tau, "tau_down": tau}
+    lag_e["verdict_note"] = (lag_e.get("verdict_note", "") + f"; read again beside the inertia by PX4's rate loop "
+                             f"flown on the vehicle carrying it: lag {tau:.3f} s (the finding's {own:.3f} s; held-out cut "
+                             f"{100 * cut:.0f} %)")
+    for a in moved:
+        k = IV_AXIS_PARAM[a][0]
+        in_e.setdefault("own_params", {}).setdefault(k, in_e["params"][k])
+        in_e["params"][k] = inertia[k]
+    if moved:
+        in_e["verdict_note"] = (in_e.get("verdict_note", "") + "; roll/pitch read again by PX4's rate loop on the "
+                                f"motor lag read beside it ({tau:.3f} s): " +
+                                ", ".join(f"{IV_AXIS_PARAM[a][0]} {inertia[IV_AXIS_PARAM[a][0]]:.4g}" for a in moved))
+    return new
