@@ -21,7 +21,7 @@ import numpy as np
 
 from twin_nodes.physics import core, effects as effects_mod
 from twin_nodes.physics.core import NX_BODY, pack
-from twin_nodes.physics.effects import Effect, effects_from_params
+from twin_nodes.physics.effects import Effect, centre_of_mass, effects_from_params
 from twin_nodes.physics.model import _import_source
 
 _TEMPLATE = (Path(__file__).resolve().parent / "stepper_before.py").read_text()
@@ -96,8 +96,7 @@ class OldModel:
         self.mod = load([type(e) for e in kernel_effects])
         # the vehicle packed as today's Multirotor packs it (rotor positions about a com_offset's centre of
         # mass, since the ninth session): this file keeps the old *generator*, the physics is today's
-        com = np.sum([e.com_flu_m() for e in effs], axis=0) if effs else np.zeros(3)
-        self.P = np.concatenate([pack(params, com), *(e.vector() for e in kernel_effects)])
+        self.P = np.concatenate([pack(params, centre_of_mass(effs)), *(e.vector() for e in kernel_effects)])
         self.n_rotors = params.rotors.count
         self.nx = NX_BODY + self.n_rotors
         self.term_names = ["rotors"] + [e.name for e in kernel_effects if e.wrench_kernel is not None]

@@ -110,6 +110,8 @@ class Fit:
     by_kind: dict = field(default_factory=dict)
     #: the cross-validated cut over the residual channels the candidate changes at all (None: every channel)
     own_cut: float | None = None
+    #: in the model as the provisional base of one more round, not as an accepted effect (stages.provisional)
+    provisional: bool = False
 
     @property
     def explains(self) -> float:

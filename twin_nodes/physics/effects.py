@@ -402,6 +402,12 @@ class GroundEffect(Effect):
     rotor_kernel = staticmethod(_k_ground_effect)
 
 
+def centre_of_mass(effects) -> np.ndarray:
+    """Where ``effects`` put the centre of mass together [m, body FLU] (the sum of their :meth:`Effect.com_flu_m`;
+    zero for none), for :func:`twin_nodes.physics.core.pack`."""
+    return np.sum([e.com_flu_m() for e in effects], axis=0) if effects else np.zeros(3)
+
+
 class ComOffset(Effect):
     name = "com_offset"
     param_names = ("dx", "dy")

@@ -31,7 +31,7 @@ import numpy as np
 from twin_nodes.base.io import cache_dir
 from twin_nodes.physics import core, effects as effects_mod, stepper
 from twin_nodes.physics.core import NX_BODY, pack
-from twin_nodes.physics.effects import EXT_SIZE, Effect, default_ext, effects_from_params
+from twin_nodes.physics.effects import EXT_SIZE, Effect, centre_of_mass, default_ext, effects_from_params
 
 if TYPE_CHECKING:  # pragma: no cover - physics reads a VehicleParams but never imports vehicle/
     from twin_nodes.vehicle.params import VehicleParams
@@ -218,8 +218,8 @@ class Multirotor:
         then the kernel effects' parameters (stepper.py)."""
         registry = _registry([type(e) for e in self.kernel_effects])
         self._mod = _load_generated(registry)
-        com = np.sum([e.com_flu_m() for e in self.effects], axis=0) if self.effects else np.zeros(3)
-        vehicle = pack(self.params, com)  # rotor positions relative to the (moved) centre of mass
+        # rotor positions relative to the (moved) centre of mass
+        vehicle = pack(self.params, centre_of_mass(self.effects))
         table = effect_table(self.kernel_effects, registry, len(vehicle))
         self.P = np.concatenate([vehicle, table, *(e.vector() for e in self.kernel_effects)])
 

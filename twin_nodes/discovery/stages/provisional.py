@@ -41,7 +41,7 @@ class Provisional:
 
 def is_provisional(f: Fit) -> bool:
     """``f`` is in the model as a provisional base, not as an accepted effect."""
-    return bool(getattr(f, "provisional", False))
+    return f.provisional
 
 
 def provisional_seed(kept: list[Fit], accepted: list[Fit], current: VehicleParams,
