@@ -119,7 +119,7 @@ def _inertia(name: str, allowed: tuple[str, ...] = ("roll", "pitch")) -> dict:
 
 def test_px4_sih_50hz_logs_read_the_inertia_change_and_tell_it_from_the_motors():
     """Shared PX4 SIH flights (default 50 Hz logs), each read with PX4's rate loop on the nominal model,
-    the attitude loop closed on roll and pitch (``ATTITUDE_LOOP``): e05 (SIH_IXX/IYY x1.3): roll x1.28,
+    the attitude loop closed on roll and pitch (``with_attitude_loop``): e05 (SIH_IXX/IYY x1.3): roll x1.28,
     pitch x1.33, yaw x1.02 (with the logged rate setpoint as the input instead: roll x1.20); both flagged,
     inertia from fold 1 within 10 % of 0.0325 (the instrument of the commands flagged pitch only).  e04
     (SIH_T_TAU 0.05 -> 0.09 s): roll and pitch read slow, and so does yaw (x1.07): the motors' signature.

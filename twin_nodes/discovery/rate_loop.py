@@ -26,10 +26,10 @@ x1.5 read 1.40-1.55, SIH_L_ROLL 0.2 -> 0.16 (roll x1.25) reads 1.10-1.20 on roll
 Without those delays every axis read 0.85-0.95 on the no-effect flights.  (Those numbers are from the
 logged rate setpoint as the input.)
 
-Roll and pitch are read with PX4's attitude loop closed on the simulated rate (``ATTITUDE_LOOP``,
-:func:`with_attitude_loop`; ninth session, ``docs/discovery.md``): the logged rate setpoint is the
-attitude loop's answer to the vehicle's own motion, and in windows where it is mostly regulation
-(hover, the return and landing) the inertia read low: roll x0.75-0.85 in windows of 0.02-0.04 rad/s
+Roll and pitch are read with PX4's attitude loop closed on the simulated rate (:func:`with_attitude_loop`;
+ninth session, ``docs/discovery.md``): the logged rate setpoint is the attitude loop's answer to the
+vehicle's own motion, and in windows where it is mostly regulation (hover, the return and landing) the
+inertia read low: roll x0.75-0.85 in windows of 0.02-0.04 rad/s
 setpoint standard deviation on three no-effect grid flights (s051, s055, s060), x1.00-1.23 above 0.08;
 SIH_L_ROLL 0.15 (x1.31, h004) 0.96 there and 1.34 above 0.08.  The held-out last 30 % of a flight (the
 return: half the excitation) then read lower than the part fitted.  With the attitude loop the 18 grid
@@ -64,8 +64,6 @@ SCALES = np.exp(np.linspace(math.log(0.5), math.log(2.0), 31))
 CLUSTER = 3
 #: windows simulated at once (a 14-minute flight has ~1700)
 CHUNK = 400
-#: roll and pitch inertia read with PX4's attitude loop closed on the simulated rate (:func:`with_attitude_loop`)
-ATTITUDE_LOOP = True
 
 
 @dataclass(frozen=True)
@@ -326,9 +324,7 @@ MOTOR_YAW_SE = 3.0
 
 def with_attitude_loop(loop: RateLoop, params: Mapping[str, float]) -> RateLoop:
     """``loop`` with PX4's attitude loop closed on roll and pitch (``MC_ROLL_P``, ``MC_PITCH_P``; yaw as it
-    was), where ``ATTITUDE_LOOP`` (:func:`simulate`'s ``w_in``)."""
-    if not ATTITUDE_LOOP:
-        return loop
+    was; :func:`simulate`'s ``w_in``)."""
     kp = [param(params, k, 0.0)[0] for k in ("MC_ROLL_P", "MC_PITCH_P")]
     return dataclasses.replace(loop, att_p=np.array([max(kp[0], 0.0), max(kp[1], 0.0), 0.0]))
 
