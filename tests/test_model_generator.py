@@ -109,7 +109,54 @@ def test_correct_cache_file_is_kept(private_cache, monkeypatch):
     assert model._import_source(name, "X = 1\n").X == 1
     assert path.stat().st_mtime_ns == before
     assert model._import_source(name, "X = 2\n").X == 2 and path.read_text() == "X = 2\n"
-    assert [p.name for p in private_cache.iterdir()] == [path.name]  # no temporary left behind
+    # no temporary left behind; the module and its last-used stamp (not the module's own time)
+    assert sorted(p.name for p in private_cache.iterdir()) == [path.name, f"{name}.used"]
+
+
+def _gen(folder: Path, name: str, age_days: float, now: float, stamp: bool = True) -> None:
+    """A generated module with numba cache files, last used ``age_days`` before ``now``."""
+    (folder / "__pycache__").mkdir(parents=True, exist_ok=True)
+    files = [folder / f"{name}.py", folder / "__pycache__" / f"{name}.step_n-12.py311.nbi",
+             folder / "__pycache__" / f"{name}.step_n-12.py311.1.nbc"]
+    if stamp:
+        files.append(folder / f"{name}.used")
+    for f in files:
+        f.write_text("x")
+        os.utime(f, (now - age_days * 86400.0, now - age_days * 86400.0))
+
+
+def test_prune_removes_modules_unused_for_keep_days_with_their_numba_files(tmp_path):
+    now = 2.0e9
+    _gen(tmp_path, "rotortwin_gen_old", 45.0, now)
+    _gen(tmp_path, "rotortwin_gen_recent", 3.0, now)
+    _gen(tmp_path, "rotortwin_gen_nostamp", 31.0, now, stamp=False)   # written before stamps: its own time
+    _gen(tmp_path, "rotortwin_gen_keep", 400.0, now)
+    # an old module used yesterday (the stamp is newer than the module) stays
+    _gen(tmp_path, "rotortwin_gen_used", 90.0, now)
+    os.utime(tmp_path / "rotortwin_gen_used.used", (now - 86400.0, now - 86400.0))
+    (tmp_path / "nominal_x.yaml").write_text("other cache content")
+    os.utime(tmp_path / "nominal_x.yaml", (now - 1e8, now - 1e8))
+    removed = model.prune_generated(tmp_path, 30.0, now, keep="rotortwin_gen_keep")
+    assert removed == ["rotortwin_gen_nostamp", "rotortwin_gen_old"]
+    left = sorted(p.name for p in tmp_path.rglob("*") if p.is_file())
+    assert not [n for n in left if "_old" in n or "_nostamp" in n]
+    assert len([n for n in left if "_recent" in n]) == 4 and len([n for n in left if "_keep" in n]) == 4
+    assert len([n for n in left if "_used" in n]) == 4 and "nominal_x.yaml" in left
+
+
+def test_writing_a_new_module_prunes_old_ones(private_cache, monkeypatch):
+    private_cache.mkdir(mode=0o700)
+    _gen(private_cache, "rotortwin_gen_stale", 60.0, __import__("time").time())
+    name = "rotortwin_gen_test_new"
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    assert model._import_source(name, "Y = 3\n").Y == 3
+    assert not list(private_cache.rglob("rotortwin_gen_stale*"))
+    monkeypatch.setenv("ROTORTWIN_CACHE_KEEP_DAYS", "0")
+    with pytest.raises(ValueError, match="ROTORTWIN_CACHE_KEEP_DAYS: expected a positive number of days"):
+        model._keep_days()
+    monkeypatch.setenv("ROTORTWIN_CACHE_KEEP_DAYS", "a week")
+    with pytest.raises(ValueError, match="expected a number of days, got 'a week'"):
+        model._keep_days()
 
 
 def test_numba_cache_of_generated_module_is_reused_across_processes(tmp_path):

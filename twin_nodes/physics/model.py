@@ -23,6 +23,7 @@ import inspect
 import os
 import sys
 import tempfile
+import time
 import types
 from typing import TYPE_CHECKING, Sequence
 
@@ -105,18 +106,71 @@ def _module_name(src: str) -> str:
     return f"rotortwin_gen_{h.hexdigest()[:16]}"
 
 
+#: generated modules (and numba's compiled code for them) not used for this many days are removed
+#: when a new one is written (``$ROTORTWIN_CACHE_KEEP_DAYS``); every edit of a kernel makes a new one
+KEEP_DAYS = 30.0
+
+
+def _keep_days() -> float:
+    raw = os.environ.get("ROTORTWIN_CACHE_KEEP_DAYS")
+    if raw is None:
+        return KEEP_DAYS
+    try:
+        days = float(raw)
+    except ValueError:
+        raise ValueError(f"ROTORTWIN_CACHE_KEEP_DAYS: expected a number of days, got {raw!r}") from None
+    if not days > 0:
+        raise ValueError(f"ROTORTWIN_CACHE_KEEP_DAYS: expected a positive number of days, got {raw!r}")
+    return days
+
+
+def _mark_used(path) -> None:
+    """Stamp ``<module>.used`` (not the module: numba's cache is keyed on its time stamp)."""
+    try:
+        path.with_suffix(".used").touch()
+    except OSError:
+        pass
+
+
+def prune_generated(folder, keep_days: float, now: float, keep: str = "") -> list[str]:
+    """Remove the generated modules of ``folder`` last used more than ``keep_days`` ago (their
+    ``.used`` stamp, else the module's own time), with numba's cache files for them; ``keep`` is
+    never removed.  Returns the names removed.  A file another process removes first is skipped."""
+    removed = []
+    for py in sorted(folder.glob("rotortwin_gen_*.py")):
+        name = py.stem
+        if name == keep:
+            continue
+        try:
+            used = max((p.stat().st_mtime for p in (py, py.with_suffix(".used")) if p.exists()), default=now)
+        except OSError:
+            continue
+        if now - used <= keep_days * 86400.0:
+            continue
+        for f in [py, py.with_suffix(".used"), *(folder / "__pycache__").glob(f"{name}.*")]:
+            try:
+                f.unlink()
+            except OSError:
+                pass
+        removed.append(name)
+    return removed
+
+
 def _import_source(name: str, src: str) -> types.ModuleType:
     """Module ``name`` run from ``src``, with its file in the cache folder.
 
     The file exists for numba's on-disk cache (keyed on that file's path and time stamp): it is
-    replaced, atomically, only when its bytes differ from ``src``; what runs is ``src``."""
+    replaced, atomically, only when its bytes differ from ``src``; what runs is ``src``.  Writing a
+    new one prunes the modules not used for ``KEEP_DAYS`` (``prune_generated``)."""
     path = cache_dir() / f"{name}.py"
     data = src.encode()
     try:
         same = path.read_bytes() == data
     except OSError:
         same = False
+    _mark_used(path)
     if not same:
+        prune_generated(path.parent, _keep_days(), time.time(), keep=name)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{name}.", suffix=".tmp")
         try:
             with os.fdopen(fd, "wb") as f:
