@@ -14,13 +14,16 @@ sag or a thrust coefficient), a ``likely`` one on the vehicle it was judged on. 
 (``ground_fit``: what it was fitted on, the folds' own values) and what the flight pins (:func:`pinned`): a flight
 whose low samples sit at one height (a low hover) pins the extra thrust at that height, not the coefficient and
 the height scale apart; the manoeuvre that would is a hover at two low heights.
+
+Before that refit, a mass or a thrust coefficient accepted beside the ground effect (chosen in a round without it)
+is chosen again with it in (:func:`rechoose_scale`, tenth session: k014).
 """
 
 from __future__ import annotations
 
-import numpy as np
-
 import dataclasses
+
+import numpy as np
 
 from twin_nodes.discovery.candidates import build_candidates
 from twin_nodes.discovery.judging import Fit, assess, fit_candidate
