@@ -88,7 +88,7 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     checked = closed_loop.run(closed_loop.CheckInput(log, flight, chosen.accepted, joint.vp, closed_loop_metrics))
     # a ground effect's size from the take-off and the landing together (each fold sees one), after the check
     # (which refits what it keeps on fold 1): stages.ground
-    checked.current = ground.refit_accepted(flight, checked.accepted, checked.current)
+    checked.current = ground.refit_accepted(flight, checked.accepted, checked.current, chosen.last)
     # 6. grade: confirmed, likely (what it lacks), rejected (why)
     graded = verdicts.run(verdicts.GradeInput(flight, checked.accepted, chosen.last, chosen.first_rank,
                                               found.base_held))

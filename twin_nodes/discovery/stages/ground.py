@@ -14,13 +14,20 @@ sag or a thrust coefficient), a ``likely`` one on the vehicle it was judged on. 
 (``ground_fit``: what it was fitted on, the folds' own values) and what the flight pins (:func:`pinned`): a flight
 whose low samples sit at one height (a low hover) pins the extra thrust at that height, not the coefficient and
 the height scale apart; the manoeuvre that would is a hover at two low heights.
+
+Before that refit, a mass or a thrust coefficient accepted beside the ground effect (chosen in a round without it)
+is chosen again with it in (:func:`rechoose_scale`, tenth session: k014).
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from twin_nodes.discovery.judging import Fit, fit_candidate
+from twin_nodes.discovery.candidates import build_candidates
+from twin_nodes.discovery.judging import Fit, assess, fit_candidate
+from twin_nodes.discovery.residuals import residual_channels
 from twin_nodes.discovery.stages.prepare import PreparedFlight
 from twin_nodes.discovery.stages.refit import _joint_refit
 from twin_nodes.vehicle.params import VehicleParams
@@ -32,6 +39,14 @@ REACH_SCALES = 3.0
 #: sensitivity there (exp(-2h/h_s)), spread by at least this fraction of the height scale (a climb through the
 #: whole reach: 0.5; a low hover at one height pins only c exp(-h/h_s) there: under 0.1)
 MIN_SPREAD_SCALES = 0.25
+#: the two scale effects that both move the thrust needed (mass: the collective only; thrust coefficient: every
+#: rotor's thrust, so also the roll/pitch moments per command); beside a ground effect the one chosen before the
+#: ground effect was in is chosen again with it (:func:`rechoose_scale`)
+SCALE_PAIR = ("mass", "thrust_coefficient")
+#: the other member replaces the chosen one where, refitted jointly with the ground effect on every usable sample,
+#: it leaves at most this fraction of the chosen one's squared residual (k014: 0.11; k016, a true thrust
+#: coefficient: the mass would leave 2.75 times the thrust coefficient's)
+RECHOOSE_COST_RATIO = 0.8
 TWO_HEIGHTS = "hovers at two low heights (about 1 and 2 height scales up, a few seconds each)"
 
 
@@ -98,7 +113,59 @@ def _note(f: Fit, flight: PreparedFlight, folds: list[dict], jointly: list[str])
                              flight.data.dt)}
 
 
-def refit_accepted(flight: PreparedFlight, accepted: list[Fit], current: VehicleParams) -> VehicleParams:
+def _refit_cost(fits: list[Fit], flight: PreparedFlight, rows: np.ndarray) -> tuple[float, list[Fit]]:
+    """``fits`` (copies) refitted jointly on ``rows``; their squared equation error there and the copies."""
+    trial = [dataclasses.replace(f, theta=np.array(f.theta, float)) for f in fits]
+    vp = _joint_refit(trial, flight.data, flight.nominal, rows)
+    return float(np.sum(residual_channels(flight.data, vp, flight.nominal)[rows] ** 2)), trial
+
+
+def rechoose_scale(flight: PreparedFlight, accepted: list[Fit], last: dict[str, Fit]) -> dict | None:
+    """Beside an accepted ground effect, the member of :data:`SCALE_PAIR` chosen before it was in, chosen again
+    with it.  A mass and a thrust coefficient both move the thrust needed, and on the collective alone they are
+    one number (thrust per unit mass); the thrust coefficient also scales every rotor's share of the roll/pitch
+    moments, the mass does not.  Chosen on a round without the ground effect, the two are "not told apart" (k014,
+    a mass x1.15 beside a ground effect 0.4 / 0.84 m on a 1.45 m circle: cuts 36 and 39 %) and the ground effect is
+    then fitted beside the wrong one, which its height scale bends to absorb (0.39 / 0.50, squared error 0.213;
+    beside the mass 0.40 / 0.82, 0.023).  So both members are refitted jointly with the accepted equation-error
+    effects on every usable sample; where the other leaves at most :data:`RECHOOSE_COST_RATIO` of the chosen
+    one's squared error, it is judged on top of the others (its own cross-validated numbers) and, if it passes,
+    replaces the chosen one in ``accepted`` and ``last`` (the chosen one is then graded against it).  Returns what
+    was compared (None: no ground effect or no single member accepted)."""
+    eq = [f for f in accepted if f.kind == "equation"]
+    chosen = [f for f in eq if f.candidate.name in SCALE_PAIR]
+    if len(chosen) != 1 or not any(f.candidate.name == NAME for f in eq):
+        return None
+    old, rows, m0 = chosen[0], _rows(flight), flight.nominal.mass_kg
+    other = SCALE_PAIR[1 - SCALE_PAIR.index(old.candidate.name)]
+    partner = next(c for c in build_candidates(flight.nominal, flight.data) if c.name == other)
+    # the same thrust per unit mass: mass = m0 / kt_scale, kt_scale = m0 / mass
+    x0 = np.clip([m0 / float(old.theta[0])], partner.lower, partner.upper)
+    cost_old, _ = _refit_cost(accepted, flight, rows)
+    cost_new, trial = _refit_cost([dataclasses.replace(old, candidate=partner, theta=x0) if f is old else f
+                                   for f in accepted], flight, rows)
+    out = {"chosen": old.candidate.name, "other": other, "squared_error": {old.candidate.name: round(cost_old, 6),
+                                                                          other: round(cost_new, 6)}}
+    if not cost_new <= RECHOOSE_COST_RATIO * cost_old:
+        return {**out, "kept": old.candidate.name}
+    base = flight.nominal
+    for f, g in zip(accepted, trial):
+        if f is not old:
+            base = g.candidate.apply(base, g.theta)
+    c = next(c for c in build_candidates(base, flight.data) if c.name == other)
+    new = assess(c, flight.eq, flight.nominal, flight.eq.residual(base))
+    if not new.passes:
+        return {**out, "kept": old.candidate.name, "why": f"{other} on top of the others does not pass on its own"}
+    new.base_vp, new.accepted = base, True
+    new.theta = np.array(trial[accepted.index(old)].theta, float)
+    old.accepted = False
+    accepted[accepted.index(old)] = new
+    last[other] = new
+    return {**out, "kept": other}
+
+
+def refit_accepted(flight: PreparedFlight, accepted: list[Fit], current: VehicleParams,
+                   last: dict[str, Fit] | None = None) -> VehicleParams:
     """Where a ground effect is accepted on the equation error (and kept by the closed-loop check, which refits
     what it keeps on fold 1; its twin metrics are of those values): every accepted equation-error effect refitted
     jointly on both folds' fit rows (the joint refit of :mod:`.refit` on the whole flight), from their values in
@@ -109,10 +176,13 @@ def refit_accepted(flight: PreparedFlight, accepted: list[Fit], current: Vehicle
     if not ground:
         return current
     folds = {id(f): [f.candidate.params_dict(t) for t in f.fold_thetas] for f in ground}
+    scale = rechoose_scale(flight, accepted, last) if last is not None else None
     vp = _joint_refit(accepted, flight.data, flight.nominal, _rows(flight))
     for f in ground:
         f.vp = vp
         _note(f, flight, folds[id(f)], [g.candidate.name for g in accepted if g is not f and g.kind == "equation"])
+        if scale is not None:
+            f.ground_fit["scale_rechosen"] = scale
     return vp
 
 
