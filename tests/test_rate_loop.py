@@ -130,11 +130,12 @@ def test_px4_sih_50hz_logs_read_the_inertia_change_and_tell_it_from_the_motors()
     assert r["axes"]["pitch"]["scale"] == pytest.approx(1.3, abs=0.06)
     assert r["yaw_scale"] == pytest.approx(1.0, abs=0.04)
     assert r["params"]["ixx"] == pytest.approx(0.0325, rel=0.10) and r["params"]["iyy"] == pytest.approx(0.0325, rel=0.10)
-    # fold 1's inertia on the held-out last 35 %: the rate error along the inertia's sensitivity falls
-    # 89 % on roll and 48 % on pitch (41 % without the attitude loop: its held-out part reads lower)
+    # each fold's inertia on its held-out windows (fold 1's on the last 35 %, fold 2's on the first 35 %, pooled:
+    # ``projected_folds``): the rate error along the inertia's sensitivity falls 94 % on roll and 79 % on pitch
+    # (fold 1's part alone: 89 % and 48 %; 41 % without the attitude loop: its held-out part reads lower)
     roll, pitch = r["axes"]["roll"], r["axes"]["pitch"]
-    assert roll["heldout_after"] < 0.2 * roll["heldout_before"]
-    assert pitch["heldout_after"] < 0.7 * pitch["heldout_before"]
+    assert 1.0 - roll["heldout_after"] / roll["heldout_before"] == pytest.approx(0.94, abs=0.02)
+    assert 1.0 - pitch["heldout_after"] / pitch["heldout_before"] == pytest.approx(0.79, abs=0.02)
     # only the axis a confirmed finding held at the model's value is looked at (the other is the finding's)
     r = _inertia("e05", ("roll",))
     assert set(r["axes"]) == {"roll"} and r["flagged"] == ["roll"] and r["pinned"] == []

@@ -143,6 +143,35 @@ def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: 
     return "corroborates the " + entry["verdict"] + " finding"
 
 
+def hold_yaw_not_borne_out(entry: dict, iv: dict) -> bool:
+    """An ``inertia`` finding's Izz that PX4's rate loop neither flags nor agrees with is held at the value the
+    rate loop read yaw on (``iv["params"]["izz"]``; the finding's kept in ``own_params``): the rate loop reads
+    yaw from the rate setpoint's response (:func:`~twin_nodes.discovery.rate_loop.inertia`, ``yaw_scale``),
+    the equation error regresses the motors' yaw mode on the differentiated gyro, whose noise pulls Izz low
+    where the flight barely turns in yaw.  PX4 SIH m018 (take-off and land, 4 ms logs, SIH Izz unchanged): the
+    equation error's Izz 0.0252 (x0.84, both folds), the rate loop's yaw x0.931 +- 0.019 (not flagged: under 10
+    %; 4.8 standard errors from x0.84).  Not flagged: within ``MIN_CHANGE`` or ``MIN_SE`` standard errors of
+    x1; disagrees: the finding's ratio more than ``MIN_SE`` standard errors from the reading.  Returns whether
+    it held Izz."""
+    if iv.get("method") != "rate_loop" or "izz" not in entry.get("params", {}):
+        return False
+    sy, sey, ref = iv.get("yaw_scale", math.nan), iv.get("yaw_scale_se", math.nan), iv["params"].get("izz", math.nan)
+    if not (np.isfinite(sy) and np.isfinite(sey) and sey > 0 and np.isfinite(ref) and ref > 0):
+        return False
+    ratio = float(entry["params"]["izz"]) / ref
+    flagged = abs(sy - 1.0) > max(rate_loop.MIN_CHANGE, rate_loop.MIN_SE * sey)
+    if flagged or abs(ratio - sy) <= rate_loop.MIN_SE * sey or abs(ratio - 1.0) <= 1e-9:
+        return False
+    entry.setdefault("own_params", {})["izz"] = entry["params"]["izz"]
+    entry["params"]["izz"] = float(ref)
+    entry.setdefault("held_at_nominal", {})["izz"] = (
+        f"PX4's rate loop reads yaw inertia x{sy:.3f} +- {sey:.3f} (not flagged): the finding's izz "
+        f"{entry['own_params']['izz']:.4g} (x{ratio:.3f}) is not borne out by it")
+    entry["verdict_note"] = (entry.get("verdict_note", "") + f"; izz held at {ref:.4g} (the rate loop reads yaw "
+                             f"x{sy:.3f} +- {sey:.3f}; the finding's {entry['own_params']['izz']:.4g} not borne out)")
+    return True
+
+
 #: the inertia candidate's roll and pitch parameters
 _RP_AXES = tuple(k for k, _ in IV_AXIS_PARAM.values())
 
@@ -275,8 +304,8 @@ def _instrumented(S: PreparedFlight, current: VehicleParams, accepted: list[str]
                else ("roll", "pitch"))
     fold1, fold2 = _window_folds(win, S.t_split, S.t_split2)
 
-    def build(ixx, iyy):
-        return current.with_effect("inertia", ixx=ixx, iyy=iyy, izz=float(I_cur[2]))
+    def build(ixx, iyy, izz=float(I_cur[2])):
+        return current.with_effect("inertia", ixx=ixx, iyy=iyy, izz=izz)
     reading = _instrument_reading(S, current, nominal, finding, allowed, I_cur, build, (fold1, fold2))
     if reading is None:
         return None, None
@@ -476,11 +505,13 @@ def _instrument_entry(v: dict, iv: dict, out: dict, entry: dict | None, effects_
         out["verdict"] = attach_instrumented(entry, iv, residual, reference, replace)
         if not out["verdict"].startswith("corroborates"):
             return out, None
+        hold_yaw_not_borne_out(entry, iv)
         if entry["verdict"] != "confirmed" or entry["params"] == before["params"]:
             return out, None
         # the refit vehicle takes the roll/pitch the instrument supplied or held, unless the closed-loop
         # twin says otherwise (then the finding stays as it was)
-        refit = build(float(entry["params"]["ixx"]), float(entry["params"]["iyy"]))
+        refit = build(float(entry["params"]["ixx"]), float(entry["params"]["iyy"]),
+                      float(entry["params"].get("izz", iv["params"]["izz"])))
         against = guard(refit)
         if against:
             entry.clear()
