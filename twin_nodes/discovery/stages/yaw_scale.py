@@ -114,6 +114,22 @@ def refit(vp: VehicleParams, becomes: str, found: list[str], data, nominal: Vehi
     return build(sol.x)
 
 
+def at_model(alt: VehicleParams, becomes: str, nominal: VehicleParams) -> tuple[VehicleParams, bool]:
+    """``alt`` with its refitted yaw-scale parameter put back at the model's where it is within ``MOVED`` of it (the
+    other reading asks for no yaw-scale change at all: RotorPy g030's false Izz x1.23 refits to km x0.999); True
+    where it was."""
+    eff = alt.effect_dict
+    p, q = scales(alt, nominal)
+    if abs((q if becomes == "yaw_moment" else p) - 1.0) > MOVED:
+        return alt, False
+    if becomes == "yaw_moment":
+        return alt.replace(effects=tuple(e for e in alt.effects if e[0] != "yaw_moment")), True
+    i0 = np.diag(nominal.inertia).astype(float)
+    if abs(eff["inertia"]["ixx"] / i0[0] - 1.0) > MOVED or abs(eff["inertia"]["iyy"] / i0[1] - 1.0) > MOVED:
+        return alt.with_effect("inertia", **{**eff["inertia"], "izz": float(i0[2])}), True
+    return alt.replace(effects=tuple(e for e in alt.effects if e[0] != "inertia")), True
+
+
 def scaled_modes(data, vp: VehicleParams, nominal: VehicleParams) -> np.ndarray:
     """The equation error's modes of ``vp`` with the yaw mode divided by sqrt(Izz/Izz_n km/km_n)."""
     m = modes(residual_channels(data, vp, nominal), nominal)[0]
@@ -159,19 +175,30 @@ def _pair(entry: dict, becomes: str, params: dict, test: dict) -> None:
 
 
 def _switch(result: dict, entry: dict, was: str, becomes: str, new: dict, note: str) -> None:
+    """The entry takes the other reading; where that reading is the model's own value (``becomes`` not in
+    ``new``), an inertia keeps its roll/pitch axes and anything else is rejected."""
     entry["read_as"] = {"was": was, "params": entry.get("params"),
                         **{k: entry.pop(k) for k in ("held_at_nominal", "equation_axes") if k in entry}}
-    entry["name"], entry["params"] = becomes, dict(new[becomes])
     entry["verdict_note"] = f"{entry.get('verdict_note', '')}; {note}"
+    if becomes not in new:
+        if was == "inertia" and "inertia" in new:
+            entry["params"] = dict(new["inertia"])
+        else:
+            entry["verdict"] = "rejected"
+        return
+    entry["name"], entry["params"] = becomes, dict(new[becomes])
     if was == "inertia" and "inertia" in new:        # the roll/pitch axes stay an inertia finding of their own
         result["effects"].append({**{k: v for k, v in entry["read_as"].items() if k != "was"}, "name": "inertia",
                                   "params": dict(new["inertia"]), "verdict": entry["verdict"],
                                   "verdict_note": "its roll/pitch axes; Izz read as a yaw moment (stage 11)"})
 
 
-def _rename(names: list, was: str, becomes: str, keep_inertia: bool) -> list:
-    out = [becomes if n == was else n for n in names]
-    return out + ["inertia"] if keep_inertia and was in names else out
+def _rename(names: list, was: str, becomes: str, new: dict) -> list:
+    """``names`` with ``was`` replaced by what the other reading keeps of it (``becomes``, the inertia's roll/pitch
+    axes, or nothing)."""
+    keep = [n for n in (becomes, "inertia" if was == "inertia" else None) if n and n in new]
+    out = [n for n in names if n != was]
+    return out + [n for n in keep if n not in out] if was in names else out
 
 
 def apply(result: dict, flight) -> VehicleParams | None:
@@ -189,18 +216,21 @@ def apply(result: dict, flight) -> VehicleParams | None:
                  None)
     if entry is None:
         return None
-    alt = refit(alt, becomes, accepted + likely, flight.data, flight.nominal, flight.fit_mask)
+    alt, gone = at_model(refit(alt, becomes, accepted + likely, flight.data, flight.nominal, flight.fit_mask), becomes,
+                         flight.nominal)
     test = compare(flight.data, flight.nominal, flight.held_mask, current, alt)
     choice = choose(test)
     new = alt.effect_dict
     result["yaw_scale"] = {"reported": was, "other": becomes, "yaw_scale": round(s, 4), "test": test,
-                           "choice": choice, "other_params": {k: dict(v) for k, v in new.items()}}
-    if choice == "pair":
+                           "choice": choice, "other_params": {k: dict(v) for k, v in new.items()},
+                           "other_at_model": gone}
+    if choice == "pair" and not gone:
         _pair(entry, becomes, dict(new[becomes]), test)
     if choice != "switch":
         return None
+    what = f"{becomes} at the model's value" if gone else becomes
     note = (f"read per yaw scale (the yaw axis gives km/Izz only; each reading's yaw error over sqrt(Izz km) of "
-            f"the model's): {becomes} lowers the equation error (t={test['t_alt']:.1f}, held-out "
+            f"the model's): {what} lowers the equation error (t={test['t_alt']:.1f}, held-out "
             f"{100 * test['heldout_cut']:.1f} %) against {was}")
     _switch(result, entry, was, becomes, new, note)
     for e in result["effects"]:
@@ -208,12 +238,11 @@ def apply(result: dict, flight) -> VehicleParams | None:
                 and e["name"] not in ("inertia", becomes):
             e.setdefault("read_as", {"params": e.get("params")})
             e["params"] = dict(new[e["name"]])
-    keep = was == "inertia" and "inertia" in new
-    result["accepted"] = _rename(accepted, was, becomes, keep)
+    result["accepted"] = _rename(accepted, was, becomes, new)
     if "likely" in result:
-        result["likely"] = _rename(likely, was, becomes, keep)
+        result["likely"] = _rename(likely, was, becomes, new)
     result["refit_params"] = alt.to_ros_dict()
     return alt
 
 
-__all__ = ["MOVED", "YAW", "apply", "choose", "compare", "other_reading", "refit", "scaled_modes", "scales"]
+__all__ = ["MOVED", "YAW", "apply", "at_model", "choose", "compare", "other_reading", "refit", "scaled_modes", "scales"]
