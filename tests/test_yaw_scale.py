@@ -112,3 +112,20 @@ def test_choose_on_the_block_test_and_the_held_out_part():
     assert Y.choose({"t_alt": 3.5, "t_current": 0.0, "heldout_cut": -0.01}) == "pair"
     assert Y.choose({"t_alt": 0.0, "t_current": 3.2, "heldout_cut": -0.2}) == "kept"
     assert Y.choose({"t_alt": 2.9, "t_current": 2.9, "heldout_cut": 0.0}) == "pair"
+
+
+def test_a_reading_refitted_to_the_models_value_is_no_effect(nominal):
+    # RotorPy g030 (battery sag + ground effect, no yaw change): a false inertia Ixx/Iyy/Izz x1.23/1.13/1.23 read
+    # as a yaw moment refits to km 0.019982 (x0.999): no yaw moment, the inertia keeps its roll/pitch axes
+    alt = nominal.with_effect("inertia", ixx=0.0306, iyy=0.0282, izz=0.03).with_effect("yaw_moment", km=0.019982)
+    back, gone = Y.at_model(alt, "yaw_moment", nominal)
+    assert gone and "yaw_moment" not in back.effect_dict and back.effect_dict["inertia"]["ixx"] == 0.0306
+    assert Y._rename(["inertia", "battery_sag", "ground_effect"], "inertia", "yaw_moment", back.effect_dict) == [
+        "battery_sag", "ground_effect", "inertia"]
+    kept, gone = Y.at_model(nominal.with_effect("yaw_moment", km=0.03), "yaw_moment", nominal)
+    assert not gone and kept.effect_dict["yaw_moment"]["km"] == 0.03
+    # an Izz reading within 3 % of the model's: Izz back at the model's, or no inertia where roll/pitch are too
+    back, gone = Y.at_model(nominal.with_effect("inertia", ixx=0.04, iyy=0.04, izz=0.0295), "inertia", nominal)
+    assert gone and back.effect_dict["inertia"] == pytest.approx({"ixx": 0.04, "iyy": 0.04, "izz": 0.03})
+    back, gone = Y.at_model(nominal.with_effect("inertia", ixx=0.025, iyy=0.025, izz=0.0295), "inertia", nominal)
+    assert gone and "inertia" not in back.effect_dict
