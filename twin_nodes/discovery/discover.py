@@ -43,7 +43,7 @@ from twin_nodes.discovery.judging import (ALT_FRACTION, BLOCK_S, HELDOUT_FRACTIO
                                           fit_candidate)
 from twin_nodes.discovery.locate import regimes
 from twin_nodes.discovery.stages import (closed_loop, ground, instrument, mismatch, prepare, refit, report, selection,
-                                        terms, verdicts, yaw_pair)
+                                        terms, verdicts, yaw_pair, yaw_scale)
 from twin_nodes.discovery.stages.closed_loop import CLOSED_LOOP_TOL_REL, _closed_loop_guard, _closed_loop_metrics, _worse
 from twin_nodes.discovery.stages.instrument import (INSTRUMENTED_BLOCKS_MISSING, _axis_tests, _equation_axes,
                                                     _instrumented, attach_instrumented)
@@ -105,4 +105,6 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
                                         closed_loop_metrics)).result
     # 10. a yaw moment or yaw inertia beside a damping: the yaw axis gives their ratios only, roll/pitch choose
     yaw_pair.apply(result, flight)
+    # 11. a yaw moment or yaw inertia alone: each reading's yaw error per its yaw scale, pair where they tie
+    yaw_scale.apply(result, flight)
     return result
