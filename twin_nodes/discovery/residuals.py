@@ -277,9 +277,19 @@ def _grid(data: EquationData, n: int, up: int) -> tuple[np.ndarray, np.ndarray |
 
 
 def exogenous(model: Multirotor, data: EquationData, n: int, up: int = 1) -> np.ndarray:
-    """Exogenous inputs (battery voltage; wind from a wind effect) on the grid (n samples, step/up)."""
+    """Exogenous inputs (battery voltage; wind from a wind effect) on the grid (n samples, step/up).
+    On the residual's own grid (``up`` 1) a plain model's series (:func:`_plain_exogenous`) is made once per
+    flight and copied (every candidate evaluation asks for it)."""
+    plain = up == 1 and isinstance(getattr(data, "cache", None), dict) and _plain_exogenous(model)
+    if plain and ("ext_plain", n) in data.cache:
+        return data.cache[("ext_plain", n)].copy()
     t, batt = _grid(data, n, up)
-    return model.exogenous(t, np.random.default_rng(0), None if batt is None else batt.copy())
+    ext = model.exogenous(t, np.random.default_rng(0), None if batt is None else batt.copy())
+    if plain:
+        kept = ext.copy()
+        kept.flags.writeable = False
+        data.cache[("ext_plain", n)] = kept
+    return ext
 
 
 def _command_path_key(model: Multirotor, data: EquationData, delay_steps: int) -> tuple | None:
