@@ -228,3 +228,103 @@ def test_fold_fit_evaluates_each_theta_once_and_reuses_it_exactly():
     n_fit = len(seen)
     assert np.array_equal(R1, S.eq.residual(c.build(theta)))     # the reused residual is exact
     assert len(seen) == n_fit                                     # and was not computed again
+
+
+# --- tenth session (docs/fleet.md, "Throughput, tenth session"): three shortcuts, each against the path it replaces
+
+def test_lowpass_kernel_is_sosfiltfilt_bit_for_bit():
+    """``lowpass.lowpass`` gives ``sosfiltfilt(butter(2, f), x, axis=0)``'s numbers in its memory layout (so a
+    sum over it adds in the same order): random signals, 1-8 channels, NaN, the residuals' and prepare's cut-offs;
+    what the kernel does not take (1-D, shorter than the pad) goes through scipy."""
+    from scipy.signal import sosfiltfilt
+
+    from twin_nodes.discovery.lowpass import butter_sos, lowpass
+    rng = np.random.default_rng(10)
+    for k in range(200):
+        n, ch = int(rng.integers(16, 3000)), int(rng.integers(1, 9))
+        x = rng.standard_normal((n, ch)) * 10 ** rng.uniform(-6, 3)
+        if k % 5 == 0:
+            x[rng.integers(0, n)] = np.nan
+        rate = float(rng.choice([50.0, 100.0, 250.0]))
+        cut = float(rng.choice([rs.LOWPASS_HZ, 10.0, 0.4 * rate]))
+        want = sosfiltfilt(butter_sos(2, cut, rate), x, axis=0)
+        got = lowpass(x, rate, cut)
+        assert got.shape == want.shape and got.strides == want.strides
+        assert got.tobytes() == want.tobytes(), (n, ch, rate, cut)
+        if k % 5:
+            assert np.sum(got ** 2) == np.sum(want ** 2) and np.array_equal(got[x[:, 0] > 0].ravel(),
+                                                                            want[x[:, 0] > 0].ravel())
+    for x in (rng.standard_normal(500), rng.standard_normal((9, 3))):   # 1-D; not longer than the pad (9)
+        if x.ndim == 2:
+            with pytest.raises(ValueError):
+                lowpass(x, 50.0, 2.0)
+        else:
+            assert np.array_equal(lowpass(x, 50.0, 2.0), sosfiltfilt(butter_sos(2, 2.0, 50.0), x, axis=0))
+
+
+def test_plain_exogenous_digest_is_the_series_digest(demo):
+    """A model whose effects leave the exogenous series alone (all but a wind) keys its hooked rotor states on the
+    digest made once per flight: it is the digest of its own series; a wind model's series differs and is hashed
+    itself; the rotor states found under either key are a fresh integration bit for bit."""
+    from twin_nodes.discovery.kernels import kernels
+    vp, new, *_ = demo
+    by = {c.name: c for c in build_candidates(vp, new)}
+    up, nf = new.up, len(new.u_fine)
+    for name, theta_frac in (("battery_sag", 0.3), ("mass", 0.6), ("wind", 0.8), ("motor_time_constant", 0.4)):
+        c = by[name]
+        v = c.build(c.x0 + theta_frac * (c.upper - c.x0))
+        m = Multirotor(v)
+        ext = np.ascontiguousarray(rs.exogenous(m, new, nf, up))
+        assert rs._plain_exogenous(m) is (name != "wind")
+        t, batt = rs._grid(new, new.n, 1)
+        for _ in range(2):   # on the residual's grid: made, then the kept series copied (writeable)
+            got = rs.exogenous(m, new, new.n)
+            assert got.flags.writeable and np.array_equal(got, m.exogenous(t, np.random.default_rng(0),
+                                                                           None if batt is None else batt.copy()))
+        if name != "wind":
+            assert rs._plain_digest(m, new, nf, up) == rs._digest(ext)
+        else:
+            assert rs._digest(ext) != rs._plain_digest(Multirotor(vp), new, nf, up)
+        for _ in range(2):   # a fresh integration, then the kept one
+            S = rs.model_rotor_states(m, new)
+            dt_f = new.dt / up
+            delay = int(round(m.command_delay_s / dt_f))
+            if any(e.command_kernel is not None for e in m.kernel_effects):
+                fresh = kernels(m).lag_states(m.P, rs.fine_commands(new), ext, dt_f, delay, np.zeros(m.n_rotors),
+                                              up, min(new.n, -(-nf // up)))
+            else:
+                fresh = rs.lag_states(m.P, rs.fine_commands(new), dt_f, delay, np.zeros(m.n_rotors), up,
+                                      min(new.n, -(-nf // up)))
+            assert np.array_equal(S, fresh), name
+
+
+@pytest.mark.parametrize("name", ["battery_sag", "actuator_delay"])   # a start scan + least squares; a grid
+def test_fold_fits_share_costs_exactly(name, monkeypatch):
+    """Both folds' fits of a non-affine candidate, with the fit costs shared between the folds (the second fold's
+    grid or starts read what the first computed) and without: the same thetas, costs and residuals bit for bit,
+    with fewer residual evaluations."""
+    from twin_nodes.discovery import discover as d
+    from twin_nodes.discovery import judging
+    vp = shipped("px4_sih_quadx")
+    S = d.prepare_flight(read_ulog(DEMO), vp, output_error=False)
+    c = next(c for c in build_candidates(vp, S.data) if c.name == name)
+    calls = [0]
+    plain_residual = S.eq.residual
+
+    def counted(v, rows=None):
+        calls[0] += 1
+        return plain_residual(v, rows)
+    monkeypatch.setattr(S.eq, "residual", counted)
+    R0 = plain_residual(vp)
+    assert judging._affine_form(c, S.eq) is None
+    runs = []
+    for shared in (True, False):
+        if not shared:
+            monkeypatch.setattr(judging, "_fold_costs", lambda c, judge: None)
+        calls[0] = 0
+        runs.append((judging._fold_fits(c, S.eq, vp, R0.shape), calls[0]))
+    (new, n_new), (old, n_old) = runs
+    for (t1, c1, r1), (t2, c2, r2) in zip(new, old):
+        assert np.array_equal(t1, t2) and c1 == c2 and np.array_equal(r1, r2)
+    assert n_new < n_old - 5, (n_new, n_old)
+    assert judging._COSTS[0] is None      # nothing kept after the last fold

@@ -178,15 +178,16 @@ def fit_candidate(c: Candidate, data: EquationData | Judge, nominal: VehiclePara
         rows = np.zeros_like(fit_mask)
         rows[idx[np.linspace(0, idx.size - 1, OE_FIT_WINDOWS).round().astype(int)]] = True
     resid = _fit_residual(c, judge, rows, s)
+    cost_of = _fit_cost(c, rows, s, resid)
 
     z0 = np.clip(c.x0 / s, lo, hi)
     if len(z0) == 1:
         # one parameter: a grid then a bounded scalar search (delays give piecewise-flat costs)
-        return _fit_scalar(c, judge, resid, s, lo, hi)
-    best_z, best_cost = z0, float(np.sum(resid(z0) ** 2))
+        return _fit_scalar(c, judge, cost_of, s, lo, hi)
+    best_z, best_cost = z0, cost_of(z0)
     for z in _starts(c, judge, z0, lo, hi):
         z = np.clip(z, lo, hi)
-        cost = float(np.sum(resid(z) ** 2))
+        cost = cost_of(z)
         if cost < best_cost:
             best_z, best_cost = z, cost
     sol = least_squares(resid, best_z, bounds=(lo, hi), x_scale=1.0, diff_step=2e-2 if judge.lean else 1e-2,
@@ -210,6 +211,8 @@ def _fit_residual(c: Candidate, judge: Judge, rows: np.ndarray, s: np.ndarray) -
         seen: dict[bytes, np.ndarray] = {}
         whole = judge.kind == "equation"
         _SEEN[:] = [c, judge, seen]
+        costs = _fold_costs(c, judge) if whole else None
+        folds = [(fit.tobytes(), fit) for fit, _ in judge.folds] if whole else []
 
         def resid(z):
             theta = np.clip(z * s, c.lower, c.upper)
@@ -221,17 +224,44 @@ def _fit_residual(c: Candidate, judge: Judge, rows: np.ndarray, s: np.ndarray) -
                 if len(seen) >= _SEEN_SIZE:
                     del seen[next(iter(seen))]
                 seen[key] = R
+                if costs is not None:
+                    # every fold's fit cost here: the other fold's fit starts from the same grid / starts
+                    costs[key] = {k: float(np.sum(R[fit].ravel() ** 2)) for k, fit in folds}
             return R[rows].ravel() if whole else R.ravel().copy()
+        resid.memo = costs is not None
     return resid
 
 
-def _fit_scalar(c: Candidate, judge: Judge, resid: Callable, s: np.ndarray, lo: np.ndarray, hi: np.ndarray
+def _fold_costs(c: Candidate, judge: Judge) -> dict:
+    """The equation error's fit costs per theta and fit rows for ``c`` on ``judge`` (see ``_COSTS``)."""
+    if _COSTS[0] is not c or _COSTS[1] is not judge:
+        _COSTS[:] = [c, judge, {}]
+    return _COSTS[2]
+
+
+def _fit_cost(c: Candidate, rows: np.ndarray, s: np.ndarray, resid: Callable) -> Callable[[np.ndarray], float]:
+    """z -> the fit's cost (sum of squares of ``resid(z)``), from ``_COSTS`` where a fit of the same
+    candidate on another fold of the same judge evaluated this theta already (the same number:
+    the same expression on the same residual)."""
+    costs = _COSTS[2] if _COSTS[0] is c and getattr(resid, "memo", False) else None
+    rows_key = rows.tobytes() if costs is not None else b""
+
+    def cost(z):
+        if costs is not None:
+            hit = costs.get(np.clip(z * s, c.lower, c.upper).tobytes(), {}).get(rows_key)
+            if hit is not None:
+                return hit
+        return float(np.sum(resid(z) ** 2))
+    return cost
+
+
+def _fit_scalar(c: Candidate, judge: Judge, cost_of: Callable, s: np.ndarray, lo: np.ndarray, hi: np.ndarray
                 ) -> tuple[np.ndarray, VehicleParams, float]:
     """One parameter: a grid then a bounded scalar search (delays give piecewise-flat costs)."""
     from scipy.optimize import minimize_scalar
 
     def cost1(z):
-        return float(np.sum(resid(np.array([z])) ** 2))
+        return cost_of(np.array([z]))
     grid = np.linspace(lo[0], hi[0], 9 if judge.lean else 25)
     costs = [cost1(z) for z in grid]
     k = int(np.argmin(costs))
@@ -295,6 +325,10 @@ _AFFINE_FORMS: dict[tuple[int, int], tuple] = {}
 #: the residuals the latest non-affine fit of this process evaluated: [candidate, judge, {theta bytes: R}]
 _SEEN: list = [None, None, {}]
 _SEEN_SIZE = 16
+#: the equation error's fit costs of the latest non-affine candidate on its judge, for every fold's
+#: fit rows at every theta either fold's fit evaluated: [candidate, judge, {theta bytes: {rows bytes: cost}}]
+#: (both folds' fits start from the same grid or starts; kept across the folds, a few floats each)
+_COSTS: list = [None, None, {}]
 
 
 def _affine_form(c: Candidate, judge: Judge) -> evaluate.Affine | None:
@@ -341,6 +375,8 @@ def _fold_fit(c: Candidate, judge: Judge, nominal: VehicleParams, shape: tuple[i
         if R1 is None:
             R1 = judge.residual(vp_c)
     _SEEN[:] = [None, None, {}]
+    if k == len(judge.folds) - 1:
+        _COSTS[:] = [None, None, {}]
     return theta, cost, R1
 
 

@@ -22,21 +22,21 @@ separate regression formula.
 
 from __future__ import annotations
 
-import functools
 import hashlib
 from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
-from scipy.signal import butter, sosfiltfilt
 
 from twin_nodes.discovery.kernels import kernels
+from twin_nodes.discovery.lowpass import lowpass
 from twin_nodes.vehicle.geometry import allocation_matrix
 from twin_nodes.base.errors import LogError
 from twin_nodes.logs import time_sync
 from twin_nodes.vehicle import px4_params
 from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.core import I_MODE, I_N, I_TDN, I_TUP, I_WCMD, I_WMAX, I_WMIN, NX_BODY
+from twin_nodes.physics.effects import Effect
 from twin_nodes.physics.model import Multirotor
 
 DEFAULT_RATE_HZ = 50.0
@@ -85,14 +85,10 @@ class EquationData:
         return self.valid if self.attitude_valid is None else self.attitude_valid
 
 
-@functools.lru_cache(maxsize=32)
-def _butter_sos(order: int, cutoff_hz: float, rate_hz: float) -> np.ndarray:
-    """The Butterworth low-pass, designed once per (order, cutoff, rate)."""
-    return butter(order, cutoff_hz / (0.5 * rate_hz), output="sos")
-
-
 def _lowpass(x: np.ndarray, rate_hz: float, cutoff_hz: float) -> np.ndarray:
-    return sosfiltfilt(_butter_sos(2, float(cutoff_hz), float(rate_hz)), x, axis=0)
+    """The zero-phase 2nd-order Butterworth low-pass along time: ``sosfiltfilt`` (lowpass.py: the same
+    numbers, one compiled call)."""
+    return lowpass(x, float(rate_hz), float(cutoff_hz))
 
 
 def _fill_nan(x: np.ndarray) -> np.ndarray:
@@ -281,9 +277,19 @@ def _grid(data: EquationData, n: int, up: int) -> tuple[np.ndarray, np.ndarray |
 
 
 def exogenous(model: Multirotor, data: EquationData, n: int, up: int = 1) -> np.ndarray:
-    """Exogenous inputs (battery voltage; wind from a wind effect) on the grid (n samples, step/up)."""
+    """Exogenous inputs (battery voltage; wind from a wind effect) on the grid (n samples, step/up).
+    On the residual's own grid (``up`` 1) a plain model's series (:func:`_plain_exogenous`) is made once per
+    flight and copied (every candidate evaluation asks for it)."""
+    plain = up == 1 and isinstance(getattr(data, "cache", None), dict) and _plain_exogenous(model)
+    if plain and ("ext_plain", n) in data.cache:
+        return data.cache[("ext_plain", n)].copy()
     t, batt = _grid(data, n, up)
-    return model.exogenous(t, np.random.default_rng(0), None if batt is None else batt.copy())
+    ext = model.exogenous(t, np.random.default_rng(0), None if batt is None else batt.copy())
+    if plain:
+        kept = ext.copy()
+        kept.flags.writeable = False
+        data.cache[("ext_plain", n)] = kept
+    return ext
 
 
 def _command_path_key(model: Multirotor, data: EquationData, delay_steps: int) -> tuple | None:
@@ -373,6 +379,26 @@ def fine_commands(data: EquationData, nan_as_zero: bool = False) -> np.ndarray:
     return data.cache[key]
 
 
+def _plain_exogenous(model: Multirotor) -> bool:
+    """No effect of ``model`` makes or changes an exogenous series (every effect but a wind): its series is
+    then the logged battery voltage on the grid and the defaults, the same for every such model of a flight."""
+    return all(type(e).exogenous is Effect.exogenous for e in model.effects)
+
+
+def _digest(ext: np.ndarray) -> tuple:
+    """An exogenous series' shape and 16-byte BLAKE2 digest (its part of the hooked rotor states' key)."""
+    return ext.shape, hashlib.blake2b(ext.data, digest_size=16).digest()
+
+
+def _plain_digest(model: Multirotor, data: EquationData, n: int, up: int) -> tuple:
+    """:func:`_digest` of a plain model's exogenous series (:func:`_plain_exogenous`), made once per flight
+    and grid: hashing the series on the command grid took ~1 ms per candidate evaluation."""
+    key = ("ext_digest", n, up)
+    if key not in data.cache:
+        data.cache[key] = _digest(np.ascontiguousarray(exogenous(model, data, n, up)))
+    return data.cache[key]
+
+
 def model_rotor_states(model: Multirotor, data: EquationData) -> np.ndarray:
     """Rotor states on the grid, from the logged commands through the model's command path.
 
@@ -390,15 +416,18 @@ def model_rotor_states(model: Multirotor, data: EquationData) -> np.ndarray:
         u = fine_commands(data)
         S = lag_states(model.P, u, dt_f, delay_steps, s0, up, min(data.n, -(-len(u) // up)))
     else:
-        ext = np.ascontiguousarray(exogenous(model, data, len(data.u_fine), up))
+        plain = _plain_exogenous(model)
+        ext = None if plain else np.ascontiguousarray(exogenous(model, data, len(data.u_fine), up))
         hooked = _hooked_path_key(model, data, delay_steps)
         if hooked is not None:
             # the exogenous series by its digest, not a copy of it: on the command grid (10x the residual's)
             # 16 kept copies took a 60-min flight's discovery over its 2 GB budget (bench_memory, 0.79 -> 1.26)
-            hooked = hooked + (ext.shape, hashlib.blake2b(ext.data, digest_size=16).digest())
+            hooked = hooked + (_plain_digest(model, data, len(data.u_fine), up) if plain else _digest(ext))
         hit = data.cache.get(hooked) if hooked is not None else None
         if hit is not None:
             return hit
+        if ext is None:
+            ext = np.ascontiguousarray(exogenous(model, data, len(data.u_fine), up))
         u = fine_commands(data)
         S = kernels(model).lag_states(model.P, u, ext, dt_f, delay_steps, s0, up,
                                       min(data.n, -(-len(u) // up)))
