@@ -407,7 +407,8 @@ def assess(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, R0:
         test_all |= test_mask
     h0 = np.sqrt(np.mean(R0[test_all] ** 2))
     hcv = np.sqrt(np.mean(Rcv[test_all] ** 2))
-    stats = _block_stats(R0, Rcv, judge.blocks, OE_MIN_CHANGE if judge.lean else 0.0)
+    stats = _block_stats(R0, Rcv, judge.blocks, OE_MIN_CHANGE if judge.lean else 0.0,
+                         own_change(c, judge, thetas))
     rel = 1.0 - hcv / h0 if h0 > 0 else 0.0
     own = _own_channel_cut(R0[test_all], Rcv[test_all])
     shared = getattr(c, "shared_mode", None)
@@ -449,6 +450,25 @@ def _mode_cut(R0: np.ndarray, R1: np.ndarray, nominal: VehicleParams, mode: str)
     r1, _ = _mode_rms(R1, nominal)
     k = names.index(mode)
     return float(1.0 - r1[k] / r0[k]) if r0[k] > 0 else 0.0
+
+
+def own_change(c: Candidate, judge: Judge, thetas: list) -> np.ndarray | None:
+    """A joint variant's own term's change of the equation error on each fold's test rows (its fold fit's own
+    parameters against its starting value, the accepted effects as they stand), for the block test's choice of
+    the blocks it acts in; None for a plain candidate (its change is ``R1 - R0``).  Refitted beside a confined
+    effect, the accepted partners re-balance every block a little (a thrust coefficient's kt shifts by 0.3 %
+    once a ground effect takes the take-off's extra thrust): those blocks carry the partners' shift, not the
+    effect, and counted as active they drowned a ground effect acting on 2-3 blocks (w032, r065: 26 and 35
+    "active" blocks, t 2.5 and 2.8, most of them cruise blocks it does not reach)."""
+    base = getattr(c, "base", None)
+    if base is None or getattr(c, "lin", None) is None or judge.kind != "equation" or not thetas:
+        return None
+    n = len(base.param_names)
+    ref = judge.residual(base.build(np.clip(base.x0, base.lower, base.upper)))
+    out = np.zeros_like(ref)
+    for (_, test_mask), theta in zip(judge.folds, thetas):
+        out[test_mask] = (judge.residual(base.build(np.asarray(theta, float)[:n])) - ref)[test_mask]
+    return out
 
 
 def _own_channel_cut(R0: np.ndarray, R1: np.ndarray) -> float | None:

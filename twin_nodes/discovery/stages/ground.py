@@ -47,6 +47,9 @@ SCALE_PAIR = ("mass", "thrust_coefficient")
 #: it leaves at most this fraction of the chosen one's squared residual (k014: 0.11; k016, a true thrust
 #: coefficient: the mass would leave 2.75 times the thrust coefficient's)
 RECHOOSE_COST_RATIO = 0.8
+#: and where they hold at least this long within reach: 0.42 s of one Crazyflie take-off and landing (k016,
+#: heights spread 0.66 h_s) left c and h_s correlated -0.89 along the ridge, 0.448 / 0.143 for 0.4 / 0.1505
+MIN_LOW_S = 1.0
 TWO_HEIGHTS = "hovers at two low heights (about 1 and 2 height scales up, a few seconds each)"
 
 
@@ -59,7 +62,8 @@ def gain(coefficient: float, height_scale: float, height) -> np.ndarray:
 def pinned(height: np.ndarray, coefficient: float, height_scale: float, dt: float) -> dict:
     """What the flight's samples (``height``, m, one per ``dt`` s) pin of a ground effect ``coefficient``,
     ``height_scale``: their time within reach, their heights weighted by the effect's squared sensitivity
-    (exp(-2h/h_s), :data:`MIN_SPREAD_SCALES`), and whether the two parameters are told apart; where not, the
+    (exp(-2h/h_s), :data:`MIN_SPREAD_SCALES`; and at least :data:`MIN_LOW_S` within reach), and whether the two
+    parameters are told apart; where not, the
     extra thrust c exp(-h_ref/h_s) at the weighted mean height h_ref is what the flight determines."""
     h = np.asarray(height, float)
     h = np.maximum(h[np.isfinite(h)], 0.0)
@@ -74,7 +78,12 @@ def pinned(height: np.ndarray, coefficient: float, height_scale: float, dt: floa
     spread = float(np.sqrt(np.sum(w * (h - h_ref) ** 2) / np.sum(w))) / height_scale
     out.update(h_ref_m=round(h_ref, 3), spread_scales=round(spread, 3),
                gain_at_h_ref=round(float(gain(coefficient, height_scale, h_ref) - 1.0), 4))
-    if spread >= MIN_SPREAD_SCALES:
+    if spread >= MIN_SPREAD_SCALES and out["low_s"] < MIN_LOW_S:
+        out.update(determined=False, note=(
+            f"only {out['low_s']:g} s within {REACH_SCALES:g} height scales of the ground (under {MIN_LOW_S:g} s): "
+            f"it pins the extra thrust near {h_ref:.2f} m ({100 * out['gain_at_h_ref']:.1f} %), the coefficient "
+            f"and height scale only along c exp(-{h_ref:.2f}/h_s); to tell them apart fly {TWO_HEIGHTS}"))
+    elif spread >= MIN_SPREAD_SCALES:
         out.update(determined=True, note=(f"coefficient and height scale told apart: {out['low_s']:g} s within "
                                           f"{REACH_SCALES:g} height scales, heights spread {spread:.2f} of it"))
     else:
