@@ -55,7 +55,7 @@ def _s023() -> dict:
 def test_an_unflagged_roll_pitch_axis_the_rate_loop_disagrees_with_is_held():
     """PX4 SIH s023 (SIH_IZZ x1.6 on take-off and land, 4 ms): the equation error's Iyy 0.0301 (x1.204), the
     rate loop's pitch x0.963 +- 0.032 (7.6 standard errors away, x1 within 1.2; not flagged): held at 0.025; its Ixx 0.0271
-    (x1.085) against roll x1.018 +- 0.055 (1.2 standard errors): kept; Izz (yaw x1.556, flagged) kept.  u001-like
+    (x1.085) against roll x1.018 +- 0.055 (1.2 standard errors): kept; Izz (yaw x1.556, far from x1) kept.  u001-like
     pitch x1.18 against a reading x1.10 +- 0.05 (1.6 standard errors): kept.  With an axis flagged, or from the
     rate setpoint as instrument, nothing (``attach_instrumented`` decides there)."""
     ref = np.array([0.025, 0.025, 0.03])
