@@ -512,9 +512,9 @@ def motor_lag(data, params: Mapping[str, float], vp: VehicleParams, t_split: flo
     the logged rate setpoint), one for all three axes, and the same for an extra command delay instead.
 
     ``tau`` (all windows) with its clustered standard error, ``tau_fold1``/``tau_fold2`` (the folds as
-    :func:`inertia`), each axis's own ``axis_tau``, fold 1's held-out residual along its sensitivity
-    at the model's lag and at ``tau_fold1`` (``heldout_before``/``heldout_after``), the held-out sum of
-    squares of the lag and of the best delay (``heldout_sse``), and ``flagged``: the lag is far from the
+    :func:`inertia`), each axis's own ``axis_tau``, both folds' held-out residual along its sensitivity
+    at the model's lag and at each fold's lag (``heldout_before``/``heldout_after``, :func:`projected_folds`),
+    both folds' held-out sum of squares of the lag and of the best delay (``heldout_sse``), and ``flagged``: the lag is far from the
     model's (``MIN_TAU_CHANGE``, ``MIN_SE``) on every axis the same way (``AXIS_AGREE``).  ``None``
     when the log is not PX4's, has no rate setpoint, or too few windows."""
     setup = _flight(data, params, vp, t_split, t_split2)
@@ -526,25 +526,29 @@ def motor_lag(data, params: Mapping[str, float], vp: VehicleParams, t_split: flo
     tau, se = fit_scale(R, TAUS, every)
     tau1, se1 = fit_scale(R, TAUS, fit1)
     tau2, se2 = fit_scale(R, TAUS, fit2)
-    b, tb = projected(R, TAUS, loop.tau_s, test1)
-    a, ta = projected(R, TAUS, tau1, test1)
+    # held out: each fold's held-out windows at that fold's lag, pooled (:func:`projected_folds`, as :func:`inertia`)
+    model = [(loop.tau_s, test1), (loop.tau_s, test2)]
+    fits = [(tau1, test1), (tau2, test2)]
+    b, tb = projected_folds(R, TAUS, model)
+    a, ta = projected_folds(R, TAUS, fits)
     axis_tau = [float(TAUS[int(np.argmin(s))]) for s in sse_ax]
     # and per axis (each axis's columns of the stacked residual)
     m = R.shape[-1] // 3
     per_axis = {}
     for k, name in enumerate(AXES):
         Rk = R[:, :, k * m:(k + 1) * m]
-        bk, _ = projected(Rk, TAUS, loop.tau_s, test1)
-        ak, _ = projected(Rk, TAUS, tau1, test1)
+        bk, _ = projected_folds(Rk, TAUS, model)
+        ak, _ = projected_folds(Rk, TAUS, fits)
         per_axis[name] = {"before": bk, "after": ak,
                           "cut": 1.0 - ak / bk if np.isfinite(ak) and np.isfinite(bk) and bk > 0 else math.nan}
-    # the delay instead of the lag, judged the same way (held-out sum of squares at fold 1's value)
+    # the delay instead of the lag, judged the same way (each fold's held-out sum of squares at its fit's value)
     D, _ = _stacked(loop, "command_delay_s", loop.command_delay_s + DELAYS, data, idx, base)
-    k1 = int(np.argmin(np.einsum("vkn,vkn->v", D[:, fit1], D[:, fit1])))
-    j1 = int(np.argmin(np.abs(np.log(TAUS) - math.log(tau1)))) if np.isfinite(tau1) else 0
+    k1, k2 = (int(np.argmin(np.einsum("vkn,vkn->v", D[:, f], D[:, f]))) for f in (fit1, fit2))
+    j1, j2 = (int(np.argmin(np.abs(np.log(TAUS) - math.log(t)))) if np.isfinite(t) else 0 for t in (tau1, tau2))
     j0 = int(np.argmin(np.abs(np.log(TAUS) - math.log(loop.tau_s))))
-    held = {"model": float(np.sum(R[j0, test1] ** 2)), "lag": float(np.sum(R[j1, test1] ** 2)),
-            "delay": float(np.sum(D[k1, test1] ** 2))}
+    held = {"model": float(np.sum(R[j0, test1] ** 2) + np.sum(R[j0, test2] ** 2)),
+            "lag": float(np.sum(R[j1, test1] ** 2) + np.sum(R[j2, test2] ** 2)),
+            "delay": float(np.sum(D[k1, test1] ** 2) + np.sum(D[k2, test2] ** 2))}
     change = tau - loop.tau_s
     flagged = bool(np.isfinite(tau) and np.isfinite(se) and abs(change) > max(MIN_TAU_CHANGE * loop.tau_s, MIN_SE * se)
                    and all((x - loop.tau_s) * np.sign(change) >= AXIS_AGREE * abs(change) for x in axis_tau))

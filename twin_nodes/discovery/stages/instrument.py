@@ -20,6 +20,7 @@ from twin_nodes.discovery.output_error import (AXES, IV_AXIS_PARAM, IV_GAIN_RANG
                                                instrumented_inertia)
 from twin_nodes.discovery.plans import RATE_LOOP_LOG_S
 from twin_nodes.discovery.stages import motor_lag
+from twin_nodes.discovery.stages.inertia_holds import hold_axes_not_borne_out, hold_yaw_not_borne_out
 from twin_nodes.discovery.stages.motor_lag import INSTRUMENTED_BLOCKS_MISSING
 from twin_nodes.discovery.stages.prepare import PreparedFlight
 from twin_nodes.discovery.stages.verdicts import Verdicts
@@ -141,35 +142,6 @@ def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: 
                                        f"{entry['own_params'][k]:.4g} " + ("fitted to aliased commands)" if replace else
                                                                             "not borne out)") for a, k in unmoved))
     return "corroborates the " + entry["verdict"] + " finding"
-
-
-def hold_yaw_not_borne_out(entry: dict, iv: dict) -> bool:
-    """An ``inertia`` finding's Izz that PX4's rate loop neither flags nor agrees with is held at the value the
-    rate loop read yaw on (``iv["params"]["izz"]``; the finding's kept in ``own_params``): the rate loop reads
-    yaw from the rate setpoint's response (:func:`~twin_nodes.discovery.rate_loop.inertia`, ``yaw_scale``),
-    the equation error regresses the motors' yaw mode on the differentiated gyro, whose noise pulls Izz low
-    where the flight barely turns in yaw.  PX4 SIH m018 (take-off and land, 4 ms logs, SIH Izz unchanged): the
-    equation error's Izz 0.0252 (x0.84, both folds), the rate loop's yaw x0.931 +- 0.019 (not flagged: under 10
-    %; 4.8 standard errors from x0.84).  Not flagged: within ``MIN_CHANGE`` or ``MIN_SE`` standard errors of
-    x1; disagrees: the finding's ratio more than ``MIN_SE`` standard errors from the reading.  Returns whether
-    it held Izz."""
-    if iv.get("method") != "rate_loop" or "izz" not in entry.get("params", {}):
-        return False
-    sy, sey, ref = iv.get("yaw_scale", math.nan), iv.get("yaw_scale_se", math.nan), iv["params"].get("izz", math.nan)
-    if not (np.isfinite(sy) and np.isfinite(sey) and sey > 0 and np.isfinite(ref) and ref > 0):
-        return False
-    ratio = float(entry["params"]["izz"]) / ref
-    flagged = abs(sy - 1.0) > max(rate_loop.MIN_CHANGE, rate_loop.MIN_SE * sey)
-    if flagged or abs(ratio - sy) <= rate_loop.MIN_SE * sey or abs(ratio - 1.0) <= 1e-9:
-        return False
-    entry.setdefault("own_params", {})["izz"] = entry["params"]["izz"]
-    entry["params"]["izz"] = float(ref)
-    entry.setdefault("held_at_nominal", {})["izz"] = (
-        f"PX4's rate loop reads yaw inertia x{sy:.3f} +- {sey:.3f} (not flagged): the finding's izz "
-        f"{entry['own_params']['izz']:.4g} (x{ratio:.3f}) is not borne out by it")
-    entry["verdict_note"] = (entry.get("verdict_note", "") + f"; izz held at {ref:.4g} (the rate loop reads yaw "
-                             f"x{sy:.3f} +- {sey:.3f}; the finding's {entry['own_params']['izz']:.4g} not borne out)")
-    return True
 
 
 #: the inertia candidate's roll and pitch parameters
@@ -315,11 +287,36 @@ def _instrumented(S: PreparedFlight, current: VehicleParams, accepted: list[str]
     if yaw_note:
         out["yaw_read_on"] = yaw_note
     if not iv["flagged"]:
-        return out, None
+        return out, _hold_unflagged(iv, out, entry, build, guard, reference, float(I_cur[2]))
     v = _instrument_verdict(iv, out, win, d, entry)
     if v is None:
         return out, None
     return _instrument_entry(v, iv, out, entry, effects_out, build, guard, reference, replace, d)
+
+
+def _hold_unflagged(iv: dict, out: dict, entry: dict | None, build: Callable, guard: Callable[[VehicleParams], str | None],
+                    reference: np.ndarray, izz: float) -> VehicleParams | None:
+    """Where PX4's rate loop flags nothing, the finding's axes it reads precisely and disagrees with held at the
+    value read on (:func:`hold_axes_not_borne_out`, :func:`hold_yaw_not_borne_out`); a confirmed finding's
+    refit vehicle takes them unless ``guard`` objects (then the finding stays).  Returns the new refit vehicle."""
+    if entry is None or entry["verdict"] == "rejected" or iv.get("method") != "rate_loop":
+        return None
+    before = copy.deepcopy(entry)
+    held = hold_axes_not_borne_out(entry, iv, reference) + (["izz"] if hold_yaw_not_borne_out(entry, iv, izz) else [])
+    if not held:
+        return None
+    out["verdict"] = f"held the finding's {', '.join(held)} at the model's value (the rate loop does not bear them out)"
+    if entry["verdict"] != "confirmed":
+        return None
+    refit = build(*(float(entry["params"].get(k, reference[j])) for k, j in (("ixx", 0), ("iyy", 1))),
+                  float(entry["params"].get("izz", izz)))
+    against = guard(refit)
+    if against:
+        entry.clear()
+        entry.update(before)
+        out["verdict"] = f"the finding's {', '.join(held)} not held: {against}"
+        return None
+    return refit
 
 
 def _thrust_yaw_share_removed(vp: VehicleParams) -> VehicleParams | None:

@@ -27,8 +27,9 @@ INSTRUMENTED_BLOCKS_MISSING = 30
 
 def _lag_checks(r: dict) -> tuple[list[str], float]:
     """Why the rate loop's lag reading ``r`` (:func:`~twin_nodes.discovery.rate_loop.motor_lag`, flagged) is not
-    a finding (empty: it is), and fold 1's held-out cut: both folds move it the model's lag the same way at 2
-    standard errors, fold 1's lag cuts the held-out rate error along its sensitivity by ``LIKELY_MIN_CUT``, lies
+    a finding (empty: it is), and the held-out cut: both folds move it the model's lag the same way at 2
+    standard errors, each fold's lag cuts the held-out rate error along its sensitivity (both folds' held-out
+    windows pooled, :func:`~twin_nodes.discovery.rate_loop.projected_folds`) by ``LIKELY_MIN_CUT``, fold 1's lies
     in the effect's physical range and beats an extra delay on the held-out windows."""
     tau0, tau1 = r["model_tau"], r["tau_fold1"]
     why = []
@@ -101,7 +102,7 @@ def rate_loop_lag(S: PreparedFlight, current: VehicleParams, effects_out: list[d
     inertia, are slow (every axis off the same way) and the model's lag and delay are its own.
 
     It is ``likely`` when the lag is far from the model's on every axis alike, both folds move it the
-    same way by 2 standard errors, fold 1's lag cuts the held-out rate error along its sensitivity by
+    same way by 2 standard errors, each fold's lag cuts both folds' held-out rate error along its sensitivity by
     ``LIKELY_MIN_CUT``, lies inside the effect's physical range, and beats an extra delay on the
     held-out windows; never ``confirmed`` (no residual of the flight's own shows it: PX4 SIH
     SIH_T_TAU 0.09 s on a 50 Hz log, where lag and delay cut the output error 9-10 %).  The entry
