@@ -33,7 +33,7 @@ BATCHES = {
     "judge6": (3131, REPO / "missions" / "sih_grid" / "batch6.yaml", "m",
                "2026-11-27 22:58 UTC, before the ninth session changed anything"),
     "judge7": (3232, REPO / "missions" / "sih_grid" / "batch7.yaml", "j",
-               "2026-11-28 02:00 UTC, before the tenth session changed anything"),
+               "2026-11-28 01:47 UTC, before the tenth session changed anything"),
 }
 #: the halves ``prove --grid`` takes: batch 1's two, each judging-only batch (the same names in both grids:
 #: grid_rotorpy.BATCHES, tests/test_grids.py), or all
