@@ -63,7 +63,37 @@ def run(inp: InstrumentInput) -> Instrumented:
     lag = (motor_lag.rate_loop_lag(S, on, v.effects)
            if instrumented is not None and instrumented.get("method") == "rate_loop" and instrumented["motor_signature"]
            else None)
+    if lag is not None and lag.get("verdict") == "likely":
+        beside = _inertia_beside_lag(S, on, v.accepted_labels, v.effects, guard)
+        if beside is not None:
+            instrumented["beside_rate_loop_lag"] = beside
     return Instrumented(current, instrumented, lag)
+
+
+def _inertia_beside_lag(S: PreparedFlight, on: VehicleParams, accepted: list[str], effects_out: list[dict],
+                        guard: Callable[[VehicleParams], str | None]) -> dict | None:
+    """The roll/pitch inertia read again by PX4's rate loop on the vehicle carrying the motor lag it has just
+    named (:func:`.motor_lag.rate_loop_lag`), where no inertia is a finding: the first reading, on the model's
+    lag, saw a slower roll/pitch and yaw off the same way and put it all on the motors (PX4 SIH SIH_T_TAU 0.08
+    with SIH_L_ROLL 0.17, j017: roll x1.41, pitch x1.18, yaw x1.06; on the lag's vehicle roll x1.19 +- 0.03,
+    pitch and yaw x1.01).  The same checks as any rate-loop inertia reading (:func:`_instrument_verdict`: 10 %
+    and 4 standard errors, both folds, the held-out cut, no motor signature) name it ``likely`` beside the lag;
+    the refit vehicle is unchanged.  Returns the second reading's numbers (None: not read)."""
+    lag_e = next((e for e in effects_out if e["name"] == "motor_time_constant" and e["verdict"] == "likely"
+                  and e.get("residual") == "rate_loop"), None)
+    if lag_e is None or any(e["name"] == "inertia" and e["verdict"] in ("confirmed", "likely") for e in effects_out) \
+            or "inertia" in dict(on.effect_dict) or any(n in ("motor_time_constant", "actuator_delay") for n, _ in on.effects):
+        return None
+    tau = float(lag_e["params"]["tau_up"])
+    out, _ = _instrumented(S, on.with_effect("motor_time_constant", tau_up=tau, tau_down=tau),
+                           [a for a in accepted if a != "inertia"], effects_out, guard, S.nominal)
+    if out is None:
+        return None
+    out["lag_s"] = round(tau, 5)
+    entry = next((e for e in effects_out if e["name"] == "inertia" and e["verdict"] == "likely"), None)
+    if entry is not None and out.get("verdict") == "likely":
+        entry["verdict_note"] += f"; read by PX4's rate loop on the vehicle with the motor lag it named ({tau:.3f} s)"
+    return out
 
 
 def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: np.ndarray,
