@@ -22,6 +22,18 @@ def _borne_out_at_model(ratio: float, s: float, se: float) -> bool:
     return abs(s - 1.0) <= rate_loop.MIN_SE * se and abs(ratio - s) > rate_loop.MIN_SE * se and abs(ratio - 1.0) > 1e-9
 
 
+def _hold(entry: dict, k: str, ref: float, axis: str, s: float, se: float, ratio: float) -> None:
+    """Hold ``entry``'s parameter ``k`` at ``ref`` (the finding's kept in ``own_params``), saying why: the
+    rate loop's ``axis`` reading ``s`` +- ``se``, the finding's ``ratio`` to ``ref``."""
+    own = entry.setdefault("own_params", {})[k] = entry["params"][k]
+    entry["params"][k] = ref
+    entry.setdefault("held_at_nominal", {})[k] = (
+        f"PX4's rate loop reads {axis} inertia x{s:.3f} +- {se:.3f} (not flagged): the finding's {k} "
+        f"{own:.4g} (x{ratio:.3f}) is not borne out by it")
+    entry["verdict_note"] = (entry.get("verdict_note", "") + f"; {k} held at {ref:.4g} (the rate loop "
+                             f"reads {axis} x{s:.3f} +- {se:.3f}; the finding's {own:.4g} not borne out)")
+
+
 def hold_axes_not_borne_out(entry: dict, iv: dict, reference: np.ndarray) -> list[str]:
     """Where PX4's rate loop flags no roll/pitch axis: an ``inertia`` finding's Ixx/Iyy that the rate loop reads
     (``scale`` +- ``scale_se`` of ``reference``, the inertia it was flown on), does not flag and disagrees with
@@ -41,13 +53,7 @@ def hold_axes_not_borne_out(entry: dict, iv: dict, reference: np.ndarray) -> lis
         ratio = float(entry["params"][k]) / float(reference[j])
         if not _borne_out_at_model(ratio, s, se):
             continue
-        entry.setdefault("own_params", {})[k] = entry["params"][k]
-        entry["params"][k] = float(reference[j])
-        entry.setdefault("held_at_nominal", {})[k] = (
-            f"PX4's rate loop reads {a} inertia x{s:.3f} +- {se:.3f} (not flagged): the finding's {k} "
-            f"{entry['own_params'][k]:.4g} (x{ratio:.3f}) is not borne out by it")
-        entry["verdict_note"] = (entry.get("verdict_note", "") + f"; {k} held at {reference[j]:.4g} (the rate loop "
-                                 f"reads {a} x{s:.3f} +- {se:.3f}; the finding's {entry['own_params'][k]:.4g} not borne out)")
+        _hold(entry, k, float(reference[j]), a, s, se, ratio)
         held.append(k)
     return held
 
@@ -73,13 +79,7 @@ def hold_yaw_not_borne_out(entry: dict, iv: dict, izz_read_on: float | None = No
     flagged = abs(sy - 1.0) > max(rate_loop.MIN_CHANGE, rate_loop.MIN_SE * sey)
     if flagged or not _borne_out_at_model(ratio, sy, sey):
         return False
-    entry.setdefault("own_params", {})["izz"] = entry["params"]["izz"]
-    entry["params"]["izz"] = float(ref)
-    entry.setdefault("held_at_nominal", {})["izz"] = (
-        f"PX4's rate loop reads yaw inertia x{sy:.3f} +- {sey:.3f} (not flagged): the finding's izz "
-        f"{entry['own_params']['izz']:.4g} (x{ratio:.3f}) is not borne out by it")
-    entry["verdict_note"] = (entry.get("verdict_note", "") + f"; izz held at {ref:.4g} (the rate loop reads yaw "
-                             f"x{sy:.3f} +- {sey:.3f}; the finding's {entry['own_params']['izz']:.4g} not borne out)")
+    _hold(entry, "izz", float(ref), "yaw", sy, sey, ratio)
     return True
 
 
