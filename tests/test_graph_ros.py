@@ -169,3 +169,64 @@ def test_killed_recorder_is_recoverable(tmp_path):
     assert r.returncode == 0, r.stderr
     counts = topic_counts(Path(str(bag) + "_recovered"))
     assert counts.get("/real/odom", 0) > 20 and counts.get("/real/imu", 0) > 100, counts
+
+
+_ANNOUNCER = r"""
+import json, sys, time
+import rclpy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Float32, String
+
+first, rest, total = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
+rclpy.init()
+node = rclpy.create_node("announcer")
+latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+plan = node.create_publisher(String, "/replay/plan", latched)
+thr = node.create_publisher(Float32, "/real/throttle", QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+t_end = time.monotonic() + 60
+while time.monotonic() < t_end and (plan.get_subscription_count() < 1 or thr.get_subscription_count() < 1):
+    rclpy.spin_once(node, timeout_sec=0.05)
+plan.publish(String(data=json.dumps({"counts": {"/real/throttle": total}, "t0_ns": 1_000_000_000})))
+for i in range(first):
+    thr.publish(Float32(data=float(i)))
+print("FIRST", flush=True)
+time.sleep(2.0)  # the recorder is told to stop in this gap
+for i in range(rest):
+    thr.publish(Float32(data=float(first + i)))
+print("REST", flush=True)
+time.sleep(4.0)
+"""
+
+
+@pytest.mark.parametrize("rest,drain_s,code,recorded", [(6, 20.0, 0, 10), (0, 1.0, 3, 4)], ids=["late", "never"])
+def test_recorder_drains_what_was_announced(tmp_path, rest, drain_s, code, recorded):
+    """Told to stop while 6 of the 10 messages the plan announced are still to come, the recorder waits for
+    them (its drain counts announced messages, not quiet time); when they never come it finalises and keeps
+    the bag, names the gap in one line and exits 3."""
+    from twin_nodes.graph.domains import lease_domain
+    from twin_nodes.logs.recording import INCOMPLETE_EXIT
+
+    with lease_domain() as lease:
+        env = ros_env(lease.domain_id)
+        bag = tmp_path / "bag"
+        rec = subprocess.Popen(node_command("recorder", {"out": str(bag), "drain_timeout_s": drain_s}), env=env,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+        pub = subprocess.Popen([sys.executable, "-c", _ANNOUNCER, "4", str(rest), "10"], env=env,
+                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, start_new_session=True)
+        try:
+            assert pub.stdout.readline().strip() == "FIRST"
+            time.sleep(0.5)
+            rec.send_signal(signal.SIGINT)
+            _, err = rec.communicate(timeout=60)
+        finally:
+            for p in (pub, rec):
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
+    assert rec.returncode == code == (INCOMPLETE_EXIT if recorded < 10 else 0), err
+    assert topic_counts(bag)["/real/throttle"] == recorded
+    said = [ln for ln in err.splitlines() if "incomplete" in ln]
+    if recorded < 10:
+        assert len(said) == 1 and "/real/throttle 4 of 10" in said[0] and str(bag) in said[0], err
+    else:
+        assert not said, err

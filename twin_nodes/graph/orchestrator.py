@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from twin_nodes.base.errors import LogError, TwinError
+from twin_nodes.logs.recording import INCOMPLETE_EXIT
 
 #: PX4 SYS_AUTOSTART -> shipped params file stem
 NODE_MODULES = {"replay": "ulog_replay", "twin": "twin_node", "metrics": "metrics_node", "recorder": "recorder_node"}
@@ -218,7 +219,7 @@ def run_graph(ulog: str | os.PathLike[str], params_file: str | os.PathLike[str],
     lease = lease_domain(domain_id)
     temp_run = not run_dir
     rd = Path(run_dir) if run_dir else Path(tempfile.mkdtemp(prefix="rotortwin_run_"))
-    ok = interrupted = recorder_started = False
+    ok = interrupted = recorder_started = keep_bag = False
     try:
         rd.mkdir(parents=True, exist_ok=True)
         (rd / "domain_id").write_text(f"{lease.domain_id}\n")
@@ -261,7 +262,10 @@ def run_graph(ulog: str | os.PathLike[str], params_file: str | os.PathLike[str],
             interrupted = True
             raise
         finally:
-            codes = g.stop()
+            # the recorder first, while the other nodes still hold what they published (reliable writers keep
+            # unacknowledged messages only while their process lives): it drains until every announced message is in
+            codes = g.stop(["recorder"] if recorder_started else [])
+            codes.update(g.stop())
             if old_term is not None:
                 signal.signal(signal.SIGTERM, old_term)
                 signal.signal(signal.SIGHUP, old_hup)
@@ -269,6 +273,10 @@ def run_graph(ulog: str | os.PathLike[str], params_file: str | os.PathLike[str],
         stats = json.loads(stats_path.read_text()) if stats_path.exists() else {}
         if "error" in metrics:
             raise TwinError(f"metrics node: {metrics['error']}")
+        if bag and codes.get("recorder") == INCOMPLETE_EXIT:
+            keep_bag = True  # valid and finalised, but short of announced messages: kept, and said so
+            said = [ln for ln in g.log_tail("recorder", 20).splitlines() if "incomplete" in ln]
+            raise TwinError(said[-1] if said else f"the recording {bag} is incomplete (kept)")
         if bag and codes.get("recorder") not in (0, None):
             raise TwinError(f"the recorder exited ({codes['recorder']}): the bag is not complete:\n"
                             f"{g.log_tail('recorder')}")
@@ -276,7 +284,7 @@ def run_graph(ulog: str | os.PathLike[str], params_file: str | os.PathLike[str],
         ok = True
     finally:
         lease.release()
-        if not ok and recorder_started and bag and Path(bag).exists():
+        if not ok and recorder_started and bag and Path(bag).exists() and not keep_bag:
             if interrupted:
                 # a rotortwin command staged the bag: its guard removes it with the other unfinished outputs
                 print(f"rotortwin: interrupted: the recording so far was finalised ({bag})", file=sys.stderr)

@@ -64,6 +64,8 @@ _NUMPY_OF = {
     "int64": np.int64, "uint64": np.uint64, "float32": np.float32, "float64": np.float64,
 }
 _TIME_TYPES = ("builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration")
+#: the recorder node's exit code when messages the graph announced never reached it (the bag is finalised and kept)
+INCOMPLETE_EXIT = 3
 
 
 def default_typestore() -> Any:

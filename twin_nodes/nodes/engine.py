@@ -34,6 +34,8 @@ __all__ = ["NS", "Timeline", "ReorderBuffer", "TwinEngine", "Track", "final_stre
 NS = 1_000_000_000
 #: the twin's inputs
 TWIN_INPUTS = ("/real/odom", "/real/setpoint", "/real/motors", "/real/status", "/real/battery", "/real/throttle")
+#: the twin's outputs, one message each per twin sample (``/twin/done`` carries how many samples)
+TWIN_OUTPUTS = ("/twin/odom", "/twin/motors", "/twin/throttle", "/twin/imu")
 #: live, the inputs whose times move the twin's watermark (TwinEngine.advance_live), and how long
 #: one may be silent [s of the receiving clock] before it no longer holds the others back
 LIVE_PACED = ("/real/odom", "/real/motors")

@@ -27,7 +27,11 @@ do not overlap in time.  ``exclude`` (regex) skips topics, default ``/rosout`` a
 ``/parameter_events``.
 
 Stopping: SIGINT/SIGTERM (and the death of the process that started it, see
-:mod:`twin_nodes.nodes.common`) drain what is queued and finalise the bag; after a
+:mod:`twin_nodes.nodes.common`) drain what is queued and finalise the bag. The drain waits, up to
+``drain_timeout_s`` (20 s), for every message the graph announced (the replay plan's counts, ``/twin/done``'s
+sample count for each twin output); if some never come the bag is still finalised and kept, one line on stderr
+names each short topic ("/twin/odom 1243 of 1254") and the node exits 3 (``run_graph`` stops the recorder before
+the other nodes, so their reliable writers still hold what it has not yet taken). After a
 ``kill -9`` the chunks already written survive (the messages held for ordering and the
 open chunk are lost) and ``rotortwin record recover
 <out>`` rebuilds a valid bag (:func:`twin_nodes.logs.recording.recover`).
@@ -36,15 +40,20 @@ open chunk are lost) and ``rotortwin record recover
 from __future__ import annotations
 
 import re
+import struct
 import sys
 import time
 from collections import deque
 from typing import Any
 
 from msgs_py.topics import DEPTH, msg_class
-from twin_nodes.logs.recording import McapRecorder, cdr_header_stamp
+from twin_nodes.logs.recording import INCOMPLETE_EXIT, McapRecorder, cdr_header_stamp
 from twin_nodes.nodes.common import NS, GraphNode, ReorderBuffer, declare, run_node
-from twin_nodes.nodes.engine import FollowerWatermark
+from twin_nodes.nodes.engine import TWIN_OUTPUTS, FollowerWatermark
+
+TWIN_DONE = "/twin/done"
+#: empty polls in a row (0.05 s each) that say nothing more is queued for the recorder
+DRAIN_EMPTY_POLLS = 6
 
 #: streams computed from the replay, which run behind its clock: the twin's and the metrics' outputs
 FOLLOWER_PREFIX = "/twin"
@@ -65,6 +74,9 @@ class RecorderNode(GraphNode):
         chunk_s = float(declare(self, "chunk_period_s", 1.0, "close an MCAP chunk every ... s of message time"))
         lag_s = float(declare(self, "reorder_lag_s", 2.0, "write messages in time order, holding them this "
                                                           "long [s of message time]"))
+        self.drain_timeout_s = float(declare(self, "drain_timeout_s", 20.0,
+                                             "on stop, wait up to this long [s] for messages announced but not yet "
+                                             "received (the replay's plan counts, /twin/done)"))
         if not out:
             raise ValueError("parameter 'out': expected a bag directory or .mcap file to create")
         self.bag = McapRecorder(out, chunk_period_s=chunk_s, fsync_chunks=fsync)
@@ -72,6 +84,8 @@ class RecorderNode(GraphNode):
         self.kind: dict[str, str] = {}
         self.skipped: set[str] = set()
         self.n = 0
+        self.received: dict[str, int] = {}
+        self.twin_done: int | None = None
         self.last_msg_wall = time.monotonic()
         self.t_start_wall = time.monotonic()
         self.buf = ReorderBuffer(int(lag_s * NS))
@@ -120,6 +134,9 @@ class RecorderNode(GraphNode):
     def _make_cb(self, topic: str):
         def cb(data: bytes) -> None:
             self.last_msg_wall = time.monotonic()
+            self.received[topic] = self.received.get(topic, 0) + 1
+            if topic == TWIN_DONE:
+                self.twin_done = _uint64_cdr(data)
             if self.kind[topic] == "header":
                 t = cdr_header_stamp(data)
                 if topic in self.index_stamps:
@@ -201,18 +218,57 @@ class RecorderNode(GraphNode):
                 return False
         return True
 
-    def close(self, interrupted: bool = False) -> None:
-        # drain what is already queued, then write everything in time order and finalise the bag
+    def announced(self) -> dict[str, int]:
+        """Messages each recorded topic is known to carry in all: the replay's plan counts and, once
+        ``/twin/done`` came, its sample count for every twin output."""
+        want = {t: int(n) for t, n in (self.plan or {}).get("counts", {}).items() if t in self.subs}
+        if self.twin_done is not None:
+            want.update({t: self.twin_done for t in TWIN_OUTPUTS if t in self.subs})
+        return want
+
+    def missing(self) -> dict[str, tuple[int, int]]:
+        """Announced topics short of their count: topic -> (received, announced)."""
+        return {t: (self.received.get(t, 0), n) for t, n in self.announced().items() if self.received.get(t, 0) < n}
+
+    def _drain(self) -> None:
+        """Take what the middleware still holds: until every announced message is here and nothing more is
+        ready (a few empty polls in a row, counted in polls rather than wall time, so that a process starved of
+        CPU does not mistake its own pause for a quiet graph), at most ``drain_timeout_s``."""
         ex = self.executor_ref
-        t_end = time.monotonic() + 3.0
-        while ex is not None and time.monotonic() < t_end and time.monotonic() - self.last_msg_wall < 0.3:
+        if ex is None:
+            return
+        t_end = time.monotonic() + self.drain_timeout_s
+        empty = 0
+        while time.monotonic() < t_end:
+            before = sum(self.received.values())
             ex.spin_once(timeout_sec=0.05)
+            empty = empty + 1 if sum(self.received.values()) == before else 0
+            if empty >= DRAIN_EMPTY_POLLS and not self.missing():
+                return
+
+    def close(self, interrupted: bool = False) -> None:
+        # drain what is queued and announced, then write everything in time order and finalise the bag
+        self._drain()
+        short = self.missing()
         for topic in self.pending:
             self._resolve(topic, final=True)
         self._write_ready(flush=True)
         self.bag.close()
         self.get_logger().info(f"{self.bag.path}: {self.n} messages on {len(self.subs)} topics")
         print(f"recorded {self.n} messages on {len(self.subs)} topics to {self.bag.path}", flush=True)
+        if short:
+            # never a silent gap: the bag is valid and kept, but it lacks messages the graph announced
+            gaps = ", ".join(f"{t} {got} of {want}" for t, (got, want) in sorted(short.items()))
+            print(f"rotortwin recorder: {self.bag.path}: incomplete after {self.drain_timeout_s:.0f} s of draining: "
+                  f"{gaps}", file=sys.stderr, flush=True)
+            self.exit_code = INCOMPLETE_EXIT
+
+
+def _uint64_cdr(data: bytes) -> int:
+    """A serialized ``std_msgs/UInt64``: 4-byte encapsulation header (its first two bytes name the byte
+    order), then the value, 8-byte aligned from the payload's start, i.e. at offset 4."""
+    order = "<" if data[1] in (1, 3) else ">"
+    return int(struct.unpack_from(order + "Q", data, 4)[0])
 
 
 def _stamp_kind(topic: str, cls: Any) -> str:

@@ -33,10 +33,10 @@ from typing import Any
 from msgs_py.topics import TOPICS, msg_class
 from twin_nodes.logs import conversions as cv
 from twin_nodes.nodes.common import GraphNode, declare, reliable_qos, run_node
-from twin_nodes.nodes.engine import CONFIG_TOPIC, RESET_TOPIC, TWIN_INPUTS, TwinEngine, reset_fields, twin_config
+from twin_nodes.nodes.engine import (CONFIG_TOPIC, RESET_TOPIC, TWIN_INPUTS, TWIN_OUTPUTS, TwinEngine, reset_fields,
+                                     twin_config)
 
 INPUTS = TWIN_INPUTS
-OUTPUTS = ("/twin/odom", "/twin/motors", "/twin/throttle", "/twin/imu")
 
 
 class TwinNode(GraphNode):
@@ -59,7 +59,7 @@ class TwinNode(GraphNode):
         self.mode = mode
         self.inputs = INPUTS
         q = reliable_qos()
-        self.pub = {t: self.create_publisher(msg_class(TOPICS[t].type), t, q) for t in OUTPUTS}
+        self.pub = {t: self.create_publisher(msg_class(TOPICS[t].type), t, q) for t in TWIN_OUTPUTS}
         self.done_pub = self.create_publisher(msg_class("std_msgs/msg/UInt64"), "/twin/done",
                                               reliable_qos(depth=1, latched=True))
         # what this twin is (params text, mode, rates): recorded with every bag, so that
