@@ -54,6 +54,8 @@ from twin_nodes.nodes.engine import TWIN_OUTPUTS, FollowerWatermark
 TWIN_DONE = "/twin/done"
 #: empty polls in a row (0.05 s each) that say nothing more is queued for the recorder
 DRAIN_EMPTY_POLLS = 6
+#: with nothing announced still to come, the longest drain [s] (a live stream never pauses)
+DRAIN_LIVE_S = 3.0
 
 #: streams computed from the replay, which run behind its clock: the twin's and the metrics' outputs
 FOLLOWER_PREFIX = "/twin"
@@ -233,17 +235,18 @@ class RecorderNode(GraphNode):
     def _drain(self) -> None:
         """Take what the middleware still holds: until every announced message is here and nothing more is
         ready (a few empty polls in a row, counted in polls rather than wall time, so that a process starved of
-        CPU does not mistake its own pause for a quiet graph), at most ``drain_timeout_s``."""
+        CPU does not mistake its own pause for a quiet graph), at most ``drain_timeout_s``. A live stream that
+        never pauses and announced nothing is cut after ``DRAIN_LIVE_S``."""
         ex = self.executor_ref
         if ex is None:
             return
-        t_end = time.monotonic() + self.drain_timeout_s
+        t0 = time.monotonic()
         empty = 0
-        while time.monotonic() < t_end:
+        while time.monotonic() - t0 < self.drain_timeout_s:
             before = sum(self.received.values())
             ex.spin_once(timeout_sec=0.05)
             empty = empty + 1 if sum(self.received.values()) == before else 0
-            if empty >= DRAIN_EMPTY_POLLS and not self.missing():
+            if (empty >= DRAIN_EMPTY_POLLS or time.monotonic() - t0 > DRAIN_LIVE_S) and not self.missing():
                 return
 
     def close(self, interrupted: bool = False) -> None:
