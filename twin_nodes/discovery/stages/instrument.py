@@ -96,13 +96,20 @@ def _inertia_beside_lag(S: PreparedFlight, on: VehicleParams, accepted: list[str
     return out
 
 
+#: two readings of an inertia change agree, whatever their ratio, when their values are this close (a fraction
+#: of the model's value: the bar a named parameter is held to). A small change read by two instruments whose
+#: biases of a few percent go opposite ways breaks a ratio bar on the changes (PX4 SIH SIH_L_ROLL 0.17, M6, 4 ms:
+#: the rate loop +24 %, the finding +14.5 %, truth +17.6 %; SIH_L_PITCH + KDV, M2: +16.6 % against +11.4 %)
+AGREE_WITHIN = 0.10
+
+
 def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: np.ndarray,
                         replace: bool = False) -> str:
     """Attach the instrumented inertia (``iv``: :func:`instrumented_inertia`'s or
     :func:`~twin_nodes.discovery.rate_loop.inertia`'s result with its ``params``; ``residual``: its
     held-out numbers) to an ``inertia`` finding already made on the flight's own residuals, as a
     third residual for the axes it flags.  It is attached where the finding moves those axes the
-    same way within x1.5, or held them at the model's value (then the instrument supplies them;
+    same way within x1.5 or to within :data:`AGREE_WITHIN` of the rate loop's value, or held them at the model's value (then the instrument supplies them;
     ``held_at_nominal`` loses them); else the disagreement is returned and nothing changes.  With
     ``replace`` (PX4's rate loop on a log whose motor commands are aliased, where the finding's own
     roll/pitch fit is biased) the same direction is agreement enough, and the rate loop's value
@@ -118,7 +125,8 @@ def attach_instrumented(entry: dict, iv: dict, residual: dict, nominal_inertia: 
         d_iv = params[k] / nominal_inertia[j] - 1.0
         d_f = entry["params"][k] / nominal_inertia[j] - 1.0
         held = k in (entry.get("held_at_nominal") or {})
-        ok = held or (d_iv * d_f > 0 and (replace or max(abs(d_iv), abs(d_f)) <= 1.5 * min(abs(d_iv), abs(d_f))))
+        ok = held or (d_iv * d_f > 0 and (replace or max(abs(d_iv), abs(d_f)) <= 1.5 * min(abs(d_iv), abs(d_f))
+                                          or abs(d_iv - d_f) <= AGREE_WITHIN))
         agree.append((a, k, held, ok))
     if not all(ok for *_, ok in agree):
         return "disagrees with the " + entry["verdict"] + " finding"
