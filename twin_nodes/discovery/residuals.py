@@ -67,6 +67,9 @@ class EquationData:
     #: (T,) bool: where the attitude channels (moments, horizontal force) are usable, a subset of
     #: ``valid`` (the longer ground-contact pad after a lift-off, :func:`contact_pads`); None: ``valid``
     attitude_valid: np.ndarray | None = None
+    #: (T,) bool: where the closed-loop twin is scored (:func:`scored_span`): as ``attitude_valid`` but not
+    #: needing the horizontal position and velocity, which the twin's throttle and motors do not; None: that
+    attitude_scored: np.ndarray | None = None
     #: what every candidate evaluation reuses (see :func:`model_rotor_states`, :func:`exogenous`,
     #: :func:`residual_channels`); derived from the fields above, never changes a result
     cache: dict = field(default_factory=dict, repr=False, compare=False)
@@ -122,6 +125,10 @@ def _fine_commands(ms, lo: float, n: int, dt: float, oversample: int, command_ho
     motor_dt = float(np.median(np.diff(ms.t_s))) if len(ms.t_s) > 1 else dt
     return u_fine, motor_dt
 
+
+#: the refusal's field where the flight has 5 s to score but not 5 s with horizontal velocity to fit (``rotortwin
+#: survey`` flies and scores the nominal there, as on a flight without GPS)
+NO_HORIZONTAL_FIELD = "airborne samples with horizontal velocity"
 
 #: the ground-contact pads (s): before a contact sample (touchdown transients, the 2 Hz low-pass's
 #: spread of the normal force) and after one (a lift-off); the attitude (moment and horizontal force)
@@ -232,8 +239,8 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
         agl = d["height_agl"].reshape(n)
         height = np.where(np.isfinite(agl), agl, height)
     batt = d["battery_v"].reshape(n) if "battery_v" in d else np.full(n, np.nan)
-    finite = (np.isfinite(p).all(1) & np.isfinite(d["velocity_enu"]).all(1) & np.isfinite(d["attitude_q"]).all(1)
-              & np.isfinite(w).all(1) & np.isfinite(f).all(1))
+    finite_z = np.isfinite(p[:, 2]) & np.isfinite(d["attitude_q"]).all(1) & np.isfinite(w).all(1) & np.isfinite(f).all(1)
+    finite = finite_z & np.isfinite(p[:, :2]).all(1) & np.isfinite(d["velocity_enu"]).all(1)
     u_grid = u_fine[::oversample][:n]
     armed = np.isfinite(u_grid).all(1)
     data = EquationData(path=log.path, t=t, valid=finite & armed, p=p, v=d["velocity_enu"], q=d["attitude_q"],
@@ -243,6 +250,7 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     # exclude ground contact: low, slow, and the model's thrust well below the weight
     contact, contact_attitude = _ground_contact(vp, data, height, rate_hz)
     data.attitude_valid = data.valid & ~contact_attitude
+    data.attitude_scored = finite_z & armed & ~contact_attitude
     data.valid &= ~contact
     data.info["contact_samples"] = int(contact.sum())
     data.info["contact_samples_attitude"] = int(contact_attitude.sum())
@@ -250,6 +258,11 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     if rs is not None and len(rs.t_s) > 1:
         data.w_sp = rs.at(t)
     if data.valid.sum() < 5 * rate_hz:
+        scored_s = float(data.attitude_scored.sum()) / rate_hz
+        if scored_s >= 5.0:
+            raise LogError(log.path, NO_HORIZONTAL_FIELD,
+                           f"expected at least 5 s of usable airborne data, got {data.valid.sum() / rate_hz:.1f} s with "
+                           f"horizontal velocity ({scored_s:.1f} s without it: GPS velocity valid in part of the flight)")
         raise LogError(log.path, "airborne samples", "expected at least 5 s of usable airborne data")
     return data
 

@@ -35,6 +35,7 @@ LEFT_OUT_KINDS = ("never airborne", "never left the ground", "too short", "usabl
 def survey_flight(path: str | Path, params: str | Path | None = None) -> dict:
     """Discover on one flight with its params resolved as ``rotortwin discover`` does; a summary row."""
     from twin_nodes.discovery.discover import discover
+    from twin_nodes.discovery.residuals import NO_HORIZONTAL_FIELD
     from twin_nodes.identify.nominal import params_for_log
     from twin_nodes.logs.flyable import read_flight
     from twin_nodes.vehicle.params import load_params
@@ -46,7 +47,12 @@ def survey_flight(path: str | Path, params: str | Path | None = None) -> dict:
     vp = load_params(params_file)
     if not _has_horizontal(log):
         return _nominal_only_row(path, log, vp, params_file, note, t0)
-    res = discover(log, vp)
+    try:
+        res = discover(log, vp)
+    except LogError as exc:
+        if exc.field != NO_HORIZONTAL_FIELD:
+            raise
+        return _nominal_only_row(path, log, vp, params_file, note, t0, why=f"discovery not run: {exc.expected}")
     res.pop("_series", None)
     before = res["baseline"]["closed_loop_heldout"]
     after = res["after"]["closed_loop_heldout"]
@@ -95,10 +101,11 @@ def _has_horizontal(log) -> bool:
     return _finite_fraction(log, "velocity_enu", slice(0, 2), log.airborne_intervals()) >= MIN_HORIZONTAL_FRACTION
 
 
-def _nominal_only_row(path, log, vp, params_file, note, t_start: float) -> dict:
-    """A flight without horizontal velocity (no GPS): discovery's horizontal equations have nothing to
-    fit, so the nominal twin is flown and scored on what the flight has (Z, throttle, motors) on the
-    last 35 % of its airborne span (discover's own window needs the velocity)."""
+def _nominal_only_row(path, log, vp, params_file, note, t_start: float, why: str = "") -> dict:
+    """A flight without horizontal velocity (no GPS; or ``why``: with it for under 5 s of usable data):
+    discovery's horizontal equations have nothing to fit, so the nominal twin is flown and scored on what
+    the flight has (Z, throttle, motors) on the last 35 % of its airborne span (discover's own window needs
+    the velocity)."""
     from twin_nodes.discovery.judging import HELDOUT_FRACTION
     from twin_nodes.discovery.stages.closed_loop import _closed_loop_twin
 
@@ -110,8 +117,8 @@ def _nominal_only_row(path, log, vp, params_file, note, t_start: float) -> dict:
     row_m = {k: m.get(k) for k in ROW_KEYS}
     return {"flight": Path(path).stem, "path": str(path), "status": "ok", "params": params_file.name,
             "params_note": note or "given", "accepted": [],
-            "rejected_top": ["discovery not run: the flight has no horizontal velocity (no GPS); the nominal "
-                             "twin flown and scored on Z, throttle and motors"],
+            "rejected_top": [(why or "discovery not run: the flight has no horizontal velocity (no GPS)")
+                             + "; the nominal twin flown and scored on Z, throttle and motors"],
             "equation_error_before": math.nan, "equation_error_after": math.nan,
             "before": {**row_m, "interval_s": m["interval_s"]}, "after": dict(row_m),
             "motor_p75": m["motor_p75"], "elapsed_s": round(time.time() - t_start, 1)}

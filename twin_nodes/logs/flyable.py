@@ -67,7 +67,8 @@ LOG_START_S = 1.0
 def _max_rise(pos, intervals: list[tuple[float, float]]) -> float | None:
     """Highest rise [m] above the ground over the airborne intervals: above the take-off height (each
     interval's first height), or, for an interval the log starts in (within LOG_START_S of the first
-    height sample: no take-off in the log), above its touchdown height (its last); None when the height
+    height sample: no take-off in the log, or one just after it starts), above the lower of its first and
+    last height (its touchdown, or its take-off where the log also ends in the air); None when the height
     is unknown there."""
     best = None
     for a, b in intervals:
@@ -76,7 +77,10 @@ def _max_rise(pos, intervals: list[tuple[float, float]]) -> float | None:
         z = z[np.isfinite(z)]
         if z.size < 2:
             continue
-        ground = z[-1] if a <= float(pos.t_s[0]) + LOG_START_S else z[0]
+        # a log started in the air has no take-off height; its first height is the ground where the take-off
+        # came within LOG_START_S of the first sample and the log ends in the air (jmh_v3_p232_003_1: took off
+        # at -6.7 m, the log cut at -5.45 m in flight for its audio): the lower of the two
+        ground = min(z[0], z[-1]) if a <= float(pos.t_s[0]) + LOG_START_S else z[0]
         r = float(z.max() - ground)
         best = r if best is None else max(best, r)
     return best

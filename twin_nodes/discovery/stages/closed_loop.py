@@ -40,7 +40,7 @@ def run(inp: CheckInput) -> Checked:
         return Checked(inp.accepted, inp.current, None)
     S = inp.flight
     accepted, current, closed = _closed_loop_guard(inp.accepted, inp.log, S.nominal, S.data, S.fit_mask,
-                                                   S.t_split, S.t_end)
+                                                   *S.scored)
     return Checked(accepted, current, closed)
 
 
@@ -156,7 +156,7 @@ def guard(checked: Checked, log, flight: PreparedFlight, enabled: bool) -> Calla
         """The closed-loop twin's held-out throttle RMSE must not get worse (as ``_closed_loop_guard``)."""
         if not (enabled and closed):
             return None
-        m = _closed_loop_metrics(log, vp_new, flight.t_split, flight.t_end)
+        m = _closed_loop_metrics(log, vp_new, *flight.scored)
         vetoed, why = _veto(m, closed["after"], closed["before"], veto_standing(log, closed["before"], flight.nominal))
         if not vetoed:
             closed["after"] = m
@@ -172,7 +172,7 @@ def reset() -> None:
 
 def prefetch(log, vp: VehicleParams, flight: PreparedFlight) -> None:
     """Start the closed-loop twin of ``vp`` on the held-out part in another process."""
-    _prefetch_closed_loop(log, vp, flight.t_split, flight.t_end)
+    _prefetch_closed_loop(log, vp, *flight.scored)
 
 
 #: closed-loop twin runs of this discover call: (log, vp, t0, t1) ids -> (log, vp, evaluate.Pending)

@@ -48,6 +48,16 @@ class PreparedFlight:
     log_params: dict = field(default_factory=dict)
     #: the nominal vehicle the judges measure against
     nominal: VehicleParams | None = None
+    #: the closed-loop twin's held-out window [s] (:func:`scored_window`); NaN: ``t_split``, ``t_end``
+    cl_t_split: float = math.nan
+    cl_t_end: float = math.nan
+
+    @property
+    def scored(self) -> tuple[float, float]:
+        """The closed-loop twin's held-out window (start, end) [s]."""
+        if math.isfinite(self.cl_t_split) and math.isfinite(self.cl_t_end):
+            return self.cl_t_split, self.cl_t_end
+        return self.t_split, self.t_end
 
 
 #: the name it had in ``discover.py``
@@ -73,8 +83,26 @@ def run(inp: FlightInput) -> PreparedFlight:
     win = _judged_windows(data, vp) if output_error else None
     oe = _output_judge(data, vp, t_split, t_split2, win) if win is not None else None
     ex = excitation(data, vp, names, _blocks(data.t, data.valid, BLOCK_S), held_blocks)
+    cl_split, cl_end = scored_window(data, heldout_fraction)
     return PreparedFlight(data, names, fit_mask, held_mask, float(t_split), float(valid_t[-1]), eq, oe, ex, win,
-                          float(t_split2), dict(getattr(log, "params", None) or {}), vp)
+                          float(t_split2), dict(getattr(log, "params", None) or {}), vp, cl_split, cl_end)
+
+
+def scored_window(data: EquationData, heldout_fraction: float = HELDOUT_FRACTION) -> tuple[float, float]:
+    """The closed-loop twin's held-out window [s]: the last ``heldout_fraction`` of the span where its throttle
+    and motors can be scored (``data.attitude_scored``: airborne, armed, off the ground, attitude, rates,
+    specific force and height logged), whether or not the horizontal velocity is.
+
+    The fits need the horizontal velocity (drag, wind), the twin's throttle and motors do not.  A flight
+    whose GPS velocity becomes valid only mid-flight (jangminhyuk's Pixhawk 3, hand-flown in STABILIZED:
+    valid from 17-21 s of 25 s airborne) was scored on the last 35 % of the part with velocity: 1.8 s of
+    a 25 s flight, its landing (jmh_v3_kus_11_1, 23.9-25.8 s).  Where the velocity is valid all flight
+    the two spans are the same samples and so is the window."""
+    m = data.attitude_scored if data.attitude_scored is not None else data.attitude_valid
+    if m is None or not np.any(m):
+        m = data.valid
+    ts = data.t[m]
+    return float(ts[0] + (1.0 - heldout_fraction) * (ts[-1] - ts[0])), float(ts[-1])
 
 
 def prepare_flight(log, vp: VehicleParams, heldout_fraction: float = HELDOUT_FRACTION,

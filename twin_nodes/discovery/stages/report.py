@@ -88,7 +88,7 @@ def run(inp: ReportInput) -> Report:
     if inp.refit.lag is not None:
         result["rate_loop_lag"] = inp.refit.lag
     if inp.closed_loop:
-        closed_loop._closed_loop(result, inp.log, vp, current, S.t_split, S.t_end, inp.checked.closed)
+        closed_loop._closed_loop(result, inp.log, vp, current, *S.scored, inp.checked.closed)
     closed_loop.reset()
     result["elapsed_s"] = round(time.time() - inp.t_start, 1)
     result["_series"] = {"t": data.t, "valid": data.valid, "held": S.held_mask, "R_before": inp.mismatch.R_base,

@@ -116,8 +116,8 @@ def _grade(inp: TermsInput, fit: T.TermFit, named: dict, vp_term: VehicleParams,
     why = []
     if inp.closed_loop:
         # (flown once per discover call: the refitted vehicle's run is cached, with its per-sample errors)
-        m0 = closed_loop._closed_loop_metrics(inp.log, inp.current, S.t_split, S.t_end)
-        m1 = closed_loop._closed_loop_metrics(inp.log, vp_term, S.t_split, S.t_end)
+        m0 = closed_loop._closed_loop_metrics(inp.log, inp.current, *S.scored)
+        m1 = closed_loop._closed_loop_metrics(inp.log, vp_term, *S.scored)
         closed_loop.reset()
         entry["closed_loop_heldout"] = {"before": m0, "after": m1}
         b, a = m0["throttle_rmse"], m1["throttle_rmse"]
