@@ -321,3 +321,28 @@ def test_thrust_per_mass_is_pooled_at_one_pack_voltage():
     assert at_one_voltage(flights, {}) is None  # no sag exponent pooled: nothing to bring them to one voltage with
     one = {"battery_exponent": Pooled("battery_exponent", e, 0.1, math.nan, 1)}
     assert at_one_voltage(flights, one) is None  # one flight's exponent: not enough to carry the others with
+
+
+def test_the_gap_tool_swaps_one_group_of_values_and_nothing_else():
+    """tools/vehicle_twin_gap.py: a group taken from the own nominal replaces the twin's values and effects of that
+    group (present or absent), every other value stays the twin's."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("vehicle_twin_gap", Path(__file__).resolve().parents[1] / "tools" /
+                                                  "vehicle_twin_gap.py")
+    gap = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gap)
+    twin = {"rotors": {"thrust_max_n": 6.1, "thr_mdl_fac": 0.0, "tau_up_s": 0.05},
+            "effects": {"enabled": ["battery_sag", "rotor_tilt"], "battery_sag": {"v_ref": 11.8, "exponent": 1.7},
+                        "rotor_tilt": {"lever_m": -0.0052}}, "controller": {"yaw_p_1_s": 2.0}}
+    own = {"rotors": {"thrust_max_n": 8.25, "thr_mdl_fac": 0.0, "tau_up_s": 0.04},
+           "effects": {"enabled": ["wind", "rotor_tilt"], "wind": {"vx": 4.1, "vy": 0.5, "gust_std": 0.0},
+                       "rotor_tilt": {"lever_m": -0.0051}}, "controller": {"yaw_p_1_s": 3.0}}
+    d = gap.swap(twin, own, *gap.GROUPS["thrust + sag"])
+    assert d["rotors"] == {"thrust_max_n": 8.25, "thr_mdl_fac": 0.0, "tau_up_s": 0.05}
+    assert d["effects"]["enabled"] == ["rotor_tilt"] and "battery_sag" not in d["effects"]  # the own has no sag
+    assert d["effects"]["rotor_tilt"]["lever_m"] == -0.0052 and d["controller"]["yaw_p_1_s"] == 2.0
+    d = gap.swap(twin, own, *gap.GROUPS["wind"])
+    assert d["effects"]["wind"]["vx"] == 4.1 and d["effects"]["enabled"] == ["battery_sag", "rotor_tilt", "wind"]
+    assert gap.swap(twin, own, *gap.GROUPS["controller"])["controller"]["yaw_p_1_s"] == 3.0
+    assert twin["rotors"]["thrust_max_n"] == 6.1  # the twin itself untouched
