@@ -41,6 +41,33 @@ def _divergence(m: dict) -> str:
     return f"diverged: {d.get('cause')} at {float(d.get('t_s', math.nan)):.1f} s" if d else ""
 
 
+def split_free(flights: list[str], split: str, seed: int) -> tuple[list[str], list[str]]:
+    """The free flights among ``flights`` split into (build, predict) halves by ``seed`` or by date, before anything
+    is fitted; prints one line on the split."""
+    from twin_nodes.fleet.facts import actuator_tests, flight_kind
+    from twin_nodes.fleet.run import find_flights
+    from twin_nodes.logs.ulog_io import read_ulog
+
+    free = [p for p in sorted(map(str, find_flights(flights)))
+            if flight_kind(read_ulog(p), actuator_tests(p))[0] == "free flight"]
+    half = len(free) // 2
+    if split == "date":
+        from twin_nodes.fleet.vehicle_twin import date_flights
+
+        rows = [{"path": p} for p in free]
+        date_flights(rows)
+        order = [r["path"] for r in sorted(rows, key=lambda r: (r["when"] or "", r["path"]))]
+        build_set, predict_set = order[:half], order[half:]
+        how = f"by date (build up to {Path(build_set[-1]).name})"
+    else:
+        perm = np.random.default_rng(seed).permutation(len(free))
+        build_set = sorted(free[i] for i in perm[:half])
+        predict_set = sorted(free[i] for i in perm[half:])
+        how = f"seed {seed}"
+    print(f"{len(free)} free flights; {how}: build {len(build_set)}, predict {len(predict_set)}")
+    return build_set, predict_set
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("flights", nargs="+")
@@ -52,8 +79,6 @@ def main(argv=None) -> int:
                     help="the vehicle twin as it last flew in the build half (default) or the majority's PWM range")
     ap.add_argument("--out", default="out/vehicle_twin")
     a = ap.parse_args(argv)
-    from twin_nodes.fleet.facts import actuator_tests, flight_kind
-    from twin_nodes.fleet.run import find_flights
     from twin_nodes.identify.nominal import params_for_log
     from twin_nodes.fleet.vehicle_twin import build, for_flight, read_vehicle_facts
     from twin_nodes.logs.ulog_io import read_ulog
@@ -62,26 +87,7 @@ def main(argv=None) -> int:
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    free = []
-    for p in sorted(map(str, find_flights(a.flights))):
-        kind, _ = flight_kind(read_ulog(p), actuator_tests(p))
-        if kind == "free flight":
-            free.append(p)
-    half = len(free) // 2
-    if a.split == "date":
-        from twin_nodes.fleet.vehicle_twin import date_flights
-
-        rows = [{"path": p} for p in free]
-        date_flights(rows)
-        order = [r["path"] for r in sorted(rows, key=lambda r: (r["when"] or "", r["path"]))]
-        build_set, predict_set = order[:half], order[half:]
-        how = f"by date (build up to {Path(build_set[-1]).name})"
-    else:
-        perm = np.random.default_rng(a.seed).permutation(len(free))
-        build_set = sorted(free[i] for i in perm[:half])
-        predict_set = sorted(free[i] for i in perm[half:])
-        how = f"seed {a.seed}"
-    print(f"{len(free)} free flights; {how}: build {len(build_set)}, predict {len(predict_set)}")
+    build_set, predict_set = split_free(a.flights, a.split, a.seed)
     vt = build(build_set, state=a.pool)
     yaml_path = out / "vehicle_twin.yaml"
     write_params(vt.params, yaml_path, vt.header)

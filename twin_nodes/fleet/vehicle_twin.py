@@ -15,8 +15,9 @@ assumed mass) and its values (:func:`twin_nodes.fleet.facts.identified`).  Per v
 - the pooled value is the mean of the others, its uncertainty the scatter / sqrt(n) (at least the mean se),
   and the flight-to-flight scatter is reported beside it.
 
-The params are those of the flight closest to the pooled thrust per mass, with the pooled thrust, inertia,
-lag, drag and trims put in; the header lists every value with its uncertainty, scatter and the flights it
+The params are those of the flight closest to the pooled thrust per mass, with the pooled thrust (brought to one
+pack voltage with the pooled sag where that exponent comes from two flights or more, :func:`at_one_voltage`),
+inertia, lag, drag and trims (centre of mass and yaw lever) put in and no wind (that flight's weather); the header lists every value with its uncertainty, scatter and the flights it
 came from, and one machine-readable line (:data:`MARK`) that ``discover --params`` reads back
 (:func:`read_vehicle_facts`).
 """
@@ -168,7 +169,7 @@ def build(paths: list[str | os.PathLike[str]], *, mass_kg: float | None = None, 
             left_out.append(f"{p}: not identified: {exc}")
             continue
         flights.append({"path": str(p), "name": f"{Path(p).parent.name}/{Path(p).name}", "nom": nom, "facts": identified(log, nom),
-                        "pwm": motor_pwm(log.params, int(log.n_motors))})
+                        "pwm": motor_pwm(log.params, int(log.n_motors)), "kt_v": thrust_voltage(log, nom)})
     if len(ids) > 1:
         raise TwinError("params from-ulog: the logs come from more than one vehicle (sys_uuid, ver_hw, "
                         f"SYS_AUTOSTART): {sorted(map(str, ids))}; pool the flights of one vehicle")
@@ -185,6 +186,9 @@ def build(paths: list[str | os.PathLike[str]], *, mass_kg: float | None = None, 
         if res is not None:
             pooled[v] = res
     pwm = next(f["pwm"] for f in flights)
+    at_v = at_one_voltage(flights, pooled)
+    if at_v is not None:
+        pooled["kt_per_mass_at_v_ref"], pooled["kt_v_ref"] = at_v
     vp = _params(flights, pooled)
     return VehicleTwin(vp, pooled, [f["path"] for f in flights], left_out, pwm,
                        _header(vp, pooled, flights, left_out, pwm, state_note))
@@ -195,6 +199,12 @@ def _params(flights: list[dict], pooled: dict[str, Pooled]) -> VehicleParams:
     rep = min(flights, key=lambda f: abs(f["facts"]["kt_per_mass"] - kt))["nom"]
     d = rep.params.to_ros_dict()
     m = float(d["vehicle"]["mass_kg"])
+    eff = d["effects"]
+    if "kt_per_mass_at_v_ref" in pooled:  # the thrust at one pack voltage, with the pooled sag (at_one_voltage)
+        kt = pooled["kt_per_mass_at_v_ref"].mean
+        _enable(eff, "battery_sag", {"v_ref": pooled["kt_v_ref"].mean, "exponent": pooled["battery_exponent"].mean})
+    # the wind the representative flight met is that day's weather, not the vehicle's: the twin flies in still air
+    _enable(eff, "wind", None)
     t_max = m * kt
     d["rotors"]["thrust_max_n"] = t_max
     for ax, key in (("roll_eff", "ixx_kg_m2"), ("pitch_eff", "iyy_kg_m2")):
@@ -205,13 +215,72 @@ def _params(flights: list[dict], pooled: dict[str, Pooled]) -> VehicleParams:
                 d["vehicle"][key] = float(i)
     if "tau_s" in pooled and math.isfinite(pooled["tau_s"].mean):
         d["rotors"]["tau_up_s"] = d["rotors"]["tau_down_s"] = pooled["tau_s"].mean
-    eff = d["effects"]
     if "linear_drag" in eff and "drag_per_mass" in pooled:
         eff["linear_drag"]["k_n_s_m"] = pooled["drag_per_mass"].mean * m
-    if "com_offset" in eff and "com_dx_m" in pooled and "com_dy_m" in pooled:
-        eff["com_offset"] = {"dx": pooled["com_dx_m"].mean, "dy": pooled["com_dy_m"].mean}
+    # the static trims are the pooled ones (roll/pitch as a centre of mass, yaw as a rotor tilt), not the
+    # representative flight's: on this fleet its yaw lever alone cost up to 5 points of per-motor P75
+    if "com_dx_m" in pooled and "com_dy_m" in pooled:
+        _enable(eff, "com_offset", {"dx": pooled["com_dx_m"].mean, "dy": pooled["com_dy_m"].mean})
+    if "yaw_lever_m" in pooled and math.isfinite(pooled["yaw_lever_m"].mean):
+        _enable(eff, "rotor_tilt", {"lever_m": pooled["yaw_lever_m"].mean})
     d["vehicle"]["name"] = f"vehicle_twin_{len(flights)}_flights"
     return from_ros_dict(d, "<vehicle twin>")
+
+
+def _enable(eff: dict, name: str, values: dict | None) -> None:
+    """Put the effect ``name`` with ``values`` into the effects dict ``eff`` (None: take it out)."""
+    eff.pop(name, None)
+    if name in eff["enabled"]:
+        eff["enabled"].remove(name)
+    if values is not None:
+        eff["enabled"].append(name)
+        eff[name] = dict(values)
+
+
+def thrust_voltage(log, nom) -> float:
+    """The pack voltage a flight's thrust per mass refers to: the nominal's battery-sag reference where it has one
+    (T = T_max (V/V_ref)^e), else the median pack voltage while airborne (a thrust fit without a sag term averages
+    over the flight), NaN without a voltage trace."""
+    eff = nom.params.to_ros_dict()["effects"]
+    if "battery_sag" in eff.get("enabled", ()):
+        return float(eff["battery_sag"]["v_ref"])
+    bv = log.get("battery_v")
+    if bv is None or not len(bv):
+        return math.nan
+    t, v = bv.t_s, bv.values[:, 0]
+    air = np.zeros(t.size, bool)
+    for a, b in log.airborne_intervals():
+        air |= (t >= a) & (t <= b)
+    v = v[air & np.isfinite(v) & (v > 0.1)]
+    return float(np.median(v)) if v.size else math.nan
+
+
+#: the pooled sag exponent is used (the thrust brought to one voltage, the twin's sag) from this many flights on
+SAG_MIN_FLIGHTS = 2
+
+
+def at_one_voltage(flights: list[dict], pooled: dict[str, Pooled]) -> tuple[Pooled, Pooled] | None:
+    """The thrust per mass of every flight brought to one pack voltage before pooling: each flight's value refers to
+    its own voltage (:func:`thrust_voltage`: 10.4 V on a flight that ends its pack, 12.1 V on a fresh one), and at
+    the pooled sag exponent e the thrust scales as (V/V_ref)^e, so a pooled mean of raw values is the thrust at no
+    voltage in particular.  Returns (thrust per mass at ``V_ref``, ``V_ref`` = the median of the flights' voltages)
+    as :class:`Pooled` values, None where the sag exponent is pooled from fewer than :data:`SAG_MIN_FLIGHTS`
+    flights (one flight's exponent, e.g. 2.65 where this fleet's flights read 0.7-2.1, flown on a pack 1 V below its reference,
+    lost a 26 Jun mission its height) or no flight has a voltage."""
+    e = pooled.get("battery_exponent")
+    v = np.array([f.get("kt_v", math.nan) for f in flights], float)
+    if e is None or not math.isfinite(e.mean) or e.n < SAG_MIN_FLIGHTS or not np.isfinite(v).any():
+        return None
+    v_ref = float(np.median(v[np.isfinite(v)]))
+    kt = [f["facts"].get("kt_per_mass", math.nan) * (v_ref / vi) ** e.mean if math.isfinite(vi) else math.nan
+          for f, vi in zip(flights, v)]
+    se = [f["facts"].get("kt_per_mass_se", math.nan) for f in flights]
+    at = pool("kt_per_mass_at_v_ref", [f["name"] for f in flights], kt, se)
+    vr = pool("kt_v_ref", [f["name"] for f in flights], list(v), [0.0] * len(flights))
+    if at is None or vr is None:
+        return None
+    vr.mean = v_ref
+    return at, vr
 
 
 def _header(vp: VehicleParams, pooled: dict[str, Pooled], flights: list[dict], left_out: list[str],
@@ -227,8 +296,9 @@ def _header(vp: VehicleParams, pooled: dict[str, Pooled], flights: list[dict], l
     lines.append("Flights: " + ", ".join(f["path"] for f in flights))
     for lo in left_out:
         lines.append(f"Left out: {lo}")
-    lines.append("Params of the flight closest to the pooled thrust per mass, with the pooled thrust, inertia, "
-                 "lag, drag and trims. Its own sources:")
+    lines.append("Params of the flight closest to the pooled thrust per mass, with the pooled thrust (at one pack "
+                 "voltage where kt_per_mass_at_v_ref is listed), inertia, lag, drag and trims, and no wind. Its own "
+                 "sources:")
     rep = min(flights, key=lambda f: abs(f["facts"]["kt_per_mass"] - pooled["kt_per_mass"].mean))["nom"]
     lines += [f"  {k}: {s}" for k, s in rep.sources.items()]
     facts = {v: {"mean": p.mean, "se": p.se, "scatter": p.scatter, "n": p.n} for v, p in pooled.items()}
