@@ -419,9 +419,11 @@ def wind_with_drag(vp: VehicleParams, data) -> list[Candidate]:
 # But a nominal law of the wrong size is missing physics too: PX4 SIH's SIH_KDW (angular damping) changed had
 # no candidate at all (issue 26's SIH grid: found as nothing, or as a yaw moment), and a changed SIH_KDV only
 # through a body drag standing in for the linear one.  The laws with one size parameter are offered refitted.
+# RotorPy's nominals carry its rotor drag (k_d): a changed k_d was named as a three-coefficient body drag whose
+# weakly excited sideways coefficient wandered between folds (batch 7's n002, 10.5 % off in k_eq).
 
 #: nominal laws offered with their size refitted: effect -> its parameter
-REFITTABLE = {"linear_drag": "k_n_s_m", "angular_damping": "k_nm_s_rad"}
+REFITTABLE = {"linear_drag": "k_n_s_m", "angular_damping": "k_nm_s_rad", "rotor_drag": "k_d"}
 #: a refit must move the size by this fraction to be resolvable
 REFIT_FLOOR = 0.10
 
