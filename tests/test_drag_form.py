@@ -68,3 +68,11 @@ def test_forms_not_told_apart_reported_with_legs_at_two_speeds():
     assert "square" in pair["why"]
     assert verdicts.not_told_apart(dict(e, drag_form={"told_apart": True})) is None
     assert verdicts.not_told_apart({k: v for k, v in e.items() if k != "drag_form"}) is None
+
+
+def test_forms_that_each_pass_one_way_are_not_told_apart(monkeypatch):
+    # the sign and sign-flip tests can pass both ways on a few large blocks: neither form is chosen by the blocks
+    lin, quad = _pair(0.2)
+    monkeypatch.setattr(drag_form, "_block_test", lambda R0, R1, blocks, floor: (2.5, 12))
+    pick = drag_form.choose(lin, [lin, quad], {"equation": BLOCKS})
+    assert pick is quad and not pick.drag_form["told_apart"] and pick.drag_form["blocks"] == 12

@@ -24,8 +24,9 @@ QUADRATIC = "body_drag"
 
 def form_test(linear: Fit, quadratic: Fit, blocks: dict) -> dict | None:
     """The held-out block tests (one-sided, each way) of ``linear`` against ``quadratic`` on a residual both were
-    fitted on (the linear form's own first); ``told_apart``: either beats the other at ``T_CHOICE`` sigma.  None:
-    no shared residual."""
+    fitted on (the linear form's own first); ``told_apart``: one of them, and only one, beats the other at
+    ``T_CHOICE`` sigma (the sign and sign-flip tests can pass both ways on a few large blocks).  None: no shared
+    residual."""
     for kind in dict.fromkeys((linear.kind, quadratic.kind)):
         a = (linear.by_kind or {linear.kind: linear}).get(kind)
         b = (quadratic.by_kind or {quadratic.kind: quadratic}).get(kind)
@@ -36,7 +37,7 @@ def form_test(linear: Fit, quadratic: Fit, blocks: dict) -> dict | None:
         t_back, _ = _block_test(a.R, b.R, blocks[kind], floor)
         return {"linear": LINEAR, "quadratic": QUADRATIC, "residual": kind, "blocks": int(n),
                 "t_linear_over_quadratic": round(float(t), 2), "t_quadratic_over_linear": round(float(t_back), 2),
-                "told_apart": bool(max(t, t_back) > T_CHOICE)}
+                "told_apart": bool((t > T_CHOICE) != (t_back > T_CHOICE))}
     return None
 
 
@@ -53,7 +54,7 @@ def choose(winner: Fit, accepted: list[Fit], blocks: dict) -> Fit:
     test = form_test(linear, quadratic, blocks)
     if test is None:
         return winner
-    pick = linear if test["t_linear_over_quadratic"] > T_CHOICE else quadratic
+    pick = linear if test["told_apart"] and test["t_linear_over_quadratic"] > T_CHOICE else quadratic
     pick.drag_form = test
     return pick
 
