@@ -431,6 +431,19 @@ def test_nominal_law_refitted_only_where_the_nominal_has_it():
     assert selection.nominal_refits(bare, bare) == []
 
 
+def test_nominal_rotor_drag_refitted_by_its_k_d():
+    # RotorPy's nominals carry its rotor drag; a changed k_d (batch 7's n002, x2) was only offered as a body drag
+    vp = shipped("rotorpy_crazyflie")
+    (c,) = [c for c in selection.nominal_refits(vp, vp) if c.name == "rotor_drag"]
+    assert c.param_names == ("k_d",) and c.label == "rotor_drag (nominal refitted)"
+    assert c.x0[0] == pytest.approx(1.02506e-06)
+    assert c.lower[0] == pytest.approx(2.05012e-07) and c.upper[0] == pytest.approx(5.1253e-06)
+    v = c.build(np.array([2.053e-06]))
+    assert dict(dict(v.effects)["rotor_drag"])["k_d"] == pytest.approx(2.053e-06)
+    assert c.floor(np.array([1.2e-06])) and not c.floor(np.array([1.1e-06]))   # 10 % of the nominal k_d
+    assert not [c for c in selection.nominal_refits(vp, v) if c.name == "rotor_drag"]
+
+
 # ------------------------------------------------------------------ discovery: confusable effects refitted jointly
 
 

@@ -221,7 +221,7 @@ def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:
         out["closed_loop"] = f.closed_loop
     if getattr(f, "closed_loop_note", None):
         out["closed_loop_note"] = f.closed_loop_note
-    for key in ("joint_refit_of", "refitted_jointly_with", "rival_path"):   # stages.selection
+    for key in ("joint_refit_of", "refitted_jointly_with", "rival_path", "drag_form"):   # stages.selection
         if getattr(f, key, None):
             out[key] = getattr(f, key)
     if f.verdict in ("confirmed", "likely"):
@@ -265,6 +265,8 @@ SEPARATING = {
     frozenset({"ground_effect", "thrust_coefficient"}): ("low_hover", "hovering low and high: a ground effect "
                                                                       "fades with height"),
     frozenset({"yaw_moment", "inertia"}): ("yaw_sweeps", "yaw turns in place at several rates"),
+    frozenset({"rotor_drag", "body_drag"}): ("fast_legs", "legs at two speeds: a rotor drag grows with the speed, "
+                                                         "a body drag with its square"),
 }
 
 
@@ -282,10 +284,13 @@ def not_told_apart(effect: dict) -> dict | None:
     mission schema's checks (:func:`twin_nodes.mavlink.mission.plan_from_mapping`).  None: no such rival."""
     from twin_nodes.discovery.plans import manoeuvre
 
+    form = effect.get("drag_form") or {}   # stages.drag_form: the linear and the quadratic drag, not told apart
     for alt in effect.get("alternatives") or []:
         a, b = _kind(effect["name"]), _kind(alt.get("name", ""))
-        if a == b or {a, b} == {"mass", "thrust_coefficient"}:
+        forms = form and not form["told_apart"] and {effect["name"], alt.get("name")} == {"rotor_drag", "body_drag"}
+        if (a == b and not forms) or {a, b} == {"mass", "thrust_coefficient"}:
             continue
+        a, b = (effect["name"], alt["name"]) if forms else (a, b)
         kind, why = SEPARATING.get(frozenset({a, b}), ("rate_doublets", "hard stops and sharp corners"))
         reps = {"fast_legs": 2, "rate_doublets": 6, "vertical_steps": 4, "low_hover": 4, "yaw_sweeps": 12}[kind]
         plan = {"mission": {"name": f"separate_{a}_{b}", "speed_m_s": 3.0, "acceptance_radius_m": 1.0,
