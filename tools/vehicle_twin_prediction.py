@@ -1,12 +1,14 @@
 """Cross-flight prediction (issue 25): a vehicle twin built from some flights of one vehicle flies its other
 flights whole, closed loop, beside each flight's own nominal.
 
-    python tools/vehicle_twin_prediction.py FLIGHTS_OR_DIRS... [--seed 25 | --split date] [--pool latest|all] [--out DIR]
+    python tools/vehicle_twin_prediction.py FLIGHTS_OR_DIRS... [--seed 25 | --split date] [--pool latest|all]
+        [--twins per-configuration|one] [--out DIR]
 
 The free flights (:func:`twin_nodes.fleet.facts.flight_kind`) are split by ``--seed`` (or by date) into a build half and a
-predict half *before* anything is fitted; the twin is pooled over the build half
-(:func:`twin_nodes.fleet.vehicle_twin.build`), then every predict flight is flown by it (rescaled to the
-flight's motor PWM range, :func:`~twin_nodes.fleet.vehicle_twin.for_flight`) and by its own nominal
+predict half *before* anything is fitted; one twin is pooled per motor configuration of the build half
+(:func:`twin_nodes.fleet.vehicle_twin.from_flights`), then every predict flight is flown by the twin of its
+configuration, else of its wiring, else the ``--pool`` one (rescaled to the flight's motor PWM range, without
+the yaw trim across a rewiring, :func:`~twin_nodes.fleet.vehicle_twin.for_flight`) and by its own nominal
 (:func:`twin_nodes.identify.nominal.params_for_log`).  Prints one markdown row per predict flight, as it came
 out, and writes ``DIR/vehicle_twin.yaml`` and ``DIR/prediction.json``.
 """
@@ -111,7 +113,7 @@ def main(argv=None) -> int:
                     help="seed: build and predict halves drawn by --seed; date: build on the earlier half by date, "
                          "predict the later half (the twin of last week predicts today)")
     ap.add_argument("--pool", choices=("latest", "all"), default="latest",
-                    help="the vehicle twin as it last flew in the build half (default) or the majority's PWM range")
+                    help="the vehicle twin as it last flew in the build half (default) or the majority's motor configuration")
     ap.add_argument("--twins", choices=("per-configuration", "one"), default="per-configuration",
                     help="per-configuration (default): one twin per motor configuration of the build half (which "
                          "outputs drive the motors and their PWM limits); each predict flight is flown by the twin of "
