@@ -197,6 +197,19 @@ def test_vehicle_twin_from_real_flights_and_what_changed_on_an_earlier_flight(tm
     old = SHARED / "ZweiterFlugtag/log_30_2023-6-7-12-11-06.ulg"
     got = since_twin(read_ulog(old), str(old), ref)
     assert got["name"].startswith("thrust range") and "1200 -> 1000 us" in got["why"], got
+    # its motors are on MAIN1-4, the twin's on AUX5-8: another wiring, whose trims are not compared (main named a
+    # centre-of-mass shift here, dy +7.7 mm)
+    assert "motor outputs AUX5-8 in the twin, MAIN1-4 in this log" in got["why"]
+    assert not any(k.startswith("com_") for k in got["differs"]) and "centre-of-mass" not in got["name"]
+    # a flight's thrust per mass is compared at the twin's one pack voltage (11.77 V, exponent 1.73), not at its own:
+    # measured 2026-11-28, 23 Jun log_20 fitted at 11.12 V reads 4.74 raw (x0.92 of the raw mean), 5.23 at 11.77 V
+    # (x1.01: within the band); mission_2hops at 10.36 V reads 4.47 raw, 5.57 at 11.77 V
+    p20 = SHARED / "23_juni/log_20_2023-6-23-11-05-22.ulg"
+    got = since_twin(read_ulog(p20), str(p20), ref)
+    assert got["values"]["kt_per_mass"] == pytest.approx(4.737, abs=0.05)
+    assert got["kt_v_flight"] == pytest.approx(11.12, abs=0.05)
+    assert got["kt_per_mass_at_twin_v"] == pytest.approx(4.737 * (11.77 / 11.12) ** 1.731, rel=0.02)
+    assert got["kt_per_mass_at_twin_v"] == pytest.approx(5.23, abs=0.05) and "kt_per_mass" not in got["differs"]
 
 
 def test_vehicle_report_names_a_payload_and_a_pwm_range_change_at_their_flights():
@@ -346,3 +359,94 @@ def test_the_gap_tool_swaps_one_group_of_values_and_nothing_else():
     assert d["effects"]["wind"]["vx"] == 4.1 and d["effects"]["enabled"] == ["battery_sag", "rotor_tilt", "wind"]
     assert gap.swap(twin, own, *gap.GROUPS["controller"])["controller"]["yaw_p_1_s"] == 3.0
     assert twin["rotors"]["thrust_max_n"] == 6.1  # the twin itself untouched
+
+
+@need_shared
+def test_the_motor_configurations_of_the_real_fleet_are_read_from_the_logs():
+    """Which outputs drive the motors keys a configuration: 7 Jun drives them on MAIN1-4 (until log_21 mirrored on
+    AUX1-4, whose PWM maximum rose to 2200 us at log_19), 14 Jun on on AUX5-8 (another wiring: the yaw trim changed
+    sign with it), 21 Jun from log_70 on AUX5-8 with 1000-2200 us (another thrust for the same command)."""
+    from twin_nodes.fleet.facts import assignment_text, same_configuration, shares_outputs
+    from twin_nodes.fleet.vehicle_twin import configurations
+    from twin_nodes.logs.ulog_io import read_params
+
+    pwm = {k: motor_pwm(read_params(SHARED / p), 4) for k, p in (
+        ("19", "ZweiterFlugtag/log_19_2023-6-7-10-51-18.ulg"), ("23", "ZweiterFlugtag/log_23_2023-6-7-12-02-44.ulg"),
+        ("41", "GripperOnCampus/log_41_2023-6-14-11-59-42.ulg"),
+        ("70", "DritterFlugtag/log_70_2023-6-21-09-59-04.ulg"))}
+    assert [assignment_text(pwm[k]) for k in ("19", "23", "41", "70")] == ["AUX1-4 + MAIN1-4", "MAIN1-4", "AUX5-8",
+                                                                            "AUX5-8"]
+    # motor 3 on the 4th output of its group
+    assert pwm["19"]["outputs"]["m3"] == ["MAIN4", "AUX4"] and pwm["41"]["outputs"]["m3"] == ["AUX8"]
+    assert same_configuration(pwm["23"], pwm["19"]) == (True, "")  # MAIN1-4 1000-2000 us in both
+    same, why = same_configuration(pwm["23"], pwm["41"])
+    assert not same and "motor outputs AUX5-8, the twin's are MAIN1-4 (another wiring)" in why
+    same, why = same_configuration(pwm["41"], pwm["70"])
+    assert not same and "PWM range" in why and shares_outputs(pwm["41"], pwm["70"])
+    # every log of the fleet (40): three configurations (14 logs of 7 Jun, 8 on AUX5-8 1000-2000 us, 18 on 1000-2200 us)
+    logs = sorted(SHARED.glob("*/*.ulg")) + sorted((SHARED.parent / "real").glob("real_quadx_v6c_*.ulg"))
+    groups = configurations([{"pwm": motor_pwm(read_params(p), 4), "path": str(p)} for p in logs])
+    assert sorted((len(g), assignment_text(g[0]["pwm"])) for g in groups) == [
+        (8, "AUX5-8"), (14, "AUX1-4 + MAIN1-4"), (18, "AUX5-8")]
+
+
+def test_a_twin_flies_another_wiring_without_its_yaw_trim():
+    """The yaw trim (a rotor tilt) belongs to the wiring: a log whose motors are on other outputs is flown without
+    it (the PWM range rescaled as before); the same wiring keeps it."""
+    from types import SimpleNamespace
+
+    from twin_nodes.fleet.facts import motor_pwm as mp
+    from twin_nodes.fleet.vehicle_twin import _enable, for_flight
+    from twin_nodes.vehicle.params import from_ros_dict, shipped
+
+    d = shipped("px4_sih_quadx").to_ros_dict()
+    _enable(d["effects"], "rotor_tilt", {"lever_m": -0.005})
+    vp = from_ros_dict(d)
+
+    def params(group, first, hi):
+        p = {f"PWM_{group}_FUNC{first + k}": 101 + k for k in range(4)}
+        p.update({f"PWM_{group}_MIN{first + k}": 1000.0 for k in range(4)})
+        p.update({f"PWM_{group}_MAX{first + k}": hi for k in range(4)})
+        return p
+
+    ref = {"pwm": mp(params("AUX", 5, 2200.0), 4)}
+    out, note = for_flight(vp, ref, SimpleNamespace(params=params("MAIN", 1, 2000.0), n_motors=4))
+    assert "rotor_tilt" not in out.to_ros_dict()["effects"]["enabled"]
+    assert "motor outputs AUX5-8 in the twin, MAIN1-4 in this log" in note and "span ratio 0.833" in note
+    assert out.rotors.thrust_max_n < vp.rotors.thrust_max_n
+    out, note = for_flight(vp, ref, SimpleNamespace(params=params("AUX", 5, 2000.0), n_motors=4))
+    assert out.to_ros_dict()["effects"]["rotor_tilt"]["lever_m"] == pytest.approx(-0.005)
+    assert "motor outputs" not in note and "span ratio 0.833" in note
+
+
+def test_values_are_not_compared_across_a_rewiring():
+    """Twelve flights; the motors move from MAIN1-4 to AUX5-8 at flight 6 and the roll trim with them (+8 mm, as a
+    rewired vehicle's trims move on the real fleet): an 'outputs' event, no centre-of-mass alarm; the same trim step
+    without a rewiring is one."""
+    import json as _json
+
+    from twin_nodes.fleet import vehicle_report as vr
+
+    rng = np.random.default_rng(11)
+
+    def rows(rewire):
+        out = []
+        for k in range(12):
+            g, first = ("AUX", 5) if rewire and k >= 6 else ("MAIN", 1)
+            p = {f"PWM_{g}_FUNC{first + c}": 101 + c for c in range(4)}
+            p.update({f"PWM_{g}_MIN{first + c}": 1000.0 for c in range(4)})
+            p.update({f"PWM_{g}_MAX{first + c}": 2000.0 for c in range(4)})
+            out.append({"path": f"/d/f{k:02d}.ulg", "status": "ok", "flight_kind": "free flight",
+                        "flight_time_utc": f"2023-06-{10 + k:02d}T10:00:00+00:00", "date_source": "gps",
+                        "file_name_time": "", "params_json": _json.dumps(p), "motor_pwm": motor_pwm(p, 4)["text"],
+                        "fact_kt_per_mass": 5.0 + rng.normal(0, 0.02), "fact_kt_per_mass_se": 0.01,
+                        "fact_com_dx_m": (0.008 if k >= 6 else 0.0) + rng.normal(0, 0.0005),
+                        "fact_com_dx_m_se": 0.0005})
+        return out
+
+    res = vr.analyse_vehicle("v", rows(True))
+    assert res["rewired"] == [6] and res["changes"] == []
+    assert [(e["flight"], e["outputs"]) for e in res["events"]] == [("d/f06.ulg", ["MAIN1-4", "AUX5-8"])]
+    res = vr.analyse_vehicle("v", rows(False))
+    assert res["rewired"] == [] and [(c.flight, c.name) for c in res["changes"]] == [
+        ("d/f06.ulg", "centre-of-mass shift")]

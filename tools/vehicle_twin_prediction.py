@@ -1,12 +1,14 @@
 """Cross-flight prediction (issue 25): a vehicle twin built from some flights of one vehicle flies its other
 flights whole, closed loop, beside each flight's own nominal.
 
-    python tools/vehicle_twin_prediction.py FLIGHTS_OR_DIRS... [--seed 25 | --split date] [--pool latest|all] [--out DIR]
+    python tools/vehicle_twin_prediction.py FLIGHTS_OR_DIRS... [--seed 25 | --split date] [--pool latest|all]
+        [--twins per-configuration|one] [--out DIR]
 
 The free flights (:func:`twin_nodes.fleet.facts.flight_kind`) are split by ``--seed`` (or by date) into a build half and a
-predict half *before* anything is fitted; the twin is pooled over the build half
-(:func:`twin_nodes.fleet.vehicle_twin.build`), then every predict flight is flown by it (rescaled to the
-flight's motor PWM range, :func:`~twin_nodes.fleet.vehicle_twin.for_flight`) and by its own nominal
+predict half *before* anything is fitted; one twin is pooled per motor configuration of the build half
+(:func:`twin_nodes.fleet.vehicle_twin.from_flights`), then every predict flight is flown by the twin of its
+configuration, else of its wiring, else the ``--pool`` one (rescaled to the flight's motor PWM range, without
+the yaw trim across a rewiring, :func:`~twin_nodes.fleet.vehicle_twin.for_flight`) and by its own nominal
 (:func:`twin_nodes.identify.nominal.params_for_log`).  Prints one markdown row per predict flight, as it came
 out, and writes ``DIR/vehicle_twin.yaml`` and ``DIR/prediction.json``.
 """
@@ -68,6 +70,41 @@ def split_free(flights: list[str], split: str, seed: int) -> tuple[list[str], li
     return build_set, predict_set
 
 
+def _twins(flights: list[dict], left_out: list[str], pool: str, how: str, out: Path, write_params) -> list[tuple]:
+    """The twins the predict half is flown with: [(params, facts, name)], the --pool twin first, then (per
+    configuration) one per motor configuration of the build half; each written to ``out`` and read back."""
+    from twin_nodes.fleet.vehicle_twin import configurations, from_flights, read_vehicle_facts
+    from twin_nodes.vehicle.params import load_params
+
+    made = [("vehicle_twin", from_flights(flights, left_out, state=pool))]
+    if how == "per-configuration":
+        for k, g in enumerate(configurations(sorted(flights, key=lambda f: (f.get("when") or "", f["path"])))):
+            made.append((f"vehicle_twin_config{k + 1}", from_flights(flights, left_out, like=g[-1]["pwm"])))
+    res = []
+    for name, vt in made:
+        path = out / f"{name}.yaml"
+        write_params(vt.params, path, vt.header)
+        print(f"twin {name}: {vt.pwm['text']}: {len(vt.used)} flights ({', '.join(Path(u).name for u in vt.used)})")
+        res.append((load_params(path), read_vehicle_facts(path), name))
+    return res
+
+
+def _twin_for(twins: list[tuple], log) -> tuple:
+    """The twin of the log's configuration, else of its wiring (the latest such), else the --pool twin."""
+    from twin_nodes.fleet.facts import motor_pwm, same_configuration
+    from twin_nodes.fleet.vehicle_twin import shares_outputs
+
+    pwm = motor_pwm(log.params, int(log.n_motors))
+    for vp, ref, name in twins[1:]:
+        if same_configuration(ref["pwm"], pwm)[0]:
+            return vp, ref, f"{name} (its configuration)"
+    for vp, ref, name in reversed(twins[1:]):
+        if shares_outputs(ref["pwm"], pwm):
+            return vp, ref, f"{name} (its wiring)"
+    vp, ref, name = twins[0]
+    return vp, ref, name if len(twins) > 1 else ""
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("flights", nargs="+")
@@ -76,11 +113,16 @@ def main(argv=None) -> int:
                     help="seed: build and predict halves drawn by --seed; date: build on the earlier half by date, "
                          "predict the later half (the twin of last week predicts today)")
     ap.add_argument("--pool", choices=("latest", "all"), default="latest",
-                    help="the vehicle twin as it last flew in the build half (default) or the majority's PWM range")
+                    help="the vehicle twin as it last flew in the build half (default) or the majority's motor configuration")
+    ap.add_argument("--twins", choices=("per-configuration", "one"), default="per-configuration",
+                    help="per-configuration (default): one twin per motor configuration of the build half (which "
+                         "outputs drive the motors and their PWM limits); each predict flight is flown by the twin of "
+                         "its configuration, else of its wiring (PWM rescaled), else the --pool twin (rescaled, no yaw "
+                         "trim); one: the --pool twin flies every flight (the earlier behaviour)")
     ap.add_argument("--out", default="out/vehicle_twin")
     a = ap.parse_args(argv)
     from twin_nodes.identify.nominal import params_for_log
-    from twin_nodes.fleet.vehicle_twin import build, for_flight, read_vehicle_facts
+    from twin_nodes.fleet.vehicle_twin import for_flight, read_flights
     from twin_nodes.logs.ulog_io import read_ulog
     from twin_nodes.twin.compare import compare_log
     from twin_nodes.vehicle.params import load_params, write_params
@@ -88,14 +130,8 @@ def main(argv=None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     build_set, predict_set = split_free(a.flights, a.split, a.seed)
-    vt = build(build_set, state=a.pool)
-    yaml_path = out / "vehicle_twin.yaml"
-    write_params(vt.params, yaml_path, vt.header)
-    ref = read_vehicle_facts(yaml_path)
-    vp = load_params(yaml_path)
-    print(f"twin: {yaml_path} ({len(vt.used)} flights used; left out: {len(vt.left_out)})")
-    for lo in vt.left_out:
-        print(f"  left out: {lo}")
+    flights, left_out = read_flights(build_set)
+    twins = _twins(flights, left_out, a.pool, a.twins, out, write_params)
     rows = []
     print("| flight | twin: throttle RMSE | motor P75 (max) | XY RMSE m | Z RMSE m | own nominal: throttle | "
           "motor P75 | XY | Z | note |")
@@ -104,7 +140,9 @@ def main(argv=None) -> int:
         log = read_ulog(p)
         t0 = time.time()
         try:
+            vp, ref, which = _twin_for(twins, log)
             v, note = for_flight(vp, ref, log)
+            note = "; ".join(x for x in (which, note) if x)
             full_t = compare_log(log, v, mode="closed").metrics
             mt = _metrics(full_t)
             own, _ = params_for_log(p, None, log=log)

@@ -65,8 +65,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     f.add_argument("--arm-m", type=finite_float(0.01, 100.0, unit="m"), help="centre-to-rotor distance [m] for logs whose layout is normalised")
     f.add_argument("--name", help="vehicle name in the file")
     f.add_argument("--pool", choices=("latest", "all"), default="latest",
-                   help="several logs: pool the vehicle as it last flew (its latest PWM range, the flights since its "
-                        "latest change; default) or every flight of the majority's PWM range (all)")
+                   help="several logs: pool the vehicle as it last flew (its latest motor configuration: outputs and "
+                        "PWM limits; the flights since its latest change; default) or every flight of the majority's "
+                        "motor configuration (all)")
     f.set_defaults(func=_cmd_from_ulog)
 
 

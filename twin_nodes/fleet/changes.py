@@ -74,13 +74,17 @@ class Series:
 PRIMARY = "kt_per_mass"
 
 
-def find_all(values: dict[str, tuple[list[float], list[float]]]) -> dict[str, Series]:
+def find_all(values: dict[str, tuple[list[float], list[float]]], rewired: frozenset[int] = frozenset()
+             ) -> dict[str, Series]:
     """:func:`find_steps` for every value ``{name: (x, se)}`` of one vehicle; the references of the others
-    restart where :data:`PRIMARY` stepped (a payload also moves the effectiveness a little)."""
+    restart where :data:`PRIMARY` stepped (a payload also moves the effectiveness a little), every value's where
+    the vehicle was ``rewired`` (flight indices whose motors are on other outputs: another configuration, not
+    compared with the one before as if nothing changed)."""
     out = {}
     if PRIMARY in values:
-        out[PRIMARY] = find_steps(PRIMARY, *values[PRIMARY])
-    resets = frozenset(st.first for st in out[PRIMARY].steps) if PRIMARY in out else frozenset()
+        out[PRIMARY] = find_steps(PRIMARY, *values[PRIMARY], resets=rewired)
+    resets = frozenset(rewired) | (frozenset(st.first for st in out[PRIMARY].steps) if PRIMARY in out
+                                   else frozenset())
     for v, (x, se) in values.items():
         if v != PRIMARY:
             out[v] = find_steps(v, x, se, resets)

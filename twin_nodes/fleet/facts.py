@@ -135,20 +135,67 @@ def motor_pwm(params: dict[str, float], n_motors: int) -> dict[str, Any]:
     ``{"text": "MAIN1-4 1000-2000 us", "min_us", "max_us"}`` (min/max NaN where the motor outputs differ,
     or where no output group assigns the motors, e.g. DShot or UAVCAN ESCs)."""
     groups: dict[tuple[str, float, float], list[int]] = {}
+    outputs: dict[str, list[str]] = {}
+    limits: dict[str, list[float]] = {}
     for prefix in ("PWM_MAIN", "PWM_AUX"):
         for ch in range(1, 17):
             f = params.get(f"{prefix}_FUNC{ch}")
             if f is not None and 101 <= int(f) < 101 + max(n_motors, 1):
                 lo, hi = params.get(f"{prefix}_MIN{ch}", math.nan), params.get(f"{prefix}_MAX{ch}", math.nan)
                 groups.setdefault((prefix[4:], float(lo), float(hi)), []).append(ch)
+                outputs.setdefault(f"m{int(f) - 100}", []).append(f"{prefix[4:]}{ch}")
+                limits[f"{prefix[4:]}{ch}"] = [float(lo), float(hi)]
     if not groups:
-        return {"text": "no PWM output assigned to the motors", "min_us": math.nan, "max_us": math.nan}
+        return {"text": "no PWM output assigned to the motors", "min_us": math.nan, "max_us": math.nan,
+                "outputs": {}, "limits": {}}
     text = "; ".join(f"{g}{chs[0]}-{chs[-1]} {lo:.0f}-{hi:.0f} us" if math.isfinite(lo) and math.isfinite(hi) else
                      f"{g}{chs[0]}-{chs[-1]} (no PWM limits in the parameters)"
                      for (g, lo, hi), chs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[1])))
     ranges = {(lo, hi) for (_g, lo, hi) in groups}
     lo, hi = ranges.pop() if len(ranges) == 1 else (math.nan, math.nan)
-    return {"text": text, "min_us": lo, "max_us": hi}
+    return {"text": text, "min_us": lo, "max_us": hi, "outputs": dict(sorted(outputs.items())), "limits": limits}
+
+
+def assignment_text(pwm: dict) -> str:
+    """Which outputs drive the motors, without their PWM limits (``MAIN1-4``, ``AUX1-4 + MAIN1-4`` where every
+    motor is assigned to two outputs), from :func:`motor_pwm`; the PWM text's groups for a dict without outputs."""
+    outs = pwm.get("outputs")
+    if not outs:
+        return "; ".join(seg.split(" ")[0] for seg in str(pwm.get("text", "")).split("; "))
+    groups: dict[str, list[int]] = {}
+    for o in sorted({o for v in outs.values() for o in v}):
+        g = o.rstrip("0123456789")
+        groups.setdefault(g, []).append(int(o[len(g):]))
+    return " + ".join(f"{g}{min(c)}-{max(c)}" if len(c) > 1 else f"{g}{c[0]}" for g, c in sorted(groups.items()))
+
+
+def shares_outputs(a: dict, b: dict) -> bool:
+    """Every motor driven by an output both :func:`motor_pwm` dicts assign to it (one wiring)."""
+    oa, ob = a.get("outputs") or {}, b.get("outputs") or {}
+    return set(oa) == set(ob) and all(set(oa[m]) & set(ob[m]) for m in oa)
+
+
+def same_configuration(a: dict, b: dict) -> tuple[bool, str]:
+    """Whether two flights' motor outputs (:func:`motor_pwm` dicts) are one configuration of the vehicle: every
+    motor driven by an output both assign to it with the same PWM limits in both (an output assigned besides, e.g.
+    AUX1-4 mirroring MAIN1-4, may be connected to nothing: a log cannot tell which one is).  Another output
+    assignment is another wiring (on the shared real fleet the yaw trim changed sign with it), another PWM range
+    another thrust for the same command.  Returns (same, why not); dicts without ``outputs`` (older twins and
+    catalogs) compare by their text."""
+    oa, ob = a.get("outputs"), b.get("outputs")
+    if not oa or not ob:
+        same = a.get("text") == b.get("text")
+        return same, "" if same else f"motor PWM range {b.get('text')}, the twin's is {a.get('text')}"
+    if not shares_outputs(a, b):
+        return False, f"motor outputs {assignment_text(b)}, the twin's are {assignment_text(a)} (another wiring)"
+    la, lb = a.get("limits") or {}, b.get("limits") or {}
+    def lim(d: dict, o: str) -> list:
+        return [None if x != x else x for x in d.get(o, [])]  # NaN (no limit in the parameters) equal to NaN
+
+    if any(not any(lim(la, o) == lim(lb, o) for o in set(oa[m]) & set(ob[m])) for m in oa):
+        return False, (f"motor PWM range {b.get('text')}, the twin's is {a.get('text')} (the same command is "
+                       "another thrust)")
+    return True, ""
 
 
 def param_changes(prev: dict[str, float] | None, cur: dict[str, float]) -> dict[str, list]:
@@ -271,7 +318,8 @@ def flight_facts(path: str, log: FlightLog, side: Callable[[], Any] | None = Non
     kind, why = flight_kind(log, n_tests)
     pwm = motor_pwm(log.params, int(log.n_motors))
     row: dict[str, Any] = {"flight_kind": kind, "kind_reason": why, "actuator_tests": n_tests,
-                           "motor_pwm": pwm["text"], "motor_pwm_min_us": pwm["min_us"],
+                           "motor_pwm": pwm["text"], "motor_outputs": assignment_text(pwm),
+                           "motor_pwm_min_us": pwm["min_us"],
                            "motor_pwm_max_us": pwm["max_us"], "params_json": json.dumps(log.params, sort_keys=True),
                            "height_change_m": height_change_m(log)}
     vals = _battery(log)

@@ -308,9 +308,11 @@ def _vehicle_sections(rows: list[dict], out: Path, al: list[Alarm]) -> list[dict
                          f"<td>{g('fact_battery_v_start')}</td>"
                          f"<td title='{e(str(r.get('since_twin_why') or ''))}'>{e(str(r.get('since_twin') or ''))}</td></tr>")
         parts.append("</table><h3>Firmware parameter changes (events)</h3><ul>" + "".join(
-            f"<li>{e(ev['date'][:16])} {e(ev['flight'])}: "
-            + e(", ".join([f"motor PWM {ev['pwm'][0]} -> {ev['pwm'][1]}"] if ev["pwm"] else [])
-                + ", ".join(f"{n} {a} -> {b}" for n, (a, b) in sorted(ev["changes"].items()))) + "</li>"
+            f"<li>{e(ev['date'][:16])} {e(ev['flight'])}: " + e("; ".join(
+                ([f"motor outputs {ev['outputs'][0]} -> {ev['outputs'][1]} (another wiring: values not compared "
+                  "across it)"] if ev.get("outputs") else [])
+                + ([f"motor PWM {ev['pwm'][0]} -> {ev['pwm'][1]}"] if ev["pwm"] else [])
+                + [", ".join(f"{n} {a} -> {b}" for n, (a, b) in sorted(ev["changes"].items()))])) + "</li>"
             for ev in res["events"]) + "</ul>")
         parts.append("<h3>Changes (beyond the scatter band on two flights in a row)</h3>" + (
             "<ul>" + "".join(f"<li>{e(vr.alarm_message(c))}</li>" for c in res["changes"]) + "</ul>"
@@ -327,6 +329,7 @@ def _vehicle_sections(rows: list[dict], out: Path, al: list[Alarm]) -> list[dict
             parts.append(f"<h4>{e(v)}</h4><p>{e(vr.FACTS[v][1])}; flight-to-flight scatter "
                          f"{sr.scatter:.3g}</p><img src='{png}'>")
         js = {"vehicle_id": vid, "local_offset_h": off, "events": res["events"],
+              "rewired_at": [vr._name(res["free"][i]["path"]) for i in res.get("rewired", [])],
               "changes": [asdict(c) for c in res["changes"]],
               "flights": [{"path": r["path"], "utc": r["_utc"], "kind": r.get("flight_kind") or r.get("status"),
                            "motor_pwm": r.get("motor_pwm"),

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from twin_nodes.fleet import changes as ch
-from twin_nodes.fleet.facts import FACTS, is_event, param_changes
+from twin_nodes.fleet.facts import FACTS, assignment_text, is_event, motor_pwm, param_changes, shares_outputs
 
 #: values drawn per vehicle (tracked ones carry steps and alarms; the others are context)
 SHOWN = ("kt_per_mass", "hover_throttle", "hover_thrust_px4", "rp_eff", "roll_eff", "pitch_eff", "yaw_eff",
@@ -63,7 +63,7 @@ def events(rows: list[dict]) -> list[dict]:
     """Firmware parameter changes between consecutive logs of a vehicle (every log, flights or not):
     ``{"index", "flight", "date", "changes": {name: [before, after]}, "pwm": [old, new] or None}``; only the
     parameters of :func:`~twin_nodes.fleet.facts.is_event`."""
-    out, prev, prev_pwm = [], None, None
+    out, prev, prev_pwm, prev_outs = [], None, None, None
     for i, r in enumerate(rows):
         try:
             p = json.loads(r.get("params_json") or "null")
@@ -73,12 +73,30 @@ def events(rows: list[dict]) -> list[dict]:
             continue
         d = {k: v for k, v in param_changes(prev, p).items() if is_event(k)}
         pwm = r.get("motor_pwm") or ""
+        outs = motor_pwm(p, MAX_MOTORS)
         moved = prev_pwm is not None and pwm != prev_pwm
-        if d or moved:
+        rewired = prev_outs is not None and not shares_outputs(prev_outs, outs)
+        if d or moved or rewired:
             out.append({"index": i, "flight": _name(r["path"]), "date": r["_utc"], "changes": d,
-                        "pwm": [prev_pwm, pwm] if moved else None})
-        prev, prev_pwm = p, pwm
+                        "pwm": [prev_pwm, pwm] if moved else None,
+                        "outputs": [assignment_text(prev_outs), assignment_text(outs)] if rewired else None})
+        prev, prev_pwm, prev_outs = p, pwm, outs
     return out
+
+
+#: motor functions read from a catalog row's parameters (PX4: Motor 1..8 = 101..108)
+MAX_MOTORS = 8
+
+
+def rewired_at(rows: list[dict], free: list[dict], ev: list[dict]) -> frozenset[int]:
+    """The free flights (indices in ``free``) whose motors are on other outputs than the previous free flight's (an
+    ``outputs`` event since it): another configuration, the values' references start again there."""
+    out = set()
+    for k in range(1, len(free)):
+        a, b = rows.index(free[k - 1]), rows.index(free[k])
+        if any(e.get("outputs") and a < e["index"] <= b for e in ev):
+            out.add(k)
+    return frozenset(out)
 
 
 def _span(text: str) -> float | None:
@@ -103,16 +121,19 @@ def analyse_vehicle(vid: str, rows: list[dict]) -> dict:
                 tracked[v] = (x, [_f(r, f"fact_{v}_se") for r in free])
             else:
                 series[v] = ch.Series(v, x, [_f(r, f"fact_{v}_se") for r in free], ch.scatter(np.asarray(x)))
-    series.update(ch.find_all(tracked))
+    rewired = rewired_at(rows, free, ev)
+    series.update(ch.find_all(tracked, rewired))
     series = {v: series[v] for v in SHOWN if v in series}
     starts = sorted({s.first for v, s_ in series.items() for s in s_.steps})
     groups: list[int] = []
     for s in starts:
         if not groups or s - groups[-1] > 1:
             groups.append(s)
-    out_changes = [_change(vid, free, rows, series, ev, g, groups[k - 1] if k else 0) for k, g in enumerate(groups)]
+    out_changes = [_change(vid, free, rows, series, ev, g, max([groups[k - 1] if k else 0]
+                                                                + [r for r in rewired if r <= g]))
+                   for k, g in enumerate(groups)]
     return {"vehicle_id": vid, "local_offset_h": off, "rows": rows, "free": free, "series": series,
-            "events": ev, "changes": out_changes}
+            "events": ev, "changes": out_changes, "rewired": sorted(rewired)}
 
 
 def _change(vid: str, free: list[dict], rows: list[dict], series: dict, ev: list[dict], g: int, prev: int) -> Change:
@@ -155,6 +176,8 @@ def _change(vid: str, free: list[dict], rows: list[dict], series: dict, ev: list
     evs = []
     for e in at:
         pwm_txt = [f"motor PWM {e['pwm'][0]} -> {e['pwm'][1]}"] if e["pwm"] else []
+        if e.get("outputs"):
+            pwm_txt.append(f"motor outputs {e['outputs'][0]} -> {e['outputs'][1]} (another wiring)")
         others = sorted(k for k in e["changes"] if not k.startswith(("PWM_MAIN_M", "PWM_AUX_M")))
         more = [f"also changed: {', '.join(others[:8])}" + (f" and {len(others) - 8} more" if len(others) > 8 else "")] \
             if others else []
@@ -203,7 +226,8 @@ def plot_series(vid: str, res: dict, value: str, out: Path) -> None:
         d = _dt.datetime.fromisoformat(e["date"]).replace(tzinfo=None) if e["date"] else None
         if d is not None and (e["pwm"] or e["changes"]):
             ax.axvline(d, color="0.5", ls=":", lw=1)
-            ax.annotate("PWM" if e["pwm"] else "params", (d, 1.0), xycoords=("data", "axes fraction"),
+            ax.annotate("outputs" if e.get("outputs") else "PWM" if e["pwm"] else "params", (d, 1.0),
+                        xycoords=("data", "axes fraction"),
                         fontsize=6, rotation=90, va="top")
     unit = FACTS.get(value, ("", ""))[0]
     ax.set_ylabel(f"{value} [{unit}]", fontsize=8)

@@ -6,11 +6,13 @@
 assumed mass) and its values (:func:`twin_nodes.fleet.facts.identified`).  Per value:
 
 - the twin is the vehicle *as it last flew*: the flights are put in date order (UTC; a file-name date corrected by
-  the vehicle's local offset, as the fleet report does), a flight whose motor PWM range differs from the latest
-  flight's is left out of every value (named: the same command is another thrust there), and so is every flight
+  the vehicle's local offset, as the fleet report does), a flight of another motor configuration than the latest
+  flight's is left out of every value (named; :func:`twin_nodes.fleet.facts.same_configuration`: its motors on other
+  outputs, another wiring whose trims are another's, or another PWM range, where the same command is another
+  thrust), and so is every flight
   before the vehicle's latest change (a step of the thrust per mass or of a trim on at least two flights in a row,
   :func:`twin_nodes.fleet.changes.find_all`; named with the value that stepped).  ``state="all"`` pools every
-  flight of the majority's PWM range instead (the earlier behaviour);
+  flight of the majority's configuration instead (the earlier behaviour); ``like`` the flights of a given one;
 - a flight beyond ``max(3 x 1.4826 MAD, 3 se, floor)`` of the median is *disagreeing*: named, not averaged in;
 - the pooled value is the mean of the others, its uncertainty the scatter / sqrt(n) (at least the mean se),
   and the flight-to-flight scatter is reported beside it.
@@ -33,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from twin_nodes.base.errors import ParamsError, TwinError
+from twin_nodes.fleet.facts import shares_outputs
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 
 #: header line prefix of the pooled values (JSON after it)
@@ -99,24 +102,34 @@ def pool(value: str, names: list[str], x: list[float], se: list[float]) -> Poole
 STATE_VALUES = ("kt_per_mass", "com_dx_m", "com_dy_m")
 
 
-def select(flights: list[dict], state: str = "latest") -> tuple[list[dict], list[str], str]:
+def select(flights: list[dict], state: str = "latest", like: dict | None = None) -> tuple[list[dict], list[str], str]:
     """The flights to pool (see the module docstring), the left-out lines ("path: why") and one line on the choice.
-    ``flights``: dicts with ``path``, ``name``, ``when`` (UTC ISO text, '' unknown), ``pwm`` (``text``) and ``facts``."""
+    ``flights``: dicts with ``path``, ``name``, ``when`` (UTC ISO text, '' unknown), ``pwm``
+    (:func:`~twin_nodes.fleet.facts.motor_pwm`) and ``facts``.  The configuration (which outputs drive the motors
+    and their PWM limits, :func:`~twin_nodes.fleet.facts.same_configuration`) is the latest flight's, the
+    majority's (``state="all"``), or that of ``like`` (a motor_pwm dict: the twin of that configuration)."""
+    from twin_nodes.fleet.facts import same_configuration
+
     if state not in ("latest", "all"):
         raise TwinError(f"vehicle twin: state {state!r}: expected 'latest' or 'all'")
-    if state == "all":
-        counts: dict[str, int] = {}
-        for f in flights:
-            counts[f["pwm"]["text"]] = counts.get(f["pwm"]["text"], 0) + 1
-        pwm_text = max(counts, key=lambda k: (counts[k], k))
-        note = f"every flight of the majority's motor PWM range ({pwm_text})"
+    flights = sorted(flights, key=lambda f: (f.get("when") or "", f["path"]))
+    if like is not None:
+        key = like
+        note = f"the flights of the configuration {key['text']}"
+    elif state == "all":
+        configs = configurations(flights)
+        key = max(configs, key=lambda c: (len(c), c[-1].get("when") or ""))[-1]["pwm"]
+        note = f"every flight of the majority's configuration ({key['text']})"
     else:
-        flights = sorted(flights, key=lambda f: (f.get("when") or "", f["path"]))
-        pwm_text = flights[-1]["pwm"]["text"]
+        key = flights[-1]["pwm"]
         note = f"the vehicle as it last flew ({flights[-1]['name']}, {flights[-1].get('when') or 'undated'})"
-    out = [f"{f['path']}: motor PWM range {f['pwm']['text']}, the twin's is {pwm_text} (the same command is another "
-           "thrust)" for f in flights if f["pwm"]["text"] != pwm_text]
-    same = [f for f in flights if f["pwm"]["text"] == pwm_text]
+    out, same = [], []
+    for f in flights:
+        ok, why = same_configuration(key, f["pwm"])
+        if ok:
+            same.append(f)
+        else:
+            out.append(f"{f['path']}: {why}")
     if state == "latest" and len(same) >= 3:
         from twin_nodes.fleet.changes import find_all
 
@@ -130,6 +143,21 @@ def select(flights: list[dict], state: str = "latest") -> tuple[list[dict], list
             note += f"; since its latest change at {same[first]['name']} ({value} stepped)"
             same = same[first:]
     return same, out, note
+
+
+def configurations(flights: list[dict]) -> list[list[dict]]:
+    """The flights grouped by configuration (:func:`~twin_nodes.fleet.facts.same_configuration` with each
+    group's first flight), in the order met."""
+    from twin_nodes.fleet.facts import same_configuration
+
+    groups: list[list[dict]] = []
+    for f in flights:
+        g = next((g for g in groups if same_configuration(g[0]["pwm"], f["pwm"])[0]), None)
+        if g is None:
+            groups.append([f])
+        else:
+            g.append(f)
+    return groups
 
 
 def date_flights(flights: list[dict]) -> None:
@@ -149,8 +177,17 @@ def date_flights(flights: list[dict]) -> None:
 
 
 def build(paths: list[str | os.PathLike[str]], *, mass_kg: float | None = None, arm_m: float | None = None,
-          name: str | None = None, state: str = "latest") -> VehicleTwin:
-    """The vehicle twin of the free flights among ``paths`` (see the module docstring)."""
+          name: str | None = None, state: str = "latest", like: dict | None = None) -> VehicleTwin:
+    """The vehicle twin of the free flights among ``paths`` (see the module docstring; ``like``: the twin of
+    that motor configuration, :func:`select`)."""
+    flights, left_out = read_flights(paths, mass_kg=mass_kg, arm_m=arm_m, name=name)
+    return from_flights(flights, left_out, state=state, like=like)
+
+
+def read_flights(paths: list[str | os.PathLike[str]], *, mass_kg: float | None = None, arm_m: float | None = None,
+                 name: str | None = None) -> tuple[list[dict], list[str]]:
+    """Every free flight among ``paths`` identified (one dict each, dated) and the left-out lines; refuses logs of
+    more than one vehicle."""
     from twin_nodes.fleet.facts import actuator_tests, flight_kind, identified, motor_pwm
     from twin_nodes.identify.nominal import nominal_from_log
     from twin_nodes.logs.ulog_io import read_ulog
@@ -177,15 +214,23 @@ def build(paths: list[str | os.PathLike[str]], *, mass_kg: float | None = None, 
         raise TwinError("params from-ulog: no free flight among the logs to identify on: "
                         + " | ".join(left_out))
     date_flights(flights)
-    flights, dropped, state_note = select(flights, state)
-    left_out += dropped
+    return flights, left_out
+
+
+def from_flights(flights: list[dict], left_out: list[str], *, state: str = "latest",
+                 like: dict | None = None) -> VehicleTwin:
+    """The vehicle twin pooled over the flights :func:`select` keeps of ``flights`` (from :func:`read_flights`)."""
+    flights, dropped, state_note = select(flights, state, like)
+    left_out = left_out + dropped
+    if not flights:
+        raise TwinError("params from-ulog: no free flight of the configuration " + (like or {}).get("text", "?"))
     pooled = {}
     for v in POOLED:
         res = pool(v, [f["name"] for f in flights], [f["facts"].get(v, math.nan) for f in flights],
                    [f["facts"].get(f"{v}_se", math.nan) for f in flights])
         if res is not None:
             pooled[v] = res
-    pwm = next(f["pwm"] for f in flights)
+    pwm = flights[-1]["pwm"]
     at_v = at_one_voltage(flights, pooled)
     if at_v is not None:
         pooled["kt_per_mass_at_v_ref"], pooled["kt_v_ref"] = at_v
@@ -241,7 +286,7 @@ def thrust_voltage(log, nom) -> float:
     """The pack voltage a flight's thrust per mass refers to: the nominal's battery-sag reference where it has one
     (T = T_max (V/V_ref)^e), else the median pack voltage while airborne (a thrust fit without a sag term averages
     over the flight), NaN without a voltage trace."""
-    eff = nom.params.to_ros_dict()["effects"]
+    eff = nom.params.to_ros_dict()["effects"] if nom is not None else {}
     if "battery_sag" in eff.get("enabled", ()):
         return float(eff["battery_sag"]["v_ref"])
     bv = log.get("battery_v")
@@ -345,16 +390,37 @@ def since_twin(log, path: str, ref: dict) -> dict:
     kind, why = flight_kind(log, actuator_tests(path))
     if kind != "free flight":
         return {"name": "not compared", "why": f"{kind}: {why}", "differs": {}, "pwm": None}
-    new = identified(log)
+    from twin_nodes.identify.nominal import nominal_from_log
+
+    try:
+        nom = nominal_from_log(log)
+    except TwinError:  # params that fail validation: identified() keeps the fits, the voltage is the median's
+        nom = None
+    new = identified(log, nom)
     pwm_new = motor_pwm(log.params, int(log.n_motors))
     pwm_ref = ref.get("pwm") or {}
+    pooled = dict(ref.get("pooled") or {})
+    v_flight = thrust_voltage(log, nom)
+    values = {k: v for k, v in new.items() if not k.endswith("_se")}
+    at_v = _at_twin_voltage(new, v_flight, pooled)
+    if at_v is not None:  # compared at the twin's one pack voltage, not at the flight's own
+        new = dict(new, kt_per_mass=at_v)
+        pooled["kt_per_mass"] = pooled["kt_per_mass_at_v_ref"]
+    wiring = ""
+    if pwm_ref.get("outputs") and pwm_new["outputs"] and not shares_outputs(pwm_ref, pwm_new):
+        from twin_nodes.fleet.facts import assignment_text
+
+        # another wiring: its trims and motor shares are another configuration's, not compared as if unchanged
+        wiring = (f"motor outputs {assignment_text(pwm_ref)} in the twin, {assignment_text(pwm_new)} in this log "
+                  "(another wiring: trims and motor shares not compared)")
+        pooled = {k: v for k, v in pooled.items() if not k.startswith(("com_", "yaw_lever"))}
     pwm = None
     if pwm_ref.get("text") and pwm_new["text"] != pwm_ref["text"]:
         a, b = (pwm_ref.get("max_us", math.nan) - pwm_ref.get("min_us", math.nan),
                 pwm_new["max_us"] - pwm_new["min_us"])
         pwm = (a, b) if math.isfinite(a) and math.isfinite(b) and a != b else None
     ratios, deltas, differs = {}, {}, {}
-    for v, p in (ref.get("pooled") or {}).items():
+    for v, p in pooled.items():
         x = new.get(v)
         if x is None or not math.isfinite(x) or not math.isfinite(p.get("mean", math.nan)):
             continue
@@ -367,38 +433,63 @@ def since_twin(log, path: str, ref: dict) -> dict:
             ratios[v] = (x / p["mean"], se / abs(p["mean"]))
         if abs(x - p["mean"]) > h and v in TRACKED:
             differs[v] = {"twin": p["mean"], "flight": x, "band": h}
-    for k, s in (ref.get("motor_share") or {}).items():
+    for k, s in ({} if wiring else ref.get("motor_share") or {}).items():
         if k in new and math.isfinite(new[k]) and math.isfinite(s):
             deltas[k] = (new[k] - s, 0.01)
     name, why = explain(ratios, deltas, pwm, stepped=set(differs))
     if not differs and pwm is None and name in ("unexplained",):
         name, why = "none", "every value within the vehicle twin's flight-to-flight scatter"
+    if wiring:
+        why = f"{why}; {wiring}"
     return {"name": name, "why": why, "differs": differs, "pwm": [pwm_ref.get("text"), pwm_new["text"]],
-            "values": {k: v for k, v in new.items() if not k.endswith("_se")}}
+            "kt_per_mass_at_twin_v": at_v, "kt_v_flight": v_flight, "values": values}
+
+
+def _at_twin_voltage(new: dict, v: float, pooled: dict) -> float | None:
+    """A flight's thrust per mass (at its own pack voltage ``v``) brought to the twin's one voltage with the twin's
+    sag exponent (as :func:`at_one_voltage` pooled it), None where the twin has no such voltage or the flight no
+    voltage."""
+    at, vr, e = (pooled.get(k) or {} for k in ("kt_per_mass_at_v_ref", "kt_v_ref", "battery_exponent"))
+    x = new.get("kt_per_mass", math.nan)
+    vals = (at.get("mean", math.nan), vr.get("mean", math.nan), e.get("mean", math.nan), v, x)
+    if not all(math.isfinite(a) for a in vals) or v <= 0:
+        return None
+    return float(x * (vr["mean"] / v) ** e["mean"])
 
 
 def for_flight(vp: VehicleParams, ref: dict | None, log) -> tuple[VehicleParams, str]:
     """The vehicle twin ``vp`` as it flies ``log``: where the log's motor PWM range differs from the twin's
     (``ref["pwm"]``), the same command reaches another PWM, so the thrust curve is rescaled by the span ratio
     ``r``: T(u) = T_max (f (r u)^2 + (1 - f) r u), i.e. ``thrust_max_n`` x (f r^2 + (1 - f) r) and ``thr_mdl_fac``
-    f r^2 / (f r^2 + (1 - f) r).  Returns the params and a one-line note ('' when unchanged)."""
-    from twin_nodes.fleet.facts import motor_pwm
+    f r^2 / (f r^2 + (1 - f) r).  Where the log's motors are on other outputs (another wiring,
+    :func:`~twin_nodes.fleet.facts.same_configuration`), the twin's yaw trim (a rotor tilt) is taken out: it
+    belongs to the wiring (on the shared real fleet it changed sign with it), and none is nearer than the other's.
+    Returns the params and a one-line note ('' when unchanged)."""
+    from twin_nodes.fleet.facts import assignment_text, motor_pwm
 
     if not ref or not ref.get("pwm"):
         return vp, ""
     new = motor_pwm(log.params, int(log.n_motors))
     old = ref["pwm"]
+    notes = []
+    if old.get("outputs") and new["outputs"] and not shares_outputs(old, new):
+        if "rotor_tilt" in vp.to_ros_dict()["effects"].get("enabled", ()):
+            d = vp.to_ros_dict()
+            _enable(d["effects"], "rotor_tilt", None)
+            vp = from_ros_dict(d, "<vehicle twin>")
+        notes.append(f"motor outputs {assignment_text(old)} in the twin, {assignment_text(new)} in this log: "
+                     "another wiring, flown without the twin's yaw trim")
     a = old.get("max_us", math.nan) - old.get("min_us", math.nan)
     b = new["max_us"] - new["min_us"]
-    if new["text"] == old.get("text") or not (math.isfinite(a) and math.isfinite(b)) or a == b:
-        return vp, ""
-    r = b / a
-    f = float(vp.rotors.thr_mdl_fac)
-    scale = f * r * r + (1 - f) * r
-    f_new = f * r * r / scale if scale > 0 else f
-    out = vp.replace_rotors(thrust_max_n=float(vp.rotors.thrust_max_n) * scale, thr_mdl_fac=float(f_new))
-    return out, (f"motor PWM range {old.get('text')} in the twin, {new['text']} in this log: thrust curve rescaled "
-                 f"by the span ratio {r:.3f} (T_max x{scale:.3f})")
+    if new["text"] != old.get("text") and math.isfinite(a) and math.isfinite(b) and a != b:
+        r = b / a
+        f = float(vp.rotors.thr_mdl_fac)
+        scale = f * r * r + (1 - f) * r
+        f_new = f * r * r / scale if scale > 0 else f
+        vp = vp.replace_rotors(thrust_max_n=float(vp.rotors.thrust_max_n) * scale, thr_mdl_fac=float(f_new))
+        notes.append(f"motor PWM range {old.get('text')} in the twin, {new['text']} in this log: thrust curve "
+                     f"rescaled by the span ratio {r:.3f} (T_max x{scale:.3f})")
+    return vp, "; ".join(notes)
 
 
 #: whole-flight metrics shown for a vehicle twin beside a flight's own nominal
