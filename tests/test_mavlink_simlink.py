@@ -207,22 +207,30 @@ def test_lockstep_timeout_steps_once_per_timeout():
     np.testing.assert_array_equal(np.diff(pst.sensor_time_usec), STEP_US)
 
 
-@pytest.mark.parametrize("speed", [1.0, 3.0])
-def test_lockstep_is_paced_to_real_time_times_speed_factor(speed):
-    """Never faster than speed x real time; at 1x (250 steps/s, easy on any machine) close to it.
-    (At 3x a loaded 2-core machine may not keep up, so only the upper bound is checked there.)"""
+def _lockstep_ratio(speed: float, sim_s: float) -> tuple[float, object]:
+    """Simulated seconds per wall second of a lockstep run at ``speed`` (0: unpaced), and the peer's stats."""
     srv = SimLinkServer(shipped("px4_sih_quadx"), port=0, host="127.0.0.1", speed_factor=speed)
     srv.start_thread()
     try:
         peer = ScriptedPX4(srv.port, command=lambda t: ([0.0] * 4, True))
-        pst = peer.run(0.6 * speed, drain_s=0.0)
+        pst = peer.run(sim_s, drain_s=0.0)
         peer.close()
     finally:
         srv.close()
-    ratio = pst.controls_tx * STEP_US * 1e-6 / pst.lockstep_wall_s
+    return pst.controls_tx * STEP_US * 1e-6 / pst.lockstep_wall_s, pst
+
+
+@pytest.mark.parametrize("speed", [1.0, 3.0])
+def test_lockstep_is_paced_to_real_time_times_speed_factor(speed):
+    """Never faster than speed x real time; at 1x (250 steps/s, easy on any machine) close to it, unless the
+    machine, loaded by other jobs, cannot run even the unpaced loop that fast (measured right after: the
+    pacing must then cost at most 10 % of what the machine gives).
+    (At 3x a loaded 2-core machine may not keep up, so only the upper bound is checked there.)"""
+    ratio, pst = _lockstep_ratio(speed, 0.6 * speed)
     assert ratio <= speed * 1.03
-    if speed == 1.0:
-        assert ratio >= 0.9
+    if speed == 1.0 and ratio < 0.9:
+        unpaced, _ = _lockstep_ratio(0.0, 0.6)
+        assert ratio >= 0.9 * min(1.0, unpaced), (ratio, unpaced)
     np.testing.assert_array_equal(np.diff(pst.sensor_time_usec), STEP_US)
 
 
