@@ -19,7 +19,7 @@ from twin_nodes.discovery.judging import T_CRIT, _GRADE_ORDER, Fit, _window_fold
 from twin_nodes.discovery.output_error import (AXES, IV_AXIS_PARAM, IV_GAIN_RANGE, MIN_AXIS_R2, Windows,
                                                instrumented_inertia)
 from twin_nodes.discovery.plans import RATE_LOOP_LOG_S
-from twin_nodes.discovery.stages import motor_lag
+from twin_nodes.discovery.stages import lag_inertia, motor_lag
 from twin_nodes.discovery.stages.inertia_holds import hold_axes_not_borne_out, hold_yaw_not_borne_out
 from twin_nodes.discovery.stages.motor_lag import INSTRUMENTED_BLOCKS_MISSING
 from twin_nodes.discovery.stages.prepare import PreparedFlight
@@ -43,6 +43,7 @@ class Instrumented:
     current: VehicleParams            # the refit vehicle
     instrumented: dict | None         # the result's ``instrumented`` (None: nothing to instrument)
     lag: dict | None                  # the result's ``rate_loop_lag`` (None: not looked at)
+    joint: dict | None = None         # the result's ``lag_and_inertia`` (None: not looked at)
 
 
 def run(inp: InstrumentInput) -> Instrumented:
@@ -67,7 +68,9 @@ def run(inp: InstrumentInput) -> Instrumented:
         beside = _inertia_beside_lag(S, on, v.accepted_labels, v.effects, guard)
         if beside is not None:
             instrumented["beside_rate_loop_lag"] = beside
-    return Instrumented(current, instrumented, lag)
+    # the lag and the roll/pitch inertia read together where either is a finding (each read alone absorbs the other)
+    refit, joint = lag_inertia.read_together(S, current, v.effects, guard)
+    return Instrumented(refit or current, instrumented, lag, joint)
 
 
 def _inertia_beside_lag(S: PreparedFlight, on: VehicleParams, accepted: list[str], effects_out: list[dict],

@@ -87,6 +87,8 @@ def run(inp: ReportInput) -> Report:
         result["instrumented"] = inp.refit.instrumented
     if inp.refit.lag is not None:
         result["rate_loop_lag"] = inp.refit.lag
+    if inp.refit.joint is not None:
+        result["lag_and_inertia"] = inp.refit.joint
     if inp.closed_loop:
         closed_loop._closed_loop(result, inp.log, vp, current, *S.scored, inp.checked.closed)
     closed_loop.reset()
