@@ -30,7 +30,10 @@ def _block_stats(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_c
     output error is in units of its typical error, so half of that separates a manoeuvre the
     candidate acts in from noise when under a tenth of the blocks carry it).  ``change``: where the candidate's
     own term changes the prediction, when that is not ``R1 - R0`` (a joint variant, whose refitted partners
-    re-balance every block a little: :func:`judging.own_change`)."""
+    re-balance every block a little: :func:`judging.own_change`).  A confined change (it reaches ``NEGLIGIBLE`` of
+    its largest block change in under ``CONFINED_SHARE`` of the blocks) takes its 90th percentile over the blocks
+    it reaches, not over every block: otherwise the zeros pull the threshold down to blocks it moves at the
+    noise's size, whose gains are coin flips (x033's ground effect: 9 active blocks, 6 improved)."""
     delta = np.array([np.sqrt(np.mean((R1[b] - R0[b]) ** 2)) for b in blocks])
     if change is not None:
         own = np.array([np.sqrt(np.mean(change[b] ** 2)) for b in blocks])
@@ -41,7 +44,10 @@ def _block_stats(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_c
             delta = np.where(own >= rest, own, 0.0)
     if delta.size == 0 or delta.max() <= 0:
         return {"t": 0.0, "n": 0, "mean": 0.0, "sd": 0.0, "n_pos": 0}
-    ref = np.percentile(delta, 90)
+    reached = delta >= NEGLIGIBLE * delta.max()
+    # a confined change (a Crazyflie's ground effect at take-off and landing): its typical block change is taken
+    # over the blocks it reaches, so the many blocks it leaves at noise do not pull the threshold down to them
+    ref = np.percentile(delta[reached] if np.mean(reached) < CONFINED_SHARE else delta, 90)
     active = [b for b, dl in zip(blocks, delta) if dl >= max(0.25 * ref, min_change, NEGLIGIBLE * delta.max())]
     d = np.array([np.mean(R0[b] ** 2) - np.mean(R1[b] ** 2) for b in active])
     st = {"n": int(d.size), "mean": float(d.mean()) if d.size else 0.0,
