@@ -118,7 +118,7 @@ def corroboration(out_fit, eq_fit, t_crit: float) -> str | None:
         return None
     for g in (out_fit, eq_fit):
         if (not g.above_floor or g.at_bound or g.unphysical or g.closed_loop or not g.folds_agree
-                or not far_from_nominal(g.candidate, g.theta, g.fold_thetas)):
+                or not far_from_nominal(g.candidate, g.theta, getattr(g, "fold_thetas", None))):
             return None
     if out_fit.mode_cut < CORROBORATE_MIN_CUT or out_fit.rel_improvement <= 0:
         return None
@@ -154,7 +154,7 @@ def likely_failures(f, t_crit: float, min_rel: float) -> list[str]:
     """Why fit ``f`` is not ``likely`` (empty: it is)."""
     c = f.candidate
     why = []
-    if not f.above_floor or not far_from_nominal(c, f.theta, f.fold_thetas):
+    if not f.above_floor or not far_from_nominal(c, f.theta, getattr(f, "fold_thetas", None)):
         why.append("parameter not well away from nominal")
     if f.at_bound:
         why.append("pinned to the edge of the physical range")
