@@ -607,3 +607,55 @@ def test_block_test_counts_only_the_blocks_a_regime_effect_reaches():
     wide = R0 - 0.1 * R0
     st = _block_stats(R0, wide, blocks)
     assert st["n"] == 50 and st["n_pos"] == 50 and st["t"] > 3
+
+
+class _Lag(_Cand):
+    """RotorPy's Crazyflie lag (0.072 s) on a 20 ms motor log: the floor is one logging interval."""
+
+    name = "motor_time_constant"
+    param_names = ["tau_up"]
+    label = "motor_time_constant(tau_up = tau_down)"
+    x0 = np.array([0.072])
+    lower = np.array([0.01])
+    upper = np.array([0.36])
+
+    def floor(self, th):
+        return abs(th[0] - 0.072) > 0.02
+
+    def params_dict(self, th):
+        return {"tau_up": float(th[0]), "tau_down": float(th[0])}
+
+
+def _lag_fit(theta, folds, cand=_Lag):
+    f = _fit(theta, 0.36, 2.87, 12, 11, folds=folds)
+    f.candidate = cand()
+    f.above_floor = bool(f.candidate.floor(np.array([theta])))
+    f.judged = ("throttle", 1.0, 0.64)
+    f.kind = "equation"
+    return f
+
+
+def test_lag_just_over_the_sampling_floor_resolved_by_its_folds():
+    """x001 (judge8): a 1.3 x lag (0.0936 s) fitted 0.0945 s, folds 0.0945 / 0.0904 s, cut 36 %, t 2.9: half the
+    0.022 s change is under the 20 ms floor and fold 2's 0.018 s change is too, yet the folds are 4 ms apart."""
+    from twin_nodes.discovery.verdicts import FOLD_RESOLUTION, far_from_nominal, resolved_by_folds
+    c = _Lag()
+    th, folds = np.array([0.0945]), [np.array([0.0945]), np.array([0.0904])]
+    assert not far_from_nominal(c, th)                       # the half-change bar alone
+    assert resolved_by_folds(c, th, folds)                   # 0.0041 <= 0.25 * 0.0225 = 0.0056
+    assert far_from_nominal(c, th, folds)
+    assert FOLD_RESOLUTION == 0.25
+    f = _lag_fit(0.0945, [0.0945, 0.0904])
+    grade(f, 3.0, 0.1, {"throttle": {"blocks_heldout": 21}})
+    assert f.verdict == "likely", f.verdict_note
+    # folds 10 ms apart (0.0945 / 0.0845: 0.010 > 0.0056), opposite ways, or the change under the floor: rejected
+    assert not resolved_by_folds(c, th, [np.array([0.0945]), np.array([0.0845])])
+    assert not resolved_by_folds(c, th, [np.array([0.0945]), np.array([0.065])])
+    assert not resolved_by_folds(c, np.array([0.090]), [np.array([0.090]), np.array([0.089])])
+    for f in (_lag_fit(0.0945, [0.0945, 0.0845]), _lag_fit(0.090, [0.090, 0.089])):
+        grade(f, 3.0, 0.1, {"throttle": {"blocks_heldout": 21}})
+        assert f.verdict == "rejected" and "not well away from nominal" in f.verdict_note
+    # a floor that is a physical size (the yaw moment's 3 %) keeps the half-change bar
+    y = _Cand()
+    assert not resolved_by_folds(y, np.array([0.0212]), [np.array([0.0212]), np.array([0.0211])])
+    assert not far_from_nominal(y, np.array([0.0212]), [np.array([0.0212]), np.array([0.0211])])

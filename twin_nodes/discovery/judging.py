@@ -22,7 +22,7 @@ from twin_nodes.discovery.candidates import Candidate
 from twin_nodes.discovery.output_error import (AXES, JUDGED, MIN_AXIS_R2, STRIDE_S, Windows, judge_axes, make_windows,
                                                output_error)
 from twin_nodes.discovery.residuals import LOWPASS_HZ, EquationData, modes, residual_channels
-from twin_nodes.discovery.verdicts import folds_agree
+from twin_nodes.discovery.verdicts import folds_agree, resolved_by_folds
 from twin_nodes.vehicle.params import VehicleParams
 
 HELDOUT_FRACTION = 0.35
@@ -425,7 +425,8 @@ def assess(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, R0:
     fit.own_cut = own
     fit.stats = stats
     fit.fold_thetas = thetas
-    fit.folds_agree = folds_agree(c, thetas, _scales(c)) and all(bool(c.floor(t)) for t in thetas)
+    fit.folds_agree = folds_agree(c, thetas, _scales(c)) and (all(bool(c.floor(t)) for t in thetas)
+                                                              or resolved_by_folds(c, theta, thetas))
     fit.at_bound = at_bound
     fit.unphysical = c.unphysical(theta)
     fit.R = Rcv
