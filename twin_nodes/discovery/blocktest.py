@@ -17,6 +17,12 @@ NEGLIGIBLE = 0.01
 CONFINED_SHARE = 0.5
 
 
+def _confined(per_block: np.ndarray) -> bool:
+    """A change (per block, >= 0, not all zero) reaches ``NEGLIGIBLE`` of its largest block change in under
+    ``CONFINED_SHARE`` of the blocks."""
+    return bool(np.mean(per_block >= NEGLIGIBLE * per_block.max()) < CONFINED_SHARE)
+
+
 def _block_stats(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_change: float = 0.0,
                  change: np.ndarray | None = None) -> dict:
     """Per-block drop in mean squared residual over the blocks where the candidate changes the
@@ -37,17 +43,16 @@ def _block_stats(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_c
     delta = np.array([np.sqrt(np.mean((R1[b] - R0[b]) ** 2)) for b in blocks])
     if change is not None:
         own = np.array([np.sqrt(np.mean(change[b] ** 2)) for b in blocks])
-        if own.max() > 0 and np.mean(own >= NEGLIGIBLE * own.max()) < CONFINED_SHARE:
+        if own.max() > 0 and _confined(own):
             # a confined effect beside refitted partners: its blocks are where its own term acts, and more than
             # the partners' re-balance there (what is left of the change once its own term is taken out)
             rest = np.array([np.sqrt(np.mean((R1[b] - R0[b] - change[b]) ** 2)) for b in blocks])
             delta = np.where(own >= rest, own, 0.0)
     if delta.size == 0 or delta.max() <= 0:
         return {"t": 0.0, "n": 0, "mean": 0.0, "sd": 0.0, "n_pos": 0}
-    reached = delta >= NEGLIGIBLE * delta.max()
     # a confined change (a Crazyflie's ground effect at take-off and landing): its typical block change is taken
     # over the blocks it reaches, so the many blocks it leaves at noise do not pull the threshold down to them
-    ref = np.percentile(delta[reached] if np.mean(reached) < CONFINED_SHARE else delta, 90)
+    ref = np.percentile(delta[delta >= NEGLIGIBLE * delta.max()] if _confined(delta) else delta, 90)
     active = [b for b, dl in zip(blocks, delta) if dl >= max(0.25 * ref, min_change, NEGLIGIBLE * delta.max())]
     d = np.array([np.mean(R0[b] ** 2) - np.mean(R1[b] ** 2) for b in active])
     st = {"n": int(d.size), "mean": float(d.mean()) if d.size else 0.0,

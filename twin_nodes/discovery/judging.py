@@ -52,6 +52,15 @@ PRUNE_GAIN = 0.02
 OE_MIN_CHANGE = 0.5
 #: the grades in the order results list them
 _GRADE_ORDER = {"confirmed": 0, "likely": 1, "rejected": 2}
+
+
+def insert_likely(effects_out: list[dict], entry: dict) -> None:
+    """Put a ``likely`` ``entry`` into the graded list ``effects_out`` in order: after every ``confirmed`` one and
+    every ``likely`` one with a larger held-out cut (``cv_improvement``), before the rest."""
+    k = next((i for i, e in enumerate(effects_out) if _GRADE_ORDER[e["verdict"]] > 1
+              or (e["verdict"] == "likely" and (e.get("cv_improvement") or 0) < entry["cv_improvement"])),
+             len(effects_out))
+    effects_out.insert(k, entry)
 #: joint starts (every parameter with a non-zero nominal scaled together) for multi-parameter
 #: fits: the time constants' cost is a curved valley (a slower spin-down helps only once the
 #: spin-up is slower too: PX4 SIH with SIH_T_TAU 0.05 -> 0.12 s, logged at 50 Hz, stalled at

@@ -259,6 +259,19 @@ def residuals(loop: RateLoop, axis: int, w: np.ndarray, sp: np.ndarray, dt: floa
     return Y - np.einsum("skni,ski->skn", A, c)
 
 
+def parabola_min(y: np.ndarray, x: np.ndarray) -> tuple[float, float, bool]:
+    """The minimum of ``y`` over the grid ``x``, refined by a parabola through the grid's minimum and its two
+    neighbours (moved at most one grid step): (x, y, whether it is inside the grid)."""
+    i = int(np.argmin(y))
+    if not 0 < i < len(y) - 1:
+        return float(x[i]), float(y[i]), False
+    y0, y1, y2 = y[i - 1], y[i], y[i + 1]
+    den = y0 - 2 * y1 + y2
+    off = float(np.clip(0.5 * (y0 - y2) / den, -1, 1)) if den > 0 else 0.0
+    h = x[i + 1] - x[i] if off >= 0 else x[i] - x[i - 1]
+    return float(x[i] + off * h), float(y1 - 0.25 * (y0 - y2) * off), True
+
+
 def fit_scale(R: np.ndarray, scales: np.ndarray, rows: np.ndarray) -> tuple[float, float]:
     """The inertia scale minimising the residual over the windows ``rows`` (parabola in log scale
     through the grid's minimum) and its standard error (clustered Gauss-Newton sandwich)."""
@@ -267,14 +280,10 @@ def fit_scale(R: np.ndarray, scales: np.ndarray, rows: np.ndarray) -> tuple[floa
         return math.nan, math.nan
     sse = np.einsum("skn,skn->s", R[:, idx], R[:, idx])
     i = int(np.argmin(sse))
-    ls = np.log(scales)
-    if 0 < i < len(scales) - 1:
-        y0, y1, y2 = sse[i - 1], sse[i], sse[i + 1]
-        den = y0 - 2 * y1 + y2
-        off = 0.5 * (y0 - y2) / den if den > 0 else 0.0
-        s_hat = float(math.exp(ls[i] + np.clip(off, -1, 1) * (ls[i + 1] - ls[i])))
-    else:
+    x, _, interior = parabola_min(sse, np.log(scales))
+    if not interior:
         return float(scales[i]), math.nan                                # at the grid's edge
+    s_hat = float(math.exp(x))
     u, A, sd = _score(R, scales, i, idx, R[i, idx])
     return s_hat, (sd / A if A > 0 else math.nan)
 

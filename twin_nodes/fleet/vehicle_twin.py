@@ -36,6 +36,7 @@ import numpy as np
 
 from twin_nodes.base.errors import ParamsError, TwinError
 from twin_nodes.fleet.facts import shares_outputs
+from twin_nodes.identify.from_log import airborne_mask
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 
 #: header line prefix of the pooled values (JSON after it)
@@ -292,11 +293,8 @@ def thrust_voltage(log, nom) -> float:
     bv = log.get("battery_v")
     if bv is None or not len(bv):
         return math.nan
-    t, v = bv.t_s, bv.values[:, 0]
-    air = np.zeros(t.size, bool)
-    for a, b in log.airborne_intervals():
-        air |= (t >= a) & (t <= b)
-    v = v[air & np.isfinite(v) & (v > 0.1)]
+    v = bv.values[:, 0]
+    v = v[airborne_mask(log, bv.t_s) & np.isfinite(v) & (v > 0.1)]
     return float(np.median(v)) if v.size else math.nan
 
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from twin_nodes.discovery import rate_loop
 from twin_nodes.discovery.blocktest import _block_test
-from twin_nodes.discovery.judging import T_CRIT, _GRADE_ORDER, Fit, _window_folds
+from twin_nodes.discovery.judging import T_CRIT, Fit, _window_folds, insert_likely
 from twin_nodes.discovery.output_error import (AXES, IV_AXIS_PARAM, IV_GAIN_RANGE, MIN_AXIS_R2, Windows,
                                                instrumented_inertia)
 from twin_nodes.discovery.plans import RATE_LOOP_LOG_S
@@ -586,7 +586,5 @@ def _instrument_entry(v: dict, iv: dict, out: dict, entry: dict | None, effects_
            "alternatives": []}
     if entry is not None:
         effects_out.remove(entry)
-    k = next((i for i, e in enumerate(effects_out) if _GRADE_ORDER[e["verdict"]] > 1
-              or (e["verdict"] == "likely" and (e.get("cv_improvement") or 0) < new["cv_improvement"])), len(effects_out))
-    effects_out.insert(k, new)
+    insert_likely(effects_out, new)
     return out, None

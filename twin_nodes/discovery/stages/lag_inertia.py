@@ -19,7 +19,8 @@ from typing import Callable
 import numpy as np
 
 from twin_nodes.discovery import rate_loop
-from twin_nodes.discovery.judging import _GRADE_ORDER
+from twin_nodes.discovery.rate_loop import parabola_min
+from twin_nodes.discovery.judging import insert_likely
 from twin_nodes.discovery.output_error import IV_AXIS_PARAM
 from twin_nodes.discovery.stages.prepare import PreparedFlight
 from twin_nodes.discovery.verdicts import LIKELY_MIN_CUT
@@ -29,18 +30,6 @@ from twin_nodes.vehicle.params import VehicleParams
 #: the motors' time constants the joint reading simulates [s] (log-spaced, ~12 % apart; refined by a parabola)
 JOINT_TAUS = np.exp(np.linspace(math.log(0.025), math.log(0.3), 23))
 RP = ("roll", "pitch")
-
-
-def _vertex(y: np.ndarray, x: np.ndarray) -> tuple[float, float, bool]:
-    """The minimum of ``y`` over the grid ``x`` refined by a parabola through the grid's minimum: (x, y, interior)."""
-    i = int(np.argmin(y))
-    if not 0 < i < len(y) - 1:
-        return float(x[i]), float(y[i]), False
-    y0, y1, y2 = y[i - 1], y[i], y[i + 1]
-    den = y0 - 2 * y1 + y2
-    off = float(np.clip(0.5 * (y0 - y2) / den, -1, 1)) if den > 0 else 0.0
-    h = x[i + 1] - x[i] if off >= 0 else x[i] - x[i - 1]
-    return float(x[i] + off * h), float(y1 - 0.25 * (y0 - y2) * off), True
 
 
 def _row(Q: np.ndarray, lt: np.ndarray, x: float) -> np.ndarray:
@@ -61,14 +50,14 @@ def _fit(E: dict, rows: np.ndarray, lt: np.ndarray, ls: np.ndarray) -> dict:
     added), each roll/pitch axis's log scale there (yaw held), each axis's own best log lag (the roll/pitch
     profiles over their scale), and the best log lag with roll/pitch at the model's inertia (log scale 0)."""
     Q = {a: E[a][:, :, rows].sum(-1) for a in E}
-    prof = {a: (np.array([_vertex(q, ls)[1] for q in Q[a]]) if Q[a].shape[1] > 1 else Q[a][:, 0]) for a in Q}
+    prof = {a: (np.array([parabola_min(q, ls)[1] for q in Q[a]]) if Q[a].shape[1] > 1 else Q[a][:, 0]) for a in Q}
     tot = sum(p / max(float(p.min()), 1e-300) for p in prof.values())
-    x, _, inside = _vertex(tot, lt)
-    s = {a: _vertex(_row(Q[a], lt, x), ls)[0] for a in RP if a in Q}
+    x, _, inside = parabola_min(tot, lt)
+    s = {a: parabola_min(_row(Q[a], lt, x), ls)[0] for a in RP if a in Q}
     at1 = sum((np.array([np.interp(0.0, ls, q) for q in Q[a]]) if Q[a].shape[1] > 1 else Q[a][:, 0])
               / max(float(prof[a].min()), 1e-300) for a in Q)
-    return {"x": x, "s": s, "inside": inside, "axis_x": {a: _vertex(prof[a], lt)[0] for a in prof},
-            "x_lag_alone": _vertex(at1, lt)[0]}
+    return {"x": x, "s": s, "inside": inside, "axis_x": {a: parabola_min(prof[a], lt)[0] for a in prof},
+            "x_lag_alone": parabola_min(at1, lt)[0]}
 
 
 def window_errors(loop: rate_loop.RateLoop, data, idx: np.ndarray, taus: np.ndarray = JOINT_TAUS,
@@ -111,7 +100,7 @@ def joint_from_errors(E: dict, masks: tuple, tau0: float, taus: np.ndarray = JOI
         for fk, test in ((f[1], test1), (f[2], test2)):
             Q = Ea[:, :, test].sum(-1)
             Qf = Ea[:, :, fit1 if test is test1 else fit2].sum(-1)
-            s_in = _vertex(_row(Qf, lt, x0), ls)[0] if a in RP else 0.0
+            s_in = parabola_min(_row(Qf, lt, x0), ls)[0] if a in RP else 0.0
             h["model"] += _at(Q, lt, ls, x0, 0.0)
             h["inertia"] += _at(Q, lt, ls, x0, s_in)
             h["lag"] += _at(Q, lt, ls, fk["x_lag_alone"], 0.0)
@@ -276,9 +265,7 @@ def _name_lag(r: dict, tau: float, cut: float, lag_e: dict | None, effects_out: 
            "residuals": {**((prev or {}).get("residuals") or {}), "rate_loop_joint": residual}, "alternatives": []}
     if prev is not None:
         effects_out.remove(prev)
-    k = next((i for i, e in enumerate(effects_out) if _GRADE_ORDER[e["verdict"]] > 1
-              or (e["verdict"] == "likely" and (e.get("cv_improvement") or 0) < new["cv_improvement"])), len(effects_out))
-    effects_out.insert(k, new)
+    insert_likely(effects_out, new)
 
 
 def _inertia_read_together(r: dict, in_e: dict, I_new: dict, flagged: list[str], tau: float) -> None:

@@ -11,7 +11,7 @@ from typing import Callable
 import numpy as np
 
 from twin_nodes.discovery import rate_loop
-from twin_nodes.discovery.judging import MOTOR_DYNAMICS, _GRADE_ORDER
+from twin_nodes.discovery.judging import MOTOR_DYNAMICS, insert_likely
 from twin_nodes.discovery.output_error import IV_AXIS_PARAM
 from twin_nodes.discovery.plans import RATE_LOOP_LOG_S
 from twin_nodes.discovery.stages.prepare import PreparedFlight
@@ -222,9 +222,7 @@ def _rate_loop_lag_entry(r: dict, out: dict, cut: float, effects_out: list[dict]
                              "heldout_sse": held["delay"], "note": "the rate loop's best extra delay"}]}
     if prev is not None:
         effects_out.remove(prev)
-    k = next((i for i, e in enumerate(effects_out) if _GRADE_ORDER[e["verdict"]] > 1
-              or (e["verdict"] == "likely" and (e.get("cv_improvement") or 0) < new["cv_improvement"])), len(effects_out))
-    effects_out.insert(k, new)
+    insert_likely(effects_out, new)
     return out
 
 
