@@ -152,3 +152,18 @@ def test_a_vehicle_held_still_is_not_airborne_whatever_the_land_detector_says():
     assert cd._airborne(held, 0, t[-1]) is False
     assert cd._airborne(flown, 0, t[-1]) is True
     assert cd._airborne(climbed, 0, t[-1]) is True
+
+
+def test_batch5_caps_six_flights_per_vehicle_and_repeats_no_blob_or_vehicle():
+    # batch 5 (docs/corpus.md): at most 6 rows per vehicle, chosen before any survey; no blob or vehicle of
+    # an earlier batch comes back, and the HIL board is labelled sitl
+    b5 = [r for r in ROWS if cf.batch_of(r) == "5"]
+    earlier = [r for r in ROWS if int(cf.batch_of(r)) < 5]
+    per_vehicle = {}
+    for r in b5:
+        per_vehicle[r["vehicle"]] = per_vehicle.get(r["vehicle"], 0) + 1
+    assert max(per_vehicle.values()) <= 6
+    assert sum(r["kind"] == "real" for r in b5) == 13 and len({r["vehicle"] for r in b5 if r["kind"] == "real"}) == 3
+    assert not {r["blob"] for r in b5} & {r["blob"] for r in earlier}
+    assert not {r["vehicle"] for r in b5} & {r["vehicle"] for r in earlier}
+    assert all(r["kind"] == "sitl" for r in b5 if r["vehicle"].endswith("20002d"))
