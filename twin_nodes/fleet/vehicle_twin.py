@@ -14,6 +14,11 @@ assumed mass) and its values (:func:`twin_nodes.fleet.facts.identified`).  Per v
   :func:`twin_nodes.fleet.changes.find_all`; named with the value that stepped).  ``state="all"`` pools every
   flight of the majority's configuration instead (the earlier behaviour); ``like`` the flights of a given one;
 - a flight beyond ``max(3 x 1.4826 MAD, 3 se, floor)`` of the median is *disagreeing*: named, not averaged in;
+- where the flights kept disagree beyond their own uncertainty (:func:`agreement`: chi^2 about their se-weighted
+  mean above its 99.73 % quantile), the header names every flight's value ± se and the JSON says ``consistent``
+  false; a sag exponent so pooled is still flown (its mean: without one, or with 1, the twin predicted the shared
+  fleet's later flights worse, docs/fleet.md sag12), with the thrust uncertainty it carries per volt stated, and
+  :func:`since_twin` widens its band by it;
 - the pooled value is the mean of the others, its uncertainty the scatter / sqrt(n) (at least the mean se),
   and the flight-to-flight scatter is reported beside it.
 
