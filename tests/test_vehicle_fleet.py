@@ -210,6 +210,13 @@ def test_vehicle_twin_from_real_flights_and_what_changed_on_an_earlier_flight(tm
     assert got["kt_v_flight"] == pytest.approx(11.12, abs=0.05)
     assert got["kt_per_mass_at_twin_v"] == pytest.approx(4.737 * (11.77 / 11.12) ** 1.731, rel=0.02)
     assert got["kt_per_mass_at_twin_v"] == pytest.approx(5.23, abs=0.05) and "kt_per_mass" not in got["differs"]
+    # the two flights' sag exponents agree within their uncertainty (2.00 ± 0.19, 1.46 ± 0.09: chi^2 6.6 < 9), so
+    # carrying log_20 0.65 V up adds the exponent's se (0.27): 5.23 x ln(11.77/11.12) x 0.27 = 0.08 to its band
+    e = ref["pooled"]["battery_exponent"]
+    assert e["consistent"] is True and e["se"] == pytest.approx(0.27, abs=0.03)
+    assert got["kt_per_mass_at_twin_v_se"] == pytest.approx(
+        got["kt_per_mass_at_twin_v"] * math.log(11.77 / 11.12) * e["se"], rel=0.05)
+    assert got["kt_per_mass_at_twin_v_se"] == pytest.approx(0.08, abs=0.015)
 
 
 def test_vehicle_report_names_a_payload_and_a_pwm_range_change_at_their_flights():
@@ -450,3 +457,70 @@ def test_values_are_not_compared_across_a_rewiring():
     res = vr.analyse_vehicle("v", rows(False))
     assert res["rewired"] == [] and [(c.flight, c.name) for c in res["changes"]] == [
         ("d/f06.ulg", "centre-of-mass shift")]
+
+
+def test_a_pooled_value_whose_flights_disagree_beyond_their_uncertainty_is_named():
+    """chi^2 of the flights about their se-weighted mean against its 99.73 % quantile (two flights: 3 combined se):
+    the date split's twin pools the sag exponents 1.711 ± 0.12 (7 Jun log_30) and 2.652 ± 0.14 (log_38): 5.1 se
+    apart, chi^2 26.0 on 1 dof, named with both values; 26 Jun log_29 2.00 ± 0.19 and mission_noload 1.46 ± 0.09:
+    2.6 se apart, chi^2 6.6, consistent."""
+    from twin_nodes.fleet.vehicle_twin import agreement
+
+    bad = pool("battery_exponent", ["log_30", "log_38"], [1.711, 2.652], [0.12, 0.14])
+    assert bad.mean == pytest.approx(2.1815) and bad.scatter == pytest.approx(0.6654, abs=1e-3)
+    assert bad.chi2 == pytest.approx(0.941 ** 2 / (0.12 ** 2 + 0.14 ** 2), rel=1e-6) and bad.chi2 == pytest.approx(26.0, abs=0.1)
+    assert bad.dof == 1 and not bad.consistent
+    assert bad.spread == ["log_30 1.711 ± 0.12", "log_38 2.652 ± 0.14"]
+    assert bad.disagreeing == []  # two flights: neither can be told the odd one out, both are named in the spread
+    ok = pool("battery_exponent", ["log_29", "noload"], [2.00, 1.46], [0.19, 0.09])
+    assert ok.chi2 == pytest.approx(6.60, abs=0.01) and ok.consistent and ok.spread == []
+    # the threshold: two flights 2.9 combined se apart agree, 3.1 apart do not; one flight is never tested
+    assert agreement(np.array([0.0, 2.9 * math.sqrt(2) * 0.1]), np.array([0.1, 0.1]))[2]
+    assert not agreement(np.array([0.0, 3.1 * math.sqrt(2) * 0.1]), np.array([0.1, 0.1]))[2]
+    assert agreement(np.array([1.0]), np.array([0.1])) == (pytest.approx(math.nan, nan_ok=True), 0, True)
+    # the se is at least the agreement floor of pool() / 3 (sag exponent: 0.2 / 3): 2.0 and 2.3 at se 0.01 are
+    # chi^2 0.09 / (2 x 0.0667^2) = 10.1 apart, 2.0 and 2.2 chi^2 4.5
+    assert not pool("battery_exponent", ["a", "b"], [2.0, 2.3], [0.01, 0.01]).consistent
+    assert pool("battery_exponent", ["a", "b"], [2.0, 2.2], [0.01, 0.01]).consistent
+    # three flights, chi^2 on 2 dof (quantile 11.83)
+    c2, dof, good = agreement(np.array([1.0, 1.2, 1.4]), np.array([0.1, 0.1, 0.1]))
+    assert (c2, dof, good) == (pytest.approx(8.0), 2, True)
+
+
+def test_a_sag_exponent_the_flights_disagree_on_widens_the_band_it_carries_a_flight_with():
+    """since_twin brings a flight's thrust per mass to the twin's voltage with the twin's exponent; what that adds
+    is x |ln(V_ref/V)| sigma_e, sigma_e the exponent's se, or its scatter where its flights disagree (mission_2hops,
+    4.47 at 10.36 V, against the date split's twin: 11.23 V, 2.18, se 0.47, scatter 0.67)."""
+    from twin_nodes.fleet.vehicle_twin import _at_twin_voltage
+
+    e = {"mean": 2.18, "se": 0.47, "scatter": 0.67, "consistent": False}
+    pooled = {"kt_per_mass_at_v_ref": {"mean": 3.52}, "kt_v_ref": {"mean": 11.23}, "battery_exponent": e}
+    at, se = _at_twin_voltage({"kt_per_mass": 4.47}, 10.36, pooled)
+    assert at == pytest.approx(4.47 * (11.23 / 10.36) ** 2.18) and at == pytest.approx(5.329, abs=0.005)
+    assert se == pytest.approx(at * math.log(11.23 / 10.36) * 0.67) and se == pytest.approx(0.288, abs=0.002)
+    at2, se2 = _at_twin_voltage({"kt_per_mass": 4.47}, 10.36, dict(pooled, battery_exponent=dict(e, consistent=True)))
+    assert at2 == at and se2 == pytest.approx(at * math.log(11.23 / 10.36) * 0.47)
+    assert _at_twin_voltage({"kt_per_mass": 4.47}, math.nan, pooled) == (None, 0.0)
+
+
+@need_shared
+def test_the_twin_names_a_sag_exponent_its_flights_disagree_on_and_states_what_it_costs():
+    """7 Jun log_30 and log_38 (one configuration, MAIN1-4): their sag exponents disagree (1.71 ± 0.12, 2.65 ±
+    0.14); the header names both and states the thrust's uncertainty 1 V below the twin's voltage (ln(10.23/11.23)
+    x 0.67 = 6 %); the twin still flies their mean (without a sag or with 1 it predicted later flights worse,
+    docs/fleet.md sag12)."""
+    from twin_nodes.fleet.vehicle_twin import build
+
+    vt = build([str(SHARED / "ZweiterFlugtag" / n) for n in ("log_30_2023-6-7-12-11-06.ulg",
+                                                             "log_38_2023-6-7-13-54-52.ulg")])
+    e = vt.pooled["battery_exponent"]
+    assert e.n == 2 and not e.consistent and e.chi2 == pytest.approx(27.8, abs=1.5)
+    assert e.mean == pytest.approx(2.18, abs=0.03) and e.scatter == pytest.approx(0.67, abs=0.03)
+    assert "log_30_2023-6-7-12-11-06.ulg 1.71" in vt.header and "log_38_2023-6-7-13-54-52.ulg 2.65" in vt.header
+    assert "the flights disagree beyond their uncertainty (chi^2 2" in vt.header
+    v_ref = vt.pooled["kt_v_ref"].mean
+    assert v_ref == pytest.approx(11.68, abs=0.05) and vt.pooled["kt_v_ref"].consistent
+    assert f"± {abs(math.log((v_ref - 1) / v_ref)) * e.scatter:.0%} 1 V below" in vt.header
+    assert "± 6% 1 V below" in vt.header
+    sag = vt.params.to_ros_dict()["effects"]["battery_sag"]
+    assert sag["exponent"] == pytest.approx(e.mean) and sag["v_ref"] == pytest.approx(v_ref)

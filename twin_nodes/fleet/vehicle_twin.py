@@ -14,6 +14,11 @@ assumed mass) and its values (:func:`twin_nodes.fleet.facts.identified`).  Per v
   :func:`twin_nodes.fleet.changes.find_all`; named with the value that stepped).  ``state="all"`` pools every
   flight of the majority's configuration instead (the earlier behaviour); ``like`` the flights of a given one;
 - a flight beyond ``max(3 x 1.4826 MAD, 3 se, floor)`` of the median is *disagreeing*: named, not averaged in;
+- where the flights kept disagree beyond their own uncertainty (:func:`agreement`: chi^2 about their se-weighted
+  mean above its 99.73 % quantile), the header names every flight's value ± se and the JSON says ``consistent``
+  false; a sag exponent so pooled is still flown (its mean: without one, or with 1, the twin predicted the shared
+  fleet's later flights worse, docs/fleet.md sag12), with the thrust uncertainty it carries per volt stated, and
+  :func:`since_twin` widens its band by it;
 - the pooled value is the mean of the others, its uncertainty the scatter / sqrt(n) (at least the mean se),
   and the flight-to-flight scatter is reported beside it.
 
@@ -57,6 +62,12 @@ class Pooled:
     n: int
     flights: list[str] = field(default_factory=list)
     disagreeing: list[str] = field(default_factory=list)  # "name (value)"
+    #: chi^2 of the pooled flights about their se-weighted mean and its degrees of freedom (n - 1); ``consistent``
+    #: False where the flights disagree beyond their uncertainty (:func:`agreement`)
+    chi2: float = math.nan
+    dof: int = 0
+    consistent: bool = True
+    spread: list[str] = field(default_factory=list)  # "name x ± se" of each flight where not consistent
 
 
 @dataclass
@@ -95,7 +106,35 @@ def pool(value: str, names: list[str], x: list[float], se: list[float]) -> Poole
         if v.size > 1 else (mean_se or math.nan)
     out.n = int(v.size)
     out.flights = [names[i] for i in keep]
+    floor = max(REL_FLOOR * abs(med), POOLED.get(value, 0.0)) / 3.0
+    out.chi2, out.dof, out.consistent = agreement(v, se_[keep], floor)
+    if not out.consistent:
+        out.spread = [f"{names[i]} {x_[i]:.4g} ± {se_[i]:.2g}" for i in keep]
     return out
+
+
+#: the flights of a pooled value disagree beyond their uncertainty where the chi^2 about their weighted mean
+#: exceeds its quantile at this probability (3 sigma two-sided: two flights 3 combined se apart)
+AGREE_P = 0.9973
+
+
+def agreement(x: np.ndarray, se: np.ndarray, se_floor: float = 0.0) -> tuple[float, int, bool]:
+    """(chi^2, dof, consistent): whether values of several flights agree within their uncertainties ``se`` (each
+    at least ``se_floor``, the agreement floor of :func:`pool` / 3).  chi^2 = sum((x - x_w)^2 / se^2) about the
+    se-weighted mean x_w on n - 1 degrees of freedom, consistent while below its :data:`AGREE_P` quantile (two
+    flights: |x1 - x2| <= 3 sqrt(se1^2 + se2^2)).  One value, or no finite se: (NaN, 0, True), nothing to test."""
+    from scipy.stats import chi2 as chi2_dist
+
+    x = np.asarray(x, float)
+    s = np.maximum(np.asarray(se, float), se_floor)
+    ok = np.isfinite(x) & np.isfinite(s) & (s > 0)
+    if ok.sum() < 2:
+        return math.nan, 0, True
+    w = 1.0 / s[ok] ** 2
+    xw = float((w * x[ok]).sum() / w.sum())
+    c2 = float((w * (x[ok] - xw) ** 2).sum())
+    dof = int(ok.sum()) - 1
+    return c2, dof, bool(c2 <= chi2_dist.ppf(AGREE_P, dof))
 
 
 #: the values whose step marks a change of the vehicle for :func:`select` (thrust per mass: payload, propulsion,
@@ -323,6 +362,7 @@ def at_one_voltage(flights: list[dict], pooled: dict[str, Pooled]) -> tuple[Pool
     if at is None or vr is None:
         return None
     vr.mean = v_ref
+    vr.chi2, vr.dof, vr.consistent, vr.spread = math.nan, 0, True, []  # a reference voltage, not a measured value
     return at, vr
 
 
@@ -335,7 +375,16 @@ def _header(vp: VehicleParams, pooled: dict[str, Pooled], flights: list[dict], l
              "Pooled values (mean ± uncertainty, flight-to-flight scatter, flights):"]
     for v, p in pooled.items():
         lines.append(f"  {v}: {p.mean:.5g} ± {p.se:.2g}, scatter {p.scatter:.2g}, n {p.n}"
-                     + (f"; disagreeing, not averaged in: {', '.join(p.disagreeing)}" if p.disagreeing else ""))
+                     + (f"; disagreeing, not averaged in: {', '.join(p.disagreeing)}" if p.disagreeing else "")
+                     + ("" if p.consistent else f"; the flights disagree beyond their uncertainty (chi^2 {p.chi2:.3g} "
+                        f"on {p.dof} dof: {', '.join(p.spread)})"))
+    e, vr = pooled.get("battery_exponent"), pooled.get("kt_v_ref")
+    if e is not None and vr is not None and not e.consistent:
+        one_v = abs(math.log((vr.mean - 1.0) / vr.mean)) * e.scatter
+        lines.append(f"The sag exponent's flights disagree: the twin flies their mean {e.mean:.3g} (without a sag, "
+                     f"or with 1, it predicted later flights worse, docs/fleet.md sag12); a flight's thrust per mass at "
+                     f"a pack voltage V carries ± |ln(V/{vr.mean:.2f} V)| x {e.scatter:.2g} (the exponent's scatter) "
+                     f"of it, ± {one_v:.0%} 1 V below; discover --params widens its band by that")
     lines.append("Flights: " + ", ".join(f["path"] for f in flights))
     for lo in left_out:
         lines.append(f"Left out: {lo}")
@@ -344,7 +393,8 @@ def _header(vp: VehicleParams, pooled: dict[str, Pooled], flights: list[dict], l
                  "sources:")
     rep = min(flights, key=lambda f: abs(f["facts"]["kt_per_mass"] - pooled["kt_per_mass"].mean))["nom"]
     lines += [f"  {k}: {s}" for k, s in rep.sources.items()]
-    facts = {v: {"mean": p.mean, "se": p.se, "scatter": p.scatter, "n": p.n} for v, p in pooled.items()}
+    facts = {v: {"mean": p.mean, "se": p.se, "scatter": p.scatter, "n": p.n, "consistent": p.consistent}
+             for v, p in pooled.items()}
     lines.append(MARK + json.dumps({"pooled": facts, "pwm": pwm, "flights": [f["path"] for f in flights],
                                     "motor_share": _shares(flights)}, default=float, allow_nan=True))
     return "\n".join(lines)
@@ -400,9 +450,10 @@ def since_twin(log, path: str, ref: dict) -> dict:
     pooled = dict(ref.get("pooled") or {})
     v_flight = thrust_voltage(log, nom)
     values = {k: v for k, v in new.items() if not k.endswith("_se")}
-    at_v = _at_twin_voltage(new, v_flight, pooled)
-    if at_v is not None:  # compared at the twin's one pack voltage, not at the flight's own
-        new = dict(new, kt_per_mass=at_v)
+    at_v, at_v_se = _at_twin_voltage(new, v_flight, pooled)
+    if at_v is not None:  # compared at the twin's one pack voltage, not at the flight's own, with what that costs
+        se0 = new.get("kt_per_mass_se", math.nan)
+        new = dict(new, kt_per_mass=at_v, kt_per_mass_se=math.hypot(se0 if math.isfinite(se0) else 0.0, at_v_se))
         pooled["kt_per_mass"] = pooled["kt_per_mass_at_v_ref"]
     wiring = ""
     if pwm_ref.get("outputs") and pwm_new["outputs"] and not shares_outputs(pwm_ref, pwm_new):
@@ -440,19 +491,23 @@ def since_twin(log, path: str, ref: dict) -> dict:
     if wiring:
         why = f"{why}; {wiring}"
     return {"name": name, "why": why, "differs": differs, "pwm": [pwm_ref.get("text"), pwm_new["text"]],
-            "kt_per_mass_at_twin_v": at_v, "kt_v_flight": v_flight, "values": values}
+            "kt_per_mass_at_twin_v": at_v, "kt_per_mass_at_twin_v_se": at_v_se, "kt_v_flight": v_flight, "values": values}
 
 
-def _at_twin_voltage(new: dict, v: float, pooled: dict) -> float | None:
+def _at_twin_voltage(new: dict, v: float, pooled: dict) -> tuple[float | None, float]:
     """A flight's thrust per mass (at its own pack voltage ``v``) brought to the twin's one voltage with the twin's
-    sag exponent (as :func:`at_one_voltage` pooled it), None where the twin has no such voltage or the flight no
-    voltage."""
+    sag exponent (as :func:`at_one_voltage` pooled it), and the uncertainty that carrying adds: x |ln(V_ref/v)|
+    sigma_e, sigma_e the exponent's se, or its flight-to-flight scatter where its flights disagree beyond their
+    uncertainty (a new flight's exponent may lie anywhere in that spread).  (None, 0) where the twin has no such
+    voltage or the flight no voltage."""
     at, vr, e = (pooled.get(k) or {} for k in ("kt_per_mass_at_v_ref", "kt_v_ref", "battery_exponent"))
     x = new.get("kt_per_mass", math.nan)
     vals = (at.get("mean", math.nan), vr.get("mean", math.nan), e.get("mean", math.nan), v, x)
     if not all(math.isfinite(a) for a in vals) or v <= 0:
-        return None
-    return float(x * (vr["mean"] / v) ** e["mean"])
+        return None, 0.0
+    at = float(x * (vr["mean"] / v) ** e["mean"])
+    sig = e.get("scatter", math.nan) if e.get("consistent") is False else e.get("se", math.nan)
+    return at, (abs(at * math.log(vr["mean"] / v)) * sig if math.isfinite(sig) else 0.0)
 
 
 def for_flight(vp: VehicleParams, ref: dict | None, log) -> tuple[VehicleParams, str]:
