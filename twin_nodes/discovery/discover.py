@@ -43,7 +43,7 @@ from twin_nodes.discovery.judging import (ALT_FRACTION, BLOCK_S, HELDOUT_FRACTIO
                                           fit_candidate)
 from twin_nodes.discovery.locate import regimes
 from twin_nodes.discovery.stages import (closed_loop, ground, instrument, mismatch, prepare, refit, report, selection,
-                                        terms, verdicts, yaw_pair, yaw_scale)
+                                        retrim, terms, verdicts, yaw_pair, yaw_scale)
 from twin_nodes.discovery.stages.closed_loop import CLOSED_LOOP_TOL_REL, _closed_loop_guard, _closed_loop_metrics, _worse
 from twin_nodes.discovery.stages.instrument import (INSTRUMENTED_BLOCKS_MISSING, _axis_tests, _equation_axes,
                                                     _instrumented, attach_instrumented)
@@ -88,7 +88,11 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     checked = closed_loop.run(closed_loop.CheckInput(log, flight, chosen.accepted, joint.vp, closed_loop_metrics))
     # a ground effect's size from the take-off and the landing together (each fold sees one), after the check
     # (which refits what it keeps on fold 1): stages.ground
-    checked.current = ground.refit_accepted(flight, checked.accepted, checked.current, chosen.last)
+    regrounded = ground.refit_accepted(flight, checked.accepted, checked.current, chosen.last)
+    if regrounded is not checked.current and checked.closed is not None:
+        # refitted from the nominal: its static trims remade as the check's were (stages.retrim)
+        regrounded = retrim.retrim_for_flight(regrounded, flight.nominal, flight.data)
+    checked.current = regrounded
     # 6. grade: confirmed, likely (what it lacks), rejected (why)
     graded = verdicts.run(verdicts.GradeInput(flight, checked.accepted, chosen.last, chosen.first_rank,
                                               found.base_held))

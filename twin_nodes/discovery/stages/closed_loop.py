@@ -15,6 +15,7 @@ from twin_nodes.discovery import evaluate
 from twin_nodes.discovery.judging import Fit
 from twin_nodes.discovery.stages.prepare import PreparedFlight
 from twin_nodes.discovery.stages.refit import _joint_refit
+from twin_nodes.discovery.stages.retrim import retrim_for_flight
 from twin_nodes.vehicle.params import VehicleParams
 
 
@@ -241,7 +242,8 @@ def _worse(rmse: float, best: float, baseline: float) -> bool:
 
 def _closed_loop_guard(accepted: list[Fit], log, nominal: VehicleParams, data, fit_mask, t0: float, t1: float
                        ) -> tuple[list[Fit], VehicleParams, dict]:
-    """Add the accepted effects one at a time (in acceptance order); drop each one that makes the
+    """Add the accepted effects one at a time (in acceptance order), each trial's static trims remade for its
+    refit model (:func:`.retrim.retrim_for_flight`); drop each one that makes the
     closed-loop twin's held-out throttle RMSE worse.  Returns the kept effects, their (re)fitted
     vehicle and the metrics cache ``{"before": ..., "after": ...}``."""
     before = _closed_loop_metrics(log, nominal, t0, t1)
@@ -252,6 +254,8 @@ def _closed_loop_guard(accepted: list[Fit], log, nominal: VehicleParams, data, f
     for f in accepted:
         trial = kept + [f]
         vp_t = _joint_refit(trial, data, nominal, fit_mask) if len(trial) > 1 else f.vp
+        # the static trims remade for what the refit changed in the steady balance (stages.retrim)
+        vp_t = retrim_for_flight(vp_t, nominal, data)
         m = _closed_loop_metrics(log, vp_t, t0, t1)
         vetoed, why = _veto(m, best, before, standing)
         f.closed_loop_note = why

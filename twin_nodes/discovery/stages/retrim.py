@@ -1,0 +1,107 @@
+"""The static trims remade for a refit vehicle (used by stage 5, :mod:`.closed_loop`).
+
+The nominal's static trims (``com_offset``, ``rotor_tilt``; :mod:`twin_nodes.identify.static_trims`) are made so
+that the twin's steady moment balance is the vehicle's: they balance, on the steady samples, the moment every
+*other* term of the model gives (the rotors' H-forces at hubs above the centre of mass, the rotor torque ``km T``,
+a coaxial loss...).  A refit that changes one of those terms leaves trims made for the old values, and the twin
+then holds another motor split than the vehicle.  On fr_v6c_battery_brownout (tuning half) discovery refitted
+the rotor drag (``k_d`` 1.98e-4 -> 5.5e-5) and the yaw moment (``km`` 0.02 -> 0.0046 m): the held-out throttle
+RMSE went 2.15 -> 1.27 % but the per-motor P75 5.11 -> 6.03 %; the yaw moment alone, on the nominal's trims,
+gave 16.9 %.  With the trims remade for the refit model: 4.97 % (rotor drag alone 7.07 -> 4.66 %).
+
+The trims are remade as a *change*: the trims the refit model needs less those the nominal model needs, both
+read by :func:`~twin_nodes.identify.static_trims.model_trims` on the same steady samples, added to the trims the
+vehicle carries.  A refit that changes nothing the steady balance reads leaves them exactly as they are.  Pure
+numpy on :class:`~twin_nodes.vehicle.params.VehicleParams`.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from twin_nodes.identify.static_trims import COM_EDGE_ARM, TRIM_EFFECTS, model_trims, polygon_margin
+from twin_nodes.physics.core import NX_BODY
+from twin_nodes.physics.model import Multirotor
+from twin_nodes.vehicle.params import VehicleParams
+
+__all__ = ["STEADY_SPEED_M_S", "retrimmed", "retrim_for_flight", "steady_samples"]
+
+#: steady samples as the nominal reads its trims (identify.nominal): below this ground speed, every motor
+#: more than 1 % inside its range, at least ``STEADY_MIN_S`` of them (else every usable sample)
+STEADY_SPEED_M_S = 2.0
+STEADY_MIN_S = 10.0
+#: fewer balanced seconds than this: no steady balance to read, the trims are left as they are
+BALANCED_MIN_S = 5.0
+
+
+def _trims_of(vp: VehicleParams) -> tuple[float, float, float]:
+    e = vp.effect_dict
+    c, r = e.get("com_offset", {}), e.get("rotor_tilt", {})
+    return float(c.get("dx", 0.0)), float(c.get("dy", 0.0)), float(r.get("lever_m", 0.0))
+
+
+def retrimmed(vp: VehicleParams, nominal: VehicleParams, states_of: Callable[[VehicleParams], np.ndarray],
+              alpha: np.ndarray | None = None, battery_v: np.ndarray | None = None) -> VehicleParams:
+    """``vp`` with its static trims moved by what its model's steady balance needs beyond ``nominal``'s.
+
+    ``states_of(v)`` gives the model state (S, nx) of vehicle ``v`` on the steady samples (the logged body
+    state and the rotor states the logged commands give through ``v``'s command path); ``alpha`` (S, 3) the
+    measured angular acceleration there [rad/s^2, FLU]; ``battery_v`` (S,) [V].  ``vp`` unchanged where the
+    nominal carries no trim, where the change is zero, or where the moved centre of mass would leave the
+    rotor polygon (``COM_EDGE_ARM`` of the arm from its edge)."""
+    nom_eff = nominal.effect_dict
+    if not any(k in nom_eff for k in TRIM_EFFECTS):
+        return vp
+    need_new = model_trims(vp, states_of(vp), alpha, battery_v)
+    need_old = model_trims(nominal, states_of(nominal), alpha, battery_v)
+    d = (need_new.dx - need_old.dx, need_new.dy - need_old.dy, need_new.lever - need_old.lever)
+    if not all(np.isfinite(d)) or not any(d):
+        return vp
+    dx, dy, lever = (a + b for a, b in zip(_trims_of(vp), d))
+    r = vp.rotors
+    x, y = np.asarray(r.x_flu_m, float), np.asarray(r.y_flu_m, float)
+    arm = float(np.median(np.hypot(x, y)))
+    if polygon_margin(x, y, dx, dy) < COM_EDGE_ARM * arm:
+        return vp
+    return vp.with_effect("com_offset", dx=dx, dy=dy).with_effect("rotor_tilt", lever_m=lever)
+
+
+def steady_samples(data) -> np.ndarray | None:
+    """The steady samples of a discovery flight (:class:`~twin_nodes.discovery.residuals.EquationData`) the
+    nominal reads its trims on: attitude channels usable, ground speed below ``STEADY_SPEED_M_S`` (every
+    usable sample where that leaves under ``STEADY_MIN_S``), every motor inside its range; None: too few."""
+    ok = np.asarray(data.valid_attitude, bool)
+    rate = 1.0 / data.dt
+    slow = ok & (np.linalg.norm(np.nan_to_num(data.v, nan=np.inf), axis=1) < STEADY_SPEED_M_S)
+    steady = slow if slow.sum() >= STEADY_MIN_S * rate else ok
+    u = np.asarray(data.u_fine, float)[::data.up][:data.n]
+    if u.shape[0] < data.n:
+        return None
+    inside = np.all(np.isfinite(u) & (u > 0.01) & (u < 0.99), axis=1)
+    sel = steady & inside
+    return sel if sel.sum() >= BALANCED_MIN_S * rate else None
+
+
+def retrim_for_flight(vp: VehicleParams, nominal: VehicleParams, data) -> VehicleParams:
+    """:func:`retrimmed` on a discovery flight's steady samples (``vp`` as it is where there are too few)."""
+    from twin_nodes.discovery.residuals import _body_states, model_rotor_states
+
+    sel = steady_samples(data)
+    if sel is None:
+        return vp
+
+    def states_of(v: VehicleParams) -> np.ndarray:
+        model = Multirotor(v)
+        X = np.empty((data.n, model.nx))
+        X[:, :NX_BODY] = _body_states(data)
+        X[:, NX_BODY:] = np.nan_to_num(model_rotor_states(model, data))
+        return X[sel]
+
+    bv = np.asarray(data.battery_v, float)[sel]
+    try:
+        return retrimmed(vp, nominal, states_of, np.asarray(data.alpha, float)[sel],
+                         bv if np.isfinite(bv).all() else None)
+    except ValueError:  # model_trims: no steady sample with thrust
+        return vp
