@@ -149,10 +149,9 @@ def test_the_twin_holds_the_real_motor_split_on_a_shared_real_log():
 def test_the_twin_holds_the_yaw_split_in_wind_on_the_v6c_brownout_flight():
     """Corpus tuning half, fr_v6c_battery_brownout (6.5 m/s of wind): the twin's median yaw split within
     0.5 % of PX4's 4.1 % (the motor-output rule: 1.1 %, 3.0 % short)."""
-    batch2 = corpus_tuning_dir().parent.with_name(corpus_tuning_dir().parent.name + "_batch2")
-    p = batch2 / "tuning" / "fr_v6c_battery_brownout.ulg"
+    p = corpus_tuning_dir() / "fr_v6c_battery_brownout.ulg"
     if not p.is_file():
-        pytest.skip(f"corpus flight {p} absent: tools/corpus_fetch.py --batch 2 on branch corpus")
+        pytest.skip(f"corpus flight {p} absent: python tools/corpus_fetch.py --batch 2")
     err = _split_error(p)
     assert err[2] < 0.005, err
     assert np.all(err < 0.005), err
