@@ -88,7 +88,8 @@ def joint_from_errors(E: dict, masks: tuple, tau0: float, taus: np.ndarray = JOI
     inertia) and both together, each at its own fold's fit.  ``lag_flagged``: the lag moves ``MIN_TAU_CHANGE``,
     both folds half of that the same way, yaw (which no roll/pitch inertia moves) ``AXIS_AGREE`` of it, and it
     beats the inertia alone on the held-out windows; an axis is flagged when its scale moves ``MIN_CHANGE``, both
-    folds half of that the same way, and the two together beat the lag alone on the held-out windows."""
+    folds half of that the same way, and the two together beat the lag alone on the held-out windows (beside a
+    larger flagged axis, ``MIN_CHANGE_BESIDE``: :func:`~twin_nodes.discovery.rate_loop.beside_flagged`)."""
     lt, ls = np.log(taus), np.log(scales)
     every, fit1, test1, fit2, test2 = masks
     f = [_fit(E, m, lt, ls) for m in (every, fit1, fit2)]
@@ -120,6 +121,7 @@ def joint_from_errors(E: dict, masks: tuple, tau0: float, taus: np.ndarray = JOI
         axes[a] = {"scale": s, "scale_fold1": s1, "scale_fold2": s2,
                    "flagged": bool(abs(s - 1) > rate_loop.MIN_CHANGE and held["both"] < held["lag"]
                                    and all((v - 1) * np.sign(s - 1) > 0.5 * rate_loop.MIN_CHANGE for v in (s1, s2)))}
+    rate_loop.beside_flagged(axes)
     return {"tau": tau, "tau_fold1": taus_f[0], "tau_fold2": taus_f[1], "model_tau": tau0,
             "axis_tau": {a: math.exp(v) for a, v in f[0]["axis_x"].items()}, "axes": axes,
             "heldout_relative_sse": {k: round(v, 5) for k, v in held.items()}, "lag_flagged": lag_flagged}
