@@ -152,3 +152,33 @@ def warm(model: Multirotor, windows: bool) -> None:
     if windows:
         w = np.empty((1, 1, 3))
         kernels(model).step_windows(model.P, x.copy(), u, ext2, np.zeros(1, np.int64), 1, 0, 0.002, 1, 1, w, w.copy())
+
+
+def warm_all() -> list[str]:
+    """Compile (or load from the on-disk cache) every compiled entry point a fleet flight's discovery
+    calls, with the argument types it calls them with (the command series read-only), on a tiny
+    input: a fleet worker does it once, under a lock in the cache folder (``$ROTORTWIN_CACHE``) the
+    workers share, so a second cold worker loads that code instead of compiling it again
+    (:func:`twin_nodes.fleet.flight.warm_compiled`).
+    The stepper and these kernels are one module per effect registry, whatever the vehicle: the
+    shipped SIH quad stands in.  Returns the names of the modules (stepper, kernels)."""
+    import numpy as np
+
+    from twin_nodes.physics.effects import default_ext
+    from twin_nodes.vehicle.params import load_params, params_dir
+
+    m = Multirotor(load_params(params_dir() / "px4_sih_quadx.yaml"))
+    k = kernels(m)
+    x = m.initial_state(position_enu=(0.0, 0.0, 1.0))
+    ext = default_ext()
+    u1 = np.full(m.n_rotors, 0.5)
+    m.step_unchecked(x.copy(), u1.copy(), 0.002, ext.copy(), 1)  # step_n
+    m.specific_force_unchecked(x, u1, ext)
+    m.wrench_terms(x[None, :], ext[None, :])
+    u = np.full((2, m.n_rotors), 0.5)
+    u.setflags(write=False)  # discovery's command series are read-only views
+    ext2 = np.repeat(ext[None, :], 2, axis=0)
+    k.lag_states(m.P, u, ext2, 0.002, 0, np.zeros(m.n_rotors), 1, 2)
+    w = np.empty((1, 1, 3))
+    k.step_windows(m.P, x[None, :].copy(), u, ext2, np.zeros(1, np.int64), 1, 0, 0.002, 1, 1, w, w.copy())
+    return [m._mod.__name__, k.__name__]

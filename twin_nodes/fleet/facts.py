@@ -238,15 +238,16 @@ def _battery(log: FlightLog) -> dict[str, float]:
     return out
 
 
-def identified(log: FlightLog, nom=None) -> dict[str, float]:
+def identified(log: FlightLog, nom=None, build=None) -> dict[str, float]:
     """The values of :data:`FACTS` identified on a free flight (with ``<name>_se``), from the nominal built
     from the log (:func:`twin_nodes.identify.nominal.nominal_from_log`, the airframe's assumed mass; every value
-    here is independent of it but ``drag_per_mass``'s scale)."""
+    here is independent of it but ``drag_per_mass``'s scale); ``build``: a callable giving that nominal
+    (:func:`~twin_nodes.identify.nominal.nominal_once`), used when ``nom`` is not given."""
     from twin_nodes.identify.nominal import nominal_from_log
 
     if nom is None:
         try:
-            nom = nominal_from_log(log)
+            nom = build() if build is not None else nominal_from_log(log)
         except TwinError as exc:  # params that fail validation (e.g. cannot lift the assumed mass): fits kept
             if not hasattr(exc, "fits"):
                 raise
@@ -310,10 +311,12 @@ def _steady_throttle(log: FlightLog) -> tuple[float, float] | None:
     return float(np.median(x)), 1.25 * mad / math.sqrt(x.size / 10.0)  # ~10 independent samples per s at most
 
 
-def flight_facts(path: str, log: FlightLog, side: Callable[[], Any] | None = None) -> dict[str, Any]:
+def flight_facts(path: str, log: FlightLog, side: Callable[[], Any] | None = None,
+                 build: Callable[[], Any] | None = None) -> dict[str, Any]:
     """Catalog columns for one log: ``flight_kind``, ``kind_reason``, ``motor_pwm``, ``motor_pwm_min_us``,
     ``motor_pwm_max_us``, ``params_json`` (every firmware parameter), ``fact_<name>`` (+ ``_se``) for a free
-    flight, the battery values for any airborne log, and ``facts_error`` where the identification failed."""
+    flight, the battery values for any airborne log, and ``facts_error`` where the identification failed;
+    ``build``: the log's nominal (:func:`~twin_nodes.identify.nominal.nominal_once`), shared with its params."""
     n_tests = actuator_tests(path, side)
     kind, why = flight_kind(log, n_tests)
     pwm = motor_pwm(log.params, int(log.n_motors))
@@ -325,7 +328,7 @@ def flight_facts(path: str, log: FlightLog, side: Callable[[], Any] | None = Non
     vals = _battery(log)
     if kind == "free flight":
         try:
-            vals.update(identified(log))
+            vals.update(identified(log, build=build))
         except (TwinError, ValueError, np.linalg.LinAlgError) as exc:
             row["facts_error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
     for k, v in vals.items():

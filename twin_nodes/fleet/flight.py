@@ -24,15 +24,16 @@ from twin_nodes.fleet.identity import fallback_identity, identity, side_reader
 
 
 def resolve_params(path: str | os.PathLike[str], vehicle_id: str, params: str | None,
-                   params_map: dict[str, str] | None, log: Any = None) -> tuple[Path, str]:
-    """The params file for one flight: ``--params``, else the per-vehicle map, else from the log."""
+                   params_map: dict[str, str] | None, log: Any = None, build: Any = None) -> tuple[Path, str]:
+    """The params file for one flight: ``--params``, else the per-vehicle map, else from the log (``build``:
+    its nominal, :func:`~twin_nodes.identify.nominal.nominal_once`, when already built for the facts)."""
     from twin_nodes.identify.nominal import params_for_log
 
     if params:
         return Path(params), "given"
     if params_map and vehicle_id in params_map:
         return Path(params_map[vehicle_id]), f"params map: {vehicle_id}"
-    p, note = params_for_log(path, None, log=log)
+    p, note = params_for_log(path, None, log=log, build=build)
     return p, (note or "from log").split(";")[0]
 
 
@@ -55,6 +56,36 @@ def metric_columns(prefix: str, m: dict | None) -> dict:
     return out
 
 
+#: this process has its compiled code (see :func:`warm_compiled`)
+_WARM: list[bool] = []
+
+
+def warm_compiled() -> None:
+    """Compile, or load, the numba code a flight's twin and discovery call (the effect registry's stepper
+    and discovery's kernels, :func:`~twin_nodes.discovery.kernels.warm_all`), once per process, holding
+    an exclusive lock on ``compile.lock`` in the cache folder (``$ROTORTWIN_CACHE``): on a cold start the
+    first worker compiles into that folder while another one that reaches a free flight waits for it, then
+    loads what it wrote, instead of compiling the same code a second time (waiting costs no CPU; until a
+    worker reaches a free flight it handles logs that need no compiled code).  A failure here is left to
+    the flight's own calls (they compile what they need, as before)."""
+    if _WARM:
+        return
+    _WARM.append(True)
+    try:
+        import fcntl  # POSIX; elsewhere each flight compiles what it needs, as before
+
+        from twin_nodes.base.io import cache_dir
+        from twin_nodes.discovery.kernels import warm_all
+
+        with open(cache_dir() / "compile.lock", "a") as f:
+            fcntl.flock(f, fcntl.LOCK_EX)  # released when the file is closed, or the process dies
+            warm_all()
+    except Exception as exc:  # noqa: BLE001 - the flight's own calls compile what they need, as before
+        import logging
+
+        logging.getLogger("rotortwin.fleet").warning("compiling ahead failed (%s: %s)", type(exc).__name__, exc)
+
+
 class NotAFlight(Exception):
     """The log is no free flight (a ground/bench test, too short, no GPS): its row so far, kind and reason."""
 
@@ -68,18 +99,22 @@ def analyse(path: str, mode: str, params: str | None, params_map: dict | None,
     """The row of one flight (raises TwinError on a bad flight); ``ident`` as :func:`identity`
     returns it, read here when not given; ``side``: a :func:`~twin_nodes.fleet.identity.side_reader`."""
     from twin_nodes.fleet.facts import flight_facts
+    from twin_nodes.identify.nominal import nominal_once
     from twin_nodes.logs.flyable import check_flyable
     from twin_nodes.logs.ulog_io import read_ulog
     from twin_nodes.vehicle.params import load_params
 
     ident = identity(path, side) if ident is None else ident
     log = read_ulog(path)  # loaded once
-    row = {**ident, "duration_s": float(log.duration_s), **flight_facts(path, log, side)}
+    build = nominal_once(log)  # the nominal built from the log, once: for the facts and for the params it flies
+    row = {**ident, "duration_s": float(log.duration_s), **flight_facts(path, log, side, build)}
     if row["flight_kind"] != "free flight":  # a ground test, too short, no GPS: a row saying so, not a failure
         raise NotAFlight(row)
+    if mode == "discover":  # its compiled code, once per process: one cold worker compiles, the others load it
+        warm_compiled()
     try:
         check_flyable(log)
-        pfile, note = resolve_params(path, ident["vehicle_id"], params, params_map, log=log)
+        pfile, note = resolve_params(path, ident["vehicle_id"], params, params_map, log=log, build=build)
         vp = load_params(pfile)
     except TwinError as exc:  # a free flight the twin cannot fly (too little usable data, no nominal): its
         row["discover_error"] = str(exc)  # identified values are kept, the row is ok, the reason is recorded

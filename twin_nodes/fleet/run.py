@@ -123,6 +123,13 @@ def plan(keys: list[dict], rows: list[dict]) -> tuple[list[dict], list[dict], li
     return todo, done, dups
 
 
+def longest_first(todo: list[dict]) -> list[dict]:
+    """The flights to do, the largest file first (a stable sort: equal sizes keep their order): the
+    longest flights start first, so the last to finish is a short one and no worker idles while
+    another finishes a long flight alone."""
+    return sorted(todo, key=lambda k: -int(k.get("file_size") or 0))
+
+
 def run_fleet(flights: list[str | os.PathLike[str]], catalog: str | os.PathLike[str], *, mode: str = "discover",
               scheduler: str | None = None, workers: int = 2, params: str | None = None,
               params_map: dict[str, str] | None = None, closed_loop_metrics: bool = True,
@@ -145,12 +152,14 @@ def run_fleet(flights: list[str | os.PathLike[str]], catalog: str | os.PathLike[
     out = {"done": [], "skipped": len(skipped), "lost": [], "duplicates": dups}
     if not todo:
         return out
+    todo = longest_first(todo)
     client, cluster = _client(scheduler, workers, dashboard)
     try:
+        # priority: the order of ``todo`` (largest first) is the order the workers take them in
         futs = {client.submit(task, k["path"], str(catalog), mode, params, params_map, closed_loop_metrics,
                               key=f"flight-{Path(k['path']).stem}-{k['content_sha256'][:12]}", pure=False,
-                              retries=retries): k["path"]
-                for k in todo}
+                              retries=retries, priority=len(todo) - i): k["path"]
+                for i, k in enumerate(todo)}
         bar = tqdm(total=len(futs), desc=f"fleet {mode}", unit="flight",
                    disable=not (sys.stderr.isatty() if progress is None else progress))
         for fut in as_completed(futs):

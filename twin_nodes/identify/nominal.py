@@ -810,14 +810,35 @@ _CODE_KEY = b"".join(inspect.getsource(sys.modules[name]).encode() for name in
                       "twin_nodes.identify.coaxial", "twin_nodes.identify.static_trims",
                       "twin_nodes.identify.rate_bound"))
 
+def nominal_once(log: FlightLog):
+    """A callable giving ``nominal_from_log(log)``, built at its first call; every later call gives the
+    same :class:`Nominal` (or raises the same error again).  The fleet's per-flight facts and the params
+    it flies share one build of the same log's nominal through it."""
+    memo: list = []
+
+    def build() -> Nominal:
+        if not memo:
+            try:
+                memo.append((True, nominal_from_log(log)))
+            except Exception as exc:  # the same failure for every caller, as a fresh build would raise
+                memo.append((False, exc))
+        ok, value = memo[0]
+        if not ok:
+            raise value
+        return value
+
+    return build
+
+
 #: PX4 airframes (SYS_AUTOSTART) with a shipped params file: (stem, what it is)
 SHIPPED_AIRFRAMES = {10040: "px4_sih_quadx", 1100: "px4_sih_quadx"}
 
 
 def params_for_log(ulog: str | os.PathLike[str], explicit: str | os.PathLike[str] | None = None,
-                   log: FlightLog | None = None) -> tuple[Path, str | None]:
+                   log: FlightLog | None = None, build=None) -> tuple[Path, str | None]:
     """The params file to fly beside ``ulog`` and a one-line note when it was not given (``log``: the
-    flight already loaded from ``ulog``, so it is not read again).
+    flight already loaded from ``ulog``, so it is not read again; ``build``: a callable giving
+    ``nominal_from_log(log)``, e.g. :func:`nominal_once`'s, called instead when the nominal is to be built).
 
     ``explicit`` if given; else the shipped file for the log's airframe (SYS_AUTOSTART);
     else the nominal built from the log itself (:func:`nominal_from_log`), written once to
@@ -841,7 +862,8 @@ def params_for_log(ulog: str | os.PathLike[str], explicit: str | os.PathLike[str
     h.update(_CODE_KEY)
     out = cache_dir() / "nominal" / f"{Path(ulog).stem}-{h.hexdigest()[:12]}.yaml"
     if not out.is_file():
-        nom = nominal_from_log(log if log is not None else read_flight(ulog, horizontal=False))
+        nom = build() if build is not None else nominal_from_log(
+            log if log is not None else read_flight(ulog, horizontal=False))
         out.parent.mkdir(mode=0o700, exist_ok=True)
         write_params(nom.params, out, nom.header())
     return out, (f"params: none given and no shipped file for SYS_AUTOSTART {autostart}: flying the nominal built "
