@@ -69,9 +69,10 @@ SAMPLING_FLOOR_EFFECTS = ("motor_time_constant", "actuator_delay")
 FOLD_RESOLUTION = 0.25
 #: the least change, as a share of the sampling floor (the motor logging interval), that the folds can
 #: resolve: a delay of a fraction of a sample still shifts a fast command's effect, but the nominal's own
-#: timing background on no-effect RotorPy flights is a 1.8-2.9 ms delay and a 1-2.4 ms lag at t 3-4.8,
-#: folds identical, and a lag reads as a delay of up to 5.7 ms (0.29 of the 20 ms interval): neither the
-#: block test nor the folds tell those apart, only the size does (docs/discovery.md, sub12)
+#: timing background on no-effect RotorPy flights is a 1.8-2.9 ms delay and a 1-2.4 ms lag at t up to
+#: 6.9, folds identical, and another effect (a lag, a rotor drag) reads as a delay of up to 5.7 ms (0.29
+#: of the 20 ms interval): neither the block test nor the folds tell those apart, only the size does
+#: (docs/discovery.md, sub12)
 SUBSAMPLE_SHARE = 0.5
 
 
