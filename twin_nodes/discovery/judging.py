@@ -22,7 +22,7 @@ from twin_nodes.discovery.candidates import Candidate
 from twin_nodes.discovery.output_error import (AXES, JUDGED, MIN_AXIS_R2, STRIDE_S, Windows, judge_axes, make_windows,
                                                output_error)
 from twin_nodes.discovery.residuals import LOWPASS_HZ, EquationData, modes, residual_channels
-from twin_nodes.discovery.verdicts import folds_agree, resolved_by_folds
+from twin_nodes.discovery.verdicts import clears_floor, folds_agree, resolved_by_folds
 from twin_nodes.vehicle.params import VehicleParams
 
 HELDOUT_FRACTION = 0.35
@@ -429,7 +429,7 @@ def assess(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, R0:
                            ((np.abs(theta - c.lower) < 0.01 * span) & (np.abs(c.x0 - c.lower) > 0.01 * span))))
     fit = Fit(c, theta, vp_c, cost, float(np.sqrt(np.mean(R1[held_mask] ** 2))),
               np.sqrt(np.mean(R1[held_mask] ** 2, axis=0)), stats["t"], stats["n"], float(rel),
-              bool(c.floor(theta)))
+              clears_floor(c, theta, thetas))
     fit.kind = judge.kind
     fit.own_cut = own
     fit.stats = stats
