@@ -73,6 +73,12 @@ CELL_FULL_V = 4.2
 CELL_MAX_V = 4.35
 
 
+#: effect parameters the library never fits (held at a value read from the flight): a later refit must hold them
+#: too.  A battery sag's ``v_ref`` is held at the full pack (a free one is a constant thrust scale, the regressor
+#: of a thrust coefficient or a mass: freed beside one, the two trade along that ridge)
+NOT_FITTED = {("battery_sag", "v_ref")}
+
+
 def full_pack_voltage(volts: np.ndarray) -> float:
     """The pack's full voltage: cells x 4.2 V, the cells the fewest that can read the flight's highest voltage
     (a 4S pack reads 13-17.4 V: 4 cells)."""

@@ -14,7 +14,7 @@ from twin_nodes.discovery.blocktest import _block_test
 from twin_nodes.discovery.candidates import SYMMETRIC_LAG, Candidate
 from twin_nodes.discovery.judging import (ALT_FRACTION, MAX_EFFECTS, MIN_REL_IMPROVEMENT, OE_MIN_CHANGE, PRUNE_GAIN,
                                           T_CHOICE, T_CRIT, Fit, _summary)
-from twin_nodes.discovery.stages import candidates, drag_form, judge
+from twin_nodes.discovery.stages import candidates, drag_form, judge, throttle_pair
 from twin_nodes.discovery.stages.joint import in_place, merged, offer, own_params
 from twin_nodes.discovery.stages.prepare import PreparedFlight
 from twin_nodes.discovery.stages.provisional import Provisional, held_at_one_side, is_provisional, provisional_seed
@@ -92,6 +92,9 @@ def _select(inp: SelectionInput, force: str | None = None) -> Selection | None:
             per_label.update(fit_all(joint, all_oe=True, oe_only=True))
         for joint, R0_joint in offer(accepted, cs.first, per_label, eq, current):   # the accepted refitted too
             per_label.update(fit_all(joint, R0=R0_joint))
+        pairs = throttle_pair.offer(accepted, per_label, eq, current)   # two throttle effects, judged as a pair
+        if pairs:
+            per_label.update(fit_all(pairs))
         if cs.richer and any(f.accepted for f in per_label.get(SYMMETRIC_LAG, [])):
             per_label.update(fit_all(cs.richer, all_oe=True))
         kept = _one_per_entry(per_label, blocks)
@@ -118,7 +121,9 @@ def _select(inp: SelectionInput, force: str | None = None) -> Selection | None:
                 accepted, current, last = prov.withdraw()   # nothing found on top of it: as before it
             break
         _carry_refit(winner, accepted)
-        accepted.append(winner)
+        for m in throttle_pair.members(winner):   # a pair: its constant member is accepted (and reported) too
+            accepted.append(m)
+            last[_entry_key(m)] = m
         current = winner.vp
         if inp.on_first is not None and sum(not is_provisional(f) for f in accepted) == 1:
             inp.on_first(winner.vp)

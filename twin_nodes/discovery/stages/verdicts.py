@@ -221,7 +221,7 @@ def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:
         out["closed_loop"] = f.closed_loop
     if getattr(f, "closed_loop_note", None):
         out["closed_loop_note"] = f.closed_loop_note
-    for key in ("joint_refit_of", "refitted_jointly_with", "rival_path", "drag_form"):   # stages.selection
+    for key in ("joint_refit_of", "refitted_jointly_with", "rival_path", "drag_form", "pair_with"):   # stages.selection
         if getattr(f, key, None):
             out[key] = getattr(f, key)
     if f.verdict in ("confirmed", "likely"):

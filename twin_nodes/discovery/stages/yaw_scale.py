@@ -33,6 +33,7 @@ from scipy.optimize import least_squares
 
 from twin_nodes.discovery.blocktest import _block_stats
 from twin_nodes.discovery.judging import BLOCK_S, T_CRIT, _blocks
+from twin_nodes.discovery.candidates import NOT_FITTED
 from twin_nodes.discovery.residuals import modes, residual_channels
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 
@@ -76,8 +77,9 @@ def other_reading(current: VehicleParams, nominal: VehicleParams) -> tuple[Vehic
 
 def _free(vp: VehicleParams, becomes: str, found: list[str]) -> list[tuple[str, str]]:
     """The (effect, parameter) pairs refitted with a reading: its own yaw-scale parameter and the positive
-    parameters of the effects found beside it (``found``; the nominal's own laws, the inertia's roll/pitch axes and
-    a drag law's form held)."""
+    parameters of the effects found beside it (``found``; the nominal's own laws, the inertia's roll/pitch axes,
+    a drag law's form and what the library never fits, ``candidates.NOT_FITTED``, held: RotorPy a016, a sag's
+    v_ref freed here beside a thrust coefficient read 18.7 V for 16.8 with kt 1.08 for 0.87)."""
     out = []
     for name, params in vp.effects:
         if name in _HELD or name != becomes and name not in found:
@@ -87,7 +89,7 @@ def _free(vp: VehicleParams, becomes: str, found: list[str]) -> list[tuple[str, 
                 continue
             if name == "yaw_moment" and becomes != "yaw_moment":
                 continue
-            if v > 0 and k != "norm":
+            if v > 0 and k != "norm" and (name, k) not in NOT_FITTED:
                 out.append((name, k))
     return out
 
