@@ -21,12 +21,10 @@ import copy
 from dataclasses import replace
 
 import numpy as np
-
-from twin_nodes.discovery.candidates import Candidate
-from twin_nodes.discovery.judging import Fit, Judge
 from scipy.optimize import least_squares
 
-from twin_nodes.discovery.judging import _scales
+from twin_nodes.discovery.candidates import Candidate
+from twin_nodes.discovery.judging import Fit, Judge, _scales
 from twin_nodes.discovery.stages.joint import COLLECTIVE_SHAPES, _Joint, fit, linearize, variant
 from twin_nodes.vehicle.params import VehicleParams
 
