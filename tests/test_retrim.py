@@ -99,7 +99,7 @@ def test_steady_samples_are_slow_usable_and_inside_the_motor_range():
     # under 10 s of slow samples: every usable sample (with its motors inside the range)
     data.v = np.full((n, 3), 5.0)
     assert int(steady_samples(data).sum()) == n - 100 - 100
-    # under 5 s balanced: none
+    # under 6 s balanced (the nominal's BALANCED_MIN_S): none
     data.valid_attitude = np.zeros(n, bool)
     data.valid_attitude[:200] = True
     assert steady_samples(data) is None

@@ -387,8 +387,8 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
 
     # --- static trims: the mean rotor moments the controller holds in steady flight balance a
     # centre-of-mass offset (roll/pitch) and tangentially tilted rotors (yaw)
-    steady = np.linalg.norm(sig["v_enu"], axis=1) < 2.0
-    if steady.sum() < 10 * GRID_HZ:
+    steady = np.linalg.norm(sig["v_enu"], axis=1) < STEADY_SPEED_M_S
+    if steady.sum() < STEADY_MIN_S * GRID_HZ:
         steady = np.ones(t.size, bool)
     # the roll/pitch balance holds on samples with a motor at a bound too (PX4 gives yaw up first, and a
     # vehicle that does not tumble holds its roll/pitch moments on average): a payload far off-centre keeps a
@@ -512,6 +512,10 @@ def _model_states(log: FlightLog, vp: VehicleParams, t: np.ndarray, sig: dict, s
 #: the static trims are made from the whole model only with this much steady flight in which PX4 held every
 #: axis (as the fit mask's 6 s); with less, the median motor outputs give them as before
 BALANCED_MIN_S = 6.0
+#: steady flight for the static trims: below this ground speed [m/s], where at least ``STEADY_MIN_S`` of it
+#: is left (else every sample); the refit's trims (discovery.stages.retrim) are read on the same samples
+STEADY_SPEED_M_S = 2.0
+STEADY_MIN_S = 10.0
 
 
 def _com_support(layout, seconds: float, halves: list) -> ComSupport:

@@ -21,19 +21,13 @@ from typing import Callable
 
 import numpy as np
 
+from twin_nodes.identify.nominal import STEADY_MIN_S, STEADY_SPEED_M_S, _balanced
 from twin_nodes.identify.static_trims import COM_EDGE_ARM, TRIM_EFFECTS, model_trims, polygon_margin
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.model import Multirotor
 from twin_nodes.vehicle.params import VehicleParams
 
-__all__ = ["STEADY_SPEED_M_S", "retrimmed", "retrim_for_flight", "steady_samples"]
-
-#: steady samples as the nominal reads its trims (identify.nominal): below this ground speed, every motor
-#: more than 1 % inside its range, at least ``STEADY_MIN_S`` of them (else every usable sample)
-STEADY_SPEED_M_S = 2.0
-STEADY_MIN_S = 10.0
-#: fewer balanced seconds than this: no steady balance to read, the trims are left as they are
-BALANCED_MIN_S = 5.0
+__all__ = ["retrimmed", "retrim_for_flight", "steady_samples"]
 
 
 def _trims_of(vp: VehicleParams) -> tuple[float, float, float]:
@@ -69,9 +63,10 @@ def retrimmed(vp: VehicleParams, nominal: VehicleParams, states_of: Callable[[Ve
 
 
 def steady_samples(data) -> np.ndarray | None:
-    """The steady samples of a discovery flight (:class:`~twin_nodes.discovery.residuals.EquationData`) the
-    nominal reads its trims on: attitude channels usable, ground speed below ``STEADY_SPEED_M_S`` (every
-    usable sample where that leaves under ``STEADY_MIN_S``), every motor inside its range; None: too few."""
+    """The steady samples of a discovery flight (:class:`~twin_nodes.discovery.residuals.EquationData`) by the
+    rule the nominal reads its trims with (:mod:`twin_nodes.identify.nominal`): attitude channels usable, ground
+    speed below ``STEADY_SPEED_M_S`` (every usable sample where that leaves under ``STEADY_MIN_S``), every motor
+    inside its range (``_balanced``); None: too few."""
     ok = np.asarray(data.valid_attitude, bool)
     rate = 1.0 / data.dt
     slow = ok & (np.linalg.norm(np.nan_to_num(data.v, nan=np.inf), axis=1) < STEADY_SPEED_M_S)
@@ -79,9 +74,7 @@ def steady_samples(data) -> np.ndarray | None:
     u = np.asarray(data.u_fine, float)[::data.up][:data.n]
     if u.shape[0] < data.n:
         return None
-    inside = np.all(np.isfinite(u) & (u > 0.01) & (u < 0.99), axis=1)
-    sel = steady & inside
-    return sel if sel.sum() >= BALANCED_MIN_S * rate else None
+    return _balanced(steady, np.where(np.isfinite(u), u, -1.0), rate)
 
 
 def retrim_for_flight(vp: VehicleParams, nominal: VehicleParams, data) -> VehicleParams:
