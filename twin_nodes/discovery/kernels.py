@@ -136,9 +136,11 @@ def kernels(model: Multirotor) -> types.ModuleType:
     return _KERNELS[stepper]
 
 
-def warm(model: Multirotor, windows: bool) -> None:
-    """Load (or compile) now what evaluating ``model`` calls, on a tiny input: done in the parent
-    before worker processes are forked, so they inherit it instead of each loading it again."""
+def warm(model: Multirotor, windows: bool, lag: bool = False) -> None:
+    """Load (or compile) now what evaluating ``model`` calls, on a tiny input with the argument types
+    discovery calls it with (the command series read-only): done in the parent before worker processes
+    are forked, so they inherit it instead of each loading it again (``lag``: the rotor-state kernel even
+    where no effect hooks the command path)."""
     import numpy as np
 
     from twin_nodes.physics.effects import default_ext
@@ -146,8 +148,9 @@ def warm(model: Multirotor, windows: bool) -> None:
     ext = default_ext()[None, :]
     model.wrench_terms(x, ext)
     u = np.full((2, model.n_rotors), 0.5)
+    u.setflags(write=False)  # discovery's command series are read-only views
     ext2 = np.repeat(ext, 2, axis=0)
-    if any(e.command_kernel is not None for e in model.kernel_effects):
+    if lag or any(e.command_kernel is not None for e in model.kernel_effects):
         kernels(model).lag_states(model.P, u, ext2, 0.002, 0, np.zeros(model.n_rotors), 1, 2)
     if windows:
         w = np.empty((1, 1, 3))
@@ -156,10 +159,9 @@ def warm(model: Multirotor, windows: bool) -> None:
 
 def warm_all() -> list[str]:
     """Compile (or load from the on-disk cache) every compiled entry point a fleet flight's discovery
-    calls, with the argument types it calls them with (the command series read-only), on a tiny
-    input: a fleet worker does it once, under a lock in the cache folder (``$ROTORTWIN_CACHE``) the
-    workers share, so a second cold worker loads that code instead of compiling it again
-    (:func:`twin_nodes.fleet.flight.warm_compiled`).
+    calls (:func:`warm` with both kernels, and the stepper's own steps), on a tiny input: a fleet worker
+    does it once, under a lock in the cache folder (``$ROTORTWIN_CACHE``) the workers share, so a second
+    cold worker loads that code instead of compiling it again (:func:`twin_nodes.fleet.flight.warm_compiled`).
     The stepper and these kernels are one module per effect registry, whatever the vehicle: the
     shipped SIH quad stands in.  Returns the names of the modules (stepper, kernels)."""
     import numpy as np
@@ -168,17 +170,10 @@ def warm_all() -> list[str]:
     from twin_nodes.vehicle.params import load_params, params_dir
 
     m = Multirotor(load_params(params_dir() / "px4_sih_quadx.yaml"))
-    k = kernels(m)
     x = m.initial_state(position_enu=(0.0, 0.0, 1.0))
     ext = default_ext()
     u1 = np.full(m.n_rotors, 0.5)
     m.step_unchecked(x.copy(), u1.copy(), 0.002, ext.copy(), 1)  # step_n
     m.specific_force_unchecked(x, u1, ext)
-    m.wrench_terms(x[None, :], ext[None, :])
-    u = np.full((2, m.n_rotors), 0.5)
-    u.setflags(write=False)  # discovery's command series are read-only views
-    ext2 = np.repeat(ext[None, :], 2, axis=0)
-    k.lag_states(m.P, u, ext2, 0.002, 0, np.zeros(m.n_rotors), 1, 2)
-    w = np.empty((1, 1, 3))
-    k.step_windows(m.P, x[None, :].copy(), u, ext2, np.zeros(1, np.int64), 1, 0, 0.002, 1, 1, w, w.copy())
-    return [m._mod.__name__, k.__name__]
+    warm(m, windows=True, lag=True)
+    return [m._mod.__name__, kernels(m).__name__]
