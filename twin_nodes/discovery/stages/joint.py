@@ -167,8 +167,10 @@ def subset(lin: Linearized, blocks: tuple[int, ...]) -> Linearized:
                       lin.lower[idx], lin.upper[idx], lin.D[idx], [lin.fits[i] for i in blocks])
 
 
-def variant(c: Candidate, lin: Linearized, plain: list[Fit], shared_mode: str | None = None) -> _Joint:
-    """``c`` with the accepted effects of ``lin`` refitted jointly (``shared_mode``: :attr:`_Joint.shared_mode`)."""
+def variant(c: Candidate, lin: Linearized, plain: list[Fit], shared_mode: str | None = None,
+            cls: type[_Joint] | None = None) -> _Joint:
+    """``c`` with the accepted effects of ``lin`` refitted jointly (``shared_mode``: :attr:`_Joint.shared_mode`), as
+    a :class:`_Joint` or the subclass ``cls`` (one that fits otherwise, e.g. :class:`.throttle_pair._Pair`)."""
     n = len(c.param_names)
     eq = next((f for f in plain if f.kind == "equation"), None)
 
@@ -184,9 +186,10 @@ def variant(c: Candidate, lin: Linearized, plain: list[Fit], shared_mode: str | 
             k += len(names)
         return why
     names = tuple(c.param_names) + tuple(k for p in lin.params for k in p)
-    j = _Joint(c.name, names, np.concatenate([c.x0, lin.theta0]), np.concatenate([c.lower, lin.lower]),
-               np.concatenate([c.upper, lin.upper]), build, dict(c.fixed), lambda th, c=c, n=n: c.floor(th[:n]),
-               f"{c.label} (+{', '.join(lin.names)} refitted)", unphysical, dict(c.held), dict(c.tied))
+    j = (cls or _Joint)(c.name, names, np.concatenate([c.x0, lin.theta0]), np.concatenate([c.lower, lin.lower]),
+                        np.concatenate([c.upper, lin.upper]), build, dict(c.fixed),
+                        lambda th, c=c, n=n: c.floor(th[:n]), f"{c.label} (+{', '.join(lin.names)} refitted)",
+                        unphysical, dict(c.held), dict(c.tied))
     j.base, j.lin = c, lin
     j.starts = tuple(eq.fold_thetas) if eq is not None else ()
     j.shared_mode = shared_mode

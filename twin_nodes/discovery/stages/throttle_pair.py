@@ -86,8 +86,7 @@ def offer(accepted: list[Fit], per_label: dict[str, list[Fit]], judge: Judge, cu
             if ps is None:
                 continue
             on_top = replace(ps[0], build=lambda th, c=ps[0], vp=with_const: c.apply(vp, th))
-            j = variant(on_top, lin, per_label[ps[0].label])
-            j.__class__ = _Pair                  # the same fields, polished on true evaluations
+            j = variant(on_top, lin, per_label[ps[0].label], cls=_Pair)   # polished on true evaluations
             j.label = f"{ps[0].label} (+{const} as a pair)"
             j.pair_member = c_const
             out.append(j)
