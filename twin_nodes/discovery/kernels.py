@@ -6,8 +6,8 @@ per-sample machinery.  Discovery calls these thousands of times on the same shap
 
 - ``step_windows``: every output-error window (:mod:`twin_nodes.discovery.output_error`) flown
   over its whole horizon in one call, the command looked up per step inside the kernel; the
-  same RK4 steps as ``step_batch`` (the stepper's own ``reference``/``deriv``/``post_step``, in
-  the same order), without a Python round trip and fresh scratch arrays per step and window;
+  same RK4 steps as ``step_batch`` (the stepper's own ``reference`` and ``rk4_step``), without a
+  Python round trip and fresh scratch arrays per step and window;
 - ``lag_states``: the rotor states through the model's command path *with* its command hooks
   (battery sag), keeping only every ``up``-th sample (the stepper's ``rotor_states`` writes all).
 
@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 
 from twin_nodes.physics.core import I_MODE, I_N, I_TDN, I_TUP, I_WCMD, I_WMAX, I_WMIN
-from {stepper} import COMMAND_HOOKS, command_hooks, deriv, post_step, reference
+from {stepper} import COMMAND_HOOKS, command_hooks, reference, rk4_step
 
 
 @njit(cache=True)
@@ -102,19 +102,7 @@ def step_windows(P, X, U, EXT, base, fs, delay, dt, nsteps, per, W, V):
             ie = min(base[w] + j * fs, nf - 1)
             ext = EXT[ie]
             reference(P, U[iu], ext, sref)
-            deriv(P, x, sref, ext, k1, R, omega, T, Q, Fb, Mb, Fw)
-            for i in range(nx):
-                xt[i] = x[i] + 0.5 * dt * k1[i]
-            deriv(P, xt, sref, ext, k2, R, omega, T, Q, Fb, Mb, Fw)
-            for i in range(nx):
-                xt[i] = x[i] + 0.5 * dt * k2[i]
-            deriv(P, xt, sref, ext, k3, R, omega, T, Q, Fb, Mb, Fw)
-            for i in range(nx):
-                xt[i] = x[i] + dt * k3[i]
-            deriv(P, xt, sref, ext, k4, R, omega, T, Q, Fb, Mb, Fw)
-            for i in range(nx):
-                x[i] += dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
-            post_step(P, x, sref)
+            rk4_step(P, x, sref, ext, dt, k1, k2, k3, k4, xt, R, omega, T, Q, Fb, Mb, Fw)
             if (j + 1) % per == 0:
                 h = (j + 1) // per - 1
                 for c in range(3):

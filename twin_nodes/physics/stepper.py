@@ -86,6 +86,26 @@ def deriv(P, x, sref, ext, dx, R, omega, T, Q, Fb, Mb, Fw):
     rigid_body(P, x, R, Fb, Mb, Fw, sref, dx)
 
 
+@njit(cache=True, inline="always")
+def rk4_step(P, x, sref, ext, dt, k1, k2, k3, k4, xt, R, omega, T, Q, Fb, Mb, Fw):
+    """Advance x in place by one RK4 step of dt with the rotor reference sref held, then the state's
+    post-step clamps (``k1``..``xt`` and the rest: scratch arrays, as :func:`deriv` takes them)."""
+    nx = x.shape[0]
+    deriv(P, x, sref, ext, k1, R, omega, T, Q, Fb, Mb, Fw)
+    for i in range(nx):
+        xt[i] = x[i] + 0.5 * dt * k1[i]
+    deriv(P, xt, sref, ext, k2, R, omega, T, Q, Fb, Mb, Fw)
+    for i in range(nx):
+        xt[i] = x[i] + 0.5 * dt * k2[i]
+    deriv(P, xt, sref, ext, k3, R, omega, T, Q, Fb, Mb, Fw)
+    for i in range(nx):
+        xt[i] = x[i] + dt * k3[i]
+    deriv(P, xt, sref, ext, k4, R, omega, T, Q, Fb, Mb, Fw)
+    for i in range(nx):
+        x[i] += dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+    post_step(P, x, sref)
+
+
 @njit(cache=True)
 def step_n(P, x, u, ext, dt, nsub):
     """Advance x in place by nsub RK4 steps of dt with the command held."""
@@ -106,19 +126,7 @@ def step_n(P, x, u, ext, dt, nsub):
     k4 = np.empty(nx)
     xt = np.empty(nx)
     for _ in range(nsub):
-        deriv(P, x, sref, ext, k1, R, omega, T, Q, Fb, Mb, Fw)
-        for i in range(nx):
-            xt[i] = x[i] + 0.5 * dt * k1[i]
-        deriv(P, xt, sref, ext, k2, R, omega, T, Q, Fb, Mb, Fw)
-        for i in range(nx):
-            xt[i] = x[i] + 0.5 * dt * k2[i]
-        deriv(P, xt, sref, ext, k3, R, omega, T, Q, Fb, Mb, Fw)
-        for i in range(nx):
-            xt[i] = x[i] + dt * k3[i]
-        deriv(P, xt, sref, ext, k4, R, omega, T, Q, Fb, Mb, Fw)
-        for i in range(nx):
-            x[i] += dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
-        post_step(P, x, sref)
+        rk4_step(P, x, sref, ext, dt, k1, k2, k3, k4, xt, R, omega, T, Q, Fb, Mb, Fw)
 
 
 @njit(cache=True)
