@@ -6,6 +6,8 @@ takes the specific force from the estimated velocity's derivative instead."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -14,6 +16,7 @@ from twin_nodes.identify.nominal import nominal_from_log
 from twin_nodes.logs import imu_rate
 from twin_nodes.logs.flyable import read_flight
 from twin_nodes.logs.ulog_write import write_px4_ulog
+from twin_nodes.twin.estimate_check import estimate_failures
 from twin_nodes.twin.simflight import Hidden, record_to_topics, simulate_flight, simulated_log_params
 from twin_nodes.vehicle.params import shipped
 
@@ -89,6 +92,13 @@ def test_a_10_hz_accelerometer_is_replaced_and_the_thrust_fit_stays_true(tmp_pat
     tg = np.arange(a + 2.0, b - 2.0, 0.1)
     f_dec, f_full = dec.series["specific_force_flu"].at(tg), full.series["specific_force_flu"].at(tg)
     assert abs(np.mean(f_dec[:, 2]) - np.mean(f_full[:, 2])) < 0.05
+    # the estimate check compares the velocity with an IMU only: not with the velocity's own derivative
+    imu_check = "the IMU's integrated acceleration"
+    assert imu_check in estimate_failures(full)[1] and imu_check not in estimate_failures(dec)[1]
+    sf = full.series["specific_force_flu"]
+    full.series["specific_force_flu"] = replace(sf, source="d/dt vehicle_local_position.vx,vy,vz (NED) + gravity")
+    assert imu_check not in estimate_failures(full)[1]
+    full.series["specific_force_flu"] = sf
     t_full = nominal_from_log(full, mass_kg=1.0).params.rotors.thrust_max_n
     t_dec = nominal_from_log(dec, mass_kg=1.0).params.rotors.thrust_max_n
     assert t_full == pytest.approx(5.0, rel=0.05)
