@@ -1,7 +1,8 @@
 """Discovery's closed-loop guard also watches the twin's motors (discovery/stages/closed_loop._veto).
 
 A change the equations accept whose closed-loop twin then follows the vehicle's motors worse on the held-out part
-(per-motor P75 more than CLOSED_LOOP_MOTOR_TOL_REL above the best so far or the nominal twin) is vetoed, whatever
+(per-motor P75 more than CLOSED_LOOP_MOTOR_TOL_REL above the best so far or the nominal twin, and by at least
+CLOSED_LOOP_MOTOR_MIN_RISE of full output) is vetoed, whatever
 its throttle; within the tolerance, or where the nominal twin does not stand (``veto_standing``), the throttle
 rule decides as before."""
 
@@ -23,6 +24,7 @@ def _run(throttle_scale: float, p75: float | None) -> dict:
 
 def test_the_tolerance():
     assert closed_loop.CLOSED_LOOP_MOTOR_TOL_REL == 0.10
+    assert closed_loop.CLOSED_LOOP_MOTOR_MIN_RISE == 0.005
 
 
 def test_a_better_throttle_with_motors_worse_beyond_the_tolerance_is_vetoed():
@@ -39,9 +41,13 @@ def test_within_the_tolerance_or_without_standing_the_throttle_decides():
     before = _run(1.0, 0.0300)
     # s500 mission2's yaw moment: per-motor P75 3.00 -> 3.20 % (+6.7 %), throttle unchanged: kept
     assert closed_loop._veto(_run(1.0, 0.0320), before, before, (True, "")) == (False, None)
-    # 10.1 % worse: vetoed; 9.9 %: kept
-    assert closed_loop._veto(_run(1.0, 0.03303), before, before, (True, ""))[0] is True
-    assert closed_loop._veto(_run(1.0, 0.03297), before, before, (True, "")) == (False, None)
+    # from 6 %: 10.1 % worse (0.61 % of full output) vetoed; 9.9 % kept
+    six = _run(1.0, 0.0600)
+    assert closed_loop._veto(_run(1.0, 0.06606), six, six, (True, ""))[0] is True
+    assert closed_loop._veto(_run(1.0, 0.06594), six, six, (True, "")) == (False, None)
+    # a twin already within 1 % of its motors: 0.39 -> 0.43 % is 10 % worse but under half a percent of full output
+    tight = _run(1.0, 0.0039)
+    assert closed_loop._veto(_run(1.0, 0.0043), tight, tight, (True, "")) == (False, None)
     # the nominal twin does not follow the flight: no veto from the motors (as from the throttle)
     assert closed_loop._veto(_run(1.0, 0.0600), before, before, (False, "does not follow")) == (False, None)
     # runs without per-motor numbers: the throttle alone, as before
