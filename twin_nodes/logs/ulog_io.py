@@ -118,7 +118,7 @@ from twin_nodes.base import frames
 #: ``<file>: <warning>``; the ``rotortwin`` command prints them on stderr, once each
 LOG = logging.getLogger("rotortwin.logs")
 
-from twin_nodes.logs import legacy_topics, time_sync
+from twin_nodes.logs import imu_rate, legacy_topics, time_sync
 from twin_nodes.base.errors import LogError
 
 __all__ = ["Series", "FlightLog", "SERIES_SPEC", "MANUAL_NAV_STATES", "read_ulog", "list_topics", "ULOG_MAGIC",
@@ -1231,6 +1231,27 @@ def _rate_only_slope(t: np.ndarray, heading: np.ndarray, rate: np.ndarray, rate_
 _OFFBOARD_FLAGS = ("position", "velocity", "acceleration", "attitude", "body_rate", "thrust_and_torque")
 
 
+def _specific_force_not_aliased(out: dict[str, Series], params: dict[str, float], warnings: list[str]) -> None:
+    """Where the logged accelerometer is sampled slower than twice PX4's accelerometer low-pass (the default
+    logger profile of PX4 1.8-1.10: every 100 ms), its samples alias the vibration into the slow specific
+    force every thrust fit reads; the specific force is then the estimated velocity's derivative plus gravity
+    in the body (:mod:`twin_nodes.logs.imu_rate`), said in the series' source and a warning."""
+    sf, vel, q = out.get("specific_force_flu"), out.get("velocity_enu"), out.get("attitude_q")
+    if sf is None or vel is None or q is None:
+        return
+    aliased, rate, cut = imu_rate.accel_aliased(sf.t_s, params)
+    if not aliased:
+        return
+    t, f = imu_rate.specific_force_from_velocity(vel.t_s, vel.values, q.at)
+    if t.size < 10:
+        return
+    why = (f"sensor_combined.accelerometer logged at {rate:.1f} Hz, below twice IMU_ACCEL_CUTOFF {cut:g} Hz: "
+           "aliased vibration")
+    out["specific_force_flu"] = _series("specific_force_flu", t, f,
+                                        f"d/dt {vel.source} + gravity, rotated by {q.source} ({why})")
+    warnings.append(f"specific_force_flu: {why}; taken from the estimated velocity's derivative instead")
+
+
 def _mode_setpoint_series(get: Any, out: dict[str, Series]) -> None:
     """The setpoints PX4 flies in the modes without a position controller (kept apart from the state
     and actuator reading): ``vehicle_attitude_setpoint`` (``q_d``: the pilot's attitude in
@@ -1376,6 +1397,7 @@ def _build_series(
         keep = np.append(ta[1:] != ta[:-1], True) & (ta >= 0)
         out["specific_force_flu"] = _series("specific_force_flu", ta[keep] * 1e-6, acc[keep],
                                             "sensor_combined.accelerometer_m_s2 (FRD)")
+        _specific_force_not_aliased(out, params, warnings)
     else:
         missing("sensor_combined", "gyro_flu, specific_force_flu")
 
