@@ -376,7 +376,7 @@ def test_what_the_flight_does_not_excite_is_said_with_the_manoeuvre():
     hover = SimpleNamespace(v=np.full((n, 3), 0.1), valid=np.ones(n, bool), height=np.full(n, 10.0), dt=0.02)
     ex = {"roll": {"blocks_flight": 3}, "pitch": {"blocks_flight": 0}, "yaw": {"blocks_flight": 12}}
     out = candidates.not_excited(hover, ex)
-    assert [o["effects"] for o in out] == [["rotor_drag (force)", "body_drag"], ["inertia (iyy)"], ["ground_effect"]]
+    assert [o["effects"] for o in out] == [["rotor_drag (force)", "body_drag (horizontal)"], ["inertia (iyy)"], ["ground_effect"]]
     assert out[0]["why"].startswith("90th-percentile speed 0.17 m/s") and out[0]["fly"].startswith("fast forward legs")
     assert out[1]["fly"].startswith("pitch rate doublets")
     # 1.2 s below 3 m and 4.5 m/s: every class can show; no excitation record: no inertia line
@@ -414,6 +414,32 @@ def test_a_nominal_body_drag_refitted_where_the_flight_has_airspeed():
     assert not [c for c in selection.nominal_refits(vp, c.build(c.x0 * 3), data) if c.name == "body_drag"]
     bare = vp.replace(effects=())
     assert selection.nominal_refits(bare, bare, data) == []
+
+
+def test_a_hover_s_nominal_body_drag_refitted_in_its_vertical_term_alone():
+    # RotorPy's hover with yaw (RP4, 1 kg quad): 90th-percentile speed 0.30 m/s, but the take-off and landing climb
+    # and descend at 1.7 m/s (99th percentile of |v_z|): the vertical term c_dz is refitted alone, c_dx/c_dy held,
+    # floor 1 % of the weight at that vertical speed (a003: c_dz fitted +0.060 from 0.01 against a floor of 0.0345)
+    vp = shipped("px4_sih_quadx").replace(effects=()).with_effect("body_drag", c_dx=0.01, c_dy=0.01, c_dz=0.01,
+                                                                  norm=1.0)
+    n = 1000
+    v = np.zeros((n, 3))
+    v[:, 0] = 0.1
+    v[:30, 2], v[-30:, 2] = 1.7, -1.7               # 6 % of the samples climb or descend
+    hover = SimpleNamespace(v=v, valid=np.ones(n, bool))
+    (c,) = [c for c in selection.nominal_refits(vp, vp, hover) if c.name == "body_drag"]
+    assert c.label == selection.BODY_DRAG_REFIT and c.param_names == ("c_dz",)
+    assert set(c.held) == {"c_dx", "c_dy"} and "0.5" in c.held["c_dx"]
+    floor = 0.01 * vp.mass_kg * vp.gravity_m_s2 / 1.7 ** 2
+    assert floor == pytest.approx(0.0345, abs=0.002)
+    assert c.floor(np.array([0.01 + 1.01 * floor])) and not c.floor(np.array([0.01 + 0.99 * floor]))
+    assert dict(dict(c.build(np.array([0.07])).effects)["body_drag"]) == {"c_dx": 0.01, "c_dy": 0.01, "c_dz": 0.07,
+                                                                          "norm": 1.0}
+    assert c.params_dict(np.array([0.07])) == {"c_dx": 0.01, "c_dy": 0.01, "c_dz": 0.07, "norm": 1.0}
+    # climbs slower than MIN_VERTICAL_SPEED (1 m/s): nothing offered
+    slow = SimpleNamespace(v=v * np.array([1.0, 1.0, 0.5]), valid=np.ones(n, bool))
+    assert selection.MIN_VERTICAL_SPEED == 1.0
+    assert not [c for c in selection.nominal_refits(vp, vp, slow) if c.name == "body_drag"]
 
 
 def test_nominal_law_refitted_only_where_the_nominal_has_it():

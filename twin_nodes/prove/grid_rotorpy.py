@@ -427,8 +427,12 @@ def _dryden(dt: float, avg, sig):
 def key(f: GridFlight) -> str:
     import inspect
 
+    from twin_nodes.twin import simflight
+
+    # the writer too: a change in how the log is written (its stated timing, its IMU stamps) makes new flights
     src = "".join(inspect.getsource(o) for o in (fly, plant_change, pack_voltage, _dryden, _rk4_step,
-                                                  GRID_MISSIONS[f.mission]))
+                                                  GRID_MISSIONS[f.mission], _write, rf.write_record,
+                                                  simflight.record_to_topics))
     d = {"f": [f.id, f.vehicle, f.mission, f.effects, f.seed], "src": hashlib.sha256(src.encode()).hexdigest(),
          "levels": LEVELS[f.effects[0][0]] if f.effects else None}
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]

@@ -6,7 +6,8 @@ speed), aerodynamics (rotor drag ``k_d``, parasitic drag ``c_D``, induced inflow
 (``rotorpy.vehicles.crazyflie_params``) flown by RotorPy's ``SE3Control``, which believes the nominal vehicle,
 while RotorPy's ``Multirotor`` carries one changed physical parameter (or a RotorPy wind).  The flight is then
 logged the way PX4 logs (the ours suite's :func:`~twin_nodes.twin.simflight.record_to_topics`: estimator-grade
-noise, 50 Hz motor topic from a 250 Hz controller, 100 Hz IMU) and discovered blind with the nominal
+noise, 50 Hz motor topic from a 250 Hz controller whose rate the log states as ``IMU_GYRO_RATEMAX``, the
+IMU every 4 ms) and discovered blind with the nominal
 ``params/rotorpy_crazyflie.yaml`` (:func:`nominal_params` of RotorPy's parameters).
 
 Frames.  RotorPy's world frame is z-up with x east and y north (its PX4 bridge treats it as ENU) and its body
@@ -472,14 +473,22 @@ def write_flight(path: str | Path, case: Case) -> dict:
 def write_record(path: str | Path, rec, vp: VehicleParams, seed: int, battery_v=None) -> dict:
     """Write a flown RotorPy record as a PX4-like ULog (the ours suite's logging model); facts about it.
     ``battery_v(t)``: the pack voltage logged; default a steady 16 V (RotorPy has no battery, so our
-    battery_sag candidate is then not offered)."""
+    battery_sag candidate is then not offered).
+
+    The log states its own timing the way a PX4 log does: every record step is one control step whose
+    command is held over the step and logged at its start, so ``IMU_GYRO_RATEMAX`` is the record's rate
+    (``px4_params.sensor_timing``: commands act half a step, 2 ms at 250 Hz, after their stamps); and
+    ``sensor_combined`` is every record sample (uniform 4 ms stamps, PX4's high-rate IMU logging), whose
+    centred 20 ms bins (``time_sync.bin_mean_to``) are centred on their grid times."""
     from twin_nodes.logs.ulog_write import write_px4_ulog
 
     rng = np.random.default_rng(seed + 7)
     battery = battery_v or (lambda t: np.full(np.shape(t), 16.0))
-    topics = record_to_topics(rec, vp, battery, (rec.t, rec.sp), rng)
+    topics = record_to_topics(rec, vp, battery, (rec.t, rec.sp), rng, imu_stride=1)
     r = vp.rotors
-    params = {"SYS_AUTOSTART": 0, "CA_ROTOR_COUNT": int(r.count), "MPC_THR_HOVER": float(vp.hover_command)}
+    control_hz = 1.0 / float(np.median(np.diff(rec.t)))
+    params = {"SYS_AUTOSTART": 0, "CA_ROTOR_COUNT": int(r.count), "MPC_THR_HOVER": float(vp.hover_command),
+              "IMU_GYRO_RATEMAX": int(round(control_hz))}
     frd = frames.flu_to_frd(np.column_stack([r.x_flu_m, r.y_flu_m, r.z_flu_m]))
     for i in range(r.count):
         params.update({f"CA_ROTOR{i}_PX": float(frd[i, 0]), f"CA_ROTOR{i}_PY": float(frd[i, 1]),

@@ -199,8 +199,14 @@ def simulate_flight(vp: VehicleParams, hidden: Hidden, seed: int):
 
 
 def record_to_topics(rec, vp: VehicleParams, battery, sp_hist, rng: np.random.Generator,
-                     start_us: int = 20_000_000):
-    """PX4 topics (NED/FRD, µs) sampled at LOG_RATES_HZ from a simulated flight."""
+                     start_us: int = 20_000_000, imu_stride: int = 0):
+    """PX4 topics (NED/FRD, µs) sampled at LOG_RATES_HZ from a simulated flight.
+
+    ``imu_stride``: ``sensor_combined`` is every ``imu_stride``-th record sample (uniform stamps at the
+    record's rate over the stride, its noise scaled to keep the 100 Hz log's noise per second); 0: 100 Hz
+    picked from the record at the next record sample, which on a 250 Hz record gives stamps 8 and 12 ms
+    apart (``time_sync.bin_mean_to``'s 20 ms bins then average samples whose mean time is up to 4 ms off
+    the bin's centre, by the flight's phase)."""
     t = rec.t
     topics = {}
 
@@ -238,13 +244,19 @@ def record_to_topics(rec, vp: VehicleParams, battery, sp_hist, rng: np.random.Ge
     thr = np.zeros((len(k), 3))
     thr[:, 2] = -np.nan_to_num(rec.throttle[k])
     topics["vehicle_thrust_setpoint"] = {"timestamp": ts(k), "xyz": thr}
-    k = idx(LOG_RATES_HZ["sensor_combined"])
-    sf = frames.flu_to_frd(rec.specific_force[k]) + rng.standard_normal((len(k), 3)) * 0.08
-    gyro = frames.flu_to_frd(rec.x[k, 10:13]) + rng.standard_normal((len(k), 3)) * 0.004
+    imu_hz = float(LOG_RATES_HZ["sensor_combined"])
+    if imu_stride:
+        k = np.arange(0, len(t), int(imu_stride))
+        imu_hz = 1.0 / (float(np.median(np.diff(t))) * int(imu_stride))
+    else:
+        k = idx(imu_hz)
+    grade = np.sqrt(imu_hz / LOG_RATES_HZ["sensor_combined"])  # white noise: the same per second at any rate
+    sf = frames.flu_to_frd(rec.specific_force[k]) + rng.standard_normal((len(k), 3)) * 0.08 * grade
+    gyro = frames.flu_to_frd(rec.x[k, 10:13]) + rng.standard_normal((len(k), 3)) * 0.004 * grade
+    integral_us = np.full(len(k), int(round(1e6 / imu_hz)), np.uint32)
     topics["sensor_combined"] = {"timestamp": ts(k), "gyro_rad": gyro, "accelerometer_m_s2": sf,
                                  "accelerometer_timestamp_relative": np.zeros(len(k), np.int32),
-                                 "gyro_integral_dt": np.full(len(k), 10000, np.uint32),
-                                 "accelerometer_integral_dt": np.full(len(k), 10000, np.uint32)}
+                                 "gyro_integral_dt": integral_us, "accelerometer_integral_dt": integral_us.copy()}
     k = idx(LOG_RATES_HZ["battery_status"])
     volts = battery(t[k]) + rng.standard_normal(len(k)) * 0.01
     topics["battery_status"] = {"timestamp": ts(k), "voltage_v": volts, "current_a": np.full(len(k), 12.0),

@@ -90,8 +90,9 @@ def not_excited(data, excitation: dict) -> list[dict]:
     v_typ = float(np.percentile(speed, 90)) if speed.size else 0.0
     if v_typ <= 0.5:
         # the rotor drag's yaw damping (its hubs' airspeed in yaw turns) is still fitted (candidates.build_candidates)
-        out.append({"effects": ["rotor_drag (force)", "body_drag"], "why": f"90th-percentile speed {v_typ:.2f} m/s "
-                    "<= 0.5: no airspeed for a drag to act on (a rotor drag's yaw damping in yaw turns is fitted)",
+        out.append({"effects": ["rotor_drag (force)", "body_drag (horizontal)"], "why": f"90th-percentile speed "
+                    f"{v_typ:.2f} m/s <= 0.5: no horizontal airspeed for a drag to act on (a rotor drag's yaw damping "
+                    "in yaw turns and a nominal body drag's vertical term in fast climbs are fitted)",
                     "fly": supply_for("force_x")})
     for p, ax in _INERTIA_AXES.items():
         n = (excitation.get(ax) or {}).get("blocks_flight")
