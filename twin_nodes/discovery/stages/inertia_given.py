@@ -43,7 +43,6 @@ def run(oe: Judge | None, accepted: list[Fit], vp: VehicleParams) -> tuple[list[
         return accepted, vp
     kept = list(accepted)
     for f in accepted:
-        # f.given_others (None: not judged here) goes into the finding's entry (annotate)
         if f.candidate.name != "inertia" or f.kind != "output":
             continue
         g = contribution(oe, vp, f)
@@ -58,7 +57,7 @@ def run(oe: Judge | None, accepted: list[Fit], vp: VehicleParams) -> tuple[list[
 def annotate(ranked: list[Fit], effects: list[dict]) -> None:
     """Each re-judged inertia's numbers given the others in its entry (``given_the_others``, output error)."""
     for f, e in zip(ranked, effects):
-        g = getattr(f, "given_others", None)
+        g = f.given_others
         if g is not None:
             e["given_the_others"] = {**g, "residual": "output",
                                      "kept": g["t"] >= T_CRIT and g["cut"] >= MIN_REL_IMPROVEMENT}
