@@ -42,8 +42,8 @@ from twin_nodes.discovery.judging import (ALT_FRACTION, BLOCK_S, HELDOUT_FRACTIO
                                           _output_judge, _restrict_to_axes, _scales, _summary, _window_folds, assess,
                                           fit_candidate)
 from twin_nodes.discovery.locate import regimes
-from twin_nodes.discovery.stages import (closed_loop, ground, instrument, mismatch, prepare, refit, report, selection,
-                                        retrim, terms, verdicts, yaw_pair, yaw_scale)
+from twin_nodes.discovery.stages import (closed_loop, ground, inertia_given, instrument, mismatch, prepare, refit,
+                                        report, retrim, selection, terms, verdicts, yaw_pair, yaw_scale)
 from twin_nodes.discovery.stages.closed_loop import CLOSED_LOOP_TOL_REL, _closed_loop_guard, _closed_loop_metrics, _worse
 from twin_nodes.discovery.stages.instrument import (INSTRUMENTED_BLOCKS_MISSING, _axis_tests, _equation_axes,
                                                     _instrumented, attach_instrumented)
@@ -93,10 +93,13 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         # refitted from the nominal: its static trims remade as the check's were (stages.retrim)
         regrounded = retrim.retrim_for_flight(regrounded, flight.nominal, flight.data)
     checked.current = regrounded
+    # an inertia accepted on the output error, judged again given the effects accepted beside it
+    checked.accepted, checked.current = inertia_given.run(flight.oe, checked.accepted, checked.current)
     # 6. grade: confirmed, likely (what it lacks), rejected (why)
     graded = verdicts.run(verdicts.GradeInput(flight, checked.accepted, chosen.last, chosen.first_rank,
                                               found.base_held))
     verdicts.given_the_others(graded, flight.eq, checked.current, checked.accepted)
+    inertia_given.annotate(graded.ranked, graded.effects)
     ground.annotate(flight, graded.ranked, graded.effects)
     # 7. on PX4 logs: the inertia's roll/pitch axes and PX4's rate loop, the closed-loop twin permitting
     final = instrument.run(instrument.InstrumentInput(

@@ -121,6 +121,7 @@ class Fit:
     own_cut: float | None = None
     #: in the model as the provisional base of one more round, not as an accepted effect (stages.provisional)
     provisional: bool = False
+    given_others: dict | None = None   # an output-error inertia's cut and t given the others (inertia_given)
 
     @property
     def explains(self) -> float:
