@@ -96,6 +96,95 @@ def test_the_result_takes_the_other_reading(nominal):
     assert yaw_pair.apply(plain, Flight) is None and "yaw_pair" not in plain
 
 
+def _y012_result(nominal):
+    """y012 as the twelfth session's code reports it (SIH_IZZ x1.3 + SIH_KDW x2, M4 at 50 Hz): yaw moment km 0.015529
+    (x0.776) with k_d 0.038957, both confirmed."""
+    cur = nominal.with_effect("yaw_moment", km=0.015529).with_effect("angular_damping", k_nm_s_rad=0.038957)
+    return {"accepted": ["angular_damping", "yaw_moment"], "refit_params": cur.to_ros_dict(),
+            "effects": [{"name": "angular_damping", "verdict": "confirmed", "params": {"k_nm_s_rad": 0.038957},
+                         "verdict_note": ""},
+                        {"name": "yaw_moment", "verdict": "confirmed", "params": {"km": 0.015529}, "verdict_note": ""}]}
+
+
+def _apply_with(result, nominal, test):
+    from twin_nodes.discovery.stages import yaw_pair
+
+    class Flight:
+        data, held_mask = None, None
+
+    Flight.nominal = nominal
+    orig = yaw_pair.roll_pitch_test
+    try:
+        yaw_pair.roll_pitch_test = lambda *a: dict(test)
+        return yaw_pair.apply(result, Flight)
+    finally:
+        yaw_pair.roll_pitch_test = orig
+
+
+def test_neither_reading_chosen_is_reported_as_the_pair(nominal):
+    """y012: roll and pitch choose neither reading (the other one t -1.61 over 133 blocks, held-out -0.9 % RMS), so
+    the yaw moment is reported with the inertia Izz 0.038637 (truth 0.039) and its damping 0.050172 (truth 0.05)
+    as the pair the flight does not tell apart, separated by roll/pitch rate doublets (a flyable plan); the
+    vehicle and the reported values stay as they were."""
+    result = _y012_result(nominal)
+    assert _apply_with(result, nominal, {"t": -1.61, "blocks": 133, "heldout_cut": -0.0091}) is None
+    assert result["accepted"] == ["angular_damping", "yaw_moment"] and result["yaw_pair"]["pair"] is True
+    km = next(e for e in result["effects"] if e["name"] == "yaw_moment")
+    assert km["params"] == {"km": 0.015529}
+    pair = km["not_told_apart"]
+    assert pair["with"]["name"] == "inertia"
+    assert pair["with"]["params"] == pytest.approx({"ixx": 0.025, "iyy": 0.025, "izz": 0.038637}, rel=1e-4)
+    assert pair["damping_with_it"]["k_nm_s_rad"] == pytest.approx(0.050172, rel=1e-4)
+    assert pair["manoeuvre"] == "rate_doublets" and pair["plan_flyable"]
+    assert pair["yaw_pair"]["t"] == -1.61
+    assert "not_told_apart" not in next(e for e in result["effects"] if e["name"] == "angular_damping")
+    # scored: the pair names the inertia too (prove.grid_prove._members)
+    from twin_nodes.prove.grid_prove import _members
+
+    assert [n for n, _ in _members(km)] == ["yaw_moment", "inertia"]
+
+
+def test_a_reading_roll_and_pitch_reject_is_no_pair(nominal):
+    """The other reading worse beyond T_CRIT on roll/pitch: the reported one is told apart, no pair; the other
+    reading better on the flight but not on the held-out part (y016's t 3.21, +0.3 %): neither chosen, a pair."""
+    result = _y012_result(nominal)
+    _apply_with(result, nominal, {"t": -3.4, "blocks": 133, "heldout_cut": -0.02})
+    assert result["yaw_pair"]["pair"] is False
+    assert all("not_told_apart" not in e for e in result["effects"])
+    result = _y012_result(nominal)
+    _apply_with(result, nominal, {"t": 3.21, "blocks": 100, "heldout_cut": -0.003})
+    assert result["yaw_pair"]["pair"] is True and not result["yaw_pair"]["switched"]
+
+
+def test_a_damping_the_other_reading_leaves_at_the_model_s_value_is_no_finding(nominal):
+    """b018 (SIH_IZZ x1.3 beside SIH_KDV): with the damping's share read over the moment modes, the damping was
+    accepted at x0.774 (Izz x1.3 reads as k_d/Izz x0.77) beside a yaw moment x0.774; roll/pitch take the inertia
+    (t 7.27), which asks for k_d 0.0255 for the model's 0.025 (2 %, under the 10 % refit floor): no damping
+    finding is left, the vehicle keeps the model's damping and Izz 0.03875 (truth 0.039)."""
+    s = 0.7742
+    cur = nominal.with_effect("yaw_moment", km=0.02 * s).with_effect("angular_damping", k_nm_s_rad=0.0255 * s)
+    result = {"accepted": ["linear_drag", "angular_damping", "yaw_moment"], "refit_params": cur.to_ros_dict(),
+              "effects": [{"name": "linear_drag", "verdict": "confirmed", "params": {"k_n_s_m": 1.48}},
+                          {"name": "angular_damping", "verdict": "confirmed", "params": {"k_nm_s_rad": 0.0255 * s},
+                           "verdict_note": ""},
+                          {"name": "yaw_moment", "verdict": "confirmed", "params": {"km": 0.02 * s},
+                           "verdict_note": ""}]}
+    alt = _apply_with(result, nominal, {"t": 7.27, "blocks": 178, "heldout_cut": 0.0373})
+    assert result["yaw_pair"]["switched"] and result["accepted"] == ["linear_drag", "inertia"]
+    damp = next(e for e in result["effects"] if e["name"] == "angular_damping")
+    assert damp["verdict"] == "rejected" and "x1.020 of the model's" in damp["verdict_note"]
+    assert alt.effect_dict["angular_damping"]["k_nm_s_rad"] == 0.025
+    assert alt.effect_dict["inertia"]["izz"] == pytest.approx(0.03 / s, rel=1e-9)
+    assert result["refit_params"]["effects"]["angular_damping"]["k_nm_s_rad"] == 0.025
+    # a damping the other reading leaves 20 % off the model's stays a finding (u017: x2.07 -> kept)
+    cur = nominal.with_effect("yaw_moment", km=0.02 * s).with_effect("angular_damping", k_nm_s_rad=0.03 * s)
+    result["accepted"], result["refit_params"] = ["angular_damping", "yaw_moment"], cur.to_ros_dict()
+    damp.update(verdict="confirmed")
+    alt = _apply_with(result, nominal, {"t": 7.27, "blocks": 178, "heldout_cut": 0.0373})
+    assert "angular_damping" in result["accepted"] and damp["verdict"] == "confirmed"
+    assert alt.effect_dict["angular_damping"]["k_nm_s_rad"] == pytest.approx(0.03, rel=1e-9)
+
+
 _U017 = Path(os.path.expanduser("~/.cache/rotortwin/grids/sih/u017/flight.ulg"))
 
 

@@ -22,7 +22,7 @@ from twin_nodes.discovery.candidates import Candidate
 from twin_nodes.discovery.output_error import (AXES, JUDGED, MIN_AXIS_R2, STRIDE_S, Windows, judge_axes, make_windows,
                                                output_error)
 from twin_nodes.discovery.residuals import LOWPASS_HZ, EquationData, modes, residual_channels
-from twin_nodes.discovery.verdicts import clears_floor, folds_agree, resolved_by_folds
+from twin_nodes.discovery.verdicts import clears_floor, folds_agree, moment_share, resolved_by_folds
 from twin_nodes.vehicle.params import VehicleParams
 
 HELDOUT_FRACTION = 0.35
@@ -420,7 +420,8 @@ def assess(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, R0:
     stats = _block_stats(R0, Rcv, judge.blocks, OE_MIN_CHANGE if judge.lean else 0.0,
                          own_change(c, judge, thetas))
     rel = 1.0 - hcv / h0 if h0 > 0 else 0.0
-    own = _own_channel_cut(R0[test_all], Rcv[test_all])
+    own = moment_share(c.name, judge.kind, R0[test_all], Rcv[test_all], nominal,
+                       _own_channel_cut(R0[test_all], Rcv[test_all]), rel)
     shared = getattr(c, "shared_mode", None)
     if shared is not None:   # a second effect on a channel: what it explains there (stages.joint.shape_partners)
         own = max(rel if own is None else own, _mode_cut(R0[test_all], Rcv[test_all], nominal, shared))

@@ -278,10 +278,12 @@ def _kind(name: str) -> str:
     return "drag" if name in _DRAG else name
 
 
-def not_told_apart(effect: dict) -> dict | None:
+def not_told_apart(effect: dict, separating: tuple[str, str] | None = None) -> dict | None:
     """The first alternative of another kind than ``effect`` (``effect["alternatives"]``), as a pair with the
     manoeuvre that separates the two and that manoeuvre's plan; ``plan_flyable``: the plan passes the
-    mission schema's checks (:func:`twin_nodes.mavlink.mission.plan_from_mapping`).  None: no such rival."""
+    mission schema's checks (:func:`twin_nodes.mavlink.mission.plan_from_mapping`).  None: no such rival.
+    ``separating``: (manoeuvre, why) where the pair's context, not its two names, says what separates them
+    (stage 10's yaw pair beside a damping: roll/pitch rates, not yaw sweeps)."""
     from twin_nodes.discovery.plans import manoeuvre
 
     form = effect.get("drag_form") or {}   # stages.drag_form: the linear and the quadratic drag, not told apart
@@ -291,7 +293,7 @@ def not_told_apart(effect: dict) -> dict | None:
         if (a == b and not forms) or {a, b} == {"mass", "thrust_coefficient"}:
             continue
         a, b = (effect["name"], alt["name"]) if forms else (a, b)
-        kind, why = SEPARATING.get(frozenset({a, b}), ("rate_doublets", "hard stops and sharp corners"))
+        kind, why = separating or SEPARATING.get(frozenset({a, b}), ("rate_doublets", "hard stops and sharp corners"))
         reps = {"fast_legs": 2, "rate_doublets": 6, "vertical_steps": 4, "low_hover": 4, "yaw_sweeps": 12}[kind]
         plan = {"mission": {"name": f"separate_{a}_{b}", "speed_m_s": 3.0, "acceptance_radius_m": 1.0,
                             "fly_through": False, "rtl_after": True, "waypoints": manoeuvre(kind, reps)}}

@@ -10,7 +10,11 @@ and the damping it reports is the truth's only if it picked the vehicle's readin
 SIH_KDW x2: Izz x0.746 with k_d 0.0385 for km x1.34 with 0.0517; the truth 0.026 and 0.05).  Roll and pitch carry
 k_d alone (their inertia and arms are the model's), so they choose: the other reading is taken when it lowers the
 roll + pitch equation error over the flight's blocks beyond ``T_CRIT`` (the choice fits nothing on roll/pitch) and
-also on the held-out part.  The result's ``yaw_pair`` holds the numbers either way."""
+also on the held-out part.  Where roll and pitch choose neither (the other reading not better beyond ``T_CRIT``
+and the reported one not either: PX4 SIH y012 at 50 Hz, t -1.6), the confirmed yaw-scale finding is reported
+with the other reading as the pair not told apart (``not_told_apart``, with the damping that reading asks for and
+roll/pitch rate doublets to separate them), as stage 11 does for a yaw-scale finding alone.  The result's
+``yaw_pair`` holds the numbers either way (``pair``: whether the pair was reported)."""
 
 from __future__ import annotations
 
@@ -73,6 +77,37 @@ def takes_other(test: dict) -> bool:
     return test["t"] > T_CRIT and test["heldout_cut"] > 0.0
 
 
+def keeps_reported(test: dict) -> bool:
+    """Whether roll/pitch choose the reported reading: the other one worse beyond ``T_CRIT`` over the flight."""
+    return test["t"] < -T_CRIT
+
+
+#: what separates the two readings: roll and pitch rates, where the damping acts at its own value and km, Izz
+#: do not (on yaw the two readings are one for every input, so yaw sweeps cannot)
+SEPARATING = ("rate_doublets", "roll and pitch rates: the damping acts there at its own value, the yaw moment and "
+                               "the yaw inertia do not")
+
+
+def report_pair(result: dict, was: str, becomes: str, alt: VehicleParams) -> bool:
+    """The confirmed ``was`` entry reported with the other reading as the pair the flight does not tell apart
+    (``not_told_apart``: ``becomes`` at its value, ``damping_with_it`` the damping that reading asks for, roll/pitch
+    rate doublets as the separating manoeuvre); False where there is no such entry."""
+    from twin_nodes.discovery.stages.verdicts import not_told_apart
+
+    entry = next((e for e in result["effects"] if e["name"] == was and e.get("verdict") == "confirmed"), None)
+    if entry is None:
+        return False
+    new = alt.effect_dict
+    pair = not_told_apart({"name": was, "alternatives": [{"name": becomes, "params": dict(new[becomes])}]},
+                          separating=SEPARATING)
+    if pair is None:
+        return False
+    pair["damping_with_it"] = dict(new["angular_damping"])
+    pair["yaw_pair"] = dict(result["yaw_pair"]["roll_pitch"])
+    entry["not_told_apart"] = pair
+    return True
+
+
 def apply(result: dict, flight) -> VehicleParams | None:
     """Read the yaw pair on roll/pitch where a damping and one yaw-scale effect are confirmed; where roll/pitch
     choose the other reading, the result's entries, ``accepted`` and ``refit_params`` take it (returned; None:
@@ -90,6 +125,8 @@ def apply(result: dict, flight) -> VehicleParams | None:
     result["yaw_pair"] = {"reported": was, "other": becomes, "yaw_scale": round(s, 4), "roll_pitch": test,
                           "switched": switched}
     if not switched:
+        # neither reading chosen: the flight does not tell them apart, and the finding says so (as stage 11 does)
+        result["yaw_pair"]["pair"] = not keeps_reported(test) and report_pair(result, was, becomes, alt)
         return None
     note = (f"read on roll/pitch (the yaw axis gives km/Izz and k_d/Izz only): {becomes} with the damping x"
             f"{s if becomes == 'yaw_moment' else 1 / s:.3f} lowers the roll+pitch equation error (t={test['t']:.1f} "
@@ -108,8 +145,31 @@ def apply(result: dict, flight) -> VehicleParams | None:
             e["params"] = dict(new["angular_damping"])
             e["verdict_note"] = f"{e.get('verdict_note', '')}; {note}"
     result["accepted"] = [becomes if n == was else n for n in accepted]
+    alt = damping_at_model(result, alt, flight.nominal)
     result["refit_params"] = alt.to_ros_dict()
     return alt
 
 
-__all__ = ["ROLL_PITCH", "apply", "other_reading", "roll_pitch_test", "takes_other"]
+def damping_at_model(result: dict, alt: VehicleParams, nominal: VehicleParams) -> VehicleParams:
+    """``alt`` with its damping put back at the model's where the other reading leaves it within the nominal
+    refit's floor (``selection.REFIT_FLOOR``) of it: the damping was accepted for the yaw-scale change's share of
+    the yaw damping (Izz x1.3 reads as k_d/Izz x0.77), and with the right reading no damping change is left (PX4
+    SIH b018: SIH_IZZ x1.3 beside SIH_KDV, k_d 0.0255 for the model's 0.025).  Its entry is then rejected and it
+    leaves ``accepted``; else ``alt`` as it is."""
+    from twin_nodes.discovery.stages.selection import REFIT_FLOOR
+
+    k0 = (nominal.effect_dict.get("angular_damping") or {}).get("k_nm_s_rad")
+    k = alt.effect_dict["angular_damping"]["k_nm_s_rad"]
+    if not k0 or abs(k / k0 - 1.0) > REFIT_FLOOR:
+        return alt
+    for e in result["effects"]:
+        if e["name"] == "angular_damping" and e.get("verdict") == "confirmed":
+            e["verdict"] = "rejected"
+            e["verdict_note"] = (f"{e.get('verdict_note', '')}; with the other reading the damping is x{k / k0:.3f} "
+                                 f"of the model's, within its {100 * REFIT_FLOOR:.0f} % floor: no damping change")
+    result["accepted"] = [n for n in result["accepted"] if n != "angular_damping"]
+    return alt.with_effect("angular_damping", k_nm_s_rad=float(k0))
+
+
+__all__ = ["ROLL_PITCH", "SEPARATING", "apply", "damping_at_model", "keeps_reported", "other_reading", "report_pair", "roll_pitch_test",
+           "takes_other"]
