@@ -104,3 +104,21 @@ def px4_sitl_binary() -> Path:
     if not b.is_file():
         pytest.skip(f"{b} not found: build PX4 SITL first (make px4_sitl_default)")
     return b
+
+
+#: where :func:`sih_quadx_flight`'s topics start (their timestamps, microseconds)
+SIM_START_US = 20_000_000
+
+
+@pytest.fixture(scope="session")
+def sih_quadx_flight():
+    """Our simulator's no-effect flight of the shipped PX4 SIH quad X (seed 3) as PX4 topics from
+    :data:`SIM_START_US`: ``(vehicle params, topics)``.  Read-only: a test that edits topics copies them."""
+    import numpy as np
+
+    from twin_nodes.twin.simflight import Hidden, record_to_topics, simulate_flight
+    from twin_nodes.vehicle.params import shipped
+
+    vp = shipped("px4_sih_quadx")
+    rec, battery, sp_hist = simulate_flight(vp, Hidden("none", {}), seed=3)
+    return vp, record_to_topics(rec, vp, battery, sp_hist, np.random.default_rng(10), start_us=SIM_START_US)

@@ -10,20 +10,16 @@ from twin_nodes.identify import fit_mask as fm
 from twin_nodes.identify.nominal import nominal_from_log
 from twin_nodes.logs.flyable import read_flight
 from twin_nodes.logs.ulog_write import write_px4_ulog
-from twin_nodes.twin.simflight import Hidden, record_to_topics, simulate_flight, simulated_log_params
-from twin_nodes.vehicle.params import shipped
+from twin_nodes.twin.simflight import simulated_log_params
 
-START_US = 20_000_000
+from conftest import SIM_START_US as START_US  # noqa: E402
 SAT = (30.0, 38.0)      # all four motors logged at 1.0 (the vehicle flew on: the log claims thrust it had not)
 GROUND = (50.0, 53.0)   # the land detector says ground_contact while airborne (a touch-and-go)
 
 
 @pytest.fixture(scope="module")
-def flight():
-    vp = shipped("px4_sih_quadx")
-    rec, battery, sp_hist = simulate_flight(vp, Hidden("none", {}), seed=3)
-    topics = record_to_topics(rec, vp, battery, sp_hist, np.random.default_rng(10), start_us=START_US)
-    return vp, topics
+def flight(sih_quadx_flight):
+    return sih_quadx_flight
 
 
 def _write(path, vp, topics, edit: bool):

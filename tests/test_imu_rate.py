@@ -17,10 +17,9 @@ from twin_nodes.logs import imu_rate
 from twin_nodes.logs.flyable import read_flight
 from twin_nodes.logs.ulog_write import write_px4_ulog
 from twin_nodes.twin.estimate_check import estimate_failures
-from twin_nodes.twin.simflight import Hidden, record_to_topics, simulate_flight, simulated_log_params
-from twin_nodes.vehicle.params import shipped
+from twin_nodes.twin.simflight import simulated_log_params
 
-START_US = 20_000_000
+from conftest import SIM_START_US as START_US  # noqa: E402
 #: a body-z vibration at twice the 10 Hz logging rate, sampled in step: it aliases to 0 Hz (+1 m/s^2)
 VIB_HZ, VIB_M_S2 = 20.0, 1.0
 
@@ -56,11 +55,8 @@ def test_the_specific_force_from_a_known_velocity_and_attitude():
 
 
 @pytest.fixture(scope="module")
-def flight():
-    vp = shipped("px4_sih_quadx")
-    rec, battery, sp_hist = simulate_flight(vp, Hidden("none", {}), seed=3)
-    topics = record_to_topics(rec, vp, battery, sp_hist, np.random.default_rng(10), start_us=START_US)
-    return vp, topics
+def flight(sih_quadx_flight):
+    return sih_quadx_flight
 
 
 def _decimated(topics):
