@@ -129,3 +129,18 @@ def test_a_reading_refitted_to_the_models_value_is_no_effect(nominal):
     assert gone and back.effect_dict["inertia"] == pytest.approx({"ixx": 0.04, "iyy": 0.04, "izz": 0.03})
     back, gone = Y.at_model(nominal.with_effect("inertia", ixx=0.025, iyy=0.025, izz=0.0295), "inertia", nominal)
     assert gone and "inertia" not in back.effect_dict
+
+
+def test_the_refit_never_varies_a_whole_number_parameter(nominal):
+    """RotorPy c028 (judge10: a weak motor 1 beside a mass, hover with yaw): the yaw reading's refit freed the weak
+    motor's index with its efficiency, and the first finite-difference step (motor 1.001) was refused by the params
+    check, so discover stopped.  Whole-number parameters (``Effect.discrete``) are held like a sag's v_ref."""
+    from twin_nodes.discovery.candidates import NOT_FITTED
+
+    assert {("motor_efficiency", "motor"), ("coaxial", "lower_mask"), ("battery_sag", "v_ref")} <= NOT_FITTED
+    vp = (nominal.with_effect("motor_efficiency", motor=1.0, efficiency=0.8)
+          .with_effect("mass", mass=1.15 * nominal.mass_kg)
+          .with_effect("inertia", ixx=nominal.inertia[0, 0], iyy=nominal.inertia[1, 1], izz=1.2 * nominal.inertia[2, 2]))
+    free = Y._free(vp, "inertia", ["motor_efficiency", "mass"])
+    assert ("motor_efficiency", "efficiency") in free and ("mass", "mass") in free and ("inertia", "izz") in free
+    assert ("motor_efficiency", "motor") not in free

@@ -73,10 +73,12 @@ CELL_FULL_V = 4.2
 CELL_MAX_V = 4.35
 
 
-#: effect parameters the library never fits (held at a value read from the flight): a later refit must hold them
-#: too.  A battery sag's ``v_ref`` is held at the full pack (a free one is a constant thrust scale, the regressor
-#: of a thrust coefficient or a mass: freed beside one, the two trade along that ridge)
-NOT_FITTED = {("battery_sag", "v_ref")}
+#: effect parameters the library never fits (held at a value read from the flight, or chosen): a later refit must
+#: hold them too.  A battery sag's ``v_ref`` is held at the full pack (a free one is a constant thrust scale, the
+#: regressor of a thrust coefficient or a mass: freed beside one, the two trade along that ridge); an effect's
+#: whole-number parameters (``Effect.discrete``: a weak motor's index, a coaxial bit mask) are chosen, and a
+#: finite-difference step of one is no vehicle at all (RotorPy c028: motor 1.001 refused by the params check)
+NOT_FITTED = {("battery_sag", "v_ref")} | {(n, k) for n, cls in EFFECTS.items() for k in cls.discrete}
 
 
 def full_pack_voltage(volts: np.ndarray) -> float:

@@ -72,6 +72,8 @@ class Effect:
     wrench_kernel: ClassVar[Any] = None
     #: the kernels take the packed vehicle ``P`` right after ``p`` (for rotor positions)
     kernel_reads_vehicle: ClassVar[bool] = False
+    #: parameters that are whole numbers (an index, a bit mask): chosen, never varied by a fit
+    discrete: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, **params: float):
         unknown = set(params) - set(self.param_names)
@@ -353,6 +355,7 @@ class MotorEfficiency(Effect):
     param_names = ("motor", "efficiency")
     defaults = {"motor": 1.0, "efficiency": 1.0}
     units = {"motor": "1-based PX4 index", "efficiency": "thrust ratio"}
+    discrete = ("motor",)
     ranges = {"motor": (1.0, 32.0), "efficiency": (0.0, 2.0)}
     description = "one motor gives a fraction of the thrust (and torque) it should"
     rotor_kernel = staticmethod(_k_motor_efficiency)
@@ -376,6 +379,7 @@ class Coaxial(Effect):
     units = {"efficiency": "lower/upper thrust ratio at equal command",
              "lower_mask": "bit i set: rotor i (0-based, PX4 motor i+1) is the lower rotor of a coaxial pair"}
     ranges = {"efficiency": (0.1, 1.5), "lower_mask": (0.0, 2.0 ** 31 - 1)}
+    discrete = ("lower_mask",)
     description = ("coaxial pairs: the lower rotor works in the upper one's wake and gives ``efficiency`` of "
                    "the thrust (and, Q = km T, of the torque) the same command gives the upper one")
     rotor_kernel = staticmethod(_k_coaxial)
