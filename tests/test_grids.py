@@ -109,6 +109,27 @@ def test_sih_grid_manifest_is_the_declaration():
     assert {"M1", "M2", "M5", "M6"} <= {r["mission"] for r in rows}
 
 
+def test_a_flight_discover_stops_on_is_scored_as_a_miss(monkeypatch):
+    """judge10 c028 (a weak motor beside a mass): discover stopped with a params error and the flight was left out
+    of the score as 'not scored'.  The vehicle flew it: a stop is a miss, counted in every bar, its reason listed."""
+    from twin_nodes.base.errors import ParamsError
+    from twin_nodes.discovery import discover as disc
+    from twin_nodes.logs import ulog_io
+
+    def refuse(log, vp, **kw):
+        raise ParamsError("<memory>", "effects.motor_efficiency.motor", "expected an integer motor index, got 1.001")
+    monkeypatch.setattr(disc, "discover", refuse)
+    monkeypatch.setattr(ulog_io, "read_ulog", lambda path: None)
+    fl = {"mission": "M1", "logging": "default", "sih": {"SIH_MASS": [1.0, 1.15], "SIH_Q_MAX": [0.1, 0.13]}}
+    row, res = grid_prove.run_one(("px4sih", ("d999", fl), "/nonexistent.ulg"))
+    assert row["n_true"] == 2 and row["n_named"] == 0 and not row["passed"] and not row["right_class"]
+    assert "effects.motor_efficiency.motor" in row["refused"] and res["effects"] == []
+    s = grid_prove.summarize([row])
+    assert (s["n_effect"], s["n_right_top"], s["n_two"], s["n_both_named"], s["n_passed"]) == (1, 0, 1, 0, 0)
+    txt = grid_prove.table([row], [])
+    assert "[discover refused it]" in txt and "scored as misses, discover stopped: d999 (" in txt
+
+
 def test_sih_truths_of_two_groups():
     from twin_nodes.mavlink.sih_flight import truth_effects
 

@@ -122,6 +122,7 @@ def table(rows: list[dict], not_flown: list[str]) -> str:
         pe = ", ".join(f"{k} {'-' if v is None else ('wrong' if not math.isfinite(v) else f'{100 * v:.1f} %')}"
                        for k, v in (r.get("param_errors") or {}).items())
         top = r["top_finding"] + (f" ({r['top_verdict']})" if r["top_finding"] != "none" else
+                                  " [discover refused it]" if r.get("refused") else
                                   f" [1st: {r.get('first_candidate')}]" if r.get("first_candidate") else "")
         cut = r.get("heldout_improvement")
         lines.append(f"{r['flight']:<44} {r['true_effect']:<38} {top:<40} +{max(r['n_findings'] - 1, 0)} "
@@ -136,6 +137,9 @@ def table(rows: list[dict], not_flown: list[str]) -> str:
         lines.append("  [effect " + summary_line(name, summarize(rs)) + "]")
     for name, rs in sorted(by_mission.items()):
         lines.append("  [mission " + summary_line(name, summarize(rs)) + "]")
+    refused = [f"{r['flight'].split()[0]} ({r['refused']})" for r in rows if r.get("refused")]
+    if refused:
+        lines.append("scored as misses, discover stopped: " + "; ".join(refused))
     if not_flown:
         lines.append("declared, not scored: " + "; ".join(not_flown))
     return "\n".join(lines)
@@ -222,6 +226,7 @@ def run_one(job, reuse: Path | None = None) -> dict:
     """Discover blind on one grid flight and score it; ``reuse``: a result JSON of this flight written by an
     earlier run of the same code, re-scored instead of discovered again."""
     source, spec, path = job
+    from twin_nodes.base.errors import TwinError
     from twin_nodes.discovery.discover import discover
     from twin_nodes.logs.ulog_io import read_ulog
 
@@ -248,11 +253,18 @@ def run_one(job, reuse: Path | None = None) -> dict:
     if reuse is not None and reuse.is_file():
         res = json.loads(reuse.read_text())
     else:
-        res = discover(log, vp, closed_loop_metrics=False)
+        try:
+            res = discover(log, vp, closed_loop_metrics=False)
+        except TwinError as exc:
+            # the vehicle flew the flight: discovery stopping on it is a miss, scored as one, never left out
+            res = {"effects": [], "refused": f"discover refused it: {exc}"}
         res.pop("_series", None)
     drag = DragContext.from_log(log, vp) if any(effect_class(t.hidden.name) == "drag" or t.hidden.name == "wind"
                                                  for t in truths) else None
-    return score_grid_flight(name, truths, res, vp, drag, **facts), res
+    row = score_grid_flight(name, truths, res, vp, drag, **facts)
+    if res.get("refused"):
+        row["refused"] = res["refused"]
+    return row, res
 
 
 #: a RotorPy grid flight whose airborne tracking is worse than this did not fly its mission (RotorPy's SE(3)
@@ -274,8 +286,6 @@ def sih_unfinished(flight_dir: Path) -> str | None:
 def run(source: str, half: str, out: Path, cache: Path = CACHE, progress: bool = True, reuse: bool = False,
         ids: list[str] | None = None) -> dict:
     """``ids``: only these flights of the half (a subset to measure on; the rest are left out, not listed)."""
-    from twin_nodes.base.errors import TwinError
-
     out.mkdir(parents=True, exist_ok=True)
     jobs, missing = (rotorpy_jobs(half, cache / "rotorpy") if source == "rotorpy" else sih_jobs(half, cache / "sih"))
     if ids:
@@ -288,10 +298,7 @@ def run(source: str, half: str, out: Path, cache: Path = CACHE, progress: bool =
         why = (lost_control(cache / "rotorpy" / f"{key}.meta.json") if source == "rotorpy"
                else sih_unfinished(cache / "sih" / key))
         if why is None:
-            try:
-                row, res = run_one(j, out / f"{key}.json" if reuse else None)
-            except TwinError as exc:
-                why = f"discover refused it: {exc}"
+            row, res = run_one(j, out / f"{key}.json" if reuse else None)
         if why is not None:
             missing.append(f"{key} (flown, not scored: {why})")
             if progress:
