@@ -78,6 +78,27 @@ def deriv(P, x, sref, ext, dx, R, omega, T, Q, Fb, Mb, Fw):
     rigid_body(P, x, R, Fb, Mb, Fw, sref, dx)
 
 
+@njit(cache=True, inline="always")
+def rk4_step(P, x, sref, ext, dt, k1, k2, k3, k4, xt, R, omega, T, Q, Fb, Mb, Fw):
+    """Not in eda17af: the one RK4 step that discovery's kernels (``twin_nodes.discovery.kernels``, built beside
+    this stepper in the bench's "before" child) import since the thirteenth session; this stepper's own
+    ``step_n`` below keeps the steps written out, as it was."""
+    nx = x.shape[0]
+    deriv(P, x, sref, ext, k1, R, omega, T, Q, Fb, Mb, Fw)
+    for i in range(nx):
+        xt[i] = x[i] + 0.5 * dt * k1[i]
+    deriv(P, xt, sref, ext, k2, R, omega, T, Q, Fb, Mb, Fw)
+    for i in range(nx):
+        xt[i] = x[i] + 0.5 * dt * k2[i]
+    deriv(P, xt, sref, ext, k3, R, omega, T, Q, Fb, Mb, Fw)
+    for i in range(nx):
+        xt[i] = x[i] + dt * k3[i]
+    deriv(P, xt, sref, ext, k4, R, omega, T, Q, Fb, Mb, Fw)
+    for i in range(nx):
+        x[i] += dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+    post_step(P, x, sref)
+
+
 @njit(cache=True)
 def step_n(P, x, u, ext, dt, nsub):
     """Advance x in place by nsub RK4 steps of dt with the command held."""
