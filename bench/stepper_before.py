@@ -80,9 +80,9 @@ def deriv(P, x, sref, ext, dx, R, omega, T, Q, Fb, Mb, Fw):
 
 @njit(cache=True, inline="always")
 def rk4_step(P, x, sref, ext, dt, k1, k2, k3, k4, xt, R, omega, T, Q, Fb, Mb, Fw):
-    """Not in eda17af: the one RK4 step that discovery's kernels (``twin_nodes.discovery.kernels``, built beside
-    this stepper in the bench's "before" child) import since the thirteenth session; this stepper's own
-    ``step_n`` below keeps the steps written out, as it was."""
+    """Not in eda17af as a function: the one RK4 step (the same statements eda17af's ``step_n`` wrote out,
+    inlined into it by numba), which discovery's kernels (``twin_nodes.discovery.kernels``, built beside this
+    stepper in the bench's "before" child) import since the thirteenth session."""
     nx = x.shape[0]
     deriv(P, x, sref, ext, k1, R, omega, T, Q, Fb, Mb, Fw)
     for i in range(nx):
@@ -119,19 +119,7 @@ def step_n(P, x, u, ext, dt, nsub):
     k4 = np.empty(nx)
     xt = np.empty(nx)
     for _ in range(nsub):
-        deriv(P, x, sref, ext, k1, R, omega, T, Q, Fb, Mb, Fw)
-        for i in range(nx):
-            xt[i] = x[i] + 0.5 * dt * k1[i]
-        deriv(P, xt, sref, ext, k2, R, omega, T, Q, Fb, Mb, Fw)
-        for i in range(nx):
-            xt[i] = x[i] + 0.5 * dt * k2[i]
-        deriv(P, xt, sref, ext, k3, R, omega, T, Q, Fb, Mb, Fw)
-        for i in range(nx):
-            xt[i] = x[i] + dt * k3[i]
-        deriv(P, xt, sref, ext, k4, R, omega, T, Q, Fb, Mb, Fw)
-        for i in range(nx):
-            x[i] += dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
-        post_step(P, x, sref)
+        rk4_step(P, x, sref, ext, dt, k1, k2, k3, k4, xt, R, omega, T, Q, Fb, Mb, Fw)
 
 
 @njit(cache=True)

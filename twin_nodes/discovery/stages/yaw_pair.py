@@ -171,5 +171,5 @@ def damping_at_model(result: dict, alt: VehicleParams, nominal: VehicleParams) -
     return alt.with_effect("angular_damping", k_nm_s_rad=float(k0))
 
 
-__all__ = ["ROLL_PITCH", "SEPARATING", "apply", "damping_at_model", "keeps_reported", "other_reading", "report_pair", "roll_pitch_test",
-           "takes_other"]
+__all__ = ["ROLL_PITCH", "SEPARATING", "apply", "damping_at_model", "keeps_reported", "other_reading", "report_pair",
+           "roll_pitch_test", "takes_other"]
