@@ -64,7 +64,8 @@ def test_third_batches_are_their_declarations_new_ids_all_judging():
     assert not set(flights) & (set(grid_sih.load_grid(half="judge2")) | set(grid_sih.load_grid()))
 
 
-@pytest.mark.parametrize("batch", ["judge4", "judge5", "judge6", "judge7", "judge8", "judge9", "judge10"])
+@pytest.mark.parametrize("batch", ["judge4", "judge5", "judge6", "judge7", "judge8", "judge9", "judge10",
+                                   "judge11"])
 def test_later_batches_are_their_declarations_new_ids_all_judging(batch):
     names = list(grid_rotorpy.BATCHES)
     before = ["all", *names[:names.index(batch)]]

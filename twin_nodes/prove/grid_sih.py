@@ -40,6 +40,8 @@ BATCHES = {
                "2026-11-28 07:39 UTC, before the twelfth session changed anything"),
     "judge10": (3535, REPO / "missions" / "sih_grid" / "batch10.yaml", "d",
                 "2026-11-28 10:25 UTC, before the thirteenth session changed anything"),
+    "judge11": (3636, REPO / "missions" / "sih_grid" / "batch11.yaml", "f",
+                "2026-11-28 13:40 UTC, before the fourteenth session changed anything"),
 }
 #: the halves ``prove --grid`` takes: batch 1's two, each judging-only batch (the same names in both grids:
 #: grid_rotorpy.BATCHES, tests/test_grids.py), or all
