@@ -225,3 +225,26 @@ def test_length_rule_catches_a_long_function(tmp_path):
     p = tmp_path / "m.py"
     p.write_text(f"def short():\n    return 1\n\n\ndef long():\n{body}\n    return 0\n", encoding="utf-8")
     assert long_functions(p) == {"m.py:long": MAX_FUNCTION_LINES + 2}
+
+
+def _gravity_literals(source: str) -> list[int]:
+    """Lines where standard gravity is written as a number in code (docstrings and comments aside)."""
+    tree = ast.parse(source)
+    docs = {id(n.body[0].value) for n in ast.walk(tree)
+            if isinstance(n, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and n.body
+            and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+    return [n.lineno for n in ast.walk(tree) if isinstance(n, ast.Constant) and id(n) not in docs
+            and isinstance(n.value, float) and abs(n.value - 9.80665) < 1e-9]
+
+
+def test_standard_gravity_has_one_home():
+    """Standard gravity is written once (``base/constants.py``); every other module imports it, so the twin,
+    its identification and its checks cannot drift apart. (RotorPy's 9.81 is RotorPy's own constant.)"""
+    found = {str(p.relative_to(ROOT)): lines for p in sorted(PKG.rglob("*.py"))
+             if (lines := _gravity_literals(p.read_text(encoding="utf-8")))}
+    assert found == {"twin_nodes/base/constants.py": [12]}
+
+
+def test_gravity_rule_sees_a_literal_and_not_a_docstring():
+    assert _gravity_literals('"""g = 9.80665"""\nG = 9.80665\n') == [2]
+    assert _gravity_literals('def f(g=9.80665):\n    """9.80665"""\n') == [1]

@@ -30,6 +30,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from twin_nodes.base.constants import G_STANDARD_M_S2
 from twin_nodes.base.errors import LogError, TwinError
 from twin_nodes.logs.ulog_io import FlightLog
 
@@ -258,7 +259,7 @@ def identified(log: FlightLog, nom=None, build=None) -> dict[str, float]:
         f = nom.fits
     m = f["mass_assumed_kg"]
     n = sum(1 for k in f if k.startswith("motor_share_m"))
-    tw = n * f["kT/m"] / 9.80665
+    tw = n * f["kT/m"] / G_STANDARD_M_S2
     steady = _steady_throttle(log)
     if not TW_RANGE[0] <= tw <= TW_RANGE[1] or (steady is not None and steady[0] < HOVER_MIN):
         raise TwinError(f"{log.path}: specific_force_flu: implausible thrust fit (thrust/weight at full command "

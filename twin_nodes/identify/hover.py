@@ -21,7 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-GRAVITY_DEFAULT = 9.80665
+from twin_nodes.base.constants import G_STANDARD_M_S2
+
+GRAVITY_DEFAULT = G_STANDARD_M_S2
 
 
 @dataclass(frozen=True)

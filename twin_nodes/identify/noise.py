@@ -30,7 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-GRAVITY_DEFAULT = 9.80665
+from twin_nodes.base.constants import G_STANDARD_M_S2
+
+GRAVITY_DEFAULT = G_STANDARD_M_S2
 BIAS_INSTABILITY_FACTOR = 0.664  # adev floor = sqrt(2 ln 2 / pi) B
 
 

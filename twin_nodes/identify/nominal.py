@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twin_nodes.base.constants import G_STANDARD_M_S2
 from twin_nodes.base.errors import LogError, ParamsError
 from twin_nodes.identify.coaxial import ASSUMED as COAX_ASSUMED, LOWPASS_HZ as COAX_LOWPASS_HZ, coaxial_efficiency
 from twin_nodes.identify.fit_mask import contact_mask, fit_mask
@@ -344,7 +345,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     if use_drag and drag_h is not None:
         # the horizontal drag as the in-plane rotor H-force, -k_d |omega_i| (hub air speed), at the hubs
         # at the identified height; k_d gives the identified drag at hover
-        w_hover = 1000.0 * math.sqrt(min(m * 9.80665 / (float(w_rot.sum()) * t_max), 1.0))
+        w_hover = 1000.0 * math.sqrt(min(m * G_STANDARD_M_S2 / (float(w_rot.sum()) * t_max), 1.0))
         k_d = drag / (n * w_hover)
         effects["enabled"].append("rotor_drag")
         effects["rotor_drag"] = {"k_d": k_d}
@@ -454,7 +455,7 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
     vname = name or f"from_ulog_{log.path.rsplit('/', 1)[-1].rsplit('.', 1)[0]}"
     data = {"vehicle": {"name": vname, "mass_kg": m, "ixx_kg_m2": inertia[0], "iyy_kg_m2": inertia[1],
                         "izz_kg_m2": inertia[2], "ixy_kg_m2": 0.0, "ixz_kg_m2": 0.0, "iyz_kg_m2": 0.0,
-                        "gravity_m_s2": 9.80665},
+                        "gravity_m_s2": G_STANDARD_M_S2},
             "rotors": rotors, "effects": effects, "controller": gains, "simulation": {"dt_s": 0.002}}
     fits = {"tau_s": tau, "kT/m": kt_m, "kT/m_se": kt_m_se, "hover_command": hover_cmd,
             "drag_n_s_m": drag, "angular_damping": k_w, "roll_r2": rot["roll"].r2, "pitch_r2": rot["pitch"].r2,
@@ -798,7 +799,7 @@ def _battery_sag(log: FlightLog, t: np.ndarray, tt: np.ndarray, lp, v_body: np.n
     return c1, fit.se("kT/m"), v_ref, float(expo), float(expo_se)
 
 
-def _hover_command(total_thrust_max_n: float, mass_kg: float, f: float, g: float = 9.80665) -> float:
+def _hover_command(total_thrust_max_n: float, mass_kg: float, f: float, g: float = G_STANDARD_M_S2) -> float:
     """Per-motor command that carries the weight: solve f u^2 + (1 - f) u = m g / (N T_max)."""
     rel = mass_kg * g / total_thrust_max_n
     if f < 1e-9:

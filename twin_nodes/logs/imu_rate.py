@@ -22,13 +22,14 @@ from __future__ import annotations
 import numpy as np
 
 from twin_nodes.base import frames
+from twin_nodes.base.constants import G_STANDARD_M_S2
 
 __all__ = ["ACCEL_CUTOFF_DEFAULT_HZ", "GRAVITY_M_S2", "VELOCITY_GAP_S", "accel_aliased",
            "specific_force_from_velocity"]
 
 #: PX4's accelerometer low-pass where the log does not record ``IMU_ACCEL_CUTOFF`` [Hz] (its default)
 ACCEL_CUTOFF_DEFAULT_HZ = 30.0
-GRAVITY_M_S2 = 9.80665
+GRAVITY_M_S2 = G_STANDARD_M_S2
 #: a gap between two finite velocity samples longer than this [s] ends a stretch (no derivative across it)
 VELOCITY_GAP_S = 1.0
 

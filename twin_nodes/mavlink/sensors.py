@@ -69,6 +69,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from twin_nodes.base import frames
+from twin_nodes.base.constants import G_STANDARD_M_S2
 from twin_nodes.base.errors import ParamsError
 
 __all__ = [
@@ -266,7 +267,7 @@ class SensorModel:
     >>> acc_frd, gyro_frd = sm.imu(np.array([0, 0, 9.80665]), np.zeros(3))   # at rest: z ≈ -g
     """
 
-    def __init__(self, config: SensorConfig | None = None, gravity_m_s2: float = 9.80665,
+    def __init__(self, config: SensorConfig | None = None, gravity_m_s2: float = G_STANDARD_M_S2,
                  rng: np.random.Generator | None = None):
         self.config = config or SensorConfig()
         self.gravity_m_s2 = float(gravity_m_s2)

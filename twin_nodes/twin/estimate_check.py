@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from twin_nodes.base import frames
+from twin_nodes.base.constants import G_STANDARD_M_S2
 
 __all__ = ["WINDOW_S", "DV_TOL_M_S", "DP_TOL_M", "estimate_failures", "failed_at", "estimate_failed",
            "height_reset_shift", "height_without_resets", "RESET_M"]
@@ -42,7 +43,7 @@ MIN_IMU_HZ = 50.0
 #: grid rate of the check [Hz]
 RATE_HZ = 20.0
 #: gravity [m/s^2]
-G = 9.80665
+G = G_STANDARD_M_S2
 
 
 def _series(log, name: str):

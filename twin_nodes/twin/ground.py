@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from twin_nodes.base.constants import G_STANDARD_M_S2
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.twin.control import G_ZV_P, G_ZV_UP
 
@@ -32,7 +33,7 @@ HELD_M = 0.2
 #: PX4's take-off ramp (``MPC_TKO_RAMP_T``, 3 s by default since PX4 1.12): from the end of a grounded
 #: phase the upward velocity limit goes from -g / MPC_Z_VEL_P_ACC (zero thrust) to MPC_Z_VEL_MAX_UP
 TAKEOFF_RAMP_S = 3.0
-G_ACC = 9.80665
+G_ACC = G_STANDARD_M_S2
 
 
 def log_takeoff_ramp_s(log) -> float | None:

@@ -21,6 +21,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from twin_nodes.base.constants import G_STANDARD_M_S2
+
 #: the closed loop's (triple) pole [rad/s]
 OMEGA_RAD_S = 0.5
 #: the correction's limit, as a fraction of the twin's hover throttle
@@ -31,7 +33,7 @@ LIMIT_OF_HOVER = 0.30
 class PilotStandIn:
     """PI(D) on real-vs-twin height; ``hover``: the twin's hover throttle (0..1), ``g`` [m/s^2]."""
     hover: float
-    g: float = 9.80665
+    g: float = G_STANDARD_M_S2
     omega: float = OMEGA_RAD_S
     limit: float = LIMIT_OF_HOVER
     integral_m_s: float = 0.0      # int(e_z) dt [m s]

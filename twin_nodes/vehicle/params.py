@@ -50,12 +50,13 @@ from typing import Any, Mapping
 import numpy as np
 import yaml
 
+from twin_nodes.base.constants import G_STANDARD_M_S2
 from twin_nodes.base.errors import ParamsError
 from twin_nodes.base.yamlio import read_yaml_file, safe_load
 from twin_nodes.physics.effects import EFFECTS
 
 THRUST_MODELS = ("omega_squared", "thrust_factor")
-GRAVITY_DEFAULT = 9.80665
+GRAVITY_DEFAULT = G_STANDARD_M_S2
 
 #: physical ranges checked on load and by :func:`validate` (see the module docstring)
 LIMITS = {

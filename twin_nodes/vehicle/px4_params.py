@@ -34,6 +34,7 @@ from typing import Mapping
 
 import numpy as np
 
+from twin_nodes.base.constants import G_STANDARD_M_S2
 from twin_nodes.base.errors import ParamsError
 from twin_nodes.base.frames import frd_to_flu
 
@@ -347,7 +348,7 @@ LEGACY_VEL = {"xy_vel_p_1_s": "MPC_XY_VEL_P", "xy_vel_i_1_s2": "MPC_XY_VEL_I", "
 
 
 def outer_loop_gains(params: Mapping[str, float], hover_thrust: float,
-                     g_m_s2: float = 9.80665) -> tuple[dict[str, float], dict[str, str]]:
+                     g_m_s2: float = G_STANDARD_M_S2) -> tuple[dict[str, float], dict[str, str]]:
     """Position, velocity and attitude gains and limits (ControllerGains keys) with sources."""
     gains, sources = {}, {}
     for key, (names, default) in OUTER_LOOP.items():
