@@ -1,4 +1,4 @@
-"""Identification leaves out saturated motors, ground contact and the land detector's transitions
+"""Identification leaves out saturated motors, ground contact, the land detector's transitions and the take-off spot
 (twin_nodes.identify.fit_mask), on a simulated PX4 flight written as a ULog with such stretches edited in."""
 
 from __future__ import annotations
@@ -83,3 +83,66 @@ def test_a_flight_saturated_almost_throughout_is_fitted_with_its_saturation_and_
     assert m.describe().startswith("saturated samples NOT left out: only 3.9 s would remain (< 6 s); 16.1 s")
     m = fm.fit_mask(Log(), np.arange(0.0, 20.0, 0.02), 50.0, min_keep_s=3.0)
     assert m.keep.sum() == pytest.approx(3.9 * 50, abs=1)
+
+
+class _SpotLog:
+    """Heights (ENU z, 50 Hz) over a 2-30 s airborne interval of a log that runs 0-32 s."""
+
+    def __init__(self, z_of_t, interval=(2.0, 30.0)):
+        self.t = np.arange(0.0, 32.0, 0.02)
+        z = np.array([z_of_t(t) for t in self.t])
+        self.series = {"position_enu": type("S", (), {"t_s": self.t, "values": np.column_stack([0 * z, 0 * z, z]),
+                                                      "__len__": lambda s: z.size})()}
+        self.interval = interval
+
+    def get(self, name):
+        return self.series.get(name)
+
+    def airborne_intervals(self):
+        return [self.interval]
+
+
+def _seconds(mask: np.ndarray) -> float:
+    return float(mask.sum()) * 0.02
+
+
+def test_the_take_off_spot_is_left_out_whatever_the_land_detector_says():
+    # airborne (land detector) from 2 s; on the spot (z 0) until 6 s, up at 1 m/s to 3 m, down from 20 s at 1 m/s to
+    # a touchdown height 0.3 m under the take-off one (the estimate drifted), resting there from 23.3 s to 30 s
+    def z(t):
+        if t < 6.0:
+            return 0.0
+        if t < 20.0:
+            return min(t - 6.0, 3.0)
+        return max(3.0 - (t - 20.0), -0.3)
+    log = _SpotLog(z)
+    t = np.arange(0.0, 32.0, 0.02)
+    spot = fm.on_spot(log, t)
+    # 2 s (airborne) .. 6.2 s (first above 0.2 m): 4.2 s; the touchdown end is the land detector's
+    assert _seconds(spot) == pytest.approx(4.2, abs=0.03)
+    assert not spot[t >= 6.22].any() and spot[(t >= 2.0) & (t < 6.18)].all()
+    got = fm._fit_mask(log, t, 50.0, saturation=False).seconds
+    assert got["on the take-off spot (not yet 0.2 m above it; the land detector said airborne)"] == \
+        pytest.approx(4.2, abs=0.03)
+    # a log joined in the air has no take-off spot; a vehicle that never rises 0.2 m is on its spot throughout
+    assert not fm.on_spot(_SpotLog(z, (0.0, 30.0)), t).any()
+    assert _seconds(fm.on_spot(_SpotLog(lambda s: 0.1, (2.0, 30.0)), t)) == pytest.approx(28.0, abs=0.03)
+
+
+def test_the_fleet_vehicle_held_on_its_spot_gives_its_siblings_trims_and_thrust(tmp_path, monkeypatch):
+    """ZweiterFlugtag log_20 (the overloaded Quad X fleet, ../shared) sits on its take-off spot from 4.4 to ~17 s at a
+    collective of 0.4-1.0 while its land detector says airborne.  Fitted there, the ground's push and moments
+    became the vehicle's: T_max 6.0 N, a centre of mass (-27, -16) mm and a yaw lever of -0.5 mm, where the same
+    vehicle's other flights that day give (-6, -7) mm and +4.0-4.2 mm (log_18, log_19, log_39) and its motors on
+    the spot [0.75, 0.83, 0.56, 0.99] at full collective lift nothing.  Left out, the flight gives its siblings'."""
+    from conftest import shared_log
+
+    monkeypatch.setenv("ROTORTWIN_CACHE", str(tmp_path))
+    log = read_flight(shared_log("fleet_quadx_v6c/ZweiterFlugtag", "log_20_2023-6-7-10-52-56.ulg"), horizontal=False)
+    nom = nominal_from_log(log)
+    assert "s on the take-off spot" in nom.sources["identification: samples left out"]
+    eff = nom.params.effect_dict
+    assert 1e3 * eff["com_offset"]["dx"] == pytest.approx(-6.1, abs=0.5)
+    assert 1e3 * eff["com_offset"]["dy"] == pytest.approx(-6.5, abs=0.5)
+    assert 1e3 * eff["rotor_tilt"]["lever_m"] == pytest.approx(3.9, abs=0.2)
+    assert nom.params.rotors.thrust_max_n == pytest.approx(4.74, abs=0.03)   # 6.01 N fitted on the spot

@@ -1,7 +1,7 @@
 """Which airborne samples an identification may fit, and how many seconds it left out, and why.
 
 The equations the fits use hold for a free rigid body driven by rotors that do what they are told.
-Three kinds of sample break that and are left out:
+Four kinds of sample break that and are left out:
 
 - **a saturated motor**: an output at its bound (within :data:`SAT_TOL` of 0 or 1) — the rotor cannot
   follow the controller there, the ESC and PWM limits are not the thrust curve, and PX4's allocation is
@@ -9,7 +9,13 @@ Three kinds of sample break that and are left out:
 - **ground contact**: the land detector's ``ground_contact``, ``maybe_landed`` or ``landed`` — the
   ground pushes back, which no equation here has;
 - **the land detector's transitions**: :data:`LAND_MARGIN_S` either side of each change of one of
-  those flags (its 1-3 s of hysteresis: a vehicle touching down, bouncing or lifting off).
+  those flags (its 1-3 s of hysteresis: a vehicle touching down, bouncing or lifting off);
+- **the take-off spot**: at the start of an airborne interval, until the vehicle first rose :data:`SPOT_M`
+  above the height where the interval began, whatever the land detector says.  An overloaded, held or
+  caught vehicle sits on its take-off spot at a high collective for seconds while the land detector
+  already calls it airborne (fleet ZweiterFlugtag log_20: 4.4-17 s); there the ground carries part of the
+  weight and all of the moments, so thrust, trims and inertia fitted there describe the ground, not the
+  vehicle.
 
 Pure numpy on a :class:`~twin_nodes.logs.ulog_io.FlightLog`; a log without the land detector or motors
 simply has nothing to leave out for that reason.
@@ -27,6 +33,11 @@ SAT_TOL = 1e-3
 SAT_MARGIN_S = 0.1
 #: seconds left out on either side of a change of the land detector's flags
 LAND_MARGIN_S = 1.0
+#: a vehicle has left its spot once this far above the height its airborne interval began at [m] (the twin's
+#: own rule, ``twin.ground.HELD_M``: identify may not import twin)
+SPOT_M = 0.2
+#: an airborne interval that begins within this of the first height sample began in the air [s]
+_JOINED_AIRBORNE_S = 0.5
 #: at least this much must remain to fit [s] (the shortest airborne interval the nominal accepts is 6 s)
 MIN_KEEP_S = 6.0
 
@@ -128,4 +139,28 @@ def _fit_mask(log, t: np.ndarray, rate_hz: float, saturation: bool) -> FitMask:
              np.asarray(on, bool).reshape(t.size, -1).any(axis=1))
         changes = np.asarray(ld.t_s, float)[1:][(flags[1:] != flags[:-1]).any(axis=1)]
         drop(f"within {LAND_MARGIN_S:g} s of a land-detector transition", _near(t, changes, LAND_MARGIN_S))
+    drop(f"on the take-off spot (not yet {SPOT_M:g} m above it; the land detector said airborne)",
+         on_spot(log, t))
     return FitMask(keep, seconds, float(t.size) / rate_hz)
+
+
+def on_spot(log, t: np.ndarray, margin_m: float = SPOT_M) -> np.ndarray:
+    """(n,) bool: ``t`` at the start of an airborne interval while the vehicle has not yet risen ``margin_m``
+    above the height the interval began at.  An interval that begins with the height data (a log joined in
+    the air) has no take-off spot; one the vehicle never rises ``margin_m`` in is all spot.  The touchdown end
+    is left to the land detector (its flags and their transitions): there a height estimate that drifted in
+    the air would put a hover at the spot (jmh_v3_maymun_20_2 touches down 1.1 m above its take-off height)."""
+    t = np.asarray(t, float)
+    out = np.zeros(t.size, bool)
+    pos = log.get("position_enu")
+    if pos is None or len(pos) == 0:
+        return out
+    ft = np.asarray(pos.t_s, float)
+    fz = np.asarray(pos.values, float)[:, 2]
+    for a, b in log.airborne_intervals():
+        idx = np.flatnonzero((ft >= a) & (ft <= b) & np.isfinite(fz))
+        if idx.size < 2 or a <= ft[0] + _JOINED_AIRBORNE_S:
+            continue
+        up = np.flatnonzero(fz[idx] > fz[idx[0]] + margin_m)
+        out |= (t >= a) & (t <= b) & (t < (ft[idx[up[0]]] if up.size else np.inf))
+    return out
