@@ -718,6 +718,29 @@ def test_sih_arm_length_and_inertia_map_to_one_per_axis_inertia():
     assert [t.hidden.name for t in tr] == ["angular_damping", "inertia"]
 
 
+def test_a_yaw_pair_not_told_apart_is_scored_as_one_reading():
+    # d019 (batch 10: SIH_IZZ 0.039 + SIH_KDW 0.05, M2): stage 10 reported yaw moment km 0.0155 with k_d 0.0389,
+    # or inertia Izz 0.0387 with k_d 0.0502; the inertia was read from the partner and the damping from the
+    # reported reading (22 % off): one reading is both, the partner's k_d 0.0502 (0.4 % off)
+    vp = shipped("px4_sih_quadx")
+    truths = grid_prove._sih_truths({"sih": {"SIH_IZZ": [0.03, 0.039], "SIH_KDW": [0.025, 0.05]}}, vp)
+    pair = {"with": {"name": "inertia", "params": {"ixx": 0.025, "iyy": 0.025, "izz": 0.03868}},
+            "plan_flyable": True, "damping_with_it": {"k_nm_s_rad": 0.05021}}
+    res = {"effects": [_eff("angular_damping", {"k_nm_s_rad": 0.03895}),
+                       _eff("yaw_moment", {"km": 0.01551}, pair=pair)]}
+    r = grid_prove.score_grid_flight("d019", truths, res, vp)
+    assert r["param_errors"]["angular_damping"] == pytest.approx(0.05021 / 0.05 - 1, rel=1e-9)
+    assert r["param_errors"]["inertia"] == pytest.approx(1 - 0.03868 / 0.039, rel=1e-9) and r["passed"]
+    assert "other reading" in r["param_text"]["angular_damping"]
+    # the truth read from the reported finding itself (a yaw moment + damping flight): its own damping
+    truths = grid_prove._sih_truths({"sih": {"SIH_Q_MAX": [0.1, 0.13], "SIH_KDW": [0.025, 0.05]}}, vp)
+    pair = {"with": {"name": "inertia", "params": {"ixx": 0.025, "iyy": 0.025, "izz": 0.0231}},
+            "plan_flyable": True, "damping_with_it": {"k_nm_s_rad": 0.0385}}
+    res = {"effects": [_eff("angular_damping", {"k_nm_s_rad": 0.0507}), _eff("yaw_moment", {"km": 0.0262}, pair=pair)]}
+    r = grid_prove.score_grid_flight("m016", truths, res, vp)
+    assert r["param_errors"]["angular_damping"] == pytest.approx(0.0507 / 0.05 - 1, rel=1e-9) and r["passed"]
+
+
 def test_both_grids_name_the_same_judging_batches_and_the_cli_takes_each():
     from twin_nodes.cli import build_parser
 

@@ -54,6 +54,7 @@ def score_grid_flight(flight: str, truths: list[Truth], result: dict, nominal, d
     right = bool(top) and any(effect_class(n) in classes for n, _ in _members(top))
     right_by_pair = bool(top) and right and effect_class(top["name"]) not in classes
     named, errs, texts = [], {}, {}
+    other_reading = None    # the damping of a yaw pair's other reading, where a truth was read from it
     per_mass = _per_mass(real, found, nominal)
     for t in real:
         c = effect_class(t.hidden.name)
@@ -67,7 +68,15 @@ def score_grid_flight(flight: str, truths: list[Truth], result: dict, nominal, d
                 held = frozenset(e.get("held_at_nominal") or {}) if hit[0][0] == e["name"] else frozenset()
                 err, text = compare(t, hit[0][0], hit[0][1], nominal, drag, per_mass, held)
                 errs[t.hidden.name], texts[t.hidden.name] = err, text
+                if hit[0][0] != e["name"] and (e.get("not_told_apart") or {}).get("damping_with_it"):
+                    other_reading = e["not_told_apart"]["damping_with_it"]
                 break
+    # a yaw pair not told apart (stage 10: km x s with k_d, or Izz / s with k_d / s) is scored as one reading: where
+    # a truth was read from the partner, a true damping is read with the damping that reading asks for
+    damp = next((t for t in real if t.hidden.name == "angular_damping" and t.hidden.name in named), None)
+    if other_reading is not None and damp is not None:
+        err, text = compare(damp, "angular_damping", other_reading, nominal, drag, per_mass)
+        errs[damp.hidden.name], texts[damp.hidden.name] = err, text + " (the pair's other reading)"
     ho = heldout_cut(top) if top else {}
     params_ok = all(errs.get(t.hidden.name) is not None and errs[t.hidden.name] <= 0.10 for t in real
                     if t.hidden.name in named)
