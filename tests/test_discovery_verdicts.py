@@ -84,7 +84,10 @@ def test_e03_yaw_moment_found_with_km_near_truth(sih_results):
     top = _findings(res)[0]
     assert top["name"] == "yaw_moment" and top["verdict"] in FINDINGS, top
     assert top["params"]["km"] == pytest.approx(truth, rel=0.10)
-    assert top["residual"] == "output" and top["heldout_channel"] == "yaw"
+    # the output error corroborates the equation error's yaw moment, whose share is then read over the yaw mode
+    # (verdicts.CORROBORATED_SHARE): both pass, and the equation error's fit is reported (km 0.02819 for 0.028)
+    assert top["residual"] == "equation" and top["heldout_channel"] == "yaw"
+    assert top["residuals"]["output"]["params"]["km"] == pytest.approx(truth, rel=0.10)
     assert top["excitation"]["channel"] == "yaw"
     assert any(m.startswith("yaw turn") for m in res["excitation"]["yaw"]["manoeuvres"])
     # the located mismatches now include the yaw channel
@@ -792,3 +795,79 @@ def test_a_delay_of_a_fraction_of_a_sample_moves_the_residual_and_both_folds_fin
     assert rms_nominal > 3 * rms_true, (rms_nominal, rms_true)
     assert abs(fits[0] - fits[1]) <= FOLD_RESOLUTION * true_delay
     assert resolved_by_folds(_Delay(), np.array([fits[0]]), [np.array([f]) for f in fits])
+
+
+class _YawMoment:
+    name = label = "yaw_moment"
+    param_names = ("km",)
+    fixed: dict = {}
+    x0 = np.array([0.03391])            # RotorPy's Crazyflie, c029's nominal
+    lower = 0.2 * x0
+    upper = 5.0 * x0
+
+    def floor(self, th):
+        return bool(abs(float(th[0]) - self.x0[0]) / self.x0[0] > 0.03)
+
+    def params_dict(self, th):
+        return {"km": float(th[0])}
+
+
+def test_a_yaw_moment_s_share_over_the_yaw_mode_counts_where_the_output_error_corroborates_it():
+    """RotorPy c029 (mass x1.15 with wind): on top of a thrust coefficient 0.87 the yaw moment that reading needs
+    (km 0.0339 -> 0.0391, the yaw torque it scales) explains 0.6 % of the four motor channels but 86 % of the yaw
+    mode, and the output error corroborates it (87 % held-out cut in yaw, km 0.0390); its share is read over the
+    yaw mode, so it passes.  The shared real log s500_rcac_mission1 has no output-error yaw reading: its yaw
+    moment keeps the per-channel share (7.5 %) and is not accepted (``verdicts.CORROBORATED_SHARE``)."""
+    from types import SimpleNamespace
+
+    from twin_nodes.discovery.judging import _own_channel_cut
+    from twin_nodes.discovery.stages.judge import _corroborated
+    from twin_nodes.discovery.verdicts import corroborated_share, mode_share, moment_share
+
+    nominal = shipped("px4_sih_quadx")
+    rng = np.random.default_rng(11)
+    n = 800
+    b = np.vstack([np.ones(4), nominal.rotors.y_flu_m, -np.asarray(nominal.rotors.x_flu_m),
+                   -np.asarray(nominal.rotors.direction, float)])
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    collective, yaw = rng.normal(0, 0.04, n), rng.normal(0, 0.01, n)
+    R0 = np.column_stack([np.outer(collective, b[0]) + np.outer(yaw, b[3]), rng.normal(0, 0.02, (n, 2))])
+    test = np.zeros(n, bool)
+    test[200:400] = test[600:] = True                  # both folds' held-out rows
+    Rcv = np.zeros_like(R0)
+    Rcv[test] = R0[test]
+    Rcv[test, :4] -= np.outer(0.86 * yaw[test], b[3])  # the yaw mode cut 86 %
+    own = _own_channel_cut(R0[test], Rcv[test])
+    assert own < 0.05
+    assert mode_share("yaw_moment", "equation", R0[test], Rcv[test], nominal) == pytest.approx(0.86, abs=1e-9)
+    # the damping keeps its share over the modes whatever the output error; the yaw moment not on its own
+    assert moment_share("yaw_moment", "equation", R0[test], Rcv[test], nominal, own, 0.005) == own
+    assert mode_share("inertia", "equation", R0[test], Rcv[test], nominal) is None
+
+    def fits(out_cut=0.87, out_km=0.0390, eq_t=3.89):
+        c = _YawMoment()
+        e = Fit(c, np.array([0.03905]), None, 0.0, 0.0, np.zeros(6), eq_t, 18, 0.006, c.floor([0.03905]))
+        e.kind, e.judged, e.own_cut, e.R = "equation", ("yaw", 1.0, 0.14), own, Rcv
+        e.fold_thetas = [e.theta, np.array([0.0399])]
+        e.accepted = e.passes
+        o = Fit(c, np.array([out_km]), None, 0.0, 0.0, np.zeros(6), 3.86, 12, 0.013, c.floor([out_km]))
+        o.kind, o.judged = "output", ("yaw", 1.0, 1.0 - out_cut)
+        o.fold_thetas = [o.theta, o.theta]
+        return e, o
+
+    e, o = fits()
+    assert not e.accepted                               # 0.6 % of the motor channels: under the 10 % bar
+    assert corroborated_share(e, o, R0, test, nominal, 3.0) == pytest.approx(0.86, abs=1e-9)
+    _corroborated({"yaw_moment": [e, o]}, R0, SimpleNamespace(folds=[(~test, test)]), nominal)
+    assert e.accepted and e.own_cut == pytest.approx(0.86, abs=1e-9)
+    # s500_rcac_mission1: no output-error fit; an output error that cuts the yaw mode under 15 %; fits moving km
+    # different ways; an equation error under the 3-sigma bar: the share stays the motor channels'
+    for kw in ({"out_cut": 0.10}, {"out_km": 0.0300}, {"eq_t": 2.9}):
+        e, o = fits(**kw)
+        assert corroborated_share(e, o, R0, test, nominal, 3.0) is None, kw
+        _corroborated({"yaw_moment": [e, o]}, R0, SimpleNamespace(folds=[(~test, test)]), nominal)
+        assert not e.accepted and e.own_cut == own, kw
+    e, _ = fits()
+    assert corroborated_share(e, None, R0, test, nominal, 3.0) is None
+    _corroborated({"yaw_moment": [e]}, R0, SimpleNamespace(folds=[(~test, test)]), nominal)
+    assert not e.accepted and e.own_cut == own

@@ -10,9 +10,10 @@ import numpy as np
 
 from twin_nodes.discovery import evaluate
 from twin_nodes.discovery.candidates import Candidate
-from twin_nodes.discovery.judging import (OUTPUT_ERROR_EFFECTS, Fit, Judge, _fold_fit, _restrict_to_axes, _task_cost,
-                                          _warm, assess)
+from twin_nodes.discovery.judging import (OUTPUT_ERROR_EFFECTS, T_CRIT, Fit, Judge, _fold_fit, _restrict_to_axes,
+                                          _task_cost, _warm, assess)
 from twin_nodes.discovery.stages.prepare import PreparedFlight
+from twin_nodes.discovery.verdicts import corroborated_share
 from twin_nodes.vehicle.params import VehicleParams
 
 
@@ -74,4 +75,20 @@ def run(q: JudgeQuery) -> JudgedFits:
         out.setdefault(c.label, []).append(f)
         if judge is oe and rounds == 1:
             oe_gain[c.label] = f.rel_improvement
+    if not q.oe_only:
+        _corroborated(out, q.R0, eq, vp)
     return JudgedFits(out, oe_gain)
+
+
+def _corroborated(out: dict[str, list[Fit]], R0: np.ndarray, eq: Judge, vp: VehicleParams) -> None:
+    """A yaw moment's share read over the yaw mode where its output-error fit corroborates its equation-error fit
+    (``verdicts.CORROBORATED_SHARE``): its acceptance judged again on that share."""
+    rows = np.zeros(len(R0), bool)
+    for _, test_mask in eq.folds:
+        rows |= test_mask
+    for fits in out.values():
+        f = next((g for g in fits if g.kind == "equation"), None)
+        share = corroborated_share(f, next((g for g in fits if g.kind == "output"), None), R0, rows, vp, T_CRIT)
+        if share is not None:
+            f.own_cut = share
+            f.accepted = f.passes
