@@ -76,7 +76,8 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     n = len(t)
     dt = 1.0 / rate_hz
     # (the data preparation follows the current code's, 2026-11-24: IMU and rates averaged into each
-    # grid step, the rates low-passed at 10 Hz; only the evaluation path is frozen)
+    # grid step, the rates low-passed at 10 Hz; since fs13 each fine step's command read at the step's
+    # middle; only the evaluation path is frozen)
     from twin_nodes.logs import time_sync
     for name in ("specific_force_flu", rates_name):
         s = log.require(name)
@@ -93,12 +94,13 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     # commands on a fine grid: linear between logged samples, NaN (stopped) kept
     ms = log.require("motors")
     t_fine = lo + np.arange(n * oversample) * (dt / oversample)
+    t_cmd = t_fine + 0.5 * dt / oversample
     u_fine = np.empty((len(t_fine), ms.values.shape[1]))
     for i in range(ms.values.shape[1]):
         col = ms.values[:, i]
         fin = np.isfinite(col)
-        u_fine[:, i] = np.interp(t_fine, ms.t_s[fin], col[fin]) if fin.sum() >= 2 else np.nan
-        stopped = np.interp(t_fine, ms.t_s, (~fin).astype(float)) > 0.5
+        u_fine[:, i] = np.interp(t_cmd, ms.t_s[fin], col[fin]) if fin.sum() >= 2 else np.nan
+        stopped = np.interp(t_cmd, ms.t_s, (~fin).astype(float)) > 0.5
         u_fine[stopped, i] = np.nan
     motor_dt = float(np.median(np.diff(ms.t_s))) if len(ms.t_s) > 1 else dt
     p = d["position_enu"]

@@ -104,7 +104,7 @@ def _command_late_s(log) -> float:
 
 def _fine_step_late_s(log) -> float:
     """The same for what the model applies over each step of its fine grid (``residuals.lag_states`` holds
-    ``u_fine`` at the step's start over the step), against RotorPy's command averaged over that step."""
+    ``u_fine`` over the step), against RotorPy's command averaged over that step."""
     ms = log.require("motors")
     t = _grid(log)
     up = 10
@@ -129,10 +129,12 @@ def test_the_rotorpy_log_states_its_control_rate_and_the_commands_act_where_the_
     # command is RotorPy's to within 0.01 ms; the old log's (no stated rate) has it act 2 ms before RotorPy does
     assert abs(_command_late_s(new)) < 1e-5
     assert _command_late_s(old) == pytest.approx(0.002, abs=1e-5)
-    # left (docs/discovery.md, tim13): the model's fine grid holds each step's command from the step's start,
-    # half a fine step (1 ms on the 2 ms step of a 50 Hz grid) later than the command it reads, on every log
-    assert _fine_step_late_s(new) == pytest.approx(-0.001, abs=1e-5)
-    assert _fine_step_late_s(old) == pytest.approx(0.001, abs=1e-5)
+    # the model's fine grid holds each step's command over the step and reads it at the step's middle (fs13;
+    # read at the step's start it acted half a fine step, 1 ms on a 50 Hz grid, late): over each fine step the
+    # model applies RotorPy's mean command to within 0.01 ms on the new log, and on the old log the 2 ms the
+    # log does not state
+    assert abs(_fine_step_late_s(new)) < 1e-5
+    assert _fine_step_late_s(old) == pytest.approx(0.002, abs=1e-5)
 
 
 def test_the_rotorpy_imu_is_on_uniform_stamps_centred_in_the_grid_steps(logs):

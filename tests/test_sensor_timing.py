@@ -35,6 +35,64 @@ def test_timing_closed_forms_from_the_log_parameters():
     assert px4_params.sensor_timing({"IMU_GYRO_CUTOFF": 0.0}).gyro_filter_s == 0.0
 
 
+#: a PX4 SIH log's timing parameters in SITL (PX4's defaults there: px4-rc.simulator sets IMU_INTEG_RATE 250)
+SIH_SITL = {"IMU_GYRO_CUTOFF": 40.0, "IMU_INTEG_RATE": 250, "IMU_GYRO_RATEMAX": 800, "SYS_HITL": 0,
+            "SYS_AUTOSTART": 10040}
+
+
+def test_px4_sih_in_sitl_holds_the_command_for_its_lockstep_step():
+    """simulator_sih in SITL (Sih::lockstep_loop) steps at min(IMU_GYRO_RATEMAX, IMU_INTEG_RATE), 500-5000 us,
+    and applies each step's actuator_outputs over the next step: half a 4 ms step, not half of 1/800 s."""
+    assert px4_params.sih_lockstep_step_s(SIH_SITL) == pytest.approx(0.004)
+    t = px4_params.sensor_timing(SIH_SITL)
+    assert t.command_hold_s == pytest.approx(0.002)
+    assert "4 ms PX4 SIH lockstep step" in t.describe()
+    # the filter and the IMU average are as on any PX4 log
+    assert (t.gyro_filter_s, t.imu_average_s) == (px4_params.sensor_timing(dict(SIH_SITL, SYS_AUTOSTART=4001))
+                                                  .gyro_filter_s, 0.5 / 250)
+    # a SIH log is known by its SIH_* parameters where its airframe is another
+    assert px4_params.sensor_timing(dict(SIH_SITL, SYS_AUTOSTART=4001, SIH_MASS=1.0)).command_hold_s == 0.002
+    # not SIH (a real or Gazebo log), or SIH on a flight controller (SYS_HITL 2, real time at IMU_GYRO_RATEMAX)
+    for params in (dict(SIH_SITL, SYS_AUTOSTART=4001), dict(SIH_SITL, SYS_HITL=2), dict(SIH_SITL, SYS_HITL=2,
+                                                                                          SIH_MASS=1.0)):
+        assert px4_params.sih_lockstep_step_s(params) == 0.0
+        assert px4_params.sensor_timing(params).command_hold_s == pytest.approx(0.5 / 800)
+    # the step: the lower rate (PX4's defaults 400 and 200 Hz where the log lacks one, 400 Hz where the lower
+    # is 0), rounded to us, within 500-5000 us
+    base = {"SYS_AUTOSTART": 10040}
+    assert px4_params.sih_lockstep_step_s(dict(base, IMU_GYRO_RATEMAX=400, IMU_INTEG_RATE=1000)) == 0.0025
+    assert px4_params.sih_lockstep_step_s(dict(base, IMU_GYRO_RATEMAX=300, IMU_INTEG_RATE=400)) == 0.003333
+    assert px4_params.sih_lockstep_step_s(dict(base, IMU_GYRO_RATEMAX=100, IMU_INTEG_RATE=100)) == 0.005
+    assert px4_params.sih_lockstep_step_s(dict(base, IMU_GYRO_RATEMAX=4000, IMU_INTEG_RATE=4000)) == 0.0005
+    assert px4_params.sih_lockstep_step_s(base) == 0.005
+    assert px4_params.sih_lockstep_step_s(dict(base, IMU_GYRO_RATEMAX=0)) == 0.0025
+
+
+def test_the_model_applies_a_lockstep_staircase_over_each_fine_step_with_the_stated_hold():
+    """SIH's staircase (each 4 ms step's command, stamped at the step's start, acting over the step), logged
+    every 20 ms: read with the stated hold at each fine step's middle (residuals._fine_commands), the
+    command the model holds over a 2 ms fine step is the staircase's mean over that step, to 0.01 ms of
+    the slope; read at the step's start it was 1 ms late, with the 800 Hz hold 1.4 ms early."""
+    from types import SimpleNamespace
+
+    from twin_nodes.discovery.residuals import _fine_commands
+
+    slope, step_s = 0.03, 0.004
+    stamps = np.arange(0.0, 20.0, 0.02)
+    log = SimpleNamespace(t_s=stamps, values=(0.2 + slope * stamps)[:, None])
+
+    def late_s(hold_s):
+        u, motor_dt = _fine_commands(log, 2.0, 500, 0.02, 10, hold_s)
+        assert motor_dt == pytest.approx(0.02)
+        t_fine = 2.0 + np.arange(5000) * 0.002
+        sub = t_fine[:, None] + (np.arange(40) + 0.5) / 40 * 0.002
+        staircase = np.mean(0.2 + slope * np.floor(sub / step_s + 1e-9) * step_s, axis=1)
+        return float(np.mean(u[:, 0] - staircase) / -slope)
+
+    assert abs(late_s(px4_params.sensor_timing(SIH_SITL).command_hold_s)) < 1e-5
+    assert late_s(0.5 / 800) == pytest.approx(-0.001375, abs=1e-5)
+
+
 @pytest.mark.parametrize("fc", [30.0, 40.0, 80.0])
 def test_gyro_delay_is_the_digital_butterworth_group_delay(fc):
     """PX4's LowPassFilter2p is a bilinear 2nd-order Butterworth on the gyro samples (kHz on real
@@ -69,13 +127,14 @@ def test_re_timing_undoes_the_gyro_filter_delay():
 
 
 def test_discovery_re_times_a_px4_log_and_says_so():
-    """A PX4 SIH log (IMU_GYRO_CUTOFF 40 Hz, IMU_INTEG_RATE 250 Hz, IMU_GYRO_RATEMAX 800 Hz): the
-    flight's ``data.info`` names every shift with its parameter; a log of ours names none."""
+    """A PX4 SIH log (IMU_GYRO_CUTOFF 40 Hz, IMU_INTEG_RATE 250 Hz, IMU_GYRO_RATEMAX 800 Hz, SITL): the
+    flight's ``data.info`` names every shift with its parameter (the command hold: SIH's 4 ms lockstep
+    step); a log of ours names none."""
     log = read_ulog(shared_log("sitl_effects", "e07/flight.ulg"))
     vp = shipped("px4_sih_quadx")
     info = prepare(log, vp).info["timing"]
     for text in ("body rates 5.6 ms earlier (IMU_GYRO_CUTOFF 40 Hz", "sensor_combined 2.0 ms earlier (half an "
-                 "IMU_INTEG_RATE 250 Hz", "motor commands 0.62 ms later (held for one IMU_GYRO_RATEMAX 800 Hz"):
+                 "IMU_INTEG_RATE 250 Hz", "motor commands 2.00 ms later (held for one 4 ms PX4 SIH lockstep step"):
         assert text in info, info
 
 

@@ -133,7 +133,7 @@ def rate_loop(params: Mapping[str, float], vp: VehicleParams) -> RateLoop | None
     out_tau = np.array([0.0, 0.0, 1.0 / (2.0 * math.pi * yaw_fc) if yaw_fc > 0 else 0.0])
     src = (f"gains: {', '.join(sorted({s for s in g.sources}))}",
            f"feedback {1e3 * timing.gyro_filter_s:.1f} ms (IMU_GYRO_CUTOFF group delay), D term {1e3 * d_delay:.1f} ms "
-           f"(IMU_DGYRO_CUTOFF), command {1e3 * (timing.command_hold_s + act):.1f} ms (IMU_GYRO_RATEMAX hold"
+           f"(IMU_DGYRO_CUTOFF), command {1e3 * (timing.command_hold_s + act):.1f} ms (rate-loop step hold"
            + (f" + the model's {1e3 * act:.1f} ms actuator delay" if act else "") + ")"
            + (f"; yaw torque low-pass {yaw_fc:g} Hz (MC_YAW_TQ_CUTOFF)" if yaw_fc > 0 else ""))
     return RateLoop(p=np.array([g.roll_p, g.pitch_p, g.yaw_p]), i=np.array([g.roll_i, g.pitch_i, g.yaw_i]),

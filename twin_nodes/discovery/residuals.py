@@ -113,8 +113,12 @@ def _fine_commands(ms, lo: float, n: int, dt: float, oversample: int, command_ho
                    ) -> tuple[np.ndarray, float]:
     """The motor commands on a grid ``oversample`` times finer than the ``n``-sample grid from ``lo``:
     linear between logged samples, NaN (stopped) kept; and the motor logging interval."""
-    t_fine = lo + np.arange(n * oversample) * (dt / oversample)
-    t_cmd = t_fine - command_hold_s   # the command acting at t_fine was logged this much earlier
+    step = dt / oversample
+    t_fine = lo + np.arange(n * oversample) * step
+    # the model holds u_fine[k] over its whole step [t_fine[k], t_fine[k] + step] (lag_states): read it at
+    # the step's middle, where a held value equals the step's mean, and the command acting there was
+    # logged command_hold_s earlier (read at the step's start it acts half a step, 1 ms, late)
+    t_cmd = t_fine + 0.5 * step - command_hold_s
     u_fine = np.empty((len(t_fine), ms.values.shape[1]))
     for i in range(ms.values.shape[1]):
         col = ms.values[:, i]

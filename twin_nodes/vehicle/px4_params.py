@@ -556,7 +556,41 @@ def sensor_timing(params: Mapping[str, float], path: str = "<log parameters>") -
         src.append(f"sensor_combined {avg * 1e3:.1f} ms earlier (half an IMU_INTEG_RATE {integ:g} Hz interval)")
     ratemax = param(params, "IMU_GYRO_RATEMAX", 0.0)[0]
     hold = 0.5 / ratemax if ratemax > 0 else 0.0
-    if hold:
+    step = sih_lockstep_step_s(params)
+    if step:
+        hold = 0.5 * step
+        src.append(f"motor commands {hold * 1e3:.2f} ms later (held for one {step * 1e3:g} ms PX4 SIH lockstep "
+                   f"step: the lower of IMU_GYRO_RATEMAX {ratemax:g} and IMU_INTEG_RATE {integ:g} Hz)")
+    elif hold:
         src.append(f"motor commands {hold * 1e3:.2f} ms later (held for one IMU_GYRO_RATEMAX {ratemax:g} Hz "
                    "rate-loop step)")
     return SensorTiming(gyro, avg, hold, tuple(src))
+
+
+#: PX4's SITL airframes that start SIH (``SYS_AUTOSTART``, ROMFS init.d-posix ``100xx_sihsim_*``: quad, plane,
+#: tailsitter, VTOL, hexa, rover)
+SIH_SITL_AIRFRAMES = frozenset(range(10040, 10046))
+#: ``SYS_HITL`` value of SIH on a flight controller (``simulator_sih``'s real-time loop, not lockstep)
+SIH_ON_HARDWARE = 2
+
+
+def sih_lockstep_step_s(params: Mapping[str, float]) -> float:
+    """PX4 SIH's lockstep step [s] where the log is a PX4 SIH flight in SITL, else 0.
+
+    ``simulator_sih`` in SITL (``Sih::lockstep_loop``) advances PX4's clock by one step, reads the latest
+    ``actuator_outputs``, integrates over the step and publishes the IMU at the new time; PX4 then runs
+    the whole rate loop at that frozen time (the lockstep waits for every work queue), so each logged
+    output is stamped at a step's start and acts over the step that follows (against commands read
+    linearly between samples, half a step later), whatever ``IMU_GYRO_RATEMAX`` says: the gyro arrives once
+    a step.  The step is 1 / min(IMU_GYRO_RATEMAX, IMU_INTEG_RATE) (PX4's defaults 400 and 200 Hz where the
+    log lacks one; 400 Hz where the lower is 0), rounded to us and kept within 500-5000 us.  A SIH log
+    carries ``SIH_*`` parameters or a SIH airframe (:data:`SIH_SITL_AIRFRAMES`); SIH on a flight
+    controller (``SYS_HITL`` 2) runs in real time at ``IMU_GYRO_RATEMAX``, the rule of
+    :func:`sensor_timing` for every PX4 log."""
+    autostart = param(params, "SYS_AUTOSTART", -1.0)[0]
+    sih = any(k.startswith("SIH_") for k in params) or autostart in SIH_SITL_AIRFRAMES
+    if not sih or param(params, "SYS_HITL", 0.0)[0] == SIH_ON_HARDWARE:
+        return 0.0
+    rate = min(param(params, "IMU_GYRO_RATEMAX", 400.0)[0], param(params, "IMU_INTEG_RATE", 200.0)[0])
+    rate = rate if rate > 0 else 400.0
+    return min(max(round(1e6 / rate), 500), 5000) * 1e-6
