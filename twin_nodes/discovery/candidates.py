@@ -60,6 +60,8 @@ class Candidate:
         return vp.with_effect(self.name, **self.params_dict(theta))
 
 
+#: the label of the body drag along the airspeed, -c_i |v| v_i (RotorPy's parasitic drag law)
+BODY_DRAG_NORM = "body_drag (norm form)"
 #: the label of the one-time-constant motor lag (tau_down = tau_up)
 SYMMETRIC_LAG = "motor_time_constant(tau_up = tau_down)"
 
@@ -119,6 +121,10 @@ def _add_drags(add, r, weight: float, v_typ: float, omega_hover: float, iz: floa
         cd_floor = 0.01 * weight / (v_typ ** 2)
         add("body_drag", ["c_dx", "c_dy", "c_dz"], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0],
             [500 * cd_floor] * 3, lambda th: max(th) > cd_floor)
+        # the same drag along the airspeed (-c_i |v| v_i): off a body axis it differs from the per-axis form; the
+        # selection keeps the variant that explains more (stages.selection._one_variant)
+        add("body_drag", ["c_dx", "c_dy", "c_dz"], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0],
+            [500 * cd_floor] * 3, lambda th: max(th) > cd_floor, fixed={"norm": 1.0}, label=BODY_DRAG_NORM)
     else:
         # a hover still turns its hubs through the air when it yaws: the H-force at each hub damps the yaw by
         # k_d sum|omega_i| (x_i^2 + y_i^2) (RotorPy's rotor drag on a hover with yaw reads as exactly that: q002),
