@@ -25,6 +25,9 @@ def test_both_forms_are_offered_with_the_same_floor_where_the_flight_has_airspee
     drags = [c for c in cands if c.name == "body_drag"]
     assert [c.label for c in drags] == ["body_drag", BODY_DRAG_NORM]
     per_axis, norm = drags
+    # two variants of one effect share its name and parameters: a candidate is itself only (list membership in the
+    # selection compared their arrays and raised)
+    assert norm not in [per_axis] and norm in [per_axis, norm] and per_axis != norm
     assert np.array_equal(per_axis.upper, norm.upper) and np.array_equal(per_axis.x0, norm.x0)
     floor = 0.01 * vp.mass_kg * vp.gravity_m_s2 / 2.0 ** 2        # 1 % of the weight at the 2 m/s flown
     for th in (0.9 * floor, 1.1 * floor):

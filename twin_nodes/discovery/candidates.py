@@ -26,7 +26,7 @@ from twin_nodes.vehicle.params import VehicleParams
 from twin_nodes.physics.effects import EFFECTS, effective_params
 
 
-@dataclass
+@dataclass(eq=False)   # one candidate is one object: two variants of an effect share name and parameters
 class Candidate:
     name: str                      # effect name (physics/effects.py vocabulary)
     param_names: tuple[str, ...]   # names of the fitted parameters (the effect's own)
