@@ -590,6 +590,13 @@ def test_the_explained_share_is_read_over_the_channels_the_candidate_changes():
     assert f.explains == 0.5 and f.rel_improvement == pytest.approx(whole)
 
 
+
+def _mode_basis(nominal) -> np.ndarray:
+    """The four motor-space modes (collective, roll, pitch, yaw) of a vehicle's rotors, unit rows."""
+    b = np.vstack([np.ones(4), nominal.rotors.y_flu_m, -np.asarray(nominal.rotors.x_flu_m),
+                   -np.asarray(nominal.rotors.direction, float)])
+    return b / np.linalg.norm(b, axis=1, keepdims=True)
+
 def test_a_torque_s_share_is_read_over_the_modes_it_moves_not_the_collective():
     """A damping or yaw moment cannot move the collective: its share is read over the moment modes it moves
     (u017's shape: a yaw error a damping halves beside a collective error four times as large)."""
@@ -601,9 +608,7 @@ def test_a_torque_s_share_is_read_over_the_modes_it_moves_not_the_collective():
     nominal = shipped("px4_sih_quadx")
     rng = np.random.default_rng(7)
     n = 600
-    b = np.vstack([np.ones(4), nominal.rotors.y_flu_m, -np.asarray(nominal.rotors.x_flu_m),
-                   -np.asarray(nominal.rotors.direction, float)])
-    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    b = _mode_basis(nominal)
     collective, yaw = rng.normal(0, 0.04, n), rng.normal(0, 0.01, n)
     forces = rng.normal(0, 0.02, (n, 2))
     R0 = np.column_stack([np.outer(collective, b[0]) + np.outer(yaw, b[3]), forces])
@@ -827,9 +832,7 @@ def test_a_yaw_moment_s_share_over_the_yaw_mode_counts_where_the_output_error_co
     nominal = shipped("px4_sih_quadx")
     rng = np.random.default_rng(11)
     n = 800
-    b = np.vstack([np.ones(4), nominal.rotors.y_flu_m, -np.asarray(nominal.rotors.x_flu_m),
-                   -np.asarray(nominal.rotors.direction, float)])
-    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    b = _mode_basis(nominal)
     collective, yaw = rng.normal(0, 0.04, n), rng.normal(0, 0.01, n)
     R0 = np.column_stack([np.outer(collective, b[0]) + np.outer(yaw, b[3]), rng.normal(0, 0.02, (n, 2))])
     test = np.zeros(n, bool)
