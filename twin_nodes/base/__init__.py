@@ -1,4 +1,4 @@
-"""Foundations every layer may use: one-line errors and the only NED/FRD <-> ENU/FLU frame conversion.
+"""Foundations every layer may use: one-line errors, the only NED/FRD <-> ENU/FLU frame conversion, constants.
 
 May import: nothing from twin_nodes.
 """
