@@ -21,9 +21,10 @@ from twin_nodes.vehicle.params import shipped
 
 def test_the_lag_is_judged_on_both_folds_held_out_windows():
     """PX4 SIH e04 (SIH_T_TAU 0.09, 50 Hz): fold 1 alone (fold 2's held-out part emptied: its split before the
-    flight): the last 35 % held out, cut 93.6 %, sums of squares lag 10779 < delay 11266 < model 11674; both folds
-    pooled (the first 35 % at fold 2's lag as well): cut 93.9 %, lag 21393 < delay 22822 < model 23881, the
-    model's sum of squares both parts' (twice fold 1's alone).  SIH's e04 excites the whole flight alike; on
+    flight): the last 35 % held out, cut 92.3 %, sums of squares lag 10864 < delay 11361 < model 11720; both folds
+    pooled (the first 35 % at fold 2's lag as well): cut 92.8 %, lag 21587 < delay 23030 < model 23933, the
+    model's sum of squares both parts' (twice fold 1's alone).  (With SIH's lockstep hold and the fine step read
+    at its middle, fs14; before them the cuts were 93.6 / 93.9 %.)  SIH's e04 excites the whole flight alike; on
     the take-off-and-land mission M5 (s013, SIH_T_TAU 0.08) fold 1's lag and delay tie (3939 / 3939), pooled
     they do not (7490 / 7540)."""
     vp = shipped("px4_sih_quadx")
@@ -35,7 +36,7 @@ def test_the_lag_is_judged_on_both_folds_held_out_windows():
     one = rl.motor_lag(data, log.params, vp, t1, t[0] - 1.0)
     cut = {k: 1.0 - r["heldout_after"] / r["heldout_before"] for k, r in (("both", both), ("one", one))}
     assert both["flagged"] and both["tau_fold1"] == pytest.approx(one["tau_fold1"])
-    assert cut["both"] == pytest.approx(0.939, abs=0.01) and cut["one"] == pytest.approx(0.936, abs=0.01)
+    assert cut["both"] == pytest.approx(0.928, abs=0.01) and cut["one"] == pytest.approx(0.923, abs=0.01)
     assert both["heldout_sse"]["model"] > 1.5 * one["heldout_sse"]["model"]
     for r in (both, one):
         assert r["heldout_sse"]["lag"] < r["heldout_sse"]["delay"] < r["heldout_sse"]["model"]

@@ -210,13 +210,14 @@ def test_vehicle_twin_from_real_flights_and_what_changed_on_an_earlier_flight(tm
     assert got["kt_v_flight"] == pytest.approx(11.12, abs=0.05)
     assert got["kt_per_mass_at_twin_v"] == pytest.approx(4.737 * (11.77 / 11.12) ** 1.731, rel=0.02)
     assert got["kt_per_mass_at_twin_v"] == pytest.approx(5.23, abs=0.05) and "kt_per_mass" not in got["differs"]
-    # the two flights' sag exponents agree within their uncertainty (2.00 ± 0.19, 1.46 ± 0.09: chi^2 6.6 < 9), so
-    # carrying log_20 0.65 V up adds the exponent's se (0.27): 5.23 x ln(11.77/11.12) x 0.27 = 0.08 to its band
+    # the two flights' sag exponents agree within their uncertainty (chi^2 4.6 < 9; 6.6 before the take-off spot
+    # was left out), so carrying log_20 0.65 V up adds the exponent's se (0.22; 0.27 before):
+    # 5.23 x ln(11.77/11.12) x 0.22 = 0.066 to its band
     e = ref["pooled"]["battery_exponent"]
-    assert e["consistent"] is True and e["se"] == pytest.approx(0.27, abs=0.03)
+    assert e["consistent"] is True and e["se"] == pytest.approx(0.224, abs=0.03)
     assert got["kt_per_mass_at_twin_v_se"] == pytest.approx(
         got["kt_per_mass_at_twin_v"] * math.log(11.77 / 11.12) * e["se"], rel=0.05)
-    assert got["kt_per_mass_at_twin_v_se"] == pytest.approx(0.08, abs=0.015)
+    assert got["kt_per_mass_at_twin_v_se"] == pytest.approx(0.066, abs=0.015)
 
 
 def test_vehicle_report_names_a_payload_and_a_pwm_range_change_at_their_flights():
@@ -505,21 +506,31 @@ def test_a_sag_exponent_the_flights_disagree_on_widens_the_band_it_carries_a_fli
 
 @need_shared
 def test_the_twin_names_a_sag_exponent_its_flights_disagree_on_and_states_what_it_costs():
-    """7 Jun log_30 and log_38 (one configuration, MAIN1-4): their sag exponents disagree (1.71 ± 0.12, 2.65 ±
-    0.14); the header names both and states the thrust's uncertainty 1 V below the twin's voltage (ln(10.23/11.23)
-    x 0.67 = 6 %); the twin still flies their mean (without a sag or with 1 it predicted later flights worse,
-    docs/fleet.md sag12)."""
-    from twin_nodes.fleet.vehicle_twin import build
+    """7 Jun log_30 and log_38 (one configuration, MAIN1-4): their sag exponents as identified with the take-off
+    spot in disagree (1.71 ± 0.12, 2.65 ± 0.14); the header names both and states the thrust's uncertainty 1 V
+    below the twin's voltage (ln(10.11/11.11) x 0.66 = 6 %); the twin still flies their mean (without a sag or
+    with 1 it predicted later flights worse, docs/fleet.md sag12)."""
+    from twin_nodes.fleet.vehicle_twin import from_flights, read_flights
 
-    vt = build([str(SHARED / "ZweiterFlugtag" / n) for n in ("log_30_2023-6-7-12-11-06.ulg",
-                                                             "log_38_2023-6-7-13-54-52.ulg")])
+    flights, left_out = read_flights([str(SHARED / "ZweiterFlugtag" / n) for n in ("log_30_2023-6-7-12-11-06.ulg",
+                                                                                   "log_38_2023-6-7-13-54-52.ulg")])
+    # since the take-off spot is left out of the identification (identify/fit_mask.on_spot, 3.6 / 5.7 s of these two
+    # flights) log_30 reads 0.55 ± 0.12 and log_38 no significant sag: the two exponents measured before it (with
+    # the spot's ground-carried seconds in) are put back here to test how a disagreement is pooled and stated
+    got = {f["name"]: f["facts"].get("battery_exponent", math.nan) for f in flights}
+    assert got["ZweiterFlugtag/log_30_2023-6-7-12-11-06.ulg"] == pytest.approx(0.55, abs=0.05)
+    assert math.isnan(got["ZweiterFlugtag/log_38_2023-6-7-13-54-52.ulg"])
+    for f, (x, se) in zip(flights, ((1.71, 0.12), (2.65, 0.14))):
+        f["facts"]["battery_exponent"], f["facts"]["battery_exponent_se"] = x, se
+    vt = from_flights(flights, left_out)
     e = vt.pooled["battery_exponent"]
-    assert e.n == 2 and not e.consistent and e.chi2 == pytest.approx(27.8, abs=1.5)
+    assert e.n == 2 and not e.consistent and e.chi2 == pytest.approx((2.65 - 1.71) ** 2 / (0.12 ** 2 + 0.14 ** 2))
     assert e.mean == pytest.approx(2.18, abs=0.03) and e.scatter == pytest.approx(0.67, abs=0.03)
     assert "log_30_2023-6-7-12-11-06.ulg 1.71" in vt.header and "log_38_2023-6-7-13-54-52.ulg 2.65" in vt.header
     assert "the flights disagree beyond their uncertainty (chi^2 2" in vt.header
     v_ref = vt.pooled["kt_v_ref"].mean
-    assert v_ref == pytest.approx(11.68, abs=0.05) and vt.pooled["kt_v_ref"].consistent
+    # the pack voltage the thrust is pooled at: 11.68 V with the take-off spot in, 11.11 V without it
+    assert v_ref == pytest.approx(11.11, abs=0.05) and vt.pooled["kt_v_ref"].consistent
     assert f"± {abs(math.log((v_ref - 1) / v_ref)) * e.scatter:.0%} 1 V below" in vt.header
     assert "± 6% 1 V below" in vt.header
     sag = vt.params.to_ros_dict()["effects"]["battery_sag"]
