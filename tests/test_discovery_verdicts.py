@@ -21,6 +21,7 @@ from conftest import missing_shared
 
 from twin_nodes.discovery.discover import Fit, discover
 from twin_nodes.discovery.plans import manoeuvre, plan_for, plan_yaml, write_plans
+from twin_nodes.discovery.residuals import mode_basis
 from twin_nodes.discovery.verdicts import grade
 from twin_nodes.logs.ulog_io import read_ulog
 from twin_nodes.mavlink.mission import load_plan
@@ -240,9 +241,7 @@ def test_locate_output_flags_mode_windows_above_3x_typical_error_merged_by_overl
     err = np.zeros((k, 6))  # per window, axes in mode units: throttle, roll, pitch, yaw
     err[20:26, 3] = [3.5, 5.0, 4.0, 2.0, 2.0, 3.2]   # 20-22 overlap (4.0-4.8 s), 25 alone (5.0-5.4 s)
     err[60, 1] = 4.0                             # a roll window at 12 s (hover)
-    r = vp.rotors
-    b = np.vstack([np.ones(4), r.y_flu_m, -np.array(r.x_flu_m), -np.array(r.direction, float)])
-    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    b = mode_basis(vp.rotors)
     R = np.column_stack([err[:, :4] @ np.linalg.pinv(b).T, np.zeros((k, 2))])  # as output_error lays them
     out = locate_output(data, win, R, vp)
     assert [(m["channel"], m["t_start"], m["t_end"], m["severity"]) for m in out] == [
@@ -591,12 +590,6 @@ def test_the_explained_share_is_read_over_the_channels_the_candidate_changes():
 
 
 
-def _mode_basis(nominal) -> np.ndarray:
-    """The four motor-space modes (collective, roll, pitch, yaw) of a vehicle's rotors, unit rows."""
-    b = np.vstack([np.ones(4), nominal.rotors.y_flu_m, -np.asarray(nominal.rotors.x_flu_m),
-                   -np.asarray(nominal.rotors.direction, float)])
-    return b / np.linalg.norm(b, axis=1, keepdims=True)
-
 def test_a_torque_s_share_is_read_over_the_modes_it_moves_not_the_collective():
     """A damping or yaw moment cannot move the collective: its share is read over the moment modes it moves
     (u017's shape: a yaw error a damping halves beside a collective error four times as large)."""
@@ -608,7 +601,7 @@ def test_a_torque_s_share_is_read_over_the_modes_it_moves_not_the_collective():
     nominal = shipped("px4_sih_quadx")
     rng = np.random.default_rng(7)
     n = 600
-    b = _mode_basis(nominal)
+    b = mode_basis(nominal.rotors)
     collective, yaw = rng.normal(0, 0.04, n), rng.normal(0, 0.01, n)
     forces = rng.normal(0, 0.02, (n, 2))
     R0 = np.column_stack([np.outer(collective, b[0]) + np.outer(yaw, b[3]), forces])
@@ -832,7 +825,7 @@ def test_a_yaw_moment_s_share_over_the_yaw_mode_counts_where_the_output_error_co
     nominal = shipped("px4_sih_quadx")
     rng = np.random.default_rng(11)
     n = 800
-    b = _mode_basis(nominal)
+    b = mode_basis(nominal.rotors)
     collective, yaw = rng.normal(0, 0.04, n), rng.normal(0, 0.01, n)
     R0 = np.column_stack([np.outer(collective, b[0]) + np.outer(yaw, b[3]), rng.normal(0, 0.02, (n, 2))])
     test = np.zeros(n, bool)

@@ -14,7 +14,7 @@ import pytest
 from twin_nodes.discovery import evaluate
 from twin_nodes.discovery.candidates import build_candidates, full_pack_voltage
 from twin_nodes.discovery.judging import BLOCK_S, Judge, _blocks, _mode_cut
-from twin_nodes.discovery.residuals import modes
+from twin_nodes.discovery.residuals import mode_basis, modes
 from twin_nodes.discovery.stages import joint, selection, verdicts
 from twin_nodes.vehicle.params import shipped
 
@@ -127,9 +127,7 @@ def test_the_mode_cut_is_read_in_one_mode():
     m0 = rng.normal(size=(400, 6))
     # a residual built in mode space: halve the yaw mode only
     _, names = modes(m0, vp)
-    r = vp.rotors
-    b = np.vstack([np.ones(r.count), np.array(r.y_flu_m), -np.array(r.x_flu_m), -np.array(r.direction, float)])
-    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    b = mode_basis(vp.rotors)
     R0 = np.column_stack([m0[:, :4] @ np.linalg.inv(b.T), m0[:, 4:]])
     m1 = m0.copy()
     m1[:, names.index("yaw")] *= 0.5

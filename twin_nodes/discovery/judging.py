@@ -412,9 +412,7 @@ def assess(c: Candidate, data: EquationData | Judge, nominal: VehicleParams, R0:
             first = (theta, vp_c, cost, R1)
     theta, vp_c, cost, R1 = first
     held_mask = judge.held_mask
-    test_all = np.zeros(len(R0), bool)
-    for _, test_mask in judge.folds:
-        test_all |= test_mask
+    test_all = np.logical_or.reduce([test_mask for _, test_mask in judge.folds])   # both folds' held-out rows
     h0 = np.sqrt(np.mean(R0[test_all] ** 2))
     hcv = np.sqrt(np.mean(Rcv[test_all] ** 2))
     stats = _block_stats(R0, Rcv, judge.blocks, OE_MIN_CHANGE if judge.lean else 0.0,

@@ -38,7 +38,7 @@ import numpy as np
 
 from twin_nodes.base import frames
 from twin_nodes.discovery.kernels import kernels
-from twin_nodes.discovery.residuals import EquationData, exogenous, fine_commands, model_rotor_states
+from twin_nodes.discovery.residuals import EquationData, exogenous, fine_commands, mode_basis, model_rotor_states
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.physics.effects import effective_params
 from twin_nodes.physics.model import Multirotor
@@ -421,10 +421,7 @@ def output_error(data: EquationData, win: Windows, vp: VehicleParams, nominal: V
     vertical channel's noise.  Unused axes contribute nothing."""
     meas, pred = axis_errors(data, win, vp, rows)
     err = (meas - pred) * win.usable[None, :] / win.scale[None, :]
-    r = nominal.rotors
-    n_rot = r.count
-    b = np.vstack([np.ones(n_rot), np.array(r.y_flu_m), -np.array(r.x_flu_m), -np.array(r.direction, float)])
-    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    b = mode_basis(nominal.rotors)
     # modes() projects per-motor channels with b; pinv(b) puts the axis errors back exactly
     per_motor = err[:, 2:6] @ np.linalg.pinv(b).T
     R = np.column_stack([per_motor, np.zeros((len(err), 2))])

@@ -534,12 +534,17 @@ def channel_names(n_rotors: int) -> list[str]:
     return [f"motor{i + 1}" for i in range(n_rotors)] + ["force_x", "force_y"]
 
 
+def mode_basis(rotors) -> np.ndarray:
+    """(4, rotors) the collective (throttle), roll, pitch and yaw patterns of the per-motor errors: the
+    effectiveness matrix's rows at unit norm (so the units stay fraction of full motor output)."""
+    b = np.vstack([np.ones(rotors.count), np.array(rotors.y_flu_m), -np.array(rotors.x_flu_m),
+                   -np.array(rotors.direction, float)])
+    return b / np.linalg.norm(b, axis=1, keepdims=True)
+
+
 def modes(R: np.ndarray, vp: VehicleParams) -> tuple[np.ndarray, list[str]]:
-    """Residual channels rotated into physical modes: collective (throttle), roll, pitch and yaw
-    patterns of the per-motor errors (unit-norm rows of the effectiveness matrix, so the units
-    stay fraction of full motor output), plus the horizontal force channels."""
-    r = vp.rotors
-    n = r.count
-    b = np.vstack([np.ones(n), np.array(r.y_flu_m), -np.array(r.x_flu_m), -np.array(r.direction, float)])
-    b = b / np.linalg.norm(b, axis=1, keepdims=True)
-    return np.column_stack([R[:, :n] @ b.T, R[:, n:]]), ["throttle", "roll", "pitch", "yaw", "force_x", "force_y"]
+    """Residual channels rotated into physical modes (:func:`mode_basis`), plus the horizontal force
+    channels."""
+    n = vp.rotors.count
+    return (np.column_stack([R[:, :n] @ mode_basis(vp.rotors).T, R[:, n:]]),
+            ["throttle", "roll", "pitch", "yaw", "force_x", "force_y"])

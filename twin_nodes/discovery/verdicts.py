@@ -271,14 +271,13 @@ def mode_share(name: str, kind: str, R0: np.ndarray, R1: np.ndarray, nominal) ->
     physical modes it moves (``residuals.modes``: an orthonormal rotation of the motor channels, where they are
     one), 1 - RMS(R1) / RMS(R0) over those modes; None where it does not apply (another effect or residual, not
     four rotors in a rotation, the collective moved, nothing moved).  ``R0``, ``R1``: (n, rotors + 2)."""
-    from twin_nodes.discovery.residuals import modes
+    from twin_nodes.discovery.residuals import mode_basis, modes
 
     r = nominal.rotors
     if (name not in MOMENT_SHARE + CORROBORATED_SHARE or kind != "equation" or R0.size == 0
             or R0.shape[1] != r.count + 2):
         return None
-    b = np.vstack([np.ones(r.count), np.array(r.y_flu_m), -np.array(r.x_flu_m), -np.array(r.direction, float)])
-    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    b = mode_basis(r)
     if r.count != 4 or not np.allclose(b @ b.T, np.eye(4), atol=1e-6):
         return None
     m0, m1 = modes(R0, nominal)[0], modes(R1, nominal)[0]

@@ -83,9 +83,7 @@ def run(q: JudgeQuery) -> JudgedFits:
 def _corroborated(out: dict[str, list[Fit]], R0: np.ndarray, eq: Judge, vp: VehicleParams) -> None:
     """A yaw moment's share read over the yaw mode where its output-error fit corroborates its equation-error fit
     (``verdicts.CORROBORATED_SHARE``): its acceptance judged again on that share."""
-    rows = np.zeros(len(R0), bool)
-    for _, test_mask in eq.folds:
-        rows |= test_mask
+    rows = np.logical_or.reduce([test_mask for _, test_mask in eq.folds])   # both folds' held-out rows
     for fits in out.values():
         f = next((g for g in fits if g.kind == "equation"), None)
         share = corroborated_share(f, next((g for g in fits if g.kind == "output"), None), R0, rows, vp, T_CRIT)
