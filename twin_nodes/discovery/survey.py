@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 from twin_nodes.base.errors import LogError, TwinError, one_line
+from twin_nodes.logs.ulog_io import NO_MOTOR_OUTPUTS
 
 #: the reference paper's Table 2 (Búho Negro twin vs real): the bar a real-vehicle twin is judged by
 PAPER_TABLE2 = {"throttle_rmse": 0.052, "motor_p75_best": 0.012, "motor_p75_worst": 0.112, "xy_rmse_m": 3.35,
@@ -27,9 +28,11 @@ THROTTLE_HF_FACTOR = 1.25
 #: the metrics a row carries from the closed-loop held-out run
 ROW_KEYS = ("throttle_rmse", "motor_p75_mean", "xy_rmse_m", "z_rmse_m", "throttle_real_hf_rms", "controlled_s",
             "divergence", "estimate_failed_s", "motor_real_hf_p75_mean")
-#: a LogError naming one of these is a flight left out (no flight to fit), not a failure; "usable airborne
-#: data": it flew, but less than 5 s are left once ground contact is taken out (a hop, a held take-off)
-LEFT_OUT_KINDS = ("never airborne", "never left the ground", "too short", "usable airborne data")
+#: a LogError naming one of these is a flight left out (no flight to fit, or no motor outputs to compare the
+#: twin's with), not a failure; "usable airborne data": it flew, but less than 5 s are left once ground
+#: contact is taken out (a hop, a held take-off); ulog_io.NO_MOTOR_OUTPUTS: no output channel moves while armed
+LEFT_OUT_KINDS = ("never airborne", "never left the ground", "too short", "usable airborne data",
+                  NO_MOTOR_OUTPUTS)
 
 
 def survey_flight(path: str | Path, params: str | Path | None = None) -> dict:
@@ -239,5 +242,6 @@ def markdown_table(rows: list[dict]) -> str:
     lines.append("")
     lines.append(f"{n_met} of {len(ok)} flown flights meet every target (throttle ≤ max(3 %, "
                  f"{THROTTLE_HF_FACTOR:g}× its >0.5 Hz content), per-motor P75 ≤ 5 %, XY ≤ 1.0 m and Z ≤ 0.5 m "
-                 f"where PX4 controlled them, no divergence); {left} left out (no flight to fit), {failed} failed.")
+                 f"where PX4 controlled them, no divergence); {left} left out (no flight to fit, or no motor "
+                 f"outputs), {failed} failed.")
     return "\n".join(lines)

@@ -242,6 +242,12 @@ class Series:
         return time_sync.interp_to(self.t_s, self.values, t_s, kind=kind or self.interp)
 
 
+#: the words a ``motors`` LogError ends with when no output channel moves while armed (the motors are driven
+#: by something the log does not record: a simulator's own link, an external ESC bus); ``survey`` leaves such a
+#: log out instead of counting it as a failure (:data:`twin_nodes.discovery.survey.LEFT_OUT_KINDS`)
+NO_MOTOR_OUTPUTS = "this log carries no motor outputs"
+
+
 @dataclass
 class FlightLog:
     """A PX4 flight log in ROS frames.  See the module docstring."""
@@ -282,6 +288,8 @@ class FlightLog:
             expected = (f"expected series '{name}' ({what[0]}, {what[1]})"
                         + (f" from PX4's {px4}" if px4 else "") + ", not in this log"
                         if what else f"expected series '{name}'; known: {', '.join(SERIES_SPEC)}")
+            if name == "motors" and self.moving_outputs is not None and self.moving_outputs[0] == 0:
+                expected += f": no channel of {self.moving_outputs[1]} moves while armed, {NO_MOTOR_OUTPUTS}"
             raise LogError(self.path, name, expected)
         return s
 
