@@ -54,6 +54,38 @@ def test_mass_and_thrust_coefficient_are_one_class_compared_as_thrust_per_mass()
     assert compare(t, "yaw_moment", {"km": 0.03}, vp)[0] == math.inf
 
 
+def test_a_co_flown_effect_is_scored_in_the_mass_or_thrust_reading_the_findings_chose():
+    """RotorPy r070: thrust coefficient 0.87 with the yaw factor 1.5 (km 0.0345 in our torque per thrust) found as
+    mass 1.15 beside a yaw moment: the twin kept its thrust, so its km reads the real torque per the model's thrust,
+    0.0345 x 0.87 = 0.030, and an inertia x1.15; a true mass found as a thrust coefficient reads them the other way
+    (x m / m0).  Without a swap nothing is translated."""
+    from twin_nodes.prove.grid_prove import score_grid_flight
+
+    vp = shipped("px4_sih_quadx")
+    kt = Truth(Hidden("thrust_coefficient", {"kt_scale": 0.87}))
+    yaw = Truth(Hidden("yaw_moment", {"km": 0.0345}))
+    res = _res({"name": "mass", "verdict": "confirmed", "params": {"mass": vp.mass_kg / 0.87}},
+               {"name": "yaw_moment", "verdict": "confirmed", "params": {"km": 0.0345 * 0.87}})
+    row = score_grid_flight("r070", [kt, yaw], res, vp)
+    assert row["named"] == ["thrust_coefficient", "yaw_moment"] and row["passed"]
+    assert row["param_errors"]["yaw_moment"] == pytest.approx(0.0, abs=1e-12)
+    # the same km found beside a thrust-coefficient finding is 13 % off (no swap, no translation)
+    res2 = _res({"name": "thrust_coefficient", "verdict": "confirmed", "params": {"kt_scale": 0.87}},
+                {"name": "yaw_moment", "verdict": "confirmed", "params": {"km": 0.0345 * 0.87}})
+    row2 = score_grid_flight("r070", [kt, yaw], res2, vp)
+    assert row2["param_errors"]["yaw_moment"] == pytest.approx(0.13, abs=1e-9) and not row2["passed"]
+    # a true mass 1.2 found as kt_scale 1/1.2 beside an inertia: the inertia reads / 1.2
+    i0 = vp.inertia
+    ine = Truth(Hidden("inertia", {"ixx": 1.3 * i0[0, 0], "iyy": 1.3 * i0[1, 1], "izz": i0[2, 2]}))
+    mass = Truth(Hidden("mass", {"mass": 1.2 * vp.mass_kg}))
+    res3 = _res({"name": "thrust_coefficient", "verdict": "confirmed", "params": {"kt_scale": 1 / 1.2}},
+                {"name": "inertia", "verdict": "likely",
+                 "params": {"ixx": 1.3 / 1.2 * i0[0, 0], "iyy": 1.3 / 1.2 * i0[1, 1], "izz": i0[2, 2] / 1.2}})
+    row3 = score_grid_flight("x", [mass, ine], res3, vp)
+    assert row3["param_errors"]["inertia"] == pytest.approx(0.0, abs=1e-9) and row3["passed"]
+    assert scoring.in_reading(ine, 1.0) is ine
+
+
 def test_a_wind_and_a_com_offset_are_scored_as_vectors():
     vp = shipped("px4_sih_quadx")
     # a 3.5 m/s wind 6.4 degrees off the y axis, found 0.26 m/s off: 7.4 % of its speed, although its small x

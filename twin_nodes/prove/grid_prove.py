@@ -92,13 +92,17 @@ def score_grid_flight(flight: str, truths: list[Truth], result: dict, nominal, d
 
 
 def _per_mass(real: list[Truth], found: list[dict], nominal) -> float:
-    """The true mass over the model's where a true mass change was found as a thrust coefficient (the model
-    kept its mass, so a drag found beside it is per the model's mass: :func:`scoring.compare`), else 1."""
-    mass = next((t for t in real if t.hidden.name == "mass"), None)
-    if mass is None or any(e["name"] == "mass" for e in found) or \
-            not any(e["name"] == "thrust_coefficient" for e in found):
-        return 1.0
-    return float(mass.hidden.params["mass"]) / nominal.mass_kg
+    """The real thrust per command over the findings' reading's, where a true mass change was found as a
+    thrust coefficient (the true mass over the model's: the model kept its mass) or a true thrust coefficient
+    as a mass (its kt_scale: the model kept its thrust), else 1; what the flight's other findings are read at
+    (:func:`scoring.compare`)."""
+    names = {e["name"] for e in found}
+    for t in real:
+        if t.hidden.name == "mass" and "thrust_coefficient" in names and "mass" not in names:
+            return float(t.hidden.params["mass"]) / nominal.mass_kg
+        if t.hidden.name == "thrust_coefficient" and "mass" in names and "thrust_coefficient" not in names:
+            return float(t.hidden.params["kt_scale"])
+    return 1.0
 
 
 def summarize(rows: list[dict]) -> dict:

@@ -193,6 +193,25 @@ def _drag_laws(vp: VehicleParams) -> list[tuple[str, dict]]:
 DRAG_COEFFICIENTS = {"linear_drag": ("k_n_s_m",), "rotor_drag": ("k_d",), "body_drag": ("c_dx", "c_dy", "c_dz")}
 
 
+#: parameters of a co-flown effect that a mass <-> thrust-coefficient reading rescales, as the power of
+#: ``per_mass`` the finding reads them at: the reading's thrust per command is the real one over ``per_mass``,
+#: so a torque per thrust (km) and a CoM lever (the thrust, or the model's weight, times dx/dy) read
+#: x per_mass, an inertia (turn rate per thrust difference) / per_mass (r070: thrust coefficient 0.87 found
+#: as mass 1.15 beside a yaw moment: km 0.030 = 0.0345 x 0.87, Ixx x1.15); drags: :data:`DRAG_COEFFICIENTS`
+READING_POWERS = {"yaw_moment": {"km": 1}, "com_offset": {"dx": 1, "dy": 1},
+                  "inertia": {"ixx": -1, "iyy": -1, "izz": -1}}
+
+
+def in_reading(truth: Truth, per_mass: float) -> Truth:
+    """``truth`` as a finding made in the flight's other mass/thrust reading reads it (:data:`READING_POWERS`);
+    itself where ``per_mass`` is 1 or its effect is not one a reading rescales."""
+    powers = READING_POWERS.get(truth.hidden.name)
+    if per_mass == 1.0 or not powers:
+        return truth
+    params = {k: v * per_mass ** powers[k] if k in powers else v for k, v in truth.hidden.params.items()}
+    return Truth(Hidden(truth.hidden.name, params), f"{truth.text} (x{per_mass:.3g} reading)", truth.drag_law)
+
+
 def compare(truth: Truth, found_name: str, found: dict, nominal: VehicleParams,
             drag: DragContext | None = None, per_mass: float = 1.0,
             not_identified: frozenset = frozenset()) -> tuple[float | None, str]:
@@ -204,12 +223,16 @@ def compare(truth: Truth, found_name: str, found: dict, nominal: VehicleParams,
     flight's airspeeds, nominal drag included (the truth's total against the nominal plus the finding).
     Another class: ``(inf, 'wrong effect')``.
 
-    ``per_mass``: the true mass over the model's where the flight's mass change was found as a thrust
-    coefficient (the model keeps its own mass): a drag found beside it is a force per the model's mass, and the
-    IMU fixes only force per unit mass, so the found drag is read at the true mass (times ``per_mass``).
+    ``per_mass``: the real thrust per command over the finding's reading's, where the flight's mass or thrust
+    change was found as the other (``grid_prove._per_mass``: the true mass over the model's, or the true thrust
+    coefficient): a drag found beside it is a force per the model's mass, and the IMU fixes only force per unit
+    mass, so the found drag is read at the true mass (times ``per_mass``); a yaw moment, CoM offset or inertia
+    is scored against the truth in that reading (:func:`in_reading`).
 
     ``not_identified``: the finding's own parameters it held at the model's value as not shown by the flight
     (same effect only): not scored, named in the text (an inertia axis the flight never excites)."""
+    if found_name == truth.hidden.name:
+        truth = in_reading(truth, per_mass)
     h = truth.hidden
     if per_mass != 1.0 and effect_class(h.name) == "drag" and found_name == h.name and truth.drag_law is None:
         found = {k: v * per_mass if k in DRAG_COEFFICIENTS.get(found_name, ()) else v for k, v in found.items()}
