@@ -161,21 +161,16 @@ def _grid_flight(fid: str):
     return grid_prove.run_one(next(j for j in jobs if j[1].id == fid))
 
 
-#: why r070 fails on a new-writer log (tim13): it is found as the mass reading (mass 1.15, Ixx x1.15, Izz / 1.5,
-#: i.e. km 0.030), and the score reads the yaw moment against the thrust-coefficient reading's km 0.0345: 13 % off
-R070_NEW_WRITER = "the mass reading's km scored against the thrust-coefficient reading's (13 % off)"
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("fid,truth", [("r057", {"rotor_drag", "mass"}), ("r071", {"battery_sag", "yaw_moment"}),
-                                       pytest.param("r070", {"thrust_coefficient", "yaw_moment"},
-                                                    marks=pytest.mark.xfail(strict=True, reason=R070_NEW_WRITER)),
+                                       ("r070", {"thrust_coefficient", "yaw_moment"}),
                                        ("q017", {"motor_time_constant", "inertia"}),
                                        ("q034", {"battery_sag", "inertia"})])
 def test_both_effects_of_a_two_effect_grid_flight(fid, truth):
     # r057: rotor drag + mass 1.15x (found as thrust coefficient 0.87 and body drag: drag class, k_eq within 10 %);
     # r071: battery sag + yaw moment 1.5x (before: the yaw moment was read as an inertia with izz alone);
-    # r070: thrust coefficient 0.87 + yaw moment 1.5x (before: inertia + mass; then an inertia whose never-excited
+    # r070: thrust coefficient 0.87 + yaw moment 1.5x, found as the mass reading (mass 1.15, km 0.030 scored in that
+    #   reading: scoring.in_reading; before: inertia + mass; then an inertia whose never-excited
     #   Iyy moved to a third of nominal won the rival path; now that axis is held: the rival path);
     # q017: lag + inertia x1.6, both confirmed (the lag's stale pair carried the inertia fitted alone, Ixx +11 %);
     # q034: battery sag + inertia on a fast descent that never commands pitch (Iyy was read at 15 % of nominal)
