@@ -326,7 +326,7 @@ def test_survey_every_flight_gets_a_row(tmp_path, monkeypatch):
     for r in rows[1:]:
         assert f"| {r['flight']} | failed: " in md
     assert all("\n" not in r["error"] for r in rows)
-    assert "1 left out (no flight to fit), 2 failed" in md
+    assert "1 left out (no flight to fit, or no motor outputs), 2 failed" in md
 
 
 def test_survey_cli_markdown_lists_failed_flights(tmp_path, capsys):
@@ -379,4 +379,4 @@ def test_a_flight_with_too_little_usable_airborne_data_is_left_out_not_failed(tm
     monkeypatch.setattr(survey, "survey_flight", refuse)
     rows = survey.survey_rows([hop], PARAMS)
     assert rows[0]["status"] == "left_out" and "usable airborne data" in rows[0]["error"]
-    assert "1 left out (no flight to fit), 0 failed" in survey.markdown_table(rows)
+    assert "1 left out (no flight to fit, or no motor outputs), 0 failed" in survey.markdown_table(rows)
