@@ -33,6 +33,18 @@ def test_a_step_on_two_flights_is_found_at_its_first_flight_a_single_excursion_i
     assert s.excursions == [3]
 
 
+def test_a_new_level_may_scatter_by_a_fraction_of_its_step_two_unlike_excursions_stay_excursions():
+    """The real fleet's 23 Jun gripper: CoM dx ~0 mm for months, then 112 and 96 mm on two flights in a row (16 mm
+    apart, the band +-7.5 mm): a step of +104 mm (STEP_COHESION 0.25 of the step lets its flights differ by 26 mm);
+    two same-side flights at 20 and 100 mm do not hold together as one level: excursions."""
+    base = [0.001, -0.002, 0.0, 0.002, -0.001, 0.001, 0.0, -0.002]
+    s = ch.find_steps("com_dx_m", base + [0.112, 0.096] + base[:3])
+    assert [(st.first, st.last) for st in s.steps][:1] == [(8, 9)]
+    assert s.steps[0].size == pytest.approx(0.104, abs=0.002) and s.excursions == []
+    s = ch.find_steps("com_dx_m", base + [0.020, 0.100] + base[:3])
+    assert s.steps == [] and s.excursions == [8, 9]
+
+
 def test_no_step_on_an_unchanged_vehicle():
     for seed in range(20):
         assert ch.find_steps("kt_per_mass", _noisy(30, 5.0, 0.05, seed)).steps == []

@@ -28,6 +28,11 @@ import numpy as np
 
 #: flights in a row beyond the band that make a step
 MIN_RUN = 2
+#: how far a new level's flights may lie from its median, as a fraction of the step from the old level (beside the
+#: band): a change the size of a payload seldom comes back to the same millimetre or percent (the fleet's 23 Jun
+#: gripper: CoM dx 112 and 96 mm against ~0 before, a band of 7.5 mm), while its flights still sit on one side of
+#: the old level, far beyond its band
+STEP_COHESION = 0.25
 #: band half-width in scatter sigmas
 BAND_SIGMA = 3.0
 #: flights the reference is the median of
@@ -138,7 +143,8 @@ def find_steps(value: str, x: list[float], se: list[float] | None = None, resets
         for j in idx[k + 1:]:
             level = float(np.median(xs[run]))  # the new state must hold together, not only be off the old one
             if np.sign(xs[j] - ref) == sign and abs(xs[j] - ref) > half_width(ref, ses[j], sig, floors) \
-                    and abs(xs[j] - level) <= half_width(level, ses[j], sig, floors):
+                    and abs(xs[j] - level) <= max(half_width(level, ses[j], sig, floors),
+                                                  STEP_COHESION * abs(level - ref)):
                 run.append(j)
                 out.bands[j] = (ref, half_width(ref, ses[j], sig, floors))
             else:
