@@ -44,6 +44,7 @@ from twin_nodes.discovery.judging import (ALT_FRACTION, BLOCK_S, HELDOUT_FRACTIO
 from twin_nodes.discovery.locate import regimes
 from twin_nodes.discovery.stages import (closed_loop, ground, inertia_given, instrument, mismatch, prepare, refit,
                                         report, retrim, selection, terms, verdicts, yaw_pair, yaw_scale)
+from twin_nodes.discovery.stages import damping_pair
 from twin_nodes.discovery.stages.closed_loop import CLOSED_LOOP_TOL_REL, _closed_loop_guard, _closed_loop_metrics, _worse
 from twin_nodes.discovery.stages.instrument import (INSTRUMENTED_BLOCKS_MISSING, _axis_tests, _equation_axes,
                                                     _instrumented, attach_instrumented)
@@ -114,4 +115,6 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     yaw_pair.apply(result, flight)
     # 11. a yaw moment or yaw inertia alone: each reading's yaw error per its yaw scale, pair where they tie
     yaw_scale.apply(result, flight)
+    # 12. a damping alone on the yaw axis: a rotor drag's hub damping (no airspeed), or a yaw moment and inertia together
+    damping_pair.apply(result, flight)
     return result

@@ -31,7 +31,8 @@ def _members(effect: dict) -> list[tuple[str, dict]]:
     out = [(effect["name"], effect.get("params") or {})]
     pair = effect.get("not_told_apart")
     if pair and pair.get("plan_flyable"):
-        out.append((pair["with"]["name"], pair["with"].get("params") or {}))
+        # a member that is two effects together (stage 12: a yaw moment and a yaw inertia) lists the second under also
+        out += [(m["name"], m.get("params") or {}) for m in [pair["with"]] + list(pair.get("also") or [])]
     return out
 
 

@@ -1,0 +1,201 @@
+"""Stage 12 (``discovery/stages/damping_pair.py``): an angular damping confirmed alone on the yaw axis, read against
+a rotor drag's hub damping (a flight without airspeed) and against a yaw moment and a yaw inertia changed together;
+roll and pitch choose, else the pair is reported."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from twin_nodes.discovery.stages import damping_pair as D
+from twin_nodes.physics.model import Multirotor
+from twin_nodes.prove import grid_prove
+from twin_nodes.prove import rotorpy_flights as rf
+from twin_nodes.vehicle.params import shipped
+
+
+@pytest.fixture(scope="module")
+def sih():
+    return shipped("px4_sih_quadx")        # km 0.02, Ixx = Iyy 0.025, Izz 0.03, k_d 0.025 (PX4 SIH's defaults)
+
+
+@pytest.fixture(scope="module")
+def crazyflie():
+    return rf.nominal_params(rf.rotorpy_params("crazyflie"), "rotorpy_crazyflie")   # rotor drag k_d 1.025e-6
+
+
+def test_the_yaw_pair_reading_of_a_damping_closed_form(sih):
+    # f017 (SIH_Q_MAX and SIH_IZZ both x1.3, M1) as reported: damping 0.019386 alone -> km and Izz x1.2896
+    cur = sih.with_effect("angular_damping", k_nm_s_rad=0.019386)
+    alt, s = D.yaw_scale_reading(cur, sih)
+    assert s == pytest.approx(0.025 / 0.019386)
+    eff = alt.effect_dict
+    assert eff["yaw_moment"]["km"] == pytest.approx(0.025792, rel=1e-4)                       # truth 0.026
+    assert eff["inertia"] == pytest.approx({"ixx": 0.025, "iyy": 0.025, "izz": 0.038687}, rel=1e-4)   # 0.039
+    assert eff["angular_damping"]["k_nm_s_rad"] == 0.025
+    # on the yaw row the two readings are one: km/Izz and k_d/Izz of the other reading are the damping's
+    assert eff["yaw_moment"]["km"] / eff["inertia"]["izz"] == pytest.approx(0.02 / 0.03, rel=1e-12)
+    assert 0.025 / eff["inertia"]["izz"] == pytest.approx(0.019386 / 0.03, rel=1e-12)
+    # none: a yaw moment or inertia of its own (stage 10's), a model without a damping (RotorPy), a 2 % change
+    assert D.yaw_scale_reading(cur.with_effect("yaw_moment", km=0.026), sih) is None
+    undamped = sih.replace(effects=tuple(e for e in sih.effects if e[0] != "angular_damping"))
+    assert D.yaw_scale_reading(undamped.with_effect("angular_damping", k_nm_s_rad=1e-5), undamped) is None
+    assert D.yaw_scale_reading(sih.with_effect("angular_damping", k_nm_s_rad=0.0245), sih) is None
+
+
+def test_in_a_yaw_turn_in_place_the_hub_damping_and_the_angular_damping_are_one_column(crazyflie):
+    """Hover, yawing at r: a rotor drag change dk_d moves only the yaw moment, by -dk_d r sum|omega_i| r_i^2, the
+    angular damping k by -k r: the same column (e002: 1.3605e-5 N m s/rad is dk_d 1.028e-6).  Translating, the
+    rotor drag also pushes -dk_d sum|omega| v, which a damping never does."""
+    m0 = Multirotor(crazyflie)
+    x = m0.initial_state(position_enu=(0.0, 0.0, 1.5), rates_flu=(0.0, 0.0, 0.8), rotor_state="hover")
+    omega = m0.rotor_speeds(x)
+    arm2 = np.asarray(crazyflie.rotors.x_flu_m) ** 2 + np.asarray(crazyflie.rotors.y_flu_m) ** 2
+    dkd = 1.028e-6
+    k_eq = dkd * float(np.sum(omega * arm2))
+    assert k_eq == pytest.approx(1.3605e-5, rel=0.01)
+
+    def wrench(vp, state):
+        f, mom = Multirotor(vp).wrench_terms(state)["rotor_drag"]
+        return np.concatenate([f[0], mom[0]])
+    kd0 = crazyflie.effect_dict["rotor_drag"]["k_d"]
+    drag = wrench(crazyflie.with_effect("rotor_drag", k_d=kd0 + dkd), x) - wrench(crazyflie, x)
+    np.testing.assert_allclose(drag, [0, 0, 0, 0, 0, -k_eq * 0.8], atol=1e-15, rtol=1e-9)
+    moving = x.copy()
+    moving[3:6] = (3.0, 0.0, 0.0)
+    drag = wrench(crazyflie.with_effect("rotor_drag", k_d=kd0 + dkd), moving) - wrench(crazyflie, moving)
+    assert abs(drag[0]) == pytest.approx(dkd * np.sum(omega) * 3.0, rel=1e-6) and abs(drag[0]) > 0.1 * 0.03 * 0.981
+
+
+def _fake_flight(monkeypatch, nominal, n=2000, seed=1):
+    """A hover with yaw as the residual sees it: yaw rate sweeps, sum|omega| r_i^2 constant, the true k_d twice
+    the model's, the horizontal velocity the estimate's noise alone (true speed 0), which the drag's force columns
+    carry: residual = measured - model, per channel [thr, roll, pitch, yaw, force_x, force_y]."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.02
+    wz = 0.8 * np.sign(np.sin(2 * np.pi * t / 8.0))
+    v_noise = 0.04 * rng.standard_normal((n, 2))
+    s_sum, omega_sum, mass, kd_true = 7156.0 * 1.849e-3, 7156.0, 0.03, 2.053e-6
+
+    def residual_channels(data, vp, nom):
+        eff = vp.effect_dict
+        kd = float((eff.get("rotor_drag") or {}).get("k_d", 0.0))
+        k = float((eff.get("angular_damping") or {}).get("k_nm_s_rad", 0.0))
+        r = np.zeros((n, 6))
+        r[:, 3] = -(kd_true - kd) * s_sum * wz + k * wz
+        r[:, 4:] = kd * omega_sum * v_noise / mass * 1e-3      # the model's drag on noise the IMU never saw
+        return r
+    monkeypatch.setattr(D, "residual_channels", residual_channels)
+    monkeypatch.setattr(D, "modes", lambda R, vp: (R, None))
+    return SimpleNamespace(valid=np.ones(n, bool)), np.arange(n) < 0.65 * n, residual_channels
+
+
+def test_the_hub_reading_is_fitted_on_the_yaw_mode_alone(monkeypatch, crazyflie):
+    data, fit, rc = _fake_flight(monkeypatch, crazyflie)
+    cur = crazyflie.with_effect("angular_damping", k_nm_s_rad=1.3605e-5)
+    alt = D.hub_reading(data, crazyflie, fit, cur)
+    assert "angular_damping" not in alt.effect_dict                      # RotorPy's model has none: removed
+    assert alt.effect_dict["rotor_drag"]["k_d"] == pytest.approx(2.053e-6, rel=1e-9)
+    # every channel at once reads far less: the force columns' noise pulls k_d down (e002: x1.45, then x0.2)
+    grid = np.linspace(0.2, 5.0, 481) * 1.025e-6
+    rms = [np.sqrt(np.mean(rc(data, crazyflie.with_effect("rotor_drag", k_d=k), None)[fit] ** 2)) for k in grid]
+    assert grid[int(np.argmin(rms))] < 0.8 * 2.053e-6
+
+
+def _e002(crazyflie, hover=True):
+    cur = crazyflie.with_effect("angular_damping", k_nm_s_rad=1.3605e-5)
+    return {"accepted": ["angular_damping"], "likely": [], "refit_params": cur.to_ros_dict(),
+            "not_excited": [{"effects": ["rotor_drag (force)", "body_drag (horizontal)"]}] if hover else [],
+            "effects": [{"name": "angular_damping", "verdict": "confirmed", "params": {"k_nm_s_rad": 1.3605e-5},
+                         "heldout_channel": "yaw", "verdict_note": ""},
+                        {"name": "rotor_drag", "verdict": "rejected", "params": {"k_d": 2.05e-7}}]}
+
+
+def _apply(monkeypatch, result, nominal, test, data=None, fit=None):
+    monkeypatch.setattr(D, "roll_pitch_test", lambda *a: dict(test))
+    flight = SimpleNamespace(nominal=nominal, data=data, fit_mask=fit, held_mask=None)
+    return D.apply(result, flight)
+
+
+def test_a_hover_damping_is_the_rotor_drag_where_roll_and_pitch_reject_the_damping(monkeypatch, crazyflie):
+    """e002 (Crazyflie, rotor drag k_d 2.053e-6, hover with yaw): roll/pitch t 3.6 over 99 blocks, held-out 0.8 %
+    for the reading without a roll/pitch damping -> rotor drag k_d 2.054e-6 (scored 0.0 %)."""
+    data, fit, _ = _fake_flight(monkeypatch, crazyflie)
+    result = _e002(crazyflie)
+    alt = _apply(monkeypatch, result, crazyflie, {"t": 3.6, "blocks": 99, "heldout_cut": 0.0084}, data, fit)
+    assert alt is not None and result["accepted"] == ["rotor_drag"]
+    e = result["effects"][0]
+    assert e["name"] == "rotor_drag" and e["params"]["k_d"] == pytest.approx(2.053e-6, rel=1e-6)
+    assert e["read_as"]["was"] == "angular_damping" and "t=3.6" in e["verdict_note"]
+    assert "angular_damping" not in result["refit_params"]["effects"]["enabled"]
+    assert result["damping_pair"][0]["choice"] == "switch"
+
+
+def test_neither_chosen_is_the_pair_with_fast_legs_and_a_translating_flight_is_not_read(monkeypatch, crazyflie):
+    data, fit, _ = _fake_flight(monkeypatch, crazyflie)
+    result = _e002(crazyflie)
+    assert _apply(monkeypatch, result, crazyflie, {"t": 1.2, "blocks": 99, "heldout_cut": 0.001}, data, fit) is None
+    e = result["effects"][0]
+    assert e["name"] == "angular_damping" and result["accepted"] == ["angular_damping"]
+    pair = e["not_told_apart"]
+    assert pair["with"]["name"] == "rotor_drag" and pair["with"]["params"]["k_d"] == pytest.approx(2.053e-6, rel=1e-6)
+    assert pair["manoeuvre"] == "fast_legs" and pair["plan_flyable"]
+    assert [n for n, _ in grid_prove._members(e)] == ["angular_damping", "rotor_drag"]
+    # roll/pitch want the damping: told apart, no pair
+    result = _e002(crazyflie)
+    _apply(monkeypatch, result, crazyflie, {"t": -3.5, "blocks": 99, "heldout_cut": -0.01}, data, fit)
+    assert "not_told_apart" not in result["effects"][0] and result["damping_pair"][0]["choice"] == "kept"
+    # a flight with airspeed (the drag's force excited): the rotor drag is judged on its own columns, no reading
+    result = _e002(crazyflie, hover=False)
+    assert _apply(monkeypatch, result, crazyflie, {"t": 9.0, "blocks": 99, "heldout_cut": 0.5}, data, fit) is None
+    assert "damping_pair" not in result and "not_told_apart" not in result["effects"][0]
+
+
+def _f017(sih):
+    cur = sih.with_effect("angular_damping", k_nm_s_rad=0.019386)
+    return {"accepted": ["angular_damping"], "likely": [], "refit_params": cur.to_ros_dict(), "not_excited": [],
+            "effects": [{"name": "angular_damping", "verdict": "confirmed", "params": {"k_nm_s_rad": 0.019386},
+                         "heldout_channel": "yaw", "verdict_note": ""}]}
+
+
+def test_a_triangle_damping_is_the_yaw_moment_and_inertia_where_roll_and_pitch_say_so(monkeypatch, sih):
+    """f017 (SIH_Q_MAX 0.13 and SIH_IZZ 0.039, M1): roll/pitch t 4.34 over 81 blocks, held-out 2.1 % for the model's
+    damping -> yaw moment km 0.02579 (0.8 % off 0.026) and inertia Izz 0.03869 (0.8 % off 0.039), both named."""
+    result = _f017(sih)
+    alt = _apply(monkeypatch, result, sih, {"t": 4.34, "blocks": 81, "heldout_cut": 0.0212})
+    assert alt is not None and result["accepted"] == ["yaw_moment", "inertia"]
+    names = [(e["name"], e["verdict"]) for e in result["effects"]]
+    assert names == [("yaw_moment", "confirmed"), ("inertia", "confirmed")]
+    assert result["refit_params"]["effects"]["angular_damping"]["k_nm_s_rad"] == 0.025
+    truths = grid_prove._sih_truths({"sih": {"SIH_Q_MAX": [0.1, 0.13], "SIH_IZZ": [0.03, 0.039]}}, sih)
+    r = grid_prove.score_grid_flight("f017", truths, result, sih)
+    assert r["passed"] and r["n_named"] == 2
+    assert r["param_errors"]["yaw_moment"] == pytest.approx(1 - 0.025792 / 0.026, abs=2e-4)
+    assert r["param_errors"]["inertia"] == pytest.approx(1 - 0.038687 / 0.039, abs=2e-4)
+
+
+def test_a_yaw_pair_not_told_apart_names_both_members(monkeypatch, sih):
+    result = _f017(sih)
+    assert _apply(monkeypatch, result, sih, {"t": 0.4, "blocks": 81, "heldout_cut": 0.001}) is None
+    pair = result["effects"][0]["not_told_apart"]
+    assert pair["with"]["name"] == "yaw_moment" and pair["also"][0]["name"] == "inertia"
+    assert pair["manoeuvre"] == "rate_doublets" and pair["plan_flyable"]
+    truths = grid_prove._sih_truths({"sih": {"SIH_Q_MAX": [0.1, 0.13], "SIH_IZZ": [0.03, 0.039]}}, sih)
+    r = grid_prove.score_grid_flight("f017", truths, result, sih)
+    assert r["n_named"] == 2 and r["passed"] and r["right_by_pair"]
+    # a true damping (x2) with roll/pitch silent stays the damping, the pair beside it
+    truths = grid_prove._sih_truths({"sih": {"SIH_KDW": [0.025, 0.05]}}, sih)
+    res = _f017(sih)
+    res["effects"][0]["params"] = {"k_nm_s_rad": 0.0501}
+    res["effects"][0]["heldout_improvement"] = 0.86
+    r = grid_prove.score_grid_flight("f001", truths, res, sih)
+    assert r["param_errors"]["angular_damping"] == pytest.approx(0.002, abs=1e-6)
+    # a damping beside a yaw moment is stage 10's; one already naming a rival is left alone
+    res = _f017(sih)
+    res["accepted"].append("yaw_moment")
+    assert _apply(monkeypatch, res, sih, {"t": 9.0, "blocks": 81, "heldout_cut": 0.5}) is None and "damping_pair" not in res
+    res = _f017(sih)
+    res["effects"][0]["not_told_apart"] = {"with": {"name": "rotor_drag"}}
+    assert _apply(monkeypatch, res, sih, {"t": 9.0, "blocks": 81, "heldout_cut": 0.5}) is None
