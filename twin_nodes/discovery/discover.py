@@ -42,9 +42,9 @@ from twin_nodes.discovery.judging import (ALT_FRACTION, BLOCK_S, HELDOUT_FRACTIO
                                           _output_judge, _restrict_to_axes, _scales, _summary, _window_folds, assess,
                                           fit_candidate)
 from twin_nodes.discovery.locate import regimes
-from twin_nodes.discovery.stages import (closed_loop, ground, inertia_given, instrument, mismatch, prepare, refit,
-                                        report, retrim, selection, terms, verdicts, yaw_pair, yaw_scale)
-from twin_nodes.discovery.stages import damping_pair
+from twin_nodes.discovery.stages import (closed_loop, damping_pair, ground, inertia_given, instrument, mismatch,
+                                        prepare, refit, report, retrim, selection, terms, verdicts, yaw_pair,
+                                        yaw_scale)
 from twin_nodes.discovery.stages.closed_loop import CLOSED_LOOP_TOL_REL, _closed_loop_guard, _closed_loop_metrics, _worse
 from twin_nodes.discovery.stages.instrument import (INSTRUMENTED_BLOCKS_MISSING, _axis_tests, _equation_axes,
                                                     _instrumented, attach_instrumented)
