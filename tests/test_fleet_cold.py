@@ -191,7 +191,8 @@ def test_warm_compiled_holds_the_lock_while_it_compiles(tmp_path, monkeypatch):
         assert not held_elsewhere(n)
 
 
-def test_warm_compiled_waits_for_an_entry_point_another_worker_compiles(tmp_path, monkeypatch):
+def _warm_in_thread(tmp_path, monkeypatch, hold: str):
+    """warm_compiled over entry points a, b, c in a thread while "another worker" holds ``hold``'s lock."""
     import fcntl
     import threading
 
@@ -199,19 +200,32 @@ def test_warm_compiled_waits_for_an_entry_point_another_worker_compiles(tmp_path
 
     monkeypatch.setenv("ROTORTWIN_CACHE", str(tmp_path))
     monkeypatch.setattr(fleet_flight, "_WARM", [])
-    other = open(tmp_path / "compile.a.lock", "a")
+    other = open(tmp_path / f"compile.{hold}.lock", "a")
     fcntl.flock(other, fcntl.LOCK_EX)
-    calls = []
-    monkeypatch.setattr(kernels, "warm_steps", lambda: [("a", lambda: calls.append("a")),
-                                                        ("b", lambda: calls.append("b"))])
+    calls: list[str] = []
+    monkeypatch.setattr(kernels, "warm_steps", lambda: [(n, lambda n=n: calls.append(n)) for n in "abc"])
     done = threading.Event()
     t = threading.Thread(target=lambda: (fleet_flight.warm_compiled(), done.set()))
     t.start()
-    assert not done.wait(0.5)  # "b" done, "a" waited for: the other worker still holds it
-    assert calls == ["b"]
+    return other, calls, done, t
+
+
+def test_warm_compiled_waits_for_an_entry_point_another_worker_compiles(tmp_path, monkeypatch):
+    other, calls, done, t = _warm_in_thread(tmp_path, monkeypatch, "b")
+    assert not done.wait(0.5)  # "a" and "c" done, "b" waited for: the other worker still holds it
+    assert calls == ["a", "c"]
     other.close()
     t.join(10)
-    assert done.is_set() and calls == ["b", "a"]  # then loaded, once
+    assert done.is_set() and calls == ["a", "c", "b"]  # then loaded, once
+
+
+def test_warm_compiled_waits_for_the_first_entry_point_before_any_other(tmp_path, monkeypatch):
+    other, calls, done, t = _warm_in_thread(tmp_path, monkeypatch, "a")
+    assert not done.wait(0.5)  # the first (the stepper's step: it compiles what the others call) comes first
+    assert calls == []
+    other.close()
+    t.join(10)
+    assert done.is_set() and calls == ["a", "b", "c"]
 
 
 def test_warm_steps_are_the_entry_points_discovery_calls():

@@ -148,7 +148,8 @@ def warm(model: Multirotor, windows: bool, lag: bool = False) -> None:
 
 def warm_steps() -> list[tuple[str, Callable[[], None]]]:
     """Every compiled entry point a fleet flight's discovery calls (:func:`warm` with both kernels, and the
-    stepper's own steps) as ``(name, compile or load it on a tiny input)``, costliest first: a fleet
+    stepper's own steps) as ``(name, compile or load it on a tiny input)``: the stepper's step first (it
+    compiles the functions the others call: the hooks, ``reference``, ``deriv``), then costliest first: a fleet
     worker runs each once, each under its own lock in the cache folder (``$ROTORTWIN_CACHE``) the workers
     share, so two cold workers compile different entry points side by side and each loads what the other
     wrote instead of compiling it again (:func:`twin_nodes.fleet.flight.warm_compiled`).  The stepper and
