@@ -3,8 +3,9 @@
 - one flight's nominal is built once, for its facts and for the params it flies (``nominal.nominal_once``),
   with the same values and the same params file as the two builds before;
 - a worker compiles the numba code of a free flight's discovery ahead (``flight.warm_compiled``,
-  ``kernels.warm_all``), once per process, holding a lock in the cache folder the workers share: another
-  process waits for it, then loads that code (no compile); a log that is no free flight compiles nothing;
+  ``kernels.warm_steps``), once per process, each entry point under its own lock in the cache folder the
+  workers share: another process compiles the entry points nobody holds, waits for the others, then loads
+  that code (no compile); a log that is no free flight compiles nothing;
 - the flights go to the workers largest file first (``run.longest_first``, the tasks' priorities).
 """
 
@@ -149,7 +150,8 @@ def test_code_compiled_ahead_is_loaded_not_compiled_by_another_process(tmp_path)
     assert {"step_n", "specific_force", "wrench_terms", "lag_states", "step_windows"} <= set(names)
     assert len(names) == len(set(names)) + 1  # each once; the stepper's reference() twice (read-only command)
     assert list((tmp_path / "cache").glob("__pycache__/rotortwin_disc_*.step_windows-*.nbi"))
-    assert (tmp_path / "cache" / "compile.lock").is_file()
+    assert {p.name for p in (tmp_path / "cache").glob("compile.*.lock")} == {
+        f"compile.{n}.lock" for n in ("step_n", "specific_force", "wrench_terms", "lag_states", "step_windows")}
     second = probe()  # a worker after it, sharing the cache folder: loads, compiles nothing
     assert second == {"compiled": []}
 
@@ -161,24 +163,76 @@ def test_warm_compiled_holds_the_lock_while_it_compiles(tmp_path, monkeypatch):
 
     monkeypatch.setenv("ROTORTWIN_CACHE", str(tmp_path))
     monkeypatch.setattr(fleet_flight, "_WARM", [])
-    held = []
+    calls = []
 
-    def fake_warm_all():
-        with open(tmp_path / "compile.lock", "a") as other:  # another open file: another process's view
+    def held_elsewhere(name):  # another open file: another process's view of that entry point's lock
+        with open(tmp_path / f"compile.{name}.lock", "a") as other:
             try:
                 fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                held.append(True)
-            else:
-                held.append(False)
-        return []
+                return True
+            return False
 
-    monkeypatch.setattr(kernels, "warm_all", fake_warm_all)
+    def step(name):
+        def run():
+            calls.append((name, held_elsewhere(name)))
+            if name == "c":  # the other worker finishes "b" meanwhile
+                other_b.close()
+        return run
+
+    other_b = open(tmp_path / "compile.b.lock", "a")  # "another worker" compiles "b" now
+    fcntl.flock(other_b, fcntl.LOCK_EX)
+    monkeypatch.setattr(kernels, "warm_steps", lambda: [(n, step(n)) for n in "abc"])
     fleet_flight.warm_compiled()
-    fleet_flight.warm_compiled()
-    assert held == [True]  # called once, under the lock
-    with open(tmp_path / "compile.lock", "a") as f:  # released after it
-        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    fleet_flight.warm_compiled()  # once per process
+    # each once, under its own lock; "b", held by the other worker, is left for after "c", then loaded
+    assert calls == [("a", True), ("c", True), ("b", True)]
+    for n in "abc":  # released after it
+        assert not held_elsewhere(n)
+
+
+def _warm_in_thread(tmp_path, monkeypatch, hold: str):
+    """warm_compiled over entry points a, b, c in a thread while "another worker" holds ``hold``'s lock."""
+    import fcntl
+    import threading
+
+    from twin_nodes.discovery import kernels
+
+    monkeypatch.setenv("ROTORTWIN_CACHE", str(tmp_path))
+    monkeypatch.setattr(fleet_flight, "_WARM", [])
+    other = open(tmp_path / f"compile.{hold}.lock", "a")
+    fcntl.flock(other, fcntl.LOCK_EX)
+    calls: list[str] = []
+    monkeypatch.setattr(kernels, "warm_steps", lambda: [(n, lambda n=n: calls.append(n)) for n in "abc"])
+    done = threading.Event()
+    t = threading.Thread(target=lambda: (fleet_flight.warm_compiled(), done.set()))
+    t.start()
+    return other, calls, done, t
+
+
+def test_warm_compiled_waits_for_an_entry_point_another_worker_compiles(tmp_path, monkeypatch):
+    other, calls, done, t = _warm_in_thread(tmp_path, monkeypatch, "b")
+    assert not done.wait(0.5)  # "a" and "c" done, "b" waited for: the other worker still holds it
+    assert calls == ["a", "c"]
+    other.close()
+    t.join(10)
+    assert done.is_set() and calls == ["a", "c", "b"]  # then loaded, once
+
+
+def test_warm_compiled_waits_for_the_first_entry_point_before_any_other(tmp_path, monkeypatch):
+    other, calls, done, t = _warm_in_thread(tmp_path, monkeypatch, "a")
+    assert not done.wait(0.5)  # the first (the stepper's step: it compiles what the others call) comes first
+    assert calls == []
+    other.close()
+    t.join(10)
+    assert done.is_set() and calls == ["a", "b", "c"]
+
+
+def test_warm_steps_are_the_entry_points_discovery_calls():
+    from twin_nodes.discovery import kernels
+
+    names = [n for n, _ in kernels.warm_steps()]
+    assert names == ["step_n", "wrench_terms", "step_windows", "lag_states", "specific_force"]
 
 
 def test_no_compile_for_a_log_that_is_no_free_flight(monkeypatch):

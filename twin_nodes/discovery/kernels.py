@@ -22,6 +22,7 @@ import hashlib
 import inspect
 import sys
 import types
+from collections.abc import Callable
 
 from twin_nodes.physics.model import Multirotor, _import_source
 
@@ -145,13 +146,14 @@ def warm(model: Multirotor, windows: bool, lag: bool = False) -> None:
         kernels(model).step_windows(model.P, x.copy(), u, ext2, np.zeros(1, np.int64), 1, 0, 0.002, 1, 1, w, w.copy())
 
 
-def warm_all() -> list[str]:
-    """Compile (or load from the on-disk cache) every compiled entry point a fleet flight's discovery
-    calls (:func:`warm` with both kernels, and the stepper's own steps), on a tiny input: a fleet worker
-    does it once, under a lock in the cache folder (``$ROTORTWIN_CACHE``) the workers share, so a second
-    cold worker loads that code instead of compiling it again (:func:`twin_nodes.fleet.flight.warm_compiled`).
-    The stepper and these kernels are one module per effect registry, whatever the vehicle: the
-    shipped SIH quad stands in.  Returns the names of the modules (stepper, kernels)."""
+def warm_steps() -> list[tuple[str, Callable[[], None]]]:
+    """Every compiled entry point a fleet flight's discovery calls (:func:`warm` with both kernels, and the
+    stepper's own steps) as ``(name, compile or load it on a tiny input)``: the stepper's step first (it
+    compiles the functions the others call: the hooks, ``reference``, ``deriv``), then costliest first: a fleet
+    worker runs each once, each under its own lock in the cache folder (``$ROTORTWIN_CACHE``) the workers
+    share, so two cold workers compile different entry points side by side and each loads what the other
+    wrote instead of compiling it again (:func:`twin_nodes.fleet.flight.warm_compiled`).  The stepper and
+    these kernels are one module per effect registry, whatever the vehicle: the shipped SIH quad stands in."""
     import numpy as np
 
     from twin_nodes.physics.effects import default_ext
@@ -161,7 +163,26 @@ def warm_all() -> list[str]:
     x = m.initial_state(position_enu=(0.0, 0.0, 1.0))
     ext = default_ext()
     u1 = np.full(m.n_rotors, 0.5)
-    m.step_unchecked(x.copy(), u1.copy(), 0.002, ext.copy(), 1)  # step_n
-    m.specific_force_unchecked(x, u1, ext)
-    warm(m, windows=True, lag=True)
+    xs, ext2 = x[None, :], np.repeat(ext[None, :], 2, axis=0)
+    u = np.full((2, m.n_rotors), 0.5)
+    u.setflags(write=False)  # discovery's command series are read-only views (as in :func:`warm`)
+    w = np.empty((1, 1, 3))
+    return [  # the arguments and types of :func:`warm`'s calls and of the stepper's own steps
+        ("step_n", lambda: m.step_unchecked(x.copy(), u1.copy(), 0.002, ext.copy(), 1)),
+        ("wrench_terms", lambda: m.wrench_terms(xs, ext[None, :])),
+        ("step_windows", lambda: kernels(m).step_windows(m.P, xs.copy(), u, ext2, np.zeros(1, np.int64), 1, 0,
+                                                         0.002, 1, 1, w, w.copy())),
+        ("lag_states", lambda: kernels(m).lag_states(m.P, u, ext2, 0.002, 0, np.zeros(m.n_rotors), 1, 2)),
+        ("specific_force", lambda: m.specific_force_unchecked(x, u1, ext)),
+    ]
+
+
+def warm_all() -> list[str]:
+    """Compile (or load from the on-disk cache) every entry point of :func:`warm_steps`, in this process.
+    Returns the names of the modules (stepper, kernels)."""
+    from twin_nodes.vehicle.params import load_params, params_dir
+
+    for _, step in warm_steps():
+        step()
+    m = Multirotor(load_params(params_dir() / "px4_sih_quadx.yaml"))
     return [m._mod.__name__, kernels(m).__name__]

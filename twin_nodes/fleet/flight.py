@@ -62,12 +62,14 @@ _WARM: list[bool] = []
 
 def warm_compiled() -> None:
     """Compile, or load, the numba code a flight's twin and discovery call (the effect registry's stepper
-    and discovery's kernels, :func:`~twin_nodes.discovery.kernels.warm_all`), once per process, holding
-    an exclusive lock on ``compile.lock`` in the cache folder (``$ROTORTWIN_CACHE``): on a cold start the
-    first worker compiles into that folder while another one that reaches a free flight waits for it, then
-    loads what it wrote, instead of compiling the same code a second time (waiting costs no CPU; until a
-    worker reaches a free flight it handles logs that need no compiled code).  A failure here is left to
-    the flight's own calls (they compile what they need, as before)."""
+    and discovery's kernels, :func:`~twin_nodes.discovery.kernels.warm_steps`), once per process, each
+    entry point under an exclusive lock of its own in the cache folder (``$ROTORTWIN_CACHE``,
+    ``compile.<entry point>.lock``): on a cold start the first worker compiles the stepper's step (and with
+    it the functions every entry point calls) while another waits, then the two compile the other entry
+    points side by side (one whose lock another worker holds is left for later) and each loads what the other
+    wrote, waiting for an entry point still being compiled (waiting costs no CPU) instead of compiling the
+    same code a second time; until a worker reaches a free flight it handles logs that need no compiled code.  A
+    failure here is left to the flight's own calls (they compile what they need, as before)."""
     if _WARM:
         return
     _WARM.append(True)
@@ -75,11 +77,23 @@ def warm_compiled() -> None:
         import fcntl  # POSIX; elsewhere each flight compiles what it needs, as before
 
         from twin_nodes.base.io import cache_dir
-        from twin_nodes.discovery.kernels import warm_all
+        from twin_nodes.discovery.kernels import warm_steps
 
-        with open(cache_dir() / "compile.lock", "a") as f:
-            fcntl.flock(f, fcntl.LOCK_EX)  # released when the file is closed, or the process dies
-            warm_all()
+        # each pass waits for its first entry point (the first of all, the stepper's step, compiles the functions
+        # every other one calls: those are then loaded, not compiled by both), then takes each other one no
+        # other worker is compiling now; those are left for the next pass
+        todo = warm_steps()
+        while todo:
+            left = []
+            for k, (name, step) in enumerate(todo):
+                with open(cache_dir() / f"compile.{name}.lock", "a") as f:  # released when closed, or on death
+                    try:
+                        fcntl.flock(f, fcntl.LOCK_EX | (fcntl.LOCK_NB if k else 0))
+                    except BlockingIOError:  # another worker compiles it: its cache file, loaded later
+                        left.append((name, step))
+                        continue
+                    step()
+            todo = left
     except Exception as exc:  # noqa: BLE001 - the flight's own calls compile what they need, as before
         import logging
 
