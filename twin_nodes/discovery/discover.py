@@ -95,7 +95,7 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
         regrounded = retrim.retrim_for_flight(regrounded, flight.nominal, flight.data)
     checked.current = regrounded
     # an inertia accepted on the output error, judged again given the effects accepted beside it
-    checked.accepted, checked.current = inertia_given.run(flight.oe, checked.accepted, checked.current)
+    checked.accepted, checked.current = inertia_given.run(flight.oe, checked.accepted, checked.current, flight.eq)
     # 6. grade: confirmed, likely (what it lacks), rejected (why)
     graded = verdicts.run(verdicts.GradeInput(flight, checked.accepted, chosen.last, chosen.first_rank,
                                               found.base_held))

@@ -13,10 +13,14 @@ accepted first on the roll output error (70 % cut, t 3.9) beside the sag confirm
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from twin_nodes.discovery.blocktest import _block_stats
-from twin_nodes.discovery.judging import MIN_REL_IMPROVEMENT, T_CRIT, Fit, Judge
+from twin_nodes.discovery.candidates import Candidate
+from twin_nodes.discovery.judging import MIN_REL_IMPROVEMENT, T_CRIT, Fit, Judge, fit_candidate
+from twin_nodes.physics.effects import EFFECTS
 from twin_nodes.vehicle.params import VehicleParams
 
 
@@ -36,19 +40,83 @@ def contribution(oe: Judge, vp: VehicleParams, f: Fit) -> dict:
     return {"cut": round(1.0 - r1 / r0, 4) if r0 > 0 else 0.0, "t": round(float(t), 2) if np.isfinite(t) else 0.0}
 
 
-def run(oe: Judge | None, accepted: list[Fit], vp: VehicleParams) -> tuple[list[Fit], VehicleParams]:
-    """Drop each output-error inertia that does not pass given the other accepted effects; returns the kept
-    effects and their vehicle (the dropped inertia back at nominal)."""
+#: effects that move the yaw axis only through the same ratio as the inertia's izz (yaw acceleration per command:
+#: km T / izz): accepted after an inertia, they were fitted against its izz as it stood then
+YAW_RATIO = ("yaw_moment",)
+
+
+def _own(f: Fit, base: VehicleParams) -> tuple[Candidate, np.ndarray, list[int]]:
+    """``f``'s own effect parameters as a plain candidate on ``base`` (from the values ``base`` carries), its
+    start and their indices in ``f.theta`` (a joint variant also carries the effects it refitted)."""
+    c = f.candidate
+    own = [i for i, k in enumerate(c.param_names) if k in EFFECTS[c.name].param_names]
+    names = tuple(c.param_names[i] for i in own)
+    cur = dict(base.effect_dict.get(c.name) or {})
+    x0 = np.array([cur.get(k, f.theta[i]) for k, i in zip(names, own)], float)
+    fixed = {k: v for k, v in c.params_dict(f.theta).items() if k not in names}
+
+    def build(th, base=base, name=c.name, names=names, fixed=fixed):
+        return base.with_effect(name, **{**fixed, **{k: float(v) for k, v in zip(names, th)}})
+    plain = Candidate(c.name, names, x0, c.lower[own], c.upper[own], build, fixed, lambda th: True, c.label)
+    return plain, x0, own
+
+
+def refit_given(judge: Judge, vp: VehicleParams, f: Fit) -> VehicleParams:
+    """``vp`` with ``f``'s own parameters refitted on ``judge``'s fold-1 fit rows given the others as they are
+    in ``vp`` (those it held stay held); where the refit does not lower the fit rows' residual, ``vp``."""
+    plain, x0, own = _own(f, vp)
+    rows = judge.folds[0][0]
+    theta, vp_new, _ = fit_candidate(plain, judge, vp, rows)
+    before, after = judge.residual(plain.build(x0), rows=rows), judge.residual(vp_new, rows=rows)
+    ok = np.isfinite(before).all(axis=1) & np.isfinite(after).all(axis=1)
+    if not ok.any() or np.sum(after[ok] ** 2) >= np.sum(before[ok] ** 2):
+        return vp
+    f.refit_given_others = {k: [round(float(a), 6), round(float(b), 6)]
+                            for k, a, b in zip(plain.param_names, x0, theta)}
+    f.theta = np.array(f.theta, float)
+    f.theta[own] = theta
+    f.vp = vp_new
+    return vp_new
+
+
+def _at_nominal(vp: VehicleParams, f: Fit) -> VehicleParams:
+    c = f.candidate
+    return c.apply(vp, np.clip(c.x0, c.lower, c.upper))
+
+
+def run(oe: Judge | None, accepted: list[Fit], vp: VehicleParams,
+        eq: Judge | None = None) -> tuple[list[Fit], VehicleParams]:
+    """Each output-error inertia refitted given the other accepted effects, then dropped where it does not pass
+    given them; a yaw moment accepted after it (:data:`YAW_RATIO`, with ``eq``) is refitted after it on the
+    equation error and dropped likewise.  Returns the kept effects and their vehicle (a dropped effect back at
+    nominal)."""
     if oe is None or len(accepted) < 2:
         return accepted, vp
     kept = list(accepted)
     for f in accepted:
         if f.candidate.name != "inertia" or f.kind != "output":
             continue
+        later = [a for a in accepted[accepted.index(f) + 1:] if a.candidate.name in YAW_RATIO
+                 and a.kind == "equation" and "izz" in f.candidate.param_names and eq is not None]
+        trial = vp
+        for a in later:      # fitted against the inertia's izz as it stood: at nominal while the inertia is refitted
+            trial = _at_nominal(trial, a)
+        refit = refit_given(oe, trial, f) if later else trial
+        if refit is trial:   # no later yaw moment, or the inertia does not take the yaw back: refitted beside it
+            vp = refit_given(oe, vp, f)
+        else:
+            vp = refit
+            for a in later:
+                vp = refit_given(eq, vp, a)
+                a.given_others = {**contribution(eq, vp, a), "residual": "equation"}
+                if a.given_others["t"] < T_CRIT or a.given_others["cut"] < MIN_REL_IMPROVEMENT:
+                    vp = _at_nominal(vp, a)
+                    a.accepted = False
+                    kept.remove(a)
         g = contribution(oe, vp, f)
         f.given_others = g
         if g["t"] < T_CRIT or g["cut"] < MIN_REL_IMPROVEMENT:
-            vp = f.candidate.apply(vp, np.clip(f.candidate.x0, f.candidate.lower, f.candidate.upper))
+            vp = _at_nominal(vp, f)
             f.accepted = False
             kept.remove(f)
     return kept, vp
@@ -59,5 +127,5 @@ def annotate(ranked: list[Fit], effects: list[dict]) -> None:
     for f, e in zip(ranked, effects):
         g = f.given_others
         if g is not None:
-            e["given_the_others"] = {**g, "residual": "output",
+            e["given_the_others"] = {"residual": "output", **g,
                                      "kept": g["t"] >= T_CRIT and g["cut"] >= MIN_REL_IMPROVEMENT}
