@@ -163,3 +163,40 @@ def test_yaw_moment_accepted_before_the_inertia_keeps_the_yaw():
     assert [f.candidate.name for f in kept] == ["yaw_moment", "inertia"]
     assert abs(_eff(vp_out, "yaw_moment", "km", 0) / (1.3 * KM0) - 1.0) < 1e-9
     assert abs(_eff(vp_out, "inertia", "izz", 0) / izz0 - 1.0) < 0.01
+
+
+# ---------------------------------------------------------------- a block test that cannot run is no evidence
+
+def test_a_block_test_that_cannot_run_does_not_drop_the_inertia():
+    """RotorPy x015 (Crazyflie, thrust coefficient 0.87 + Ixx x1.6): at the nominal Ixx the open-loop roll diverges
+    in three held-out windows (block change 200-600, elsewhere 0.1-60); the confined-change selection then keeps 3
+    blocks, the block test does not run and its t read 0.0, which dropped an inertia with a 99.6 % cut.  Here: the
+    change 100 in 3 blocks and 5 in 4 more (7 of 20 reach 1 % of the largest: confined), 25 % of their 90th
+    percentile keeps the 3.  The t is None, the entry says why, the inertia stays; the cut alone still drops."""
+    vp = load_params(PARAMS)
+    ixx0 = float(vp.inertia[0, 0])
+    noise = 0.001 * np.random.default_rng(3).standard_normal(N)
+    amp = np.full(N // BLOCK, 1e-4)
+    amp[[11, 14, 17]] = 100.0
+    amp[[2, 5, 12, 15]] = 5.0
+    drive = np.repeat(amp, BLOCK) * np.sin(np.linspace(0.0, 40.0, N))
+
+    def residual(vp, rows=None):
+        r = np.stack([(_ixx(vp) / (1.6 * ixx0) - 1.0) * drive + noise, noise[::-1]], axis=1)
+        return r if rows is None else r[rows]
+    half = np.arange(N) < N // 2
+    blocks = [np.arange(i, i + BLOCK) for i in range(0, N, BLOCK)]
+    oe = Judge("output", residual, [(half, ~half), (~half, half)], blocks, ~half)
+    inertia, sag = _fit(vp, 1.6 * ixx0), _other()
+    kept, vp_out = inertia_given.run(oe, [inertia, sag], inertia.vp)
+    g = inertia.given_others
+    assert g["blocks"] == 3 and g["t"] is None and "3 active held-out blocks (< 4)" in g["not_judged"]
+    assert g["cut"] > 0.99
+    assert [id(f) for f in kept] == [id(inertia), id(sag)] and inertia.accepted
+    assert abs(_ixx(vp_out) / (1.6 * ixx0) - 1.0) < 0.002
+    entries = [{"name": "inertia"}]
+    inertia_given.annotate([inertia], entries)
+    assert entries[0]["given_the_others"]["kept"] is True and entries[0]["given_the_others"]["t"] is None
+    # the bar where the test ran, and the cut alone where it did not
+    assert inertia_given.dropped({"cut": 0.5, "t": 2.9}) and not inertia_given.dropped({"cut": 0.5, "t": 3.1})
+    assert inertia_given.dropped({"cut": 0.05, "t": None}) and not inertia_given.dropped({"cut": 0.5, "t": None})
