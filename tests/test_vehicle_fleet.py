@@ -62,6 +62,11 @@ def test_scatter_is_robust_to_a_step():
     ({"kt_per_mass": (1.00, 0.01), "roll_eff": (1.0, 0.02), "yaw_eff": (1.4, 0.02)}, "yaw moment"),
     ({"kt_per_mass": (0.85, 0.01), "roll_eff": (0.9, 0.3)}, "thrust per mass"),
     ({"kt_per_mass": (0.85, 0.01)}, "thrust per mass"),
+    # the SIH fleet's s21 (T_MAX back, x1.111): thrust per mass x1.113, effectiveness x1.046 +- 0.026, 0.010 from
+    # halfway (1.0565): not told apart (it was named a mass); its s07 (mass x1.2): x1.071 +- 0.030, far from halfway
+    ({"kt_per_mass": (1.113, 0.005), "rp_eff": (1.046, 0.026)}, "thrust per mass"),
+    ({"kt_per_mass": (0.839, 0.006), "rp_eff": (1.071, 0.030)}, "mass"),
+    ({"kt_per_mass": (1.113, 0.005), "rp_eff": (1.09, 0.026)}, "thrust"),
 ])
 def test_explain_tells_mass_from_thrust_by_the_control_effectiveness(ratios, name):
     got, why = ch.explain(ratios)

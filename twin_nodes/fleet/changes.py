@@ -229,10 +229,15 @@ def _thrust_or_mass(ratios: dict, pwm) -> tuple[str, str] | None:
         return name, why
     if _changed(kt, "kt_per_mass"):
         r = kt[0]
-        if eff is None or eff[1] > abs(r - 1.0) / 2.0:
+        # a heavier vehicle keeps T_max/I (x1), changed propulsion moves it with the thrust (x r): told apart only
+        # where the effectiveness is known to better than half their distance and lies more than one se from
+        # halfway (the SIH fleet's s21, T_MAX back x1.111: x1.046 +- 0.026, 0.010 from halfway, was named a mass)
+        if eff is None or eff[1] > abs(r - 1.0) / 2.0 or abs(eff[0] - (1.0 + r) / 2.0) <= eff[1]:
             why = ("no roll/pitch effectiveness on both sides" if eff is None else
-                   f"the roll/pitch effectiveness x{eff[0]:.2f} ± {eff[1]:.2f} is too uncertain to tell a heavier "
-                   f"vehicle (x1) from weaker propulsion (x{r:.2f})")
+                   f"the roll/pitch effectiveness x{eff[0]:.3f} ± {eff[1]:.3f} is too uncertain to tell a heavier "
+                   f"vehicle (x1) from weaker propulsion (x{r:.3f})" if eff[1] > abs(r - 1.0) / 2.0 else
+                   f"the roll/pitch effectiveness x{eff[0]:.3f} ± {eff[1]:.3f} lies within one se of halfway "
+                   f"between a heavier vehicle (x1) and changed propulsion (x{r:.3f})")
             return "thrust per mass", f"thrust per mass x{r:.3f} ± {kt[1]:.3f}; mass and thrust not told apart: {why}"
         if abs(eff[0] - 1.0) < abs(eff[0] - r):
             return "mass", (f"thrust per mass x{r:.3f} ± {kt[1]:.3f} with the roll/pitch effectiveness T_max/I "
