@@ -18,6 +18,7 @@ for P in ${PREFIXES:-p s}; do
   "$PY" -m twin_nodes fleet discover $(for i in $ALL; do echo "$F/$P$i/flight.ulg"; done) --params "$E/twin_$P.yaml" \
     --no-closed-loop --workers 1 --catalog "$E/cat_$P" > "$E/fleet_$P.log" 2>&1 || { echo "fleet discover $P failed: $E/fleet_$P.log"; exit 2; }
   "$PY" -m twin_nodes fleet report "$E/cat_$P" --out "$E/report_$P" > "$E/report_$P.log" 2>&1 || { echo "fleet report $P failed"; exit 2; }
-  "$PY" tools/sih_fleet_proof.py "$E/report_$P/report.json" --prefix $P | tee "$E/proof_$P.txt" | tail -1 || rc=1
+  "$PY" tools/sih_fleet_proof.py "$E/report_$P/report.json" --prefix $P > "$E/proof_$P.txt"; r=$?
+  tail -1 "$E/proof_$P.txt"; [ $r -eq 0 ] || rc=1
 done
 exit $rc
