@@ -125,25 +125,36 @@ def kernels(model: Multirotor) -> types.ModuleType:
     return _KERNELS[stepper]
 
 
-def warm(model: Multirotor, windows: bool, lag: bool = False) -> None:
-    """Load (or compile) now what evaluating ``model`` calls, on a tiny input with the argument types
-    discovery calls it with (the command series read-only): done in the parent before worker processes
-    are forked, so they inherit it instead of each loading it again (``lag``: the rotor-state kernel even
-    where no effect hooks the command path)."""
+def _discovery_calls(model: Multirotor) -> dict[str, Callable[[], None]]:
+    """``name -> call`` of each entry point discovery calls on ``model``, on a tiny input with the argument types
+    discovery calls it with (the command series read-only): what :func:`warm` and :func:`warm_steps` compile."""
     import numpy as np
 
     from twin_nodes.physics.effects import default_ext
     x = model.initial_state(position_enu=(0.0, 0.0, 1.0))[None, :]
     ext = default_ext()[None, :]
-    model.wrench_terms(x, ext)
     u = np.full((2, model.n_rotors), 0.5)
     u.setflags(write=False)  # discovery's command series are read-only views
     ext2 = np.repeat(ext, 2, axis=0)
+    w = np.empty((1, 1, 3))
+    return {
+        "wrench_terms": lambda: model.wrench_terms(x, ext),
+        "step_windows": lambda: kernels(model).step_windows(model.P, x.copy(), u, ext2, np.zeros(1, np.int64), 1, 0,
+                                                            0.002, 1, 1, w, w.copy()),
+        "lag_states": lambda: kernels(model).lag_states(model.P, u, ext2, 0.002, 0, np.zeros(model.n_rotors), 1, 2),
+    }
+
+
+def warm(model: Multirotor, windows: bool, lag: bool = False) -> None:
+    """Load (or compile) now what evaluating ``model`` calls (:func:`_discovery_calls`): done in the parent before
+    worker processes are forked, so they inherit it instead of each loading it again (``lag``: the rotor-state
+    kernel even where no effect hooks the command path)."""
+    calls = _discovery_calls(model)
+    calls["wrench_terms"]()
     if lag or any(e.command_kernel is not None for e in model.kernel_effects):
-        kernels(model).lag_states(model.P, u, ext2, 0.002, 0, np.zeros(model.n_rotors), 1, 2)
+        calls["lag_states"]()
     if windows:
-        w = np.empty((1, 1, 3))
-        kernels(model).step_windows(model.P, x.copy(), u, ext2, np.zeros(1, np.int64), 1, 0, 0.002, 1, 1, w, w.copy())
+        calls["step_windows"]()
 
 
 def warm_steps() -> list[tuple[str, Callable[[], None]]]:
@@ -163,18 +174,10 @@ def warm_steps() -> list[tuple[str, Callable[[], None]]]:
     x = m.initial_state(position_enu=(0.0, 0.0, 1.0))
     ext = default_ext()
     u1 = np.full(m.n_rotors, 0.5)
-    xs, ext2 = x[None, :], np.repeat(ext[None, :], 2, axis=0)
-    u = np.full((2, m.n_rotors), 0.5)
-    u.setflags(write=False)  # discovery's command series are read-only views (as in :func:`warm`)
-    w = np.empty((1, 1, 3))
-    return [  # the arguments and types of :func:`warm`'s calls and of the stepper's own steps
-        ("step_n", lambda: m.step_unchecked(x.copy(), u1.copy(), 0.002, ext.copy(), 1)),
-        ("wrench_terms", lambda: m.wrench_terms(xs, ext[None, :])),
-        ("step_windows", lambda: kernels(m).step_windows(m.P, xs.copy(), u, ext2, np.zeros(1, np.int64), 1, 0,
-                                                         0.002, 1, 1, w, w.copy())),
-        ("lag_states", lambda: kernels(m).lag_states(m.P, u, ext2, 0.002, 0, np.zeros(m.n_rotors), 1, 2)),
-        ("specific_force", lambda: m.specific_force_unchecked(x, u1, ext)),
-    ]
+    calls = _discovery_calls(m)
+    return [("step_n", lambda: m.step_unchecked(x.copy(), u1.copy(), 0.002, ext.copy(), 1)),
+            *((k, calls[k]) for k in ("wrench_terms", "step_windows", "lag_states")),
+            ("specific_force", lambda: m.specific_force_unchecked(x, u1, ext))]
 
 
 def warm_all() -> list[str]:

@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from twin_nodes.base.constants import LEFT_GROUND_M
+
 #: an output within this of 0 or 1 (normalised) is at its bound
 SAT_TOL = 1e-3
 #: seconds left out on either side of a saturated motor sample (one sample of PX4's 10 Hz motor log)
@@ -34,8 +36,8 @@ SAT_MARGIN_S = 0.1
 #: seconds left out on either side of a change of the land detector's flags
 LAND_MARGIN_S = 1.0
 #: a vehicle has left its spot once this far above the height its airborne interval began at [m] (the twin's
-#: own rule, ``twin.ground.HELD_M``: identify may not import twin)
-SPOT_M = 0.2
+#: rule too: ``base.constants``)
+SPOT_M = LEFT_GROUND_M
 #: an airborne interval that begins within this of the first height sample began in the air [s]
 _JOINED_AIRBORNE_S = 0.5
 #: at least this much must remain to fit [s] (the shortest airborne interval the nominal accepts is 6 s)

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from twin_nodes.base.constants import G_STANDARD_M_S2
+from twin_nodes.base.constants import G_STANDARD_M_S2, LEFT_GROUND_M
 from twin_nodes.physics.core import NX_BODY
 from twin_nodes.twin.control import G_ZV_P, G_ZV_UP
 
@@ -27,9 +27,8 @@ __all__ = ["GROUNDED_THRUST", "GROUNDED_ENTER_M", "HELD_M", "TAKEOFF_RAMP_S", "G
 GROUNDED_THRUST = 0.02
 #: ... entered only with the real vehicle within this height [m] of the twin's ground plane
 GROUNDED_ENTER_M = 0.5
-#: the real vehicle above its ground plane by more than this has left the ground [m] (an EKF height on the
-#: ground wanders by 0.1 m; ZweiterFlugtag log_20 held: within 0.1 m for 12 s)
-HELD_M = 0.2
+#: the real vehicle above its ground plane by more than this has left the ground [m] (``base.constants``)
+HELD_M = LEFT_GROUND_M
 #: PX4's take-off ramp (``MPC_TKO_RAMP_T``, 3 s by default since PX4 1.12): from the end of a grounded
 #: phase the upward velocity limit goes from -g / MPC_Z_VEL_P_ACC (zero thrust) to MPC_Z_VEL_MAX_UP
 TAKEOFF_RAMP_S = 3.0

@@ -13,8 +13,6 @@ accepted first on the roll output error (70 % cut, t 3.9) beside the sag confirm
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from twin_nodes.discovery.blocktest import _block_stats
@@ -35,12 +33,8 @@ def contribution(oe: Judge, vp: VehicleParams, f: Fit) -> dict:
     ``not_judged`` says why: x015 (Crazyflie, Ixx x1.6 beside a thrust coefficient) has the nominal inertia's
     open-loop roll diverge in three windows (block change 200-600, elsewhere 0.1-60), so the confined-change
     selection keeps 3 blocks and the t read 0.0, which dropped an inertia with a 99.6 % cut."""
-    c = f.candidate
-    without_vp = c.apply(vp, np.clip(c.x0, c.lower, c.upper))
-    test = np.zeros(oe.held_mask.shape, bool)
-    for _, t in oe.folds:
-        test |= t
-    full, without = oe.residual(vp), oe.residual(without_vp)
+    test = np.logical_or.reduce([t for _, t in oe.folds])   # both folds' held-out rows
+    full, without = oe.residual(vp), oe.residual(_at_nominal(vp, f))
     ok = np.isfinite(full).all(axis=1) & np.isfinite(without).all(axis=1)
     r0 = float(np.sqrt(np.mean(without[test & ok] ** 2)))
     r1 = float(np.sqrt(np.mean(full[test & ok] ** 2)))
