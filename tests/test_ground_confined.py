@@ -92,3 +92,22 @@ def test_a_confined_change_is_judged_on_the_blocks_it_carries():
         R0w[blocks[k]] += 0.01                  # a 1 kg quad's ground effect at cruise: a miss on every block
     wide = _block_stats(R0w, R1, blocks)
     assert wide["n"] == 72 and wide["n_pos"] == 72
+
+
+def test_an_untestable_block_comparison_says_so():
+    """Under MIN_TEST_BLOCKS active blocks no test runs: t reads 0.0 (no evidence for the candidate), ``tested`` is
+    False, and the reason given is that the test did not run, not a measured t of 0.0; from 4 blocks it runs."""
+    from twin_nodes.discovery.blocktest import MIN_TEST_BLOCKS, _block_stats, not_significant
+
+    rng = np.random.default_rng(3)
+    R0 = rng.normal(size=(400, 1))
+    blocks = [np.arange(i, i + 40) for i in range(0, 400, 40)]
+    R1 = R0.copy()
+    R1[:120] *= 0.5                     # the candidate helps in 3 blocks, touches none of the others
+    st = _block_stats(R0, R1, blocks)
+    assert (st["n"], st["tested"], st["t"]) == (3, False, 0.0)
+    assert not_significant(st["t"], st["n"]) == f"held-out block test not run (3 active blocks, {MIN_TEST_BLOCKS} needed)"
+    R1[:200] = R0[:200] * 0.5           # 5 blocks: the test runs and all five improve
+    st = _block_stats(R0, R1, blocks)
+    assert st["tested"] and st["n"] == 5 and st["t"] > 2.0
+    assert not_significant(1.23, 7) == "not significant on held-out blocks (t=1.2 over 7)"

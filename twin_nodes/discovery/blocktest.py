@@ -15,6 +15,10 @@ NEGLIGIBLE = 0.01
 #: chosen from its own term (:func:`_block_stats` ``change``).  One reaching more (a 1 kg quad's ground effect, 0.84 m
 #: height scale, at a 1.45 m cruise: every block) is judged on its net change with them, as before
 CONFINED_SHARE = 0.5
+#: fewer active held-out blocks than this and :func:`_block_stats` runs none of its tests: its ``t`` reads 0.0 (no
+#: evidence for the candidate) and ``tested`` is False, so a caller using the t as evidence *against* it (a drop, a
+#: veto) can tell an untestable comparison from a failed one
+MIN_TEST_BLOCKS = 4
 
 
 def _confined(per_block: np.ndarray) -> bool:
@@ -49,15 +53,16 @@ def _block_stats(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_c
             rest = np.array([np.sqrt(np.mean((R1[b] - R0[b] - change[b]) ** 2)) for b in blocks])
             delta = np.where(own >= rest, own, 0.0)
     if delta.size == 0 or delta.max() <= 0:
-        return {"t": 0.0, "n": 0, "mean": 0.0, "sd": 0.0, "n_pos": 0}
+        return {"t": 0.0, "n": 0, "mean": 0.0, "sd": 0.0, "n_pos": 0, "tested": False}
     # a confined change (a Crazyflie's ground effect at take-off and landing): its typical block change is taken
     # over the blocks it reaches, so the many blocks it leaves at noise do not pull the threshold down to them
     ref = np.percentile(delta[delta >= NEGLIGIBLE * delta.max()] if _confined(delta) else delta, 90)
     active = [b for b, dl in zip(blocks, delta) if dl >= max(0.25 * ref, min_change, NEGLIGIBLE * delta.max())]
     d = np.array([np.mean(R0[b] ** 2) - np.mean(R1[b] ** 2) for b in active])
     st = {"n": int(d.size), "mean": float(d.mean()) if d.size else 0.0,
-          "sd": float(d.std(ddof=1)) if d.size > 1 else 0.0, "n_pos": int(np.sum(d > 0))}
-    if d.size < 4:
+          "sd": float(d.std(ddof=1)) if d.size > 1 else 0.0, "n_pos": int(np.sum(d > 0)),
+          "tested": bool(d.size >= MIN_TEST_BLOCKS)}
+    if not st["tested"]:
         st["t"] = 0.0
         return st
     from scipy.stats import binom, norm
@@ -130,6 +135,14 @@ def _flip_sums(n: int, a: np.ndarray) -> np.ndarray:
         f -= 1.0
         out[r0:r0 + rows] = f @ a
     return out
+
+
+def not_significant(t: float, n: int) -> str:
+    """Why a candidate's held-out block test did not carry it, in one phrase: its t over ``n`` active blocks, or
+    that the test did not run (under ``MIN_TEST_BLOCKS`` active blocks: its t of 0.0 is no measured value)."""
+    if n < MIN_TEST_BLOCKS:
+        return f"held-out block test not run ({n} active block{'s' if n != 1 else ''}, {MIN_TEST_BLOCKS} needed)"
+    return f"not significant on held-out blocks (t={t:.1f} over {n})"
 
 
 def _block_test(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_change: float = 0.0

@@ -30,7 +30,7 @@ import math
 import numpy as np
 
 from twin_nodes.discovery.candidates import build_candidates
-from twin_nodes.discovery.blocktest import _block_stats
+from twin_nodes.discovery.blocktest import MIN_TEST_BLOCKS, _block_stats
 from twin_nodes.discovery.judging import (BLOCK_S, MIN_REL_IMPROVEMENT, OE_BLOCK_S, OE_MIN_CHANGE, T_CRIT, _blocks,
                                           _mode_rms, _restrict_to_axes, _scales, assess)
 from twin_nodes.discovery.stages.prepare import prepare_flight
@@ -119,7 +119,8 @@ def confirm(result: dict, followup_log, vp: VehicleParams) -> dict:
         passed = st["t"] > T_CRIT and rel >= 0.0 and mode_cut >= MIN_REL_IMPROVEMENT and agree
         why = []
         if st["t"] <= T_CRIT:
-            why.append(f"not significant on the follow-up (t={st['t']:.1f} over {st['n']} active blocks)")
+            why.append(f"not significant on the follow-up (t={st['t']:.1f} over {st['n']} active blocks)" if st["tested"]
+                       else f"the follow-up's block test did not run ({st['n']} active blocks, {MIN_TEST_BLOCKS} needed)")
         if rel < 0.0:
             why.append(f"makes the follow-up residual worse overall ({100 * rel:.0f} %)")
         if mode_cut < MIN_REL_IMPROVEMENT:

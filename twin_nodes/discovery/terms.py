@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from twin_nodes.discovery.blocktest import _block_stats
+from twin_nodes.discovery.blocktest import _block_stats, not_significant
 from twin_nodes.discovery.judging import MIN_REL_IMPROVEMENT, T_CRIT
 from twin_nodes.discovery.residuals import EquationData, model_rotor_states, modes, residual_channels
 from twin_nodes.physics.core import NX_BODY
@@ -240,7 +240,7 @@ def find_term(y: np.ndarray, X: np.ndarray, t: np.ndarray, fit_rows: np.ndarray,
     pick.gain_spread = float(np.percentile(gain, 95) - np.percentile(gain, 5))
     why = []
     if pick.t_stat <= T_CRIT:
-        why.append(f"not significant on held-out blocks (t={pick.t_stat:.1f} over {pick.n_blocks})")
+        why.append(not_significant(pick.t_stat, pick.n_blocks))
     if pick.cut < MIN_REL_IMPROVEMENT:
         why.append(f"explains only {100 * pick.cut:.0f} % of the held-out residual")
     if pick.gain_spread < MIN_GAIN_SPREAD:

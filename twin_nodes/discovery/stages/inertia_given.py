@@ -15,15 +15,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from twin_nodes.discovery.blocktest import _block_stats
+from twin_nodes.discovery.blocktest import MIN_TEST_BLOCKS, _block_stats
 from twin_nodes.discovery.candidates import Candidate
 from twin_nodes.discovery.judging import MIN_REL_IMPROVEMENT, T_CRIT, Fit, Judge, fit_candidate
 from twin_nodes.physics.effects import EFFECTS
 from twin_nodes.vehicle.params import VehicleParams
-
-
-#: fewer active held-out blocks than this and :func:`blocktest._block_stats` runs none of its tests (its t reads 0.0)
-MIN_TEST_BLOCKS = 4
 
 
 def contribution(oe: Judge, vp: VehicleParams, f: Fit) -> dict:
@@ -40,7 +36,7 @@ def contribution(oe: Judge, vp: VehicleParams, f: Fit) -> dict:
     r1 = float(np.sqrt(np.mean(full[test & ok] ** 2)))
     st = _block_stats(without, full, oe.blocks, 0.0)
     g = {"cut": round(1.0 - r1 / r0, 4) if r0 > 0 else 0.0, "t": None, "blocks": int(st["n"])}
-    if st["n"] < MIN_TEST_BLOCKS:
+    if not st["tested"]:
         g["not_judged"] = f"{st['n']} active held-out blocks (< {MIN_TEST_BLOCKS}): the block test did not run"
     elif not np.isfinite(st["t"]):
         g["not_judged"] = f"block t not finite over {st['n']} active blocks"

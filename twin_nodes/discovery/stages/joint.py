@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares, lsq_linear
 
-from twin_nodes.discovery.blocktest import _block_stats
+from twin_nodes.discovery.blocktest import MIN_TEST_BLOCKS, _block_stats
 from twin_nodes.discovery.candidates import Candidate
 from twin_nodes.discovery.judging import Fit, Judge, _affine_form, _scales
 from twin_nodes.physics.effects import EFFECTS
@@ -354,7 +354,10 @@ def contributions(judge: Judge, vp: VehicleParams, accepted: list[Fit]) -> dict[
                                                       f"{str(exc).split(': ', 1)[-1]}"}
             continue
         r0, r1 = float(np.sqrt(np.mean(without[test] ** 2))), float(np.sqrt(np.mean(full[test] ** 2)))
-        t = _block_stats(without, full, judge.blocks, 0.0)["t"]
-        out[accepted.index(a)] = {"cut": round(1.0 - r1 / r0, 4) if r0 > 0 else 0.0,
-                                  "t": round(float(t), 2) if np.isfinite(t) else None, "residual": judge.kind}
+        st = _block_stats(without, full, judge.blocks, 0.0)
+        row = {"cut": round(1.0 - r1 / r0, 4) if r0 > 0 else 0.0,
+               "t": round(float(st["t"]), 2) if st["tested"] and np.isfinite(st["t"]) else None, "residual": judge.kind}
+        if not st["tested"]:
+            row["not_judged"] = f"{st['n']} active held-out blocks (< {MIN_TEST_BLOCKS}): the block test did not run"
+        out[accepted.index(a)] = row
     return out

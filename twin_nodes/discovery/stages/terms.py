@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from twin_nodes.discovery import terms as T
+from twin_nodes.discovery.blocktest import not_significant
 from twin_nodes.discovery.judging import MIN_REL_IMPROVEMENT, T_CHOICE, T_CRIT, Fit
 from twin_nodes.discovery.residuals import modes, residual_channels
 from twin_nodes.discovery.stages import closed_loop
@@ -155,7 +156,7 @@ def _verdict(fit: T.TermFit, heldout_cut: float, why: list[str]) -> tuple[str, l
     of the oov flights, RotorPy and the real take-off-and-land log cuts it by 57-96 %)."""
     why = list(why)
     if fit.t_stat <= T_CRIT:
-        why.append(f"not significant on held-out blocks (t={fit.t_stat:.1f} over {fit.n_blocks})")
+        why.append(not_significant(fit.t_stat, fit.n_blocks))
     if fit.cut < MIN_REL_IMPROVEMENT:
         why.append(f"explains only {100 * fit.cut:.0f} % of the held-out residual")
     flown_short = not heldout_cut >= MIN_REL_IMPROVEMENT  # NaN (no held-out residual): not shown, so short

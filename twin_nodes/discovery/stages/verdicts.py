@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from twin_nodes.discovery.blocktest import not_significant
 from twin_nodes.discovery.judging import (MIN_REL_IMPROVEMENT, MOTOR_DYNAMICS, T_CRIT, _GRADE_ORDER, Fit, Judge,
                                           _mode_rms, _summary, _window_folds)
 from twin_nodes.discovery.output_error import projected_view
@@ -173,7 +174,7 @@ def _evidence(f: Fit, names: list[str], before_ch: np.ndarray) -> str:
     if f.closed_loop:
         why.append(f.closed_loop)
     if f.t_stat <= T_CRIT:
-        why.append(f"not significant on held-out blocks (t={f.t_stat:.1f})")
+        why.append(not_significant(f.t_stat, f.n_blocks))
     if f.explains < MIN_REL_IMPROVEMENT:
         why.append(f"explains only {100 * f.explains:.0f} % of the held-out residual")
     reason = "; ".join(why) if why else f"t={f.t_stat:.1f} over {f.n_blocks} held-out blocks"
