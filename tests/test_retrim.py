@@ -103,3 +103,66 @@ def test_steady_samples_are_slow_usable_and_inside_the_motor_range():
     data.valid_attitude = np.zeros(n, bool)
     data.valid_attitude[:200] = True
     assert steady_samples(data) is None
+
+
+def _split_and_noise(truth):
+    """Steady states whose yaw split varies sample by sample (a yaw torque the model lacks holds it: the rotors
+    of one spin direction 0-12 % up, skewed), beside a measured yaw acceleration that is noise of its own
+    (skewed too, independent of the split): what a real flight's steady samples hold."""
+    X = _steady(truth)
+    d = np.asarray(truth.rotors.direction, float)
+    eps = np.array([0.0, 0.01, 0.02, 0.02, 0.03, 0.05, 0.08, 0.10, 0.12])
+    X[:, -4:] *= 1.0 + eps[:, None] * (d[None, :] > 0)
+    alpha = np.zeros((len(X), 3))
+    alpha[:, 2] = [4.2, -1.2, -3.3, 6.6, 1.8, -2.7, 0.3, -0.6, 0.9]   # rad/s^2
+    return X, alpha
+
+
+def test_the_trims_move_by_the_median_of_each_samples_change():
+    """A yaw moment refit (km 0.03 -> 0.015 m) on samples where the split and the measured acceleration vary
+    independently: the lever moves by the median over the samples of the change each sample's own balance
+    asks for, not by the change of the two medians (the median of a difference of two varying terms is not
+    the difference of their medians).  auterion_v3_esc_status (km 0.02 -> 0.0083 m): the change of the medians
+    moved the twin's yaw split 0.75 % of full output off the vehicle's before the held-out part, held-out
+    per-motor P75 7.03 -> 7.46 %; the paired change keeps it, 6.98 %."""
+    truth = _truth(shipped("px4_sih_quadx"))
+    X, alpha = _split_and_noise(truth)
+    nominal = without_trims(truth).with_effect("yaw_moment", km=0.03)
+    tr = model_trims(nominal, X, alpha)
+    nominal = nominal.with_effect("com_offset", dx=tr.dx, dy=tr.dy).with_effect("rotor_tilt", lever_m=tr.lever)
+    refit = nominal.with_effect("yaw_moment", km=0.015)
+    out = retrimmed(refit, nominal, lambda v: X, alpha)
+    # each sample's own change: the rotors' yaw moment the refit takes away, per newton of its thrust
+    t = np.arange(len(X), dtype=float)
+    m_yaw, thrust = [], []
+    for v in (nominal, refit):
+        model = Multirotor(without_trims(v).with_effect("com_offset", dx=tr.dx, dy=tr.dy))
+        terms = model.wrench_terms(X, model.exogenous(t, np.random.default_rng(0)))
+        m_yaw.append(sum(w[1] for w in terms.values())[:, 2])
+        thrust.append(terms["rotors"][0][:, 2])
+    per_sample = -(m_yaw[1] - m_yaw[0]) / thrust[0]
+    moved = _trims(out)[2] - tr.lever
+    assert moved == pytest.approx(float(np.median(per_sample)), rel=1e-6)
+    assert moved == pytest.approx(-1.7028e-3, abs=1e-6)
+    # the change of the medians would have moved it more than twice as far
+    by_medians = model_trims(refit, X, alpha).lever - tr.lever
+    assert by_medians == pytest.approx(-3.8270e-3, abs=1e-6)
+    # roll and pitch: the yaw moment moves neither
+    assert _trims(out)[:2] == pytest.approx((tr.dx, tr.dy), abs=1e-12)
+
+
+def test_the_paired_change_falls_back_to_the_medians_without_samples():
+    """Three samples whose lever terms cross: the paired change and the change of the medians differ; a read
+    without its samples (``per_sample`` None) gives the change of the medians."""
+    from twin_nodes.discovery.stages.retrim import paired_change
+    from twin_nodes.identify.static_trims import Trims
+
+    a, b = np.array([0.0, 1.0, 5.0]), np.array([3.0, 0.0, 1.0])
+    old = Trims(0.0, 0.0, float(np.median(a - 0.03 * b)), (0.0, 0.0, 0.0), 3,
+                np.column_stack([np.zeros(3), np.zeros(3), a - 0.03 * b]))
+    new = Trims(0.0, 0.0, float(np.median(a - 0.015 * b)), (0.0, 0.0, 0.0), 3,
+                np.column_stack([np.zeros(3), np.zeros(3), a - 0.015 * b]))
+    # paired: the median of 0.015 b = 0.015; the change of the medians: 1 - 1 = 0 (the same sample is the median)
+    assert paired_change(new, old) == pytest.approx((0.0, 0.0, 0.015), abs=1e-12)
+    bare = Trims(new.dx, new.dy, new.lever, new.moment_other_nm, 3)
+    assert paired_change(bare, old) == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)

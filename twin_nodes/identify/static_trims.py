@@ -26,7 +26,7 @@ inside the rotor polygon (:func:`com_verdict`).  Pure numpy on :class:`~twin_nod
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -48,12 +48,15 @@ _TRIM_TOL_M = 1e-12
 @dataclass(frozen=True)
 class Trims:
     """``com_offset`` (dx, dy) [m, body FLU] and ``rotor_tilt`` lever [m] (yaw moment per newton of
-    total thrust, + CCW seen from above), and the steady moments they balance [N m] (FLU)."""
+    total thrust, + CCW seen from above), and the steady moments they balance [N m] (FLU); ``per_sample``
+    (S, 3): the (dx, dy, lever) each steady sample alone asks for (NaN where it has no thrust), whose
+    medians the trims are (:func:`model_trims`; the paired change of :mod:`twin_nodes.discovery.stages.retrim`)."""
     dx: float
     dy: float
     lever: float
     moment_other_nm: tuple[float, float, float]
     n_samples: int
+    per_sample: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 def without_trims(vp: VehicleParams) -> VehicleParams:
@@ -106,7 +109,10 @@ def model_trims(vp: VehicleParams, states: np.ndarray, alpha: np.ndarray | None 
             break
         dx, dy = dx + ex, dy + ey
     lever = float(np.median(per_n[:, 2]))
-    return Trims(dx, dy, lever, other, int(ok.sum()))
+    # what each sample asks for: the offset plus its own further step, and its lever (medians: the trims)
+    each = np.full((X.shape[0], 3), np.nan)
+    each[ok] = np.column_stack([dx + per_n[:, 1], dy - per_n[:, 0], per_n[:, 2]])
+    return Trims(dx, dy, lever, other, int(ok.sum()), each)
 
 
 #: a centre-of-mass trim beyond this fraction of the arm is accepted only where the flight shows it held
