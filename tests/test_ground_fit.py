@@ -84,3 +84,24 @@ def test_seen_crazyflie_flight_whole_flight_fit_r044():
     assert abs(p["coefficient"] / 0.4 - 1) < abs(fold1[0] / 0.4 - 1)
     assert f.ground_fit["fold_params"][0]["coefficient"] == pytest.approx(fold1[0])
     assert dict(dict(out.effects)["ground_effect"])["coefficient"] == pytest.approx(p["coefficient"])
+
+
+def test_a_low_hover_reads_the_ridge_with_its_uncertainty_i014():
+    # i014 (batch 12: Crazyflie sag + ground effect 0.4 / 0.1505 m, hover with yaw): 11 s within reach, the low
+    # hover at 0.16 m (spread 0.154 height scales): the whole flight read 0.357 / 0.170 (10.7 / 12.7 % off), the
+    # folds 0.394 / 0.146 and 0.349 / 0.173; their extra thrust at 0.157 m 0.1346 / 0.1409 (4.5 % apart)
+    pin = {"h_ref_m": 0.157, "spread_scales": 0.154}
+    folds = [{"coefficient": 0.39369, "height_scale": 0.14633}, {"coefficient": 0.34911, "height_scale": 0.17300}]
+    r = ground.along_ridge(pin, {"coefficient": 0.35708, "height_scale": 0.16966}, folds)
+    assert r["gain_rel"] == pytest.approx(0.0452, abs=5e-4)
+    assert r["height_scale_rel"] == pytest.approx(0.0452 / 0.154, abs=0.005)          # 29 %
+    assert r["coefficient_rel"] == pytest.approx(math.hypot(0.0452, 0.157 / 0.16966 * 0.294), abs=0.005)  # 27 %
+    lo, hi = r["coefficient_range"]
+    assert lo < 0.4 < hi and hi == pytest.approx(0.4554, abs=2e-3)                     # the truth inside
+    lo, hi = r["height_scale_range_m"]
+    assert lo < 0.1505 < hi and lo == pytest.approx(0.1198, abs=2e-3)
+    # folds that agree on the extra thrust read the ridge narrowly; no folds: nothing said
+    same = [{"coefficient": 0.4, "height_scale": 0.15}, {"coefficient": 0.4 * math.exp(0.157 / 0.16 - 0.157 / 0.15),
+                                                           "height_scale": 0.16}]
+    assert ground.along_ridge(pin, {"coefficient": 0.4, "height_scale": 0.15}, same)["height_scale_rel"] < 1e-3
+    assert ground.along_ridge(pin, {"coefficient": 0.4, "height_scale": 0.15}, []) is None

@@ -94,6 +94,30 @@ def pinned(height: np.ndarray, coefficient: float, height_scale: float, dt: floa
     return out
 
 
+def along_ridge(pin: dict, params: dict, folds: list[dict]) -> dict | None:
+    """Where the low flight pins only the extra thrust near ``h_ref`` (:func:`pinned`'s ``determined`` False), how
+    far along the ridge c exp(-h_ref/h_s) = g the coefficient and height scale are read (i014: 0.357 / 0.170 for
+    0.4 / 0.1505).  On ln g(h) = ln c - h/h_s a least-squares line's slope is known to its level's error over the
+    heights' spread sigma_h (sd(slope) = sd(level) / sigma_h), so the height scale to a relative
+    ``gain_rel`` / ``spread_scales`` and the coefficient (c = g exp(h_ref/h_s)) to the root sum of squares of
+    ``gain_rel`` and h_ref/h_s times that.  ``gain_rel``: the two folds' extra thrust at h_ref, their difference
+    over their mean (the whole difference, not half: the folds share 30 % of the flight, so it understates the
+    independent scatter).  None: no folds or no low samples."""
+    if len(folds) < 2 or "h_ref_m" not in pin or pin.get("spread_scales", 0.0) <= 0.0:
+        return None
+    h_ref, hs = pin["h_ref_m"], params["height_scale"]
+    g = [float(gain(f["coefficient"], f["height_scale"], h_ref) - 1.0) for f in folds[:2]]
+    if min(g) <= 0.0:
+        return None
+    gain_rel = abs(g[0] - g[1]) / (0.5 * (g[0] + g[1]))
+    hs_rel = gain_rel / pin["spread_scales"]
+    c_rel = float(np.hypot(gain_rel, h_ref / hs * hs_rel))
+    c = params["coefficient"]
+    return {"gain_rel": round(gain_rel, 4), "height_scale_rel": round(hs_rel, 3), "coefficient_rel": round(c_rel, 3),
+            "coefficient_range": [round(c * (1 - c_rel), 4), round(c * (1 + c_rel), 4)],
+            "height_scale_range_m": [round(hs * max(1 - hs_rel, 0.0), 4), round(hs * (1 + hs_rel), 4)]}
+
+
 def _rows(flight: PreparedFlight) -> np.ndarray:
     """Both folds' fit rows: every usable sample of the flight."""
     rows = np.zeros(flight.data.n, bool)
@@ -116,10 +140,15 @@ def _note(f: Fit, flight: PreparedFlight, folds: list[dict], jointly: list[str])
     p = f.candidate.params_dict(f.theta)
     on = ("both folds' fit parts, every usable sample of the flight (the take-off and the landing; each fold "
           "alone sees one of them)")
+    pin = pinned(flight.data.height[_rows(flight)], p["coefficient"], p["height_scale"], flight.data.dt)
+    ridge = along_ridge(pin, p, folds) if pin["determined"] is False else None
+    if ridge is not None:
+        pin.update(ridge=ridge, note=pin["note"] + (
+            f"; read along it: coefficient {p['coefficient']:.3g} +- {100 * ridge['coefficient_rel']:.0f} %, height "
+            f"scale {p['height_scale']:.3g} m +- {100 * ridge['height_scale_rel']:.0f} % (the folds' extra thrust "
+            f"there differs {100 * ridge['gain_rel']:.1f} %)"))
     f.ground_fit = {"params_fitted_on": on + (f", jointly with {', '.join(jointly)}" if jointly else ""),
-                    "fold_params": folds,
-                    **pinned(flight.data.height[_rows(flight)], p["coefficient"], p["height_scale"],
-                             flight.data.dt)}
+                    "fold_params": folds, **pin}
 
 
 def _refit_cost(fits: list[Fit], flight: PreparedFlight, rows: np.ndarray) -> tuple[float, list[Fit]]:
