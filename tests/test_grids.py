@@ -751,3 +751,29 @@ def test_both_grids_name_the_same_judging_batches_and_the_cli_takes_each():
         assert p.parse_args(["prove", "--grid", "px4sih", "--half", h]).half == h
     with pytest.raises(SystemExit):
         p.parse_args(["prove", "--grid", "px4sih", "--half", "judge99"])
+
+
+def test_a_ground_effect_on_a_low_hover_is_scored_as_the_extra_thrust_it_pins_i014():
+    # i014 (batch 12: battery sag 1.0 + ground effect 0.4 / 0.1505 m, Crazyflie hover with yaw): the low hover sits
+    # at 0.157 m (spread 0.154 height scales); discovery says so and reads 0.357 / 0.170 along the ridge, to
+    # 0.259-0.455 / 0.120-0.220: the one reading, c exp(-0.157/h_s), 0.1415 against the truth's 0.1409
+    vp = shipped("px4_sih_quadx")
+    truths = [Truth(Hidden("battery_sag", {"v_ref": 16.8, "exponent": 1.0})),
+              Truth(Hidden("ground_effect", {"coefficient": 0.4, "height_scale": 0.1505}))]
+    gf = {"h_ref_m": 0.157, "spread_scales": 0.154, "determined": False,
+          "ridge": {"coefficient_range": [0.2587, 0.4554], "height_scale_range_m": [0.1198, 0.2195]}}
+    ge = {**_eff("ground_effect", {"coefficient": 0.35708, "height_scale": 0.16966}), "ground_fit": gf}
+    res = {"effects": [_eff("battery_sag", {"v_ref": 16.8, "exponent": 1.0004}), ge]}
+    r = grid_prove.score_grid_flight("i014", truths, res, vp)
+    g_f, g_t = 0.35708 * np.exp(-0.157 / 0.16966), 0.4 * np.exp(-0.157 / 0.1505)
+    assert r["param_errors"]["ground_effect"] == pytest.approx(abs(g_f / g_t - 1), rel=1e-9)   # 0.4 %
+    assert r["param_errors"]["ground_effect"] < 0.01 and r["passed"]
+    assert "not told apart" in r["param_text"]["ground_effect"]
+    # a truth outside the range the finding states: each parameter scored (the height scale 12.7 % off)
+    narrow = {**gf, "ridge": {"coefficient_range": [0.34, 0.37], "height_scale_range_m": [0.16, 0.18]}}
+    r = grid_prove.score_grid_flight("i014", truths, {"effects": [res["effects"][0], {**ge, "ground_fit": narrow}]}, vp)
+    assert r["param_errors"]["ground_effect"] == pytest.approx(0.16966 / 0.1505 - 1, rel=1e-9) and not r["passed"]
+    # a flight that tells them apart (determined): each parameter scored, as before
+    told = {**gf, "determined": True}
+    r = grid_prove.score_grid_flight("i014", truths, {"effects": [res["effects"][0], {**ge, "ground_fit": told}]}, vp)
+    assert r["param_errors"]["ground_effect"] == pytest.approx(0.16966 / 0.1505 - 1, rel=1e-9)

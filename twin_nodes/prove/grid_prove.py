@@ -19,8 +19,8 @@ import math
 from collections import defaultdict
 from pathlib import Path
 
-from twin_nodes.prove.scoring import (DragContext, Truth, compare, effect_class, findings, heldout_cut, verdict,
-                                      write_result)
+from twin_nodes.prove.scoring import (DragContext, Truth, compare, effect_class, findings, heldout_cut,
+                                      ridge_reading, verdict, write_result)
 from twin_nodes.twin.simflight import Hidden
 
 CACHE = Path.home() / ".cache" / "rotortwin" / "grids"
@@ -68,6 +68,9 @@ def score_grid_flight(flight: str, truths: list[Truth], result: dict, nominal, d
                 # the finding's own parameters it says the flight does not show (held at the model's value)
                 held = frozenset(e.get("held_at_nominal") or {}) if hit[0][0] == e["name"] else frozenset()
                 err, text = compare(t, hit[0][0], hit[0][1], nominal, drag, per_mass, held)
+                # a ground effect whose flight pins only its extra thrust near one low height: that one reading
+                ridge = ridge_reading(t, hit[0][1], e.get("ground_fit")) if hit[0][0] == e["name"] else None
+                err, text = ridge if ridge is not None else (err, text)
                 errs[t.hidden.name], texts[t.hidden.name] = err, text
                 if hit[0][0] != e["name"] and (e.get("not_told_apart") or {}).get("damping_with_it"):
                     other_reading = e["not_told_apart"]["damping_with_it"]

@@ -281,6 +281,29 @@ def compare(truth: Truth, found_name: str, found: dict, nominal: VehicleParams,
     return err, f"{worst} {found[worst]:.4g} vs {h.params[worst]:.4g}{held_text}"
 
 
+def ridge_reading(truth: Truth, found: dict, ground_fit: dict | None) -> tuple[float, str] | None:
+    """A ground effect whose finding says the flight pins only its extra thrust near h_ref (discovery's
+    ``stages.ground``: a low hover at one height, ``determined`` False) and reads the coefficient and height scale
+    along that ridge to a stated range (``ridge``): where both true values lie inside the ranges, scored as the
+    one reading the flight gives, c exp(-h_ref/h_s) against the truth's at the same height (as a mass and a thrust
+    coefficient are scored as thrust per unit mass); the parameters' own values are named in the text.  None
+    where the finding does not say so or a truth lies outside its range (then each parameter is scored)."""
+    gf = ground_fit or {}
+    ridge, h = gf.get("ridge"), truth.hidden
+    if h.name != "ground_effect" or gf.get("determined") is not False or not ridge or "h_ref_m" not in gf:
+        return None
+    c_t, hs_t = h.params["coefficient"], h.params["height_scale"]
+    (c_lo, c_hi), (hs_lo, hs_hi) = ridge["coefficient_range"], ridge["height_scale_range_m"]
+    if not (c_lo <= c_t <= c_hi and hs_lo <= hs_t <= hs_hi):
+        return None
+    h_ref = gf["h_ref_m"]
+    g_t = c_t * math.exp(-h_ref / hs_t)
+    g_f = found["coefficient"] * math.exp(-h_ref / found["height_scale"])
+    return abs(g_f / g_t - 1.0), (f"c exp(-{h_ref:.3g}/h_s) {g_f:.4g} vs {g_t:.4g} (not told apart on this flight: "
+                                  f"coefficient {found['coefficient']:.3g} vs {c_t:.3g} in {c_lo:.3g}-{c_hi:.3g}, "
+                                  f"height_scale {found['height_scale']:.3g} vs {hs_t:.3g} in {hs_lo:.3g}-{hs_hi:.3g})")
+
+
 def score_flight(flight: str, truth: Truth, result: dict, nominal: VehicleParams,
                  drag: DragContext | None = None, **facts) -> dict:
     """One row of a prove table from a discover() result (see the rules above)."""
