@@ -97,22 +97,27 @@ def pinned(height: np.ndarray, coefficient: float, height_scale: float, dt: floa
 def along_ridge(pin: dict, params: dict, folds: list[dict]) -> dict | None:
     """Where the low flight pins only the extra thrust near ``h_ref`` (:func:`pinned`'s ``determined`` False), how
     far along the ridge c exp(-h_ref/h_s) = g the coefficient and height scale are read (i014: 0.357 / 0.170 for
-    0.4 / 0.1505).  On ln g(h) = ln c - h/h_s a least-squares line's slope is known to its level's error over the
-    heights' spread sigma_h (sd(slope) = sd(level) / sigma_h), so the height scale to a relative
-    ``gain_rel`` / ``spread_scales`` and the coefficient (c = g exp(h_ref/h_s)) to the root sum of squares of
-    ``gain_rel`` and h_ref/h_s times that.  ``gain_rel``: the two folds' extra thrust at h_ref, their difference
-    over their mean (the whole difference, not half: the folds share 30 % of the flight, so it understates the
-    independent scatter).  None: no folds or no low samples."""
+    0.4 / 0.1505), as a relative half-width about the whole flight's reading, the larger of two:
+
+    - the folds' own readings' distance from it (q030: folds 0.417 / 0.143 and 0.352 / 0.169, their extra thrust
+      at h_ref 0.4 % apart: they slid along the ridge, not across it);
+    - the slope of ln g(h) = ln c - h/h_s known to its level's error over the heights' spread sigma_h
+      (least squares: sd(slope) = sd(level) / sigma_h): the height scale to ``gain_rel`` / ``spread_scales``,
+      the coefficient (c = g exp(h_ref/h_s)) to the root sum of squares of ``gain_rel`` and h_ref/h_s times that;
+      ``gain_rel``: the folds' extra thrust at h_ref, their difference over their mean (the whole difference: the
+      folds share 30 % of the flight).
+
+    Two folds make it a rough range, not a confidence interval.  None: no folds or no low samples."""
     if len(folds) < 2 or "h_ref_m" not in pin or pin.get("spread_scales", 0.0) <= 0.0:
         return None
-    h_ref, hs = pin["h_ref_m"], params["height_scale"]
+    h_ref, hs, c = pin["h_ref_m"], params["height_scale"], params["coefficient"]
     g = [float(gain(f["coefficient"], f["height_scale"], h_ref) - 1.0) for f in folds[:2]]
     if min(g) <= 0.0:
         return None
     gain_rel = abs(g[0] - g[1]) / (0.5 * (g[0] + g[1]))
-    hs_rel = gain_rel / pin["spread_scales"]
-    c_rel = float(np.hypot(gain_rel, h_ref / hs * hs_rel))
-    c = params["coefficient"]
+    hs_rel = max(gain_rel / pin["spread_scales"], *(abs(f["height_scale"] / hs - 1.0) for f in folds[:2]))
+    c_rel = max(float(np.hypot(gain_rel, h_ref / hs * gain_rel / pin["spread_scales"])),
+                *(abs(f["coefficient"] / c - 1.0) for f in folds[:2]))
     return {"gain_rel": round(gain_rel, 4), "height_scale_rel": round(hs_rel, 3), "coefficient_rel": round(c_rel, 3),
             "coefficient_range": [round(c * (1 - c_rel), 4), round(c * (1 + c_rel), 4)],
             "height_scale_range_m": [round(hs * max(1 - hs_rel, 0.0), 4), round(hs * (1 + hs_rel), 4)]}
