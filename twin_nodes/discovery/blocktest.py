@@ -19,6 +19,10 @@ CONFINED_SHARE = 0.5
 #: evidence for the candidate) and ``tested`` is False, so a caller using the t as evidence *against* it (a drop, a
 #: veto) can tell an untestable comparison from a failed one
 MIN_TEST_BLOCKS = 4
+#: a block whose change is at least this share of the candidate's largest block change carries it strongly: a drag
+#: on a fast-descent mission acts in the 2-4 held-out blocks of its diagonal descents, while the logged velocity's
+#: error moves every other block a little (:func:`verdicts.strong_blocks_favour`; rdr16)
+STRONG_SHARE = 0.25
 
 
 def _confined(per_block: np.ndarray) -> bool:
@@ -57,11 +61,14 @@ def _block_stats(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_c
     # a confined change (a Crazyflie's ground effect at take-off and landing): its typical block change is taken
     # over the blocks it reaches, so the many blocks it leaves at noise do not pull the threshold down to them
     ref = np.percentile(delta[delta >= NEGLIGIBLE * delta.max()] if _confined(delta) else delta, 90)
-    active = [b for b, dl in zip(blocks, delta) if dl >= max(0.25 * ref, min_change, NEGLIGIBLE * delta.max())]
+    on = delta >= max(0.25 * ref, min_change, NEGLIGIBLE * delta.max())
+    active = [b for b, o in zip(blocks, on) if o]
     d = np.array([np.mean(R0[b] ** 2) - np.mean(R1[b] ** 2) for b in active])
     st = {"n": int(d.size), "mean": float(d.mean()) if d.size else 0.0,
           "sd": float(d.std(ddof=1)) if d.size > 1 else 0.0, "n_pos": int(np.sum(d > 0)),
           "tested": bool(d.size >= MIN_TEST_BLOCKS)}
+    ds = d[delta[on] >= STRONG_SHARE * delta.max()]   # the active blocks that carry the change strongly
+    st["n_strong"], st["pos_strong"] = int(ds.size), int(np.sum(ds > 0))
     if not st["tested"]:
         st["t"] = 0.0
         return st
