@@ -102,4 +102,58 @@ def barely_excited(data: EquationData, vp: VehicleParams, skip: set[str] = froze
     return out
 
 
-__all__ = ["MIN_SNR", "STEP", "band_noise", "barely_excited", "visibility"]
+def _both_beyond(ratios: list[float], step: float) -> float | None:
+    """The side (+1 up, -1 down) when every fold's ratio to the nominal is beyond ``step`` on that side, else None."""
+    if len(ratios) < 2 or not all(np.isfinite(ratios)) or min(ratios) <= 0:
+        return None
+    if min(ratios) >= step:
+        return 1.0
+    if max(ratios) <= 1.0 / step:
+        return -1.0
+    return None
+
+
+def yaw_moment_lean(effects: list[dict], km_nominal: float, yaw_gain: float | None = None) -> dict | None:
+    """What a barely excited yaw moment's own equation-error fit still says (issue 26, ``m516``: PX4 SIH's take-off
+    and land, ``docs/discovery.md``): a hint, never a finding.  The flight *leans* to a km change where the yaw
+    moment candidate, judged in the yaw mode, moves km past the reference change (x``STEP`` or /``STEP``) the same
+    way in both folds, with a positive held-out yaw cut and a held-out block statistic above the `likely` grade's
+    (``verdicts.LIKELY_MIN_T``), and PX4's rate loop, where it read the flight, sees the yaw authority moved the
+    same way (``yaw_gain`` > 1 for a larger km).  Measured on the seen M5 flights: the three with SIH_Q_MAX
+    changed (b007, l017, l019, u019) fit km x1.44-x1.86 by fold for x1.3-x1.7 (t 2.1-5.1, rate-loop yaw x1.61-x1.85);
+    the 22 without, x0.83-x1.31 (no flight with both folds past x1.3 or under /1.3).  None when it does not lean."""
+    from twin_nodes.discovery.verdicts import LIKELY_MIN_T
+
+    e = next((x for x in effects if x.get("name") == "yaw_moment"), None)
+    eq = ((e or {}).get("residuals") or {}).get("equation") or {}
+    if eq.get("heldout_channel") != "yaw" or not km_nominal > 0:
+        return None
+    ratios = [float(f.get("km", np.nan)) / km_nominal for f in eq.get("fold_params") or []]
+    side = _both_beyond(ratios, STEP)
+    t, cut = eq.get("heldout_t_stat"), eq.get("heldout_improvement") or 0.0
+    if side is None or t is None or t <= LIKELY_MIN_T or cut <= 0:
+        return None
+    if yaw_gain is not None and np.isfinite(yaw_gain) and (yaw_gain - 1.0) * side <= 0:
+        return None
+    out = {"km_fold_ratios": [round(r, 3) for r in ratios], "heldout_t": t, "heldout_yaw_cut": cut}
+    if yaw_gain is not None and np.isfinite(yaw_gain):
+        out["rate_loop_yaw_gain"] = round(float(yaw_gain), 3)
+    return out
+
+
+def with_lean(entries: list[dict], effects: list[dict], km_nominal: float, yaw_gain: float | None = None) -> list[dict]:
+    """``entries`` (``not_excited``) with the barely excited yaw moment's lean (:func:`yaw_moment_lean`) said in
+    its ``why``: the flight carries a hint of the change it cannot size."""
+    lean = yaw_moment_lean(effects, km_nominal, yaw_gain)
+    if lean is None:
+        return entries
+    r = lean["km_fold_ratios"]
+    rl = (f"; PX4's rate loop reads the yaw authority x{lean['rate_loop_yaw_gain']:.2f}"
+          if "rate_loop_yaw_gain" in lean else "")
+    say = (f"; the flight leans to km x{r[0]:.2f} / x{r[1]:.2f} by fold (held-out t {lean['heldout_t']:.1f}, "
+           f"{100 * lean['heldout_yaw_cut']:.0f} % of the yaw mode{rl}): a hint it cannot size or test, not a finding")
+    return [({**n, "why": n["why"] + say, "leans": lean} if n.get("effects") == ["yaw_moment"] else n)
+            for n in entries]
+
+
+__all__ = ["MIN_SNR", "STEP", "band_noise", "barely_excited", "visibility", "with_lean", "yaw_moment_lean"]

@@ -23,7 +23,7 @@ from twin_nodes.discovery.stages.mismatch import Mismatch
 from twin_nodes.discovery.stages.prepare import PreparedFlight
 from twin_nodes.discovery.stages.provisional import is_provisional
 from twin_nodes.discovery.stages.verdicts import Verdicts
-from twin_nodes.discovery.visibility import barely_excited
+from twin_nodes.discovery.visibility import barely_excited, with_lean
 
 
 @dataclass
@@ -43,10 +43,12 @@ class Report:
     result: dict                      # the JSON-ready result (its ``_series``: the arrays the plots use)
 
 
-def _not_shown(data, S: PreparedFlight, effects: list[dict]) -> list[dict]:
+def _not_shown(data, S: PreparedFlight, effects: list[dict], instrumented: dict | None = None) -> list[dict]:
     """What this flight cannot show: no signal at all (``stages.candidates.not_excited``), and the inertia axes
     and yaw moment a 30 % change of which stands out of the noise by less than ``visibility.MIN_SNR`` over the
-    flight (issue 26 item 3: PX4 SIH's take-off and land), except a parameter a finding identified."""
+    flight (issue 26 item 3: PX4 SIH's take-off and land), except a parameter a finding identified; a barely
+    excited yaw moment the flight still leans to says so (``visibility.with_lean``, with PX4's rate-loop yaw
+    gain from ``instrumented`` where it read the flight)."""
     out = not_excited(data, S.excitation)
     if S.nominal is None:
         return out
@@ -54,7 +56,8 @@ def _not_shown(data, S: PreparedFlight, effects: list[dict]) -> list[dict]:
     for e in effects:
         if e.get("name") in ("inertia", "yaw_moment") and e.get("verdict") in ("confirmed", "likely"):
             skip |= set(e.get("params") or {}) - set(e.get("held_at_nominal") or {})
-    return out + barely_excited(data, S.nominal, skip)
+    yaw_gain = (instrumented or {}).get("yaw_gain") if (instrumented or {}).get("method") == "rate_loop" else None
+    return with_lean(out + barely_excited(data, S.nominal, skip), effects, S.nominal.rotors.km_m, yaw_gain)
 
 
 def run(inp: ReportInput) -> Report:
@@ -75,7 +78,7 @@ def run(inp: ReportInput) -> Report:
         "mismatch": inp.mismatch.windows,
         "events": transients,
         "excitation": S.excitation,
-        "not_excited": _not_shown(data, S, inp.verdicts.effects),
+        "not_excited": _not_shown(data, S, inp.verdicts.effects, inp.refit.instrumented),
         "effects": effects_out,
         "accepted": [f.candidate.name for f in accepted if not is_provisional(f)],
         "likely": likely,
