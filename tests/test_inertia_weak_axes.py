@@ -101,6 +101,15 @@ def test_the_finding_and_its_vehicle_follow(monkeypatch):
     assert every[0] is None                                  # nothing read: no parameter within 10 %
     entry, iv = _l013()
     assert ih.read_weak_axes(None, nominal, [entry], current, iv, lambda vp: "worse") is None
+    # f008 (M5, 50 Hz): the rate loop's likely finding carries the model's Izz, which nothing read (yaw 3.0): not read
+    monkeypatch.setattr(vis_mod, "visibility", lambda data, vp: {"ixx": 5.18, "iyy": 4.89, "izz": 3.01, "km": 2.5})
+    f008 = {"name": "inertia", "verdict": "likely", "verdict_note": "", "params": {"ixx": 0.040554, "iyy": 0.039295, "izz": 0.03},
+            "residuals": {"equation": {"params": {"ixx": 0.038821, "iyy": 0.041216, "izz": 0.015669}},
+                          "rate_loop": {"params": {"ixx": 0.040554, "iyy": 0.039295, "izz": 0.03}}}}
+    ih.read_weak_axes(None, nominal, [f008], nominal, {"axes": {}}, lambda vp: None)
+    assert f008["params"] == pytest.approx({"ixx": 0.0396875, "iyy": 0.0402555, "izz": 0.03}, abs=2e-7)
+    assert list(f008["held_at_nominal"]) == ["izz"] and "no reading of its own" in f008["held_at_nominal"]["izz"]
+    assert "own_params" not in f008 or "izz" not in f008["own_params"]
     assert entry["params"]["ixx"] == 0.036547 and entry["axis_readings"]["not_applied"] == "worse"
 
 

@@ -192,10 +192,12 @@ def read_weak_axes(data, nominal, effects_out: list[dict], current, iv: dict | N
             # noise (PX4 SIH M5, Izz unchanged: m004 x0.82, m018 x0.84, f008 x0.52; :func:`hold_yaw_not_borne_out`)
             readings = {kind: r for kind, r in readings.items() if kind != "equation"}
         r = numbers[k] = weak_axis(float(entry["params"][k]), readings, vis.get(k, math.nan), float(I0[j]))
-        if abs(r["value"] - entry["params"][k]) <= 1e-12 * I0[j]:
+        moved = abs(r["value"] - entry["params"][k]) > 1e-12 * I0[j]
+        if r["read"] and not moved:
             continue
-        entry.setdefault("own_params", {}).setdefault(k, entry["params"][k])
-        entry["params"][k] = r["value"]
+        if moved:
+            entry.setdefault("own_params", {}).setdefault(k, entry["params"][k])
+            entry["params"][k] = r["value"]
         if r["read"]:
             entry["verdict_note"] = (entry.get("verdict_note", "") + f"; {k} {r['value']:.4g} +- {r['uncertainty']:.2g}"
                                      f", the midpoint of its readings ({axis} weakly excited: visibility "
