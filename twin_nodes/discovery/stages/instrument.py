@@ -20,7 +20,7 @@ from twin_nodes.discovery.output_error import (AXES, IV_AXIS_PARAM, IV_GAIN_RANG
                                                instrumented_inertia)
 from twin_nodes.discovery.plans import RATE_LOOP_LOG_S
 from twin_nodes.discovery.stages import lag_inertia, motor_lag
-from twin_nodes.discovery.stages.inertia_holds import hold_axes_not_borne_out, hold_yaw_not_borne_out
+from twin_nodes.discovery.stages.inertia_holds import hold_axes_not_borne_out, hold_yaw_not_borne_out, read_weak_axes
 from twin_nodes.discovery.stages.motor_lag import INSTRUMENTED_BLOCKS_MISSING
 from twin_nodes.discovery.stages.prepare import PreparedFlight
 from twin_nodes.discovery.stages.verdicts import Verdicts
@@ -70,7 +70,12 @@ def run(inp: InstrumentInput) -> Instrumented:
             instrumented["beside_rate_loop_lag"] = beside
     # the lag and the roll/pitch inertia read together where either is a finding (each read alone absorbs the other)
     refit, joint = lag_inertia.read_together(S, current, v.effects, guard)
-    return Instrumented(refit or current, instrumented, lag, joint)
+    # last, each inertia axis with its readings: a weakly excited one at their midpoint, or not read where they
+    # disagree (not where the joint reading replaced them: the others were read on the model's lag)
+    current = refit or current
+    if (joint or {}).get("verdict") != "lag and inertia":
+        current = read_weak_axes(S.data, S.nominal, v.effects, current, instrumented, guard) or current
+    return Instrumented(current, instrumented, lag, joint)
 
 
 def _inertia_beside_lag(S: PreparedFlight, on: VehicleParams, accepted: list[str], effects_out: list[dict],
