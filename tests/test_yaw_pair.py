@@ -202,3 +202,47 @@ def test_u017_yaw_moment_and_damping_read_on_roll_and_pitch(nominal):
     assert kept["yaw_moment"]["params"]["km"] == pytest.approx(0.026, rel=0.10)
     assert kept["angular_damping"]["params"]["k_nm_s_rad"] == pytest.approx(0.05, rel=0.10)
     assert np.isfinite(res["yaw_pair"]["roll_pitch"]["heldout_cut"]) and res["yaw_pair"]["roll_pitch"]["heldout_cut"] > 0
+
+
+def test_the_damping_s_rotor_drag_partner_is_given_at_the_other_reading(nominal):
+    """RotorPy i032 (rotor drag + yaw moment x1.5, no damping in the model): inertia Izz 0.0200 with a damping
+    0.005646 whose rotor-drag partner k_d 3.5005e-5 was fitted at that reading.  The yaw-moment reading asks for
+    the damping 0.008470 (x1.5), so the drag standing in for it is 3.5005e-5 x 0.008470 / 0.005646 = 5.251e-5
+    (truth 5.25e-5); the pair reports it beside the damping, so the scorer reads one whole reading."""
+    assert Y.drag_in_reading(3.5005e-5, 0.0, 0.005646, 0.008470, 0.0) == pytest.approx(5.2513e-5, rel=1e-4)
+    # with a model damping k0 and drag kd0, only their changes scale: (5e-5 - 1e-5) x (0.03 - 0.01) / (0.02 - 0.01)
+    assert Y.drag_in_reading(5e-5, 1e-5, 0.02, 0.03, 0.01) == pytest.approx(9e-5, rel=1e-12)
+    undamped = nominal.replace(effects=tuple(e for e in nominal.effects if e[0] != "angular_damping"))
+    cur = undamped.with_effect("inertia", ixx=0.025, iyy=0.025, izz=0.019999).with_effect("angular_damping",
+                                                                                            k_nm_s_rad=0.005646)
+    result = {"accepted": ["inertia", "angular_damping"], "refit_params": cur.to_ros_dict(),
+              "effects": [{"name": "inertia", "verdict": "confirmed", "verdict_note": "",
+                           "params": {"ixx": 0.025, "iyy": 0.025, "izz": 0.019999}},
+                          {"name": "angular_damping", "verdict": "confirmed", "verdict_note": "",
+                           "params": {"k_nm_s_rad": 0.005646},
+                           "not_told_apart": {"with": {"name": "rotor_drag", "params": {"k_d": 3.5005e-5}},
+                                              "plan_flyable": True}}]}
+    assert _apply_with(result, undamped, {"t": 0.74, "blocks": 46, "heldout_cut": -0.0068}) is None
+    pair = result["effects"][0]["not_told_apart"]
+    assert pair["with"]["name"] == "yaw_moment" and pair["with"]["params"]["km"] == pytest.approx(0.030001, rel=1e-4)
+    assert pair["damping_with_it"]["k_nm_s_rad"] == pytest.approx(0.0084692, rel=1e-4)
+    assert pair["damping_partner_with_it"]["name"] == "rotor_drag"
+    assert pair["damping_partner_with_it"]["params"]["k_d"] == pytest.approx(5.2509e-5, rel=1e-4)
+    # the damping's own entry keeps the reported reading (its partner at 3.5005e-5 beside 0.005646)
+    assert result["effects"][1]["not_told_apart"]["with"]["params"]["k_d"] == 3.5005e-5
+    # scored as one reading: the yaw moment from the inertia's partner, the drag at that reading (not 33 % off)
+    from twin_nodes.prove.grid_prove import score_grid_flight
+    from twin_nodes.prove.scoring import Truth
+    from twin_nodes.twin.simflight import Hidden
+
+    truths = [Truth(Hidden("rotor_drag", {"k_d": 5.25e-5})), Truth(Hidden("yaw_moment", {"km": 0.03}))]
+    row = score_grid_flight("i032", truths, result, undamped)
+    assert row["n_named"] == 2 and row["passed"]
+    assert row["param_errors"]["rotor_drag"] < 1e-3 and "other reading" in row["param_text"]["rotor_drag"]
+    assert row["param_errors"]["yaw_moment"] == pytest.approx(0.0, abs=1e-3)
+    # roll/pitch take the yaw-moment reading: the damping and its drag partner both move to it
+    result["effects"][0].pop("not_told_apart")
+    assert _apply_with(result, undamped, {"t": 4.0, "blocks": 46, "heldout_cut": 0.05}) is not None
+    damp = next(e for e in result["effects"] if e["name"] == "angular_damping")
+    assert damp["params"]["k_nm_s_rad"] == pytest.approx(0.0084692, rel=1e-4)
+    assert damp["not_told_apart"]["with"]["params"]["k_d"] == pytest.approx(5.2509e-5, rel=1e-4)

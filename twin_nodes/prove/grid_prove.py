@@ -55,7 +55,8 @@ def score_grid_flight(flight: str, truths: list[Truth], result: dict, nominal, d
     right = bool(top) and any(effect_class(n) in classes for n, _ in _members(top))
     right_by_pair = bool(top) and right and effect_class(top["name"]) not in classes
     named, errs, texts = [], {}, {}
-    other_reading = None    # the damping of a yaw pair's other reading, where a truth was read from it
+    other_reading = None    # a yaw pair's other reading (its damping and partner), where a truth was read from it
+    read_from: dict = {}    # truth -> (the finding it was read from, the member read)
     per_mass = _per_mass(real, found, nominal)
     for t in real:
         c = effect_class(t.hidden.name)
@@ -73,14 +74,23 @@ def score_grid_flight(flight: str, truths: list[Truth], result: dict, nominal, d
                 err, text = ridge if ridge is not None else (err, text)
                 errs[t.hidden.name], texts[t.hidden.name] = err, text
                 if hit[0][0] != e["name"] and (e.get("not_told_apart") or {}).get("damping_with_it"):
-                    other_reading = e["not_told_apart"]["damping_with_it"]
+                    other_reading = e["not_told_apart"]
+                read_from[t.hidden.name] = (e["name"], hit[0][0])
                 break
     # a yaw pair not told apart (stage 10: km x s with k_d, or Izz / s with k_d / s) is scored as one reading: where
-    # a truth was read from the partner, a true damping is read with the damping that reading asks for
-    damp = next((t for t in real if t.hidden.name == "angular_damping" and t.hidden.name in named), None)
-    if other_reading is not None and damp is not None:
-        err, text = compare(damp, "angular_damping", other_reading, nominal, drag, per_mass)
-        errs[damp.hidden.name], texts[damp.hidden.name] = err, text + " (the pair's other reading)"
+    # a truth was read from the partner, a true damping is read with the damping that reading asks for, and a truth
+    # read from the damping's own pair partner (a rotor drag's hub damping) with that partner at the reading (i032)
+    if other_reading is not None:
+        at = {"angular_damping": other_reading["damping_with_it"]}
+        if other_reading.get("damping_partner_with_it"):
+            at[other_reading["damping_partner_with_it"]["name"]] = other_reading["damping_partner_with_it"]["params"]
+        for t in real:
+            src = read_from.get(t.hidden.name) or ("", "")
+            name = "angular_damping" if t.hidden.name == "angular_damping" else src[1] \
+                if src[0] == "angular_damping" else None
+            if t.hidden.name in read_from and name in at:
+                err, text = compare(t, name, at[name], nominal, drag, per_mass)
+                errs[t.hidden.name], texts[t.hidden.name] = err, text + " (the pair's other reading)"
     ho = heldout_cut(top) if top else {}
     params_ok = all(errs.get(t.hidden.name) is not None and errs[t.hidden.name] <= 0.10 for t in real
                     if t.hidden.name in named)

@@ -13,7 +13,11 @@ roll + pitch equation error over the flight's blocks beyond ``T_CRIT`` (the choi
 also on the held-out part.  Where roll and pitch choose neither (the other reading not better beyond ``T_CRIT``
 and the reported one not either: PX4 SIH y012 at 50 Hz, t -1.6), the confirmed yaw-scale finding is reported
 with the other reading as the pair not told apart (``not_told_apart``, with the damping that reading asks for and
-roll/pitch rate doublets to separate them), as stage 11 does for a yaw-scale finding alone.  The result's
+roll/pitch rate doublets to separate them), as stage 11 does for a yaw-scale finding alone.  Where the damping
+itself is paired with a rotor drag (its hub damping, fitted beside the reported reading), that drag is given at the
+other reading too (``damping_partner_with_it``; on a switch the damping's partner moves with it): RotorPy i032,
+Izz 0.0200 with k_d 0.005646 and drag 3.5005e-5, reads km x1.5 with 0.008470 and drag 5.251e-5 (truth 5.25e-5),
+one whole reading for the scorer to take (``prove.grid_prove``).  The result's
 ``yaw_pair`` holds the numbers either way (``pair``: whether the pair was reported)."""
 
 from __future__ import annotations
@@ -88,10 +92,12 @@ SEPARATING = ("rate_doublets", "roll and pitch rates: the damping acts there at 
                                "the yaw inertia do not")
 
 
-def report_pair(result: dict, was: str, becomes: str, alt: VehicleParams) -> bool:
+def report_pair(result: dict, was: str, becomes: str, alt: VehicleParams,
+                nominal: VehicleParams | None = None) -> bool:
     """The confirmed ``was`` entry reported with the other reading as the pair the flight does not tell apart
     (``not_told_apart``: ``becomes`` at its value, ``damping_with_it`` the damping that reading asks for, roll/pitch
-    rate doublets as the separating manoeuvre); False where there is no such entry."""
+    rate doublets as the separating manoeuvre; ``damping_partner_with_it`` the damping's own rotor-drag partner at
+    that reading, so the reading is one whole); False where there is no such entry."""
     from twin_nodes.discovery.stages.verdicts import not_told_apart
 
     entry = next((e for e in result["effects"] if e["name"] == was and e.get("verdict") == "confirmed"), None)
@@ -103,9 +109,37 @@ def report_pair(result: dict, was: str, becomes: str, alt: VehicleParams) -> boo
     if pair is None:
         return False
     pair["damping_with_it"] = dict(new["angular_damping"])
+    partner = damping_partner_in_reading(result, float(new["angular_damping"]["k_nm_s_rad"]), nominal)
+    if partner is not None:
+        pair["damping_partner_with_it"] = partner
     pair["yaw_pair"] = dict(result["yaw_pair"]["roll_pitch"])
     entry["not_told_apart"] = pair
     return True
+
+
+def drag_in_reading(kd: float, kd0: float, k: float, k_new: float, k0: float) -> float:
+    """The rotor drag k_d standing in for a damping ``k`` (fitted with the damping at the model's ``k0``) at the
+    reading whose damping is ``k_new``: its hub damping ``(k_d - kd0) c`` takes the damping's change ``k - k0``,
+    so it scales by ``(k_new - k0) / (k - k0)`` (i032: 3.5005e-5 beside k 0.005646 -> 5.251e-5 beside 0.008470)."""
+    return kd0 + (kd - kd0) * (k_new - k0) / (k - k0)
+
+
+def damping_partner_in_reading(result: dict, k_new: float, nominal: VehicleParams | None) -> dict | None:
+    """The confirmed damping's rotor-drag pair partner (``not_told_apart``: its hub damping stands in for the
+    damping on yaw) given at the yaw pair's other reading, where that reading asks for the damping ``k_new``:
+    ``{"name": "rotor_drag", "params": {"k_d": ...}}``; None where the damping has no such partner."""
+    e = next((e for e in result.get("effects") or [] if e["name"] == "angular_damping"
+              and e.get("verdict") == "confirmed"), None)
+    w = ((e or {}).get("not_told_apart") or {}).get("with") or {}
+    if nominal is None or w.get("name") != "rotor_drag" or "k_d" not in (w.get("params") or {}):
+        return None
+    k = float((e.get("params") or {}).get("k_nm_s_rad", 0.0))
+    k0 = float((nominal.effect_dict.get("angular_damping") or {}).get("k_nm_s_rad", 0.0))
+    kd0 = float((nominal.effect_dict.get("rotor_drag") or {}).get("k_d", 0.0))
+    if abs(k - k0) <= 1e-12 * max(abs(k), 1e-12):
+        return None
+    return {"name": "rotor_drag", "params": {**w["params"],
+                                             "k_d": drag_in_reading(float(w["params"]["k_d"]), kd0, k, k_new, k0)}}
 
 
 def apply(result: dict, flight) -> VehicleParams | None:
@@ -126,12 +160,14 @@ def apply(result: dict, flight) -> VehicleParams | None:
                           "switched": switched}
     if not switched:
         # neither reading chosen: the flight does not tell them apart, and the finding says so (as stage 11 does)
-        result["yaw_pair"]["pair"] = not keeps_reported(test) and report_pair(result, was, becomes, alt)
+        result["yaw_pair"]["pair"] = (not keeps_reported(test)
+                                      and report_pair(result, was, becomes, alt, flight.nominal))
         return None
     note = (f"read on roll/pitch (the yaw axis gives km/Izz and k_d/Izz only): {becomes} with the damping x"
             f"{s if becomes == 'yaw_moment' else 1 / s:.3f} lowers the roll+pitch equation error (t={test['t']:.1f} "
             f"over {test['blocks']} blocks, held-out {100 * test['heldout_cut']:.1f} %) against {was}")
     new = alt.effect_dict
+    partner = damping_partner_in_reading(result, float(new["angular_damping"]["k_nm_s_rad"]), flight.nominal)
     for e in result["effects"]:
         if e.get("verdict") != "confirmed":
             continue
@@ -143,6 +179,8 @@ def apply(result: dict, flight) -> VehicleParams | None:
         elif e["name"] == "angular_damping":
             e["read_as"] = {"params": e.get("params")}
             e["params"] = dict(new["angular_damping"])
+            if partner is not None:     # its rotor-drag partner at the reading taken too
+                e["not_told_apart"]["with"] = partner
             e["verdict_note"] = f"{e.get('verdict_note', '')}; {note}"
     result["accepted"] = [becomes if n == was else n for n in accepted]
     alt = damping_at_model(result, alt, flight.nominal)
@@ -171,5 +209,5 @@ def damping_at_model(result: dict, alt: VehicleParams, nominal: VehicleParams) -
     return alt.with_effect("angular_damping", k_nm_s_rad=float(k0))
 
 
-__all__ = ["ROLL_PITCH", "SEPARATING", "apply", "damping_at_model", "keeps_reported", "other_reading", "report_pair",
-           "roll_pitch_test", "takes_other"]
+__all__ = ["ROLL_PITCH", "SEPARATING", "apply", "damping_at_model", "damping_partner_in_reading", "drag_in_reading",
+           "keeps_reported", "other_reading", "report_pair", "roll_pitch_test", "takes_other"]
