@@ -34,7 +34,7 @@ import numpy as np
 
 from twin_nodes.discovery.residuals import modes, residual_channels
 from twin_nodes.discovery.stages.yaw_pair import SEPARATING as ROLL_PITCH_RATES
-from twin_nodes.discovery.stages.yaw_pair import keeps_reported, roll_pitch_test, takes_other
+from twin_nodes.discovery.stages.yaw_pair import effect_value, keeps_reported, roll_pitch_test, takes_other
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 
 #: the yaw mode of :func:`~twin_nodes.discovery.residuals.modes`
@@ -49,7 +49,7 @@ MIN_SCALE_CHANGE = 0.03
 
 
 def _damping(vp: VehicleParams) -> float:
-    return float((vp.effect_dict.get("angular_damping") or {}).get("k_nm_s_rad", 0.0))
+    return effect_value(vp, "angular_damping", "k_nm_s_rad")
 
 
 def _at_model_damping(vp: VehicleParams, nominal: VehicleParams) -> VehicleParams:

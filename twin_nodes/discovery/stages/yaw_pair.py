@@ -39,6 +39,12 @@ def _without(vp: VehicleParams, name: str) -> VehicleParams:
     return vp.replace(effects=tuple(e for e in vp.effects if e[0] != name))
 
 
+def effect_value(vp: VehicleParams, effect: str, key: str) -> float:
+    """``vp``'s value of ``effect``'s parameter ``key``, 0.0 where it has no such effect (a model without an angular
+    damping or a rotor drag): the one reading of the model's damping and drag for both yaw stages."""
+    return float((vp.effect_dict.get(effect) or {}).get(key, 0.0))
+
+
 def other_reading(current: VehicleParams, nominal: VehicleParams) -> tuple[VehicleParams, str, str, float] | None:
     """(the vehicle with the yaw pair's other reading, the yaw effect it had, the one it gets, s) where
     ``current`` has an angular damping and exactly one yaw-scale effect; None otherwise."""
@@ -134,8 +140,7 @@ def damping_partner_in_reading(result: dict, k_new: float, nominal: VehicleParam
     if nominal is None or w.get("name") != "rotor_drag" or "k_d" not in (w.get("params") or {}):
         return None
     k = float((e.get("params") or {}).get("k_nm_s_rad", 0.0))
-    k0 = float((nominal.effect_dict.get("angular_damping") or {}).get("k_nm_s_rad", 0.0))
-    kd0 = float((nominal.effect_dict.get("rotor_drag") or {}).get("k_d", 0.0))
+    k0, kd0 = effect_value(nominal, "angular_damping", "k_nm_s_rad"), effect_value(nominal, "rotor_drag", "k_d")
     if abs(k - k0) <= 1e-12 * max(abs(k), 1e-12):
         return None
     return {"name": "rotor_drag", "params": {**w["params"],
@@ -196,7 +201,7 @@ def damping_at_model(result: dict, alt: VehicleParams, nominal: VehicleParams) -
     leaves ``accepted``; else ``alt`` as it is."""
     from twin_nodes.discovery.stages.selection import REFIT_FLOOR
 
-    k0 = (nominal.effect_dict.get("angular_damping") or {}).get("k_nm_s_rad")
+    k0 = effect_value(nominal, "angular_damping", "k_nm_s_rad")
     k = alt.effect_dict["angular_damping"]["k_nm_s_rad"]
     if not k0 or abs(k / k0 - 1.0) > REFIT_FLOOR:
         return alt
