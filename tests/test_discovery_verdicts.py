@@ -752,6 +752,38 @@ def test_a_sub_sample_delay_resolved_by_its_folds_and_the_timing_background_not(
     assert not resolved_by_folds(c, np.array([0.0155]), [np.array([0.0155]), np.array([0.0083])])
 
 
+def test_a_delay_fitted_with_the_accepted_sag_refitted_is_resolved_by_its_own_folds():
+    """RotorPy o032 (judge13, 1 kg quad, RP2 figure-eight, battery sag + 24 ms delay on a 20 ms motor log): the sag
+    is confirmed in round 1; round 2 keeps the delay's joint variant (:mod:`~twin_nodes.discovery.stages.joint`:
+    delay, v_ref, exponent free together), fitted 0.02407 s, folds 0.02407 / 0.02432 s, held-out cut 98 % in yaw,
+    t 2.75 over 8 blocks.  Half the change (12 ms) is under the interval; the folds are 0.25 ms apart (<= 0.25 x
+    24 ms), as for a plain delay, so it is ``likely``.  Before, the variant's three parameters kept it from the
+    fold reading and it was rejected as "not well away from nominal"."""
+    from twin_nodes.discovery.candidates import Candidate
+    from twin_nodes.discovery.stages.joint import Linearized, variant
+    from twin_nodes.discovery.verdicts import clears_floor, far_from_nominal, resolved_by_folds
+    plain = Candidate("actuator_delay", ("delay",), np.array([0.0]), np.array([0.0]), np.array([0.3]),
+                      lambda th: None, {}, lambda th: th[0] > 0.02, "actuator_delay")
+    sag = Linearized(["battery_sag"], [("v_ref", "exponent")], np.array([16.8, 0.99]), np.array([10.0, 0.0]),
+                     np.array([30.0, 3.0]), np.empty(0), [])
+    c = variant(plain, sag, [])
+    assert c.param_names == ("delay", "v_ref", "exponent") and c.label == "actuator_delay (+battery_sag refitted)"
+    th = np.array([0.024065, 16.8, 0.9918])
+    folds = [th, np.array([0.024317, 16.8, 0.9775])]
+    assert c.floor(th) and not c.floor(c.x0 + 0.5 * (th - c.x0))     # 24 ms > 20 ms, 12 ms is not
+    assert resolved_by_folds(c, th, folds) and far_from_nominal(c, th, folds) and clears_floor(c, th, folds)
+    assert resolved_by_folds(plain, th[:1], [f[:1] for f in folds])  # the same reading as the plain delay
+    # folds 7 ms apart (> 0.25 x 24 ms = 6 ms) or the change under half the interval: not resolved, as for a plain one
+    assert not resolved_by_folds(c, th, [th, np.array([0.0311, 16.8, 0.99])])
+    assert not resolved_by_folds(c, np.array([0.0095, 16.8, 0.99]), [np.array([0.0095, 16.8, 0.99])] * 2)
+    f = Fit(c, th, None, 0.0, 0.0, np.zeros(6), 2.75, 8, 0.9123, clears_floor(c, th, folds))
+    f.judged, f.kind = ("yaw", 1.0, 1.0 - 0.9841), "equation"
+    f.stats = {"n": 8, "n_pos": 8, "mean": 0.1, "sd": 0.1, "t": 2.75}
+    f.fold_thetas, f.folds_agree, f.accepted = folds, True, False
+    grade(f, 3.0, 0.1, {"yaw": {"blocks_heldout": 6}})
+    assert f.verdict == "likely", f.verdict_note
+
+
 def _held(t_log: np.ndarray, u_log: np.ndarray, t: np.ndarray) -> np.ndarray:
     """The logged command held between samples (what the motors see), read at times ``t``."""
     k = np.clip(np.searchsorted(t_log, t, side="right") - 1, 0, len(t_log) - 1)
