@@ -86,6 +86,39 @@ def test_a_co_flown_effect_is_scored_in_the_mass_or_thrust_reading_the_findings_
     assert scoring.in_reading(ine, 1.0) is ine
 
 
+def test_a_com_offset_reads_as_itself_in_a_mass_or_thrust_reading():
+    """RotorPy o034: mass x1.15 with a CoM offset (3.79, -0.79) mm, found as kt_scale 0.8698 beside a CoM offset
+    (3.789, -0.791) mm. The offset only moves the rotors' levers (``core.pack``: r_i - d), so the hover trim the
+    flight shows (no moment about the CoM) puts the same d under any common thrust scale: the thrusts that
+    trim d at the true mass trim it at the model's mass and kt_scale 1/1.15 too. Scored as itself: 0.0 %, not
+    the 13.0 % of reading it x1.15 (4.36, -0.91 mm)."""
+    from twin_nodes.physics.core import pack, rotor_wrench
+    from twin_nodes.prove.grid_prove import score_grid_flight
+
+    vp = shipped("rotorpy_crazyflie")
+    d = (0.00379, -0.00079, 0.0)
+    P = pack(vp, d)
+    n = vp.rotors.count
+    x, y = P[31:31 + n], P[31 + n:31 + 2 * n]
+    # hover trim at the true mass (1.15 m0): total thrust = weight, no roll/pitch moment about the CoM
+    A = np.vstack([np.ones(n), y, -x, [1.0, -1.0, 1.0, -1.0][:n]])
+    T_true = np.linalg.lstsq(A, [1.15 * vp.mass_kg * 9.81, 0.0, 0.0, 0.0], rcond=None)[0]
+    for scale in (1.0, 1 / 1.15):   # the same commands in the mass reading and in the thrust reading
+        Fb, Mb = np.zeros(3), np.zeros(3)
+        rotor_wrench(P, T_true * scale, np.zeros(n), Fb, Mb)
+        assert Mb[:2] == pytest.approx([0.0, 0.0], abs=1e-12)
+    # the trim's thrusts read the offset back as sum T_i r_i / sum T_i, whatever scales them
+    r_x = np.asarray(vp.rotors.x_flu_m)
+    assert float(np.sum(T_true * r_x) / np.sum(T_true)) == pytest.approx(0.00379, rel=1e-9)
+    mass = Truth(Hidden("mass", {"mass": 1.15 * vp.mass_kg}))
+    com = Truth(Hidden("com_offset", {"dx": 0.00379, "dy": -0.00079}))
+    res = _res({"name": "thrust_coefficient", "verdict": "confirmed", "params": {"kt_scale": 0.8698}},
+               {"name": "com_offset", "verdict": "confirmed", "params": {"dx": 0.003789, "dy": -0.000791}})
+    row = score_grid_flight("o034", [mass, com], res, vp)
+    assert row["param_errors"]["com_offset"] == pytest.approx(3.65e-4, rel=0.01) and row["passed"]
+    assert scoring.in_reading(com, 1.15) is com
+
+
 def test_a_wind_and_a_com_offset_are_scored_as_vectors():
     vp = shipped("px4_sih_quadx")
     # a 3.5 m/s wind 6.4 degrees off the y axis, found 0.26 m/s off: 7.4 % of its speed, although its small x

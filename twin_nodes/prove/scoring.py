@@ -195,11 +195,13 @@ DRAG_COEFFICIENTS = {"linear_drag": ("k_n_s_m",), "rotor_drag": ("k_d",), "body_
 
 #: parameters of a co-flown effect that a mass <-> thrust-coefficient reading rescales, as the power of
 #: ``per_mass`` the finding reads them at: the reading's thrust per command is the real one over ``per_mass``,
-#: so a torque per thrust (km) and a CoM lever (the thrust, or the model's weight, times dx/dy) read
-#: x per_mass, an inertia (turn rate per thrust difference) / per_mass (r070: thrust coefficient 0.87 found
-#: as mass 1.15 beside a yaw moment: km 0.030 = 0.0345 x 0.87, Ixx x1.15); drags: :data:`DRAG_COEFFICIENTS`
-READING_POWERS = {"yaw_moment": {"km": 1}, "com_offset": {"dx": 1, "dy": 1},
-                  "inertia": {"ixx": -1, "iyy": -1, "izz": -1}}
+#: so a torque per thrust (km) reads x per_mass, an inertia (turn rate per thrust difference) / per_mass (r070:
+#: thrust coefficient 0.87 found as mass 1.15 beside a yaw moment: km 0.030 = 0.0345 x 0.87, Ixx x1.15); drags:
+#: :data:`DRAG_COEFFICIENTS`.  A CoM offset is read as itself: it only moves the rotors' levers (r_i - d, the
+#: weight acts at the CoM), so the trim the flight shows, sum T_i (r_i - d) = 0, i.e. d = sum T_i r_i / sum T_i,
+#: is a ratio of thrusts that a common thrust scale leaves alone (o034: mass 1.15 found as kt_scale 0.870, the
+#: CoM found at (3.79, -0.79) mm, the truth itself; the earlier x per_mass read it 13 % off)
+READING_POWERS = {"yaw_moment": {"km": 1}, "inertia": {"ixx": -1, "iyy": -1, "izz": -1}}
 
 
 def in_reading(truth: Truth, per_mass: float) -> Truth:
@@ -226,8 +228,8 @@ def compare(truth: Truth, found_name: str, found: dict, nominal: VehicleParams,
     ``per_mass``: the real thrust per command over the finding's reading's, where the flight's mass or thrust
     change was found as the other (``grid_prove._per_mass``: the true mass over the model's, or the true thrust
     coefficient): a drag found beside it is a force per the model's mass, and the IMU fixes only force per unit
-    mass, so the found drag is read at the true mass (times ``per_mass``); a yaw moment, CoM offset or inertia
-    is scored against the truth in that reading (:func:`in_reading`).
+    mass, so the found drag is read at the true mass (times ``per_mass``); a yaw moment or inertia is scored
+    against the truth in that reading (:func:`in_reading`; a CoM offset, a ratio of thrusts, reads as itself).
 
     ``not_identified``: the finding's own parameters it held at the model's value as not shown by the flight
     (same effect only): not scored, named in the text (an inertia axis the flight never excites)."""
