@@ -264,3 +264,25 @@ def test_a_term_must_cut_the_held_out_part_as_flown():
     assert _verdict(fit(3.72, 0.17), 0.0999, [])[0] == "rejected"
     # a closed-loop veto still rejects
     assert _verdict(fit(5.0, 0.5), 0.5, ["makes the closed-loop twin worse on the held-out part (x)"])[0] == "rejected"
+
+
+def test_a_confirmed_term_carries_its_joint_refit_to_the_accepted_findings():
+    """RotorPy o016 (body drag c_dz 0.0836 + ground effect 0.4 / 0.841 m): the body drag only likely, the ground
+    effect fitted with the nominal vertical drag read 0.3835 / 0.9407 m (11.8 % off); the confirmed state term
+    (climb multiplier -0.089) refitted jointly with it flies 0.4106 / 0.8764 m (4.2 %): the finding reports that,
+    the values before the term kept; a finding the refit did not move and a likely one are left alone."""
+    from twin_nodes.discovery.stages.terms import carry_to_findings
+
+    vp = shipped("px4_sih_quadx").with_effect("ground_effect", coefficient=0.4106, height_scale=0.8764)
+    vp = vp.with_effect("yaw_moment", km=0.02)
+    ge = {"name": "ground_effect", "accepted": True, "params": {"coefficient": 0.3835, "height_scale": 0.9407}}
+    yaw = {"name": "yaw_moment", "accepted": True, "params": {"km": 0.02}}
+    drag = {"name": "body_drag", "accepted": False, "params": {"c_dx": 0.0, "c_dy": 0.047, "c_dz": 0.0829}}
+    result = {"effects": [ge, yaw, drag]}
+    carry_to_findings(result, vp)
+    assert ge["params"] == pytest.approx({"coefficient": 0.4106, "height_scale": 0.8764})
+    assert ge["params_before_term"] == {"coefficient": 0.3835, "height_scale": 0.9407}
+    assert ge["refitted_jointly_with"] == "state_term"
+    assert abs(ge["params"]["height_scale"] / 0.8415 - 1) == pytest.approx(0.0415, abs=1e-3)
+    assert "params_before_term" not in yaw and "params_before_term" not in drag
+    assert drag["params"]["c_dz"] == 0.0829

@@ -5,7 +5,8 @@ effect (refitted with the accepted effects), and graded like any other finding: 
 flown on the held-out part with and without it, the equation error's held-out cut.
 
 It runs on the report's result and adds ``terms`` to it; a term that is kept (``confirmed`` or
-``likely``) also joins ``effects``, ``accepted`` / ``likely`` and ``refit_params``."""
+``likely``) also joins ``effects``, ``accepted`` / ``likely`` and ``refit_params``; a confirmed one's joint
+refit is what the accepted effects then report (:func:`carry_to_findings`)."""
 
 from __future__ import annotations
 
@@ -185,8 +186,31 @@ def _join(result: dict, entry: dict, vp_term: VehicleParams) -> None:
     result.setdefault(key, []).append(f"state_term ({entry['label']})")
     if entry["verdict"] == "confirmed":
         result["refit_params"] = vp_term.to_ros_dict()
+        carry_to_findings(result, vp_term)
         if "closed_loop_heldout" in entry:
             result.setdefault("after", {})["closed_loop_heldout"] = entry["closed_loop_heldout"]["after"]
+
+
+def carry_to_findings(result: dict, vp_term: VehicleParams) -> None:
+    """The accepted effects refitted jointly with a confirmed term report what the twin flies (``vp_term``), the
+    values before the term kept as ``params_before_term``: the term takes up a throttle error the effects had
+    absorbed alone (RotorPy o016: a vertical body drag only ``likely``, so the ground effect was fitted with the
+    nominal c_dz and read height scale 0.941 for 0.841; refitted beside the term's climb multiplier 0.876).
+    An effect accepted twice (two motors' efficiencies) keeps its own values."""
+    flown = vp_term.effect_dict
+    acc = [e for e in result.get("effects", []) if e.get("accepted") and e["name"] != "state_term"]
+    names = [e["name"] for e in acc]
+    for e in acc:
+        new = flown.get(e["name"])
+        if new is None or names.count(e["name"]) > 1:
+            continue
+        moved = {k: float(new[k]) for k, v in e["params"].items() if k in new and float(new[k]) != float(v)}
+        if not moved:
+            continue
+        e["params_before_term"] = dict(e["params"])
+        e["params"] = {**e["params"], **moved}
+        prev = e.get("refitted_jointly_with")
+        e["refitted_jointly_with"] = f"{prev}, state_term" if prev else "state_term"
 
 
 def _test_json(search: T.TermSearch) -> dict:
@@ -230,4 +254,4 @@ def summary_lines(res: dict) -> list[str]:
     return lines
 
 
-__all__ = ["TermsInput", "Terms", "run", "summary_lines"]
+__all__ = ["TermsInput", "Terms", "carry_to_findings", "run", "summary_lines"]
