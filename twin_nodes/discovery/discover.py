@@ -100,6 +100,8 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     graded = verdicts.run(verdicts.GradeInput(flight, checked.accepted, chosen.last, chosen.first_rank,
                                               found.base_held))
     verdicts.given_the_others(graded, flight.eq, checked.current, checked.accepted)
+    # a likely lag and a likely delay, each fitted without the other: one kept, the other its pair unless it adds
+    verdicts.lag_delay_pair(graded, flight.eq, checked.accepted)
     inertia_given.annotate(graded.ranked, graded.effects)
     ground.annotate(flight, graded.ranked, graded.effects)
     # 7. on PX4 logs: the inertia's roll/pitch axes and PX4's rate loop, the closed-loop twin permitting

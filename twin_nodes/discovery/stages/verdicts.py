@@ -18,6 +18,8 @@ from twin_nodes.discovery.stages.prepare import PreparedFlight
 from twin_nodes.discovery.stages.provisional import is_provisional
 from twin_nodes.discovery.stages.joint import COLLECTIVE_SHAPES
 from twin_nodes.discovery.verdicts import grade
+from twin_nodes.physics.effects import EFFECTS
+from twin_nodes.base.errors import ParamsError
 from twin_nodes.vehicle.params import VehicleParams
 
 
@@ -122,6 +124,53 @@ def given_the_others(v: Verdicts, eq: Judge, vp: VehicleParams, accepted: list[F
     for f, e in zip(v.ranked, v.effects):
         if f in accepted and accepted.index(f) in by_index and "heldout_contribution" in e:
             e["heldout_contribution"]["given_the_others"] = by_index[accepted.index(f)]
+
+
+def lag_delay_pair(v: Verdicts, eq: Judge, accepted: list[Fit]) -> list[dict]:
+    """A motor lag and a delay both ``likely`` on the equation error, each fitted without the other (neither's
+    base carries the other): one reading of the same residual twice, unless the weaker adds something given the
+    stronger.  The weaker's held-out contribution given the stronger and the accepted effects
+    (:func:`~twin_nodes.discovery.stages.joint.contributions` on the stronger's vehicle with the weaker added at
+    its fit) keeps it when it still clears the ``likely`` bars (cut >= ``MIN_REL_IMPROVEMENT``, t >
+    ``LIKELY_MIN_T``); otherwise it is reported as the stronger's ``not_told_apart`` partner, with the manoeuvre
+    that separates them, and rejected as a finding of its own.  RotorPy o032 (sag + a 24 ms delay): the delay's
+    joint variant cut 91 %, a lag's (tau 0.074 s) 46 %, both ``likely``, the lag adding nothing given the delay.
+    Returns what was judged (one row per pair)."""
+    from twin_nodes.discovery.stages.joint import contributions
+    from twin_nodes.discovery.verdicts import LIKELY_MIN_T
+
+    by = {f.candidate.name: (f, e) for f, e in zip(v.ranked, v.effects)
+          if f.candidate.name in MOTOR_DYNAMICS and e["verdict"] == "likely" and not f.accepted and f.kind == "equation"}
+    if len(by) < 2 or any(n in dict((f.base_vp.effects if f.base_vp is not None else ())) for f, _ in by.values()
+                          for n in MOTOR_DYNAMICS):
+        return []
+    (strong, es), (weak, ew) = sorted(by.values(), key=lambda fe: -fe[0].rel_improvement)
+    own = {k: x for k, x in weak.candidate.params_dict(weak.theta).items()
+           if k in EFFECTS[weak.candidate.name].param_names}
+    base = [f for f in accepted if f.kind == "equation" and not is_provisional(f)]
+    try:
+        given = contributions(eq, strong.vp.with_effect(weak.candidate.name, **own), base + [strong, weak])
+    except ParamsError:
+        return []
+    g = given.get(len(base) + 1) or {}
+    row = {"kept": strong.candidate.name, "other": weak.candidate.name, "given_the_other": g}
+    if g.get("cut") is not None and g.get("t") is not None and g["cut"] >= MIN_REL_IMPROVEMENT \
+            and g["t"] > LIKELY_MIN_T:
+        ew["given_the_other"] = row
+        return [row]
+    alt = {"name": weak.candidate.name, "params": own, "residual": weak.kind,
+           "cv_improvement": round(float(weak.rel_improvement), 4), "given_the_other": g}
+    es["alternatives"] = [alt] + [a for a in es.get("alternatives") or [] if a.get("name") != alt["name"]]
+    strong.alternatives = es["alternatives"]
+    pair = not_told_apart(es)
+    if pair is not None:
+        es["not_told_apart"] = pair
+    weak.verdict = ew["verdict"] = "rejected"
+    ew["verdict_note"] = (f"not told apart from {strong.candidate.name}: given it, held-out cut "
+                          f"{100 * (g.get('cut') or 0.0):.0f} %, t {g.get('t')} (reported as its pair)")
+    order = sorted(range(len(v.ranked)), key=lambda i: _GRADE_ORDER[v.ranked[i].verdict])
+    v.ranked[:], v.effects[:] = [v.ranked[i] for i in order], [v.effects[i] for i in order]
+    return [row]
 
 
 def _instrumented_views(S: PreparedFlight, ranked: list[Fit], effects_out: list[dict]) -> None:
