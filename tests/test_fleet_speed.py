@@ -214,6 +214,50 @@ def test_hooked_rotor_states_reused_only_where_the_kernel_reads_the_same():
     assert kept and all(isinstance(v, np.ndarray) and v.shape == first.shape for v in kept)
 
 
+def test_hooked_wind_states_keyed_on_the_wind_not_its_series(monkeypatch):
+    """A vehicle with a command-path hook (battery sag) and a wind candidate: the kept rotor states are found by
+    the wind's class and parameters (the same ones make the same exogenous series), so a repeated wind is given
+    its kept states without its series being made or hashed (~1 ms each on the command grid; fps16); another
+    wind speed or gust level is another key and integrates anew, each bit for bit a fresh integration."""
+    from twin_nodes.discovery import residuals as rs
+    from twin_nodes.logs.ulog_io import read_ulog
+    from twin_nodes.physics.model import Multirotor
+    from twin_nodes.vehicle.params import shipped
+
+    log = read_ulog(ROOT / "bags" / "sim_quadx_weak_motor3.ulg")
+    vp = shipped("px4_sih_quadx").with_effect("battery_sag", v_ref=16.0, exponent=0.9)
+    data = rs.prepare(log, vp)
+    nf, up = len(data.u_fine), data.up
+    winds = {"a": dict(vx=2.0, vy=0.0, gust_std=0.5), "b": dict(vx=2.5, vy=0.0, gust_std=0.5),
+             "c": dict(vx=2.0, vy=0.0, gust_std=0.0), "d": dict(vx=2.0, vy=-0.0, gust_std=0.5)}
+    models = {k: Multirotor(vp.with_effect("wind", **w)) for k, w in winds.items()}
+    series = {k: rs.exogenous(m, data, nf, up) for k, m in models.items()}
+    keys = {k: rs._exogenous_key(m, nf, up) for k, m in models.items()}
+    for k in winds:   # the same key for a wind built again; equal keys only where the series are equal
+        assert rs._exogenous_key(Multirotor(vp.with_effect("wind", **winds[k])), nf, up) == keys[k]
+        for j in winds:
+            if keys[k] == keys[j]:
+                assert np.array_equal(series[k], series[j]), (k, j)
+    assert len(set(keys.values())) == 4 and not rs._plain_exogenous(models["a"])
+
+    def fresh(m):
+        data.cache.clear()
+        return np.array(rs.model_rotor_states(m, data))
+
+    want = {k: fresh(m) for k, m in models.items()}
+    assert not np.array_equal(series["a"], series["b"]) and not np.array_equal(series["a"], series["c"])
+    data.cache.clear()
+    first = rs.model_rotor_states(models["a"], data)
+    made = []
+    monkeypatch.setattr(rs, "exogenous", lambda *a, **k: made.append(1))
+    monkeypatch.setattr(rs, "_digest", lambda *a, **k: made.append(1))
+    again = rs.model_rotor_states(Multirotor(vp.with_effect("wind", **winds["a"])), data)
+    assert again is first and np.array_equal(again, want["a"]) and not made
+    monkeypatch.undo()
+    for k in ("b", "c", "d", "a"):
+        assert np.array_equal(rs.model_rotor_states(models[k], data), want[k], equal_nan=True), k
+
+
 def test_row_scalars_chunked_are_the_rows_and_the_next_time():
     """The offline run's per-row scalars, made a chunk at a time (bounded memory on long logs): every row's
     values as Python scalars and the next row's time (None after the last), whatever the chunk."""

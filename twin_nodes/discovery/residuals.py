@@ -416,6 +416,17 @@ def _plain_digest(model: Multirotor, data: EquationData, n: int, up: int) -> tup
     return data.cache[key]
 
 
+def _exogenous_key(model: Multirotor, n: int, up: int) -> tuple:
+    """What a model's exogenous series on the (n, up) grid of a flight is made of besides the flight's own
+    battery series: each effect that makes or changes it (its class, its parameters in name order, as bytes),
+    in the model's order (the series' part of the hooked rotor states' key, for a model that is not
+    plain).  The same key gives the same series (``exogenous`` draws from a fresh ``default_rng(0)``), so no
+    series needs to be made and hashed (~1 ms on the command grid) before the cache is asked."""
+    return ("ext_effects", n, up, tuple(
+        (type(e), tuple(sorted(e.params)), np.array([e.params[k] for k in sorted(e.params)], float).tobytes())
+        for e in model.effects if type(e).exogenous is not Effect.exogenous))
+
+
 def model_rotor_states(model: Multirotor, data: EquationData) -> np.ndarray:
     """Rotor states on the grid, from the logged commands through the model's command path.
 
@@ -434,17 +445,17 @@ def model_rotor_states(model: Multirotor, data: EquationData) -> np.ndarray:
         S = lag_states(model.P, u, dt_f, delay_steps, s0, up, min(data.n, -(-len(u) // up)))
     else:
         plain = _plain_exogenous(model)
-        ext = None if plain else np.ascontiguousarray(exogenous(model, data, len(data.u_fine), up))
         hooked = _hooked_path_key(model, data, delay_steps)
         if hooked is not None:
-            # the exogenous series by its digest, not a copy of it: on the command grid (10x the residual's)
-            # 16 kept copies took a 60-min flight's discovery over its 2 GB budget (bench_memory, 0.79 -> 1.26)
-            hooked = hooked + (_plain_digest(model, data, len(data.u_fine), up) if plain else _digest(ext))
+            # the exogenous series by its digest (plain) or by what makes it (a wind), not a copy of it: on
+            # the command grid (10x the residual's) 16 kept copies took a 60-min flight's discovery over its
+            # 2 GB budget (bench_memory, 0.79 -> 1.26)
+            hooked = hooked + (_plain_digest(model, data, len(data.u_fine), up) if plain
+                               else _exogenous_key(model, len(data.u_fine), up))
         hit = data.cache.get(hooked) if hooked is not None else None
         if hit is not None:
             return hit
-        if ext is None:
-            ext = np.ascontiguousarray(exogenous(model, data, len(data.u_fine), up))
+        ext = np.ascontiguousarray(exogenous(model, data, len(data.u_fine), up))
         u = fine_commands(data)
         S = kernels(model).lag_states(model.P, u, ext, dt_f, delay_steps, s0, up,
                                       min(data.n, -(-len(u) // up)))
