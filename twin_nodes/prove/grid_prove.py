@@ -85,10 +85,13 @@ def score_grid_flight(flight: str, truths: list[Truth], result: dict, nominal, d
         if other_reading.get("damping_partner_with_it"):
             at[other_reading["damping_partner_with_it"]["name"]] = other_reading["damping_partner_with_it"]["params"]
         for t in real:
-            src = read_from.get(t.hidden.name) or ("", "")
-            name = "angular_damping" if t.hidden.name == "angular_damping" else src[1] \
-                if src[0] == "angular_damping" else None
-            if t.hidden.name in read_from and name in at:
+            if t.hidden.name not in read_from:
+                continue
+            finding, member = read_from[t.hidden.name]
+            # a true damping at the reading's damping; a truth read from the damping's entry, at its partner's
+            name = "angular_damping" if t.hidden.name == "angular_damping" else \
+                (member if finding == "angular_damping" else None)
+            if name in at:
                 err, text = compare(t, name, at[name], nominal, drag, per_mass)
                 errs[t.hidden.name], texts[t.hidden.name] = err, text + " (the pair's other reading)"
     ho = heldout_cut(top) if top else {}

@@ -298,9 +298,11 @@ def ridge_reading(truth: Truth, found: dict, ground_fit: dict | None) -> tuple[f
     (c_lo, c_hi), (hs_lo, hs_hi) = ridge["coefficient_range"], ridge["height_scale_range_m"]
     if not (c_lo <= c_t <= c_hi and hs_lo <= hs_t <= hs_hi):
         return None
+    from twin_nodes.discovery.stages.ground import gain   # the ground effect's law, in one place
+
     h_ref = gf["h_ref_m"]
-    g_t = c_t * math.exp(-h_ref / hs_t)
-    g_f = found["coefficient"] * math.exp(-h_ref / found["height_scale"])
+    g_t = float(gain(c_t, hs_t, h_ref)) - 1.0
+    g_f = float(gain(found["coefficient"], found["height_scale"], h_ref)) - 1.0
     return abs(g_f / g_t - 1.0), (f"c exp(-{h_ref:.3g}/h_s) {g_f:.4g} vs {g_t:.4g} (not told apart on this flight: "
                                   f"coefficient {found['coefficient']:.3g} vs {c_t:.3g} in {c_lo:.3g}-{c_hi:.3g}, "
                                   f"height_scale {found['height_scale']:.3g} vs {hs_t:.3g} in {hs_lo:.3g}-{hs_hi:.3g})")

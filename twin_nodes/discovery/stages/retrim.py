@@ -74,13 +74,12 @@ def paired_change(new: Trims, old: Trims) -> tuple[float, float, float]:
     6.98 %).  On fr_v6c_battery_brownout (rotor drag and yaw moment) 4.54 -> 4.62 %, within the run's scatter
     (+0.08 +- 0.06, 1-s block bootstrap).  The change of the medians where a read lacks its samples."""
     a, b = new.per_sample, old.per_sample
-    if a is None or b is None or a.shape != b.shape:
-        return new.dx - old.dx, new.dy - old.dy, new.lever - old.lever
-    diff = a - b
-    ok = np.isfinite(diff).all(axis=1)
-    if not ok.any():
-        return new.dx - old.dx, new.dy - old.dy, new.lever - old.lever
-    return tuple(float(v) for v in np.median(diff[ok], axis=0))
+    if a is not None and b is not None and a.shape == b.shape:
+        diff = a - b
+        ok = np.isfinite(diff).all(axis=1)
+        if ok.any():
+            return tuple(float(v) for v in np.median(diff[ok], axis=0))
+    return new.dx - old.dx, new.dy - old.dy, new.lever - old.lever
 
 
 def steady_samples(data) -> np.ndarray | None:
