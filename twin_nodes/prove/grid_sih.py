@@ -46,6 +46,8 @@ BATCHES = {
                 "2026-11-28 16:35 UTC, before the fifteenth session changed anything"),
     "judge13": (3838, REPO / "missions" / "sih_grid" / "batch13.yaml", "p",
                 "2026-11-28 19:40 UTC, before the sixteenth session changed anything"),
+    "judge14": (3939, REPO / "missions" / "sih_grid" / "batch14.yaml", "sa",
+                "2026-11-28 22:36 UTC, before the seventeenth session changed anything"),
 }
 #: the halves ``prove --grid`` takes: batch 1's two, each judging-only batch (the same names in both grids:
 #: grid_rotorpy.BATCHES, tests/test_grids.py), or all
