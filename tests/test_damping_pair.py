@@ -199,3 +199,58 @@ def test_a_yaw_pair_not_told_apart_names_both_members(monkeypatch, sih):
     res = _f017(sih)
     res["effects"][0]["not_told_apart"] = {"with": {"name": "rotor_drag"}}
     assert _apply(monkeypatch, res, sih, {"t": 9.0, "blocks": 81, "heldout_cut": 0.5}) is None
+
+
+def _p019(sih):
+    """PX4 SIH p019 (SIH_Q_MAX 0.1->0.13 and SIH_IZZ 0.03->0.039, M4, 4 ms logging) as main reported it: the damping
+    0.019362 confirmed alone on the yaw axis, round 1's alternatives naming a yaw moment km 0.022004 fitted alone
+    on the output error (x1.10: the inertia left out, km 15.4 % off the truth)."""
+    res = _f017(sih)
+    e = res["effects"][0]
+    e["params"] = {"k_nm_s_rad": 0.019362}
+    res["refit_params"] = sih.with_effect("angular_damping", k_nm_s_rad=0.019362).to_ros_dict()
+    e["alternatives"] = [{"name": "yaw_moment", "params": {"km": 0.022004}, "residual": "output"}]
+    e["not_told_apart"] = {"with": {"name": "yaw_moment", "params": {"km": 0.022004}}, "manoeuvre": "rate_doublets",
+                           "plan_flyable": True}
+    return res
+
+
+def test_a_damping_whose_rival_is_a_yaw_moment_alone_is_read_against_the_whole_yaw_pair(monkeypatch, sih):
+    """p019: the yaw moment alone is one member of the damping's other reading; stage 12 reads the whole one,
+    km and Izz both x 0.025/0.019362 = x1.2912 (roll/pitch t 0.9: not told apart) -> yaw moment km 0.025824 (0.7 %
+    off 0.026) and inertia Izz 0.038735 (0.7 % off 0.039), both named; as main had it, km 15.4 % off, one named."""
+    truths = grid_prove._sih_truths({"sih": {"SIH_Q_MAX": [0.1, 0.13], "SIH_IZZ": [0.03, 0.039]}}, sih)
+    was = grid_prove.score_grid_flight("p019", truths, _p019(sih), sih)
+    assert was["n_named"] == 1 and not was["passed"]
+    assert was["param_errors"]["yaw_moment"] == pytest.approx(1 - 0.022004 / 0.026, abs=2e-4)    # 15.4 %
+    result = _p019(sih)
+    assert _apply(monkeypatch, result, sih, {"t": 0.9, "blocks": 150, "heldout_cut": 0.002}) is None
+    pair = result["effects"][0]["not_told_apart"]
+    assert pair["with"]["params"]["km"] == pytest.approx(0.02 * 0.025 / 0.019362, rel=1e-9)       # 0.025824
+    assert pair["also"][0]["params"]["izz"] == pytest.approx(0.03 * 0.025 / 0.019362, rel=1e-9)   # 0.038735
+    assert pair["replaces"] == {"name": "yaw_moment", "params": {"km": 0.022004}}
+    assert result["damping_pair"][0]["choice"] == "pair"
+    r = grid_prove.score_grid_flight("p019", truths, result, sih)
+    assert r["n_named"] == 2 and r["passed"] and r["right_by_pair"]
+    assert r["param_errors"]["yaw_moment"] == pytest.approx(1 - 0.025824 / 0.026, abs=2e-4)        # 0.7 %
+    assert r["param_errors"]["inertia"] == pytest.approx(1 - 0.038735 / 0.039, abs=2e-4)           # 0.7 %
+
+
+def test_a_yaw_scale_rival_is_dropped_on_a_switch_and_kept_where_roll_and_pitch_keep_the_damping(monkeypatch, sih):
+    result = _p019(sih)
+    assert _apply(monkeypatch, result, sih, {"t": 4.0, "blocks": 150, "heldout_cut": 0.02}) is not None
+    assert result["accepted"] == ["yaw_moment", "inertia"]
+    assert all("not_told_apart" not in e for e in result["effects"])
+    # a true damping x4 (b003, l009: the damping 0.1 beside a yaw moment km 0.0057 alone): roll/pitch keep it, the
+    # damping stays on top with the rival it had
+    result = _p019(sih)
+    assert _apply(monkeypatch, result, sih, {"t": -8.0, "blocks": 150, "heldout_cut": -0.3}) is None
+    e = result["effects"][0]
+    assert e["name"] == "angular_damping" and e["not_told_apart"]["with"]["params"] == {"km": 0.022004}
+    assert result["damping_pair"][0]["choice"] == "kept"
+    # a rival of another kind (a rotor drag, a mass...) still leaves the damping alone
+    for rival in ("rotor_drag", "mass"):
+        result = _p019(sih)
+        result["effects"][0]["not_told_apart"]["with"] = {"name": rival, "params": {}}
+        assert _apply(monkeypatch, result, sih, {"t": 0.9, "blocks": 150, "heldout_cut": 0.0}) is None
+        assert "damping_pair" not in result

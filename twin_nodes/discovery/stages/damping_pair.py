@@ -26,7 +26,9 @@ blocks and on the held-out part, the damping is kept (told apart) where the othe
 apart (``not_told_apart``; the yaw pair's second member under ``also``), with the manoeuvre that separates them:
 fast legs for the rotor drag (its force grows with the airspeed, a damping has none), roll/pitch rate doublets for
 the yaw pair.  The result's ``damping_pair`` holds the numbers either way.  A damping beside a confirmed yaw moment
-or yaw inertia is stage 10's (``stages.yaw_pair``); one that already names a rival is left as it is."""
+or yaw inertia is stage 10's (``stages.yaw_pair``); one that already names a rival is left as it is, unless that
+rival is a yaw moment or a yaw inertia alone (:data:`PART_OF_YAW_READING`: one member of the yaw pair's reading,
+which is read whole in its place)."""
 
 from __future__ import annotations
 
@@ -46,6 +48,12 @@ FAST_LEGS = ("fast_legs", "legs at speed: a rotor drag's H-force opposes the air
                           "damping acts on the body rates alone")
 #: the yaw pair's other reading moves both by more than this (else no yaw-scale change is left to read)
 MIN_SCALE_CHANGE = 0.03
+#: a rival already named beside the damping that is one member of the yaw pair's other reading: round 1's
+#: alternatives can list a yaw moment (or inertia) fitted alone on the same yaw residual (PX4 SIH p019, SIH_Q_MAX and
+#: SIH_IZZ both x1.3, M4: the damping 0.01936 beside a yaw moment km 0.0220 alone, a reading 15 % off the truth that
+#: leaves the inertia out); the whole reading (km and Izz both x k0/k) is read in its place, the old rival kept
+#: where roll/pitch tell the damping apart
+PART_OF_YAW_READING = ("yaw_moment", "inertia")
 
 
 def _damping(vp: VehicleParams) -> float:
@@ -92,15 +100,21 @@ def yaw_scale_reading(current: VehicleParams, nominal: VehicleParams) -> tuple[V
 
 
 def _entry(result: dict) -> dict | None:
-    """The damping's confirmed or likely entry, where it stands alone on the yaw axis and names no rival."""
+    """The damping's confirmed or likely entry, where it stands alone on the yaw axis and names no rival but a
+    yaw-scale one (:data:`PART_OF_YAW_READING`)."""
     names = set(result.get("accepted") or []) | set(result.get("likely") or [])
     if "angular_damping" not in names or names & {"yaw_moment", "inertia"} or result.get("yaw_pair"):
         return None
     e = next((e for e in result.get("effects") or [] if e["name"] == "angular_damping"
               and e.get("verdict") in ("confirmed", "likely")), None)
-    if e is None or e.get("not_told_apart") or e.get("heldout_channel") != "yaw":
+    if e is None or _rival(e) not in (None, *PART_OF_YAW_READING) or e.get("heldout_channel") != "yaw":
         return None
     return e
+
+
+def _rival(entry: dict) -> str | None:
+    """The name of the rival the entry already names (``not_told_apart``), None where it names none."""
+    return ((entry.get("not_told_apart") or {}).get("with") or {}).get("name")
 
 
 def _readings(result: dict, flight, current: VehicleParams) -> list[tuple[str, VehicleParams, tuple[str, str]]]:
@@ -130,6 +144,8 @@ def _pair(entry: dict, kind: str, alt: VehicleParams, separating: tuple[str, str
     if len(members) > 1:
         pair["also"] = members[1:]
     pair["roll_pitch"] = test
+    if entry.get("not_told_apart"):       # one member of this reading, fitted alone (PART_OF_YAW_READING)
+        pair["replaces"] = entry["not_told_apart"]["with"]
     entry["not_told_apart"] = pair
     return True
 
@@ -141,6 +157,7 @@ def _switch(result: dict, entry: dict, kind: str, alt: VehicleParams, test: dict
             f"{kind.replace('+', ' + ')} with the damping at the model's lowers the roll+pitch equation error "
             f"(t={test['t']:.1f} over {test['blocks']} blocks, held-out {100 * test['heldout_cut']:.1f} %)")
     entry["read_as"] = {"was": "angular_damping", "params": entry.get("params")}
+    entry.pop("not_told_apart", None)     # a yaw-scale rival fitted alone: the reading taken holds it whole
     entry["name"], entry["params"] = members[0]["name"], members[0]["params"]
     entry["verdict_note"] = f"{entry.get('verdict_note', '')}; {note}"
     for m in members[1:]:
@@ -178,4 +195,5 @@ def apply(result: dict, flight) -> VehicleParams | None:
     return None
 
 
-__all__ = ["FAST_LEGS", "MIN_SCALE_CHANGE", "NO_DRAG_FORCE", "apply", "hub_reading", "yaw_scale_reading"]
+__all__ = ["FAST_LEGS", "MIN_SCALE_CHANGE", "NO_DRAG_FORCE", "PART_OF_YAW_READING", "apply", "hub_reading",
+           "yaw_scale_reading"]
