@@ -340,3 +340,42 @@ def test_rest_reference_kept_is_the_fresh_one():
         got = runner._rest_reference(u)
         assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
     assert len(runner._rest_refs) <= 64
+
+
+def test_sum_terms_is_sum_bit_for_bit():
+    """``residuals._sum_terms`` adds into one array what ``sum`` adds into new ones: the same bytes, signed zeros,
+    NaN and infinities included, for strided term views as ``Multirotor.wrench_terms`` gives them."""
+    from twin_nodes.discovery.residuals import _sum_terms
+
+    rng = np.random.default_rng(11)
+    pool = np.array([0.0, -0.0, 1.0, -1.0, 1e-300, -3.5, np.nan, np.inf, -np.inf, 1e300])
+    for n_terms in (1, 2, 3, 5):
+        for _ in range(50):
+            F = rng.choice(pool, size=(40, n_terms, 3)) * rng.choice([1.0, rng.normal()], size=(40, n_terms, 3))
+            terms = [F[:, j] for j in range(n_terms)]
+            want, got = sum(terms), _sum_terms(iter(terms))
+            assert got.shape == want.shape and got.tobytes() == want.tobytes()
+            assert all(t.base is F for t in terms)
+
+
+def test_measured_force_and_moment_kept_apart_equal_a_fresh_make():
+    """``residuals._measured`` keeps m f on the mass and J alpha + w x J w on the inertia: after other masses and
+    inertias each pair is bit for bit what an empty cache makes."""
+    from twin_nodes.discovery import residuals as rs
+    from twin_nodes.logs.ulog_io import read_ulog
+    from twin_nodes.physics.model import Multirotor
+    from twin_nodes.vehicle.params import shipped
+
+    log = read_ulog(ROOT / "bags" / "sim_quadx_weak_motor3.ulg")
+    vp = shipped("px4_sih_quadx")
+    data = rs.prepare(log, vp)
+    variants = [vp, vp.with_effect("mass", mass=1.2 * vp.mass_kg),
+                vp.with_effect("inertia", ixx=1.1 * vp.inertia[0, 0], iyy=vp.inertia[1, 1], izz=vp.inertia[2, 2])]
+    variants += [vp.replace(mass_kg=m * vp.mass_kg) for m in np.linspace(0.8, 1.3, 25)]
+    fresh = []
+    for v in variants:
+        data.cache.clear()
+        fresh.append([a.copy() for a in rs._measured(data, Multirotor(v).params)])
+    for v, want in list(zip(variants, fresh)) * 2:
+        got = rs._measured(data, Multirotor(v).params)
+        assert all(g.tobytes() == w.tobytes() for g, w in zip(got, want))
