@@ -653,14 +653,15 @@ def validate(p: VehicleParams) -> None:
 _PASSED: dict = {}
 
 
-def _typed(v: Any) -> tuple | None:
-    """A hashable key of a flat sequence (of pairs) of values with their types, or None."""
+def _typed(v: Any, pairs: bool = False) -> tuple | None:
+    """A hashable key of a flat sequence of values (``pairs``: of (name, value) pairs) with their types, or None."""
+    items = tuple(v)
+    types = tuple([(type(a), type(b)) for a, b in items] if pairs else map(type, items))
     try:
-        key = tuple((type(e), e) if not isinstance(e, tuple) else tuple((type(f), f) for f in e) for e in v)
-        hash(key)
+        hash(items)
     except TypeError:
         return None
-    return key
+    return items, types
 
 
 def _passed(key: tuple) -> bool:
@@ -755,12 +756,12 @@ def _validate(p: VehicleParams) -> None:
     if not _in(p.dt_s, d_lo, d_hi):
         raise ParamsError(path, "simulation.dt_s", f"expected {d_lo:g}..{d_hi:g} s, got {p.dt_s:g}")
     for name, params in p.effects:
-        key = ("effect", name, _typed(dict(params).items()), r.count)
+        key = ("effect", name, _typed(dict(params).items(), pairs=True), r.count)
         if not _passed(key):
             _check_effect(path, name, dict(params), r.count)
             _keep_passed(key, True)
     controller = p.controller or {}
-    key = ("controller", _typed(controller.items()))
+    key = ("controller", _typed(controller.items(), pairs=True))
     if not _passed(key):
         _check_controller(path, controller)
         _keep_passed(key, True)
