@@ -5,6 +5,8 @@
   carried terms once for all rows (``runner._row_decisions``) instead of per control step (ninth session);
 - ``VehicleParams.with_effect`` on a validated parent checks only the new effect (the rest was checked);
 - ``fleet discover`` reads a log's GPS time and its actuator-test commands in one pass (``side_topics``).
+- ``params._validate`` skips a pure check whose inputs passed it before (``params._PASSED``), and the held
+  twin's rotor states are kept per runner by its command (``GroundHandling._rest_reference``; seventeenth session).
 """
 
 from __future__ import annotations
@@ -269,3 +271,111 @@ def test_row_scalars_chunked_are_the_rows_and_the_next_time():
         assert [r[0] for r in rows] == t.tolist() and [r[1] for r in rows] == flags.tolist()
         assert [r[2] for r in rows] == t.tolist()[1:] + [None]
         assert all(type(r[0]) is float and type(r[1]) is bool for r in rows)
+
+
+def _outcome(vp, **changes):
+    """What ``vp.replace(**changes)`` gives: None (valid) or the error's text."""
+    try:
+        vp.replace(**changes)
+    except ParamsError as e:
+        return str(e)
+    return None
+
+
+def test_validate_with_kept_passes_raises_as_the_full_check():
+    """``_validate`` skips a pure check (inertia, rotor geometry, each effect, the controller gains) whose inputs
+    passed it before (``params._PASSED``): every variant below, checked right after valid sets that share all but
+    the one changed input, gives what it gives with nothing kept (the same error text, or valid)."""
+    import dataclasses
+
+    from twin_nodes.vehicle import params as pm
+
+    vp = load_params(ROOT / "params" / "px4_sih_quadx.yaml").with_effect("battery_sag", v_ref=16.0, exponent=0.9)
+    key = "rate_hz"
+    ctrl = {**dict(vp.controller or {}), key: 250.0}
+    vp = vp.replace(controller=ctrl)
+    r = vp.rotors
+    variants = [
+        {"mass_kg": 1.2 * vp.mass_kg}, {"mass_kg": -1.0}, {"mass_kg": 1e3 * vp.mass_kg},
+        {"inertia_kg_m2": ((1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, 1.0))},
+        {"inertia_kg_m2": tuple(tuple(2.0 * e for e in row) for row in vp.inertia_kg_m2)},
+        {"rotors": dataclasses.replace(r, x_flu_m=tuple(0.0 for _ in r.x_flu_m))},
+        {"rotors": dataclasses.replace(r, x_flu_m=tuple(1e6 * x for x in r.x_flu_m))},
+        {"rotors": dataclasses.replace(r, tau_up_s=0.05)},
+        {"effects": vp.effects[:-1] + (("battery_sag", (("v_ref", -16.0), ("exponent", 0.9))),)},
+        {"effects": vp.effects[:-1] + (("battery_sag", (("v_ref", 16.0), ("exponent", 1.1))),)},
+        {"controller": {**ctrl, key: -1.0}}, {"controller": {**ctrl, key: True}},
+        {"controller": {**ctrl, key: float("nan")}}, {"controller": {**ctrl, "law": "pid"}},
+    ]
+    pm._PASSED.clear()
+    fresh = []
+    for ch in variants:
+        pm._PASSED.clear()
+        fresh.append(_outcome(vp, **ch))
+    assert sum(f is not None for f in fresh) >= 9 and None in fresh  # valid and invalid variants of each input
+    for _ in range(2):  # with every valid set's passes kept, in both orders
+        for ch, want in zip(variants, fresh):
+            validate(vp)
+            assert _outcome(vp, **ch) == want, ch
+        variants, fresh = variants[::-1], fresh[::-1]
+    assert any(k[0] == "controller" for k in pm._PASSED) and any(k[0] == "geometry" for k in pm._PASSED)
+    # a controller edited in place after its pass is checked again (the key is its contents, made at each check)
+    edited = vp.replace(controller=dict(ctrl))
+    edited.controller[key] = -1.0
+    with pytest.raises(ParamsError, match=f"controller.{key}"):
+        validate(edited)
+
+
+def test_rest_reference_kept_is_the_fresh_one():
+    """The held twin's rotor states (``GroundHandling._rest_reference``, kept per runner by the command's bytes)
+    equal ``reference_from_command(nan_to_num(u))`` for every command, repeated or not."""
+    from twin_nodes.vehicle.params import shipped
+
+    runner = TwinRunner(shipped("px4_sih_quadx"))
+    rng = np.random.default_rng(3)
+    cmds = [np.zeros(4), np.full(4, np.nan), np.array([0.2, np.nan, 1.5, -0.1])]
+    cmds += [rng.uniform(-0.2, 1.2, 4) for _ in range(100)]
+    for u in cmds + cmds[::-1] + cmds[:3] * 5:
+        want = runner.params.rotors.reference_from_command(np.nan_to_num(u))
+        got = runner._rest_reference(u)
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+    assert len(runner._rest_refs) <= 64
+
+
+def test_sum_terms_is_sum_bit_for_bit():
+    """``residuals._sum_terms`` adds into one array what ``sum`` adds into new ones: the same bytes, signed zeros,
+    NaN and infinities included, for strided term views as ``Multirotor.wrench_terms`` gives them."""
+    from twin_nodes.discovery.residuals import _sum_terms
+
+    rng = np.random.default_rng(11)
+    pool = np.array([0.0, -0.0, 1.0, -1.0, 1e-300, -3.5, np.nan, np.inf, -np.inf, 1e300])
+    for n_terms in (1, 2, 3, 5):
+        for _ in range(50):
+            F = rng.choice(pool, size=(40, n_terms, 3)) * rng.choice([1.0, rng.normal()], size=(40, n_terms, 3))
+            terms = [F[:, j] for j in range(n_terms)]
+            want, got = sum(terms), _sum_terms(iter(terms))
+            assert got.shape == want.shape and got.tobytes() == want.tobytes()
+            assert all(t.base is F for t in terms)
+
+
+def test_measured_force_and_moment_kept_apart_equal_a_fresh_make():
+    """``residuals._measured`` keeps m f on the mass and J alpha + w x J w on the inertia: after other masses and
+    inertias each pair is bit for bit what an empty cache makes."""
+    from twin_nodes.discovery import residuals as rs
+    from twin_nodes.logs.ulog_io import read_ulog
+    from twin_nodes.physics.model import Multirotor
+    from twin_nodes.vehicle.params import shipped
+
+    log = read_ulog(ROOT / "bags" / "sim_quadx_weak_motor3.ulg")
+    vp = shipped("px4_sih_quadx")
+    data = rs.prepare(log, vp)
+    variants = [vp, vp.with_effect("mass", mass=1.2 * vp.mass_kg),
+                vp.with_effect("inertia", ixx=1.1 * vp.inertia[0, 0], iyy=vp.inertia[1, 1], izz=vp.inertia[2, 2])]
+    variants += [vp.replace(mass_kg=m * vp.mass_kg) for m in np.linspace(0.8, 1.3, 25)]
+    fresh = []
+    for v in variants:
+        data.cache.clear()
+        fresh.append([a.copy() for a in rs._measured(data, Multirotor(v).params)])
+    for v, want in list(zip(variants, fresh)) * 2:
+        got = rs._measured(data, Multirotor(v).params)
+        assert all(g.tobytes() == w.tobytes() for g, w in zip(got, want))

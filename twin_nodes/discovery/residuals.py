@@ -484,15 +484,25 @@ def _body_states(data: EquationData) -> np.ndarray:
 
 
 def _measured(data: EquationData, vp: VehicleParams) -> tuple[np.ndarray, np.ndarray]:
-    """Measured body force (m f) and moment (J alpha + w x J w) for this mass and inertia."""
+    """Measured body force (m f) and moment (J alpha + w x J w) for this mass and inertia, each kept on what
+    it reads (a mass candidate's evaluations share the moment)."""
     J = vp.inertia
-    key = ("measured", float(vp.mass_kg), J.tobytes())
-    if key not in data.cache:
+    kf, km = ("measured_force", float(vp.mass_kg)), ("measured_moment", J.tobytes())
+    if kf not in data.cache:
+        _keep(data, kf, vp.mass_kg * data.f)
+    if km not in data.cache:
         w = data.w
-        rF = vp.mass_kg * data.f
-        rM = data.alpha @ J.T + np.cross(w, w @ J.T)
-        _keep(data, key, (rF, rM))
-    return data.cache[key]
+        _keep(data, km, data.alpha @ J.T + np.cross(w, w @ J.T))
+    return data.cache[kf], data.cache[km]
+
+
+def _sum_terms(arrays) -> np.ndarray:
+    """``sum(arrays)`` (``0 + a0 + a1 + ...``) added into one new array: the same additions in the same order."""
+    it = iter(arrays)
+    total = next(it) + 0.0
+    for a in it:
+        np.add(total, a, out=total)
+    return total
 
 
 def _normalisation(data: EquationData, nominal: VehicleParams) -> tuple[np.ndarray, float, int]:
@@ -519,8 +529,8 @@ def residual_channels(data: EquationData, vp: VehicleParams, norm_params: Vehicl
     X[:, NX_BODY:] = np.nan_to_num(S)
     ext = exogenous(model, data, data.n)
     terms = model.wrench_terms(X, ext)
-    F = sum(v[0] for v in terms.values())
-    M = sum(v[1] for v in terms.values())
+    F = _sum_terms(v[0] for v in terms.values())
+    M = _sum_terms(v[1] for v in terms.values())
     mF, mM = _measured(data, model.params)
     rF = mF - F
     rM = mM - M

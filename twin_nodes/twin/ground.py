@@ -143,4 +143,17 @@ class GroundHandling:
                 self._sp_ground_z = self.ground_z
         self.x[:13] = self.real_x
         self.x[2] = max(self.x[2], 0.0)
-        self.x[NX_BODY:] = self.params.rotors.reference_from_command(np.nan_to_num(self.u))
+        self.x[NX_BODY:] = self._rest_reference(self.u)
+
+    def _rest_reference(self, u: np.ndarray) -> np.ndarray:
+        """``params.rotors.reference_from_command(np.nan_to_num(u))``, kept per runner by the command's bytes:
+        a held twin's command is PX4's zero thrust or the disarmed NaN on every step of a grounded phase, and
+        the two numpy calls cost more than the step (the same array values; the caller copies them in)."""
+        cache = self.__dict__.setdefault("_rest_refs", {})
+        key = u.tobytes()
+        ref = cache.get(key)
+        if ref is None:
+            if len(cache) >= 64:  # a command that varies (not seen in a grounded phase): keep the cache small
+                cache.clear()
+            ref = cache[key] = self.params.rotors.reference_from_command(np.nan_to_num(u))
+        return ref

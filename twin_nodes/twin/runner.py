@@ -566,13 +566,14 @@ class _Rows:
         self.cols = (None, nx, n, None, 3, None)
         self.a = [np.empty((max(n_steps, 1),) + ((c,) if c else ())) for c in self.cols]
 
-    def add(self, *row) -> None:
-        if self.k == len(self.a[0]):
+    def add(self, t: float, x: np.ndarray, u: np.ndarray, throttle: float, sf: np.ndarray, ground: float) -> None:
+        k = self.k
+        if k == len(self.a[0]):
             grow = len(self.a[0]) // 2 + 1
             self.a = [np.concatenate([a, np.empty((grow,) + a.shape[1:])]) for a in self.a]
-        for a, v in zip(self.a, row):
-            a[self.k] = v
-        self.k += 1
+        a_t, a_x, a_u, a_thr, a_sf, a_ground = self.a  # one row written column by column (the same values)
+        a_t[k], a_x[k], a_u[k], a_thr[k], a_sf[k], a_ground[k] = t, x, u, throttle, sf, ground
+        self.k = k + 1
 
     def arrays(self) -> list[np.ndarray]:
         return [a[:self.k] for a in self.a]

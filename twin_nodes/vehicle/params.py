@@ -645,21 +645,39 @@ def validate(p: VehicleParams) -> None:
     _mark_valid(p)
 
 
-def _validate(p: VehicleParams) -> None:
-    path = p.source
-    lo, hi = LIMITS["mass_kg"]
-    if not _in(p.mass_kg, lo, hi):
-        raise ParamsError(path, "vehicle.mass_kg", f"expected {lo:g}..{hi:g} kg, got {p.mass_kg:g}")
-    inertia = p.inertia
-    if (inertia.shape != (3, 3) or not np.all(np.abs(inertia) < 1e150) or not np.allclose(inertia, inertia.T)
-            or np.any(np.linalg.eigvalsh(inertia) <= 0)):
-        raise ParamsError(path, "vehicle.ixx_kg_m2", "inertia tensor must be symmetric positive definite")
-    r = p.rotors
-    if not (len(r.x_flu_m) == len(r.y_flu_m) == len(r.z_flu_m) == len(r.direction)):
-        raise ParamsError(path, "rotors.x_flu_m", "x/y/z/direction must have one entry per rotor")
-    n_lo, n_hi = LIMITS["rotors"]
-    if not n_lo <= r.count <= n_hi:
-        raise ParamsError(path, "rotors.x_flu_m", f"expected {n_lo}..{n_hi} rotors, got {r.count}")
+#: what the pure checks of :func:`_validate` passed, keyed on everything they read (with each value's type: ``True``
+#: and ``1`` are equal keys but not equal gains): a discovery fit validates a parameter set at every evaluation
+#: (``replace`` in each parameter-type effect's ``apply_to_params``) whose inertia, rotor geometry, effects and
+#: controller gains are those of the last one.  A check that raised is not kept (it raises again, the same error);
+#: a key that cannot be hashed (None) is checked every time.
+_PASSED: dict = {}
+
+
+def _typed(v: Any, pairs: bool = False) -> tuple | None:
+    """A hashable key of a flat sequence of values (``pairs``: of (name, value) pairs) with their types, or None."""
+    items = tuple(v)
+    types = tuple([(type(a), type(b)) for a, b in items] if pairs else map(type, items))
+    try:
+        hash(items)
+    except TypeError:
+        return None
+    return items, types
+
+
+def _passed(key: tuple) -> bool:
+    return None not in key and key in _PASSED
+
+
+def _keep_passed(key: tuple, value: Any) -> None:
+    if None in key:
+        return
+    if len(_PASSED) >= 4096:
+        _PASSED.clear()
+    _PASSED[key] = value
+
+
+def _check_geometry(path: str, r: "RotorParams") -> float:
+    """The rotor positions' checks of :func:`_validate`; returns the farthest rotor's distance [m]."""
     pos = r.positions_flu_m
     with np.errstate(over="ignore", invalid="ignore"):
         far = float(np.max(np.linalg.norm(pos, axis=1))) if np.all(np.isfinite(pos)) else np.inf
@@ -672,6 +690,32 @@ def _validate(p: VehicleParams) -> None:
                           f"expected rotor positions that span roll and pitch (an RMS spread about their centroid "
                           f"of at least {LIMITS['span_m']:g} m along every horizontal axis: a moment arm about "
                           f"both), got {span:.3g} m")
+    return far
+
+
+def _validate(p: VehicleParams) -> None:
+    path = p.source
+    lo, hi = LIMITS["mass_kg"]
+    if not _in(p.mass_kg, lo, hi):
+        raise ParamsError(path, "vehicle.mass_kg", f"expected {lo:g}..{hi:g} kg, got {p.mass_kg:g}")
+    inertia = p.inertia
+    key = ("inertia", inertia.dtype.str, inertia.shape, inertia.tobytes())
+    if not _passed(key):
+        if (inertia.shape != (3, 3) or not np.all(np.abs(inertia) < 1e150) or not np.allclose(inertia, inertia.T)
+                or np.any(np.linalg.eigvalsh(inertia) <= 0)):
+            raise ParamsError(path, "vehicle.ixx_kg_m2", "inertia tensor must be symmetric positive definite")
+        _keep_passed(key, True)
+    r = p.rotors
+    if not (len(r.x_flu_m) == len(r.y_flu_m) == len(r.z_flu_m) == len(r.direction)):
+        raise ParamsError(path, "rotors.x_flu_m", "x/y/z/direction must have one entry per rotor")
+    n_lo, n_hi = LIMITS["rotors"]
+    if not n_lo <= r.count <= n_hi:
+        raise ParamsError(path, "rotors.x_flu_m", f"expected {n_lo}..{n_hi} rotors, got {r.count}")
+    geometry = ("geometry", _typed(r.x_flu_m), _typed(r.y_flu_m), _typed(r.z_flu_m))
+    far = _PASSED.get(geometry)
+    if far is None:
+        far = _check_geometry(path, r)
+        _keep_passed(geometry, far)
     g_lo = LIMITS["gyration_min_m"]
     g_hi = max(LIMITS["gyration_max_floor_m"], 3.0 * far)
     for i, k in enumerate(("ixx_kg_m2", "iyy_kg_m2", "izz_kg_m2")):
@@ -712,8 +756,15 @@ def _validate(p: VehicleParams) -> None:
     if not _in(p.dt_s, d_lo, d_hi):
         raise ParamsError(path, "simulation.dt_s", f"expected {d_lo:g}..{d_hi:g} s, got {p.dt_s:g}")
     for name, params in p.effects:
-        _check_effect(path, name, dict(params), r.count)
-    _check_controller(path, p.controller or {})
+        key = ("effect", name, _typed(dict(params).items(), pairs=True), r.count)
+        if not _passed(key):
+            _check_effect(path, name, dict(params), r.count)
+            _keep_passed(key, True)
+    controller = p.controller or {}
+    key = ("controller", _typed(controller.items(), pairs=True))
+    if not _passed(key):
+        _check_controller(path, controller)
+        _keep_passed(key, True)
     if r.thrust_model == "omega_squared" and not r.omega_min_rad_s < r.omega_cmd_max_rad_s <= r.omega_max_rad_s:
         raise ParamsError(path, "rotors.omega_min_rad_s", "expected omega_min < omega_cmd_max <= omega_max")
     if p.hover_thrust_per_rotor_n >= r.thrust_at_full_command_n:
