@@ -32,9 +32,11 @@ def test_the_seen_stand_ins_and_their_neighbours():
     for g in ({"t": -1.34, "cut": -0.0017}, {"t": -0.16, "cut": -0.0004}, {"t": 0.66, "cut": 0.0006},
               {"t": 1.59, "cut": 0.03}):
         assert stand_in.stands_in(g)
-    # ... and the nearest kept effects: a022's lag (t 3.10, cut 86 %), o034's yaw moment and c019's true yaw
-    # moment (small cuts with a large t), a block test that did not run
-    for g in ({"t": 3.10, "cut": 0.8631}, {"t": 4.48, "cut": 0.0157}, {"t": 5.29, "cut": 0.0646},
+    # ... and the nearest kept effects: true ones under the t bar with a large cut (w033's sag, g021's body drag),
+    # a022's lag (t 3.10, cut 86 %), o034's yaw moment and the true yaw moments of g019 and c019 (small cuts with a
+    # large t), a block test that did not run
+    for g in ({"t": 2.93, "cut": 0.9508}, {"t": 2.89, "cut": 0.544}, {"t": 3.10, "cut": 0.8631},
+              {"t": 4.48, "cut": 0.0157}, {"t": 5.43, "cut": 0.0181}, {"t": 5.29, "cut": 0.0646},
               {"t": None, "cut": 0.0}, {"t": 1.0, "cut": None}, None):
         assert not stand_in.stands_in(g)
     # both bars: a weak t with a real cut, or a small cut with t just over the bar, is kept
