@@ -37,6 +37,8 @@ def test_the_seen_stand_ins_and_their_neighbours():
     # large t), a block test that did not run
     for g in ({"t": 2.93, "cut": 0.9508}, {"t": 2.89, "cut": 0.544}, {"t": 3.10, "cut": 0.8631},
               {"t": 4.48, "cut": 0.0157}, {"t": 5.43, "cut": 0.0181}, {"t": 5.29, "cut": 0.0646},
+              # PX4 SIH d019, f011: a true angular damping accepted first, small cut, large t
+              {"t": 6.52, "cut": 0.0313}, {"t": 9.47, "cut": 0.0444},
               {"t": None, "cut": 0.0}, {"t": 1.0, "cut": None}, None):
         assert not stand_in.stands_in(g)
     # both bars: a weak t with a real cut, or a small cut with t just over the bar, is kept
