@@ -43,8 +43,8 @@ from twin_nodes.discovery.judging import (ALT_FRACTION, BLOCK_S, HELDOUT_FRACTIO
                                           fit_candidate)
 from twin_nodes.discovery.locate import regimes
 from twin_nodes.discovery.stages import (closed_loop, damping_pair, ground, inertia_given, instrument, mismatch,
-                                        prepare, refit, report, retrim, selection, terms, verdicts, yaw_pair,
-                                        yaw_scale)
+                                        prepare, refit, report, retrim, selection, stand_in, terms, verdicts,
+                                        yaw_pair, yaw_scale)
 from twin_nodes.discovery.stages.closed_loop import CLOSED_LOOP_TOL_REL, _closed_loop_guard, _closed_loop_metrics, _worse
 from twin_nodes.discovery.stages.instrument import (INSTRUMENTED_BLOCKS_MISSING, _axis_tests, _equation_axes,
                                                     _instrumented, attach_instrumented)
@@ -96,6 +96,8 @@ def discover(log, vp: VehicleParams, *, heldout_fraction: float = HELDOUT_FRACTI
     checked.current = regrounded
     # an inertia accepted on the output error, judged again given the effects accepted beside it
     checked.accepted, checked.current = inertia_given.run(flight.oe, checked.accepted, checked.current, flight.eq)
+    # an equation-error effect accepted before others that adds nothing given them: a stand-in, not kept
+    checked.accepted, checked.current = stand_in.run(flight.eq, checked.accepted, checked.current)
     # 6. grade: confirmed, likely (what it lacks), rejected (why)
     graded = verdicts.run(verdicts.GradeInput(flight, checked.accepted, chosen.last, chosen.first_rank,
                                               found.base_held))

@@ -12,6 +12,7 @@ runs them in order:
 4. :mod:`.refit`: the accepted effects refitted jointly (``RefitInput`` -> ``Refit``)
 5. :mod:`.closed_loop`: the closed-loop check (``CheckInput`` -> ``Checked``)
 5b. :mod:`.inertia_given`: an output-error inertia judged again given the others (``run``)
+5c. :mod:`.stand_in`: an equation-error effect accepted before others, judged again given them (``run``)
 6. :mod:`.verdicts`: confirmed / likely / rejected (``GradeInput`` -> ``Verdicts``)
 7. :mod:`.instrument`: on PX4 logs, the inertia's roll/pitch axes and PX4's rate loop
    (``InstrumentInput`` -> ``Instrumented``)
