@@ -718,6 +718,28 @@ def test_sih_arm_length_and_inertia_map_to_one_per_axis_inertia():
     assert [t.hidden.name for t in tr] == ["angular_damping", "inertia"]
 
 
+def test_a_yaw_pair_s_rotor_drag_does_not_name_a_body_drag_ra020():
+    # RotorPy ra020 (batch 14, Crazyflie hover with yaw: body drag c_d 0.0011/0.0011/0.0022 + yaw moment km 0.0509):
+    # the yaw moment 0.05084 confirmed, not told apart from a rotor drag's yaw damping k_d 5.209e-7 (below the
+    # nominal 1.025e-6); that partner named the body drag and was scored as one, k_eq 96.3 % off
+    vp = shipped("rotorpy_crazyflie")
+    drag = Truth(Hidden("body_drag", {"c_dx": 0.001103625, "c_dy": 0.001103625, "c_dz": 0.00220725}))
+    truths = [drag, Truth(Hidden("yaw_moment", {"km": 0.0508695652173913}))]
+    pair = {"with": {"name": "rotor_drag", "params": {"k_d": 5.209e-07}}, "plan_flyable": True}
+    res = {"effects": [_eff("yaw_moment", {"km": 0.05084}, pair=pair)]}
+    r = grid_prove.score_grid_flight("ra020", truths, res, vp)
+    assert r["named"] == ["yaw_moment"] and "body_drag" not in r["param_errors"] and r["right_class"]
+    assert r["param_errors"]["yaw_moment"] == pytest.approx(1 - 0.05084 / 0.0508695652173913, rel=1e-9)
+    assert not r["passed"]
+    # a body drag alone: the yaw pair is not the right class by its rotor-drag partner
+    assert not grid_prove.score_grid_flight("ra020", [drag], res, vp)["right_class"]
+    # the same partner names a true rotor drag (its own law), and a body drag finding of its own still names it
+    rotor = [Truth(Hidden("rotor_drag", {"k_d": 5.2e-07}))]
+    assert grid_prove.score_grid_flight("f", rotor, res, vp)["named"] == ["rotor_drag"]
+    own = {"effects": res["effects"] + [_eff("body_drag", {"c_dx": 0.0011, "c_dy": 0.0011, "c_dz": 0.0022})]}
+    assert grid_prove.score_grid_flight("f", truths, own, vp)["n_named"] == 2
+
+
 def test_a_yaw_pair_not_told_apart_is_scored_as_one_reading():
     # d019 (batch 10: SIH_IZZ 0.039 + SIH_KDW 0.05, M2): stage 10 reported yaw moment km 0.0155 with k_d 0.0389,
     # or inertia Izz 0.0387 with k_d 0.0502; the inertia was read from the partner and the damping from the

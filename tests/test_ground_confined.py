@@ -66,6 +66,29 @@ def test_under_a_second_near_the_ground_pins_a_product_only():
     assert ground.pinned(slow, 0.448, 0.143, 0.02)["determined"] is True
 
 
+def _take_off_and_landing(climb_m_s: float) -> np.ndarray:
+    """Heights at 50 Hz: a climb from the ground to 1.4 m at ``climb_m_s``, 50 s at 1.4 m, the same descent."""
+    up = np.arange(0.0, 1.4, climb_m_s * 0.02)
+    return np.concatenate([up, np.full(2500, 1.4), up[::-1]])
+
+
+def test_a_fast_take_off_and_landing_under_1_3_s_in_reach_pins_a_product_only_ra016():
+    # ra016 (batch 14, Crazyflie fast descents, CoM offset + ground effect 0.4 / 0.1505): 1.10 s within 3 height
+    # scales, heights spread 0.57 of one; read 0.460 / 0.138 (15 / 8 % off), the extra thrust at h_ref 3.8 %
+    fast = ground.pinned(_take_off_and_landing(0.76), 0.460, 0.138, 0.02)
+    assert fast["low_s"] == pytest.approx(1.12, abs=1e-9) and fast["spread_scales"] >= ground.MIN_SPREAD_SCALES
+    assert ground.MIN_LOW_S == 1.3 and fast["determined"] is False and "only 1.1" in fast["note"]
+    # x011's time in reach (1.54 s; a011, ra030 1.56-1.58 s; i021, i034 1.66 s): told apart, as before
+    slow = ground.pinned(_take_off_and_landing(0.62), 0.369, 0.159, 0.02)
+    assert slow["low_s"] == pytest.approx(1.56, abs=1e-9) and slow["determined"] is True
+    pin, found = {"h_ref_m": 0.173, "spread_scales": 0.568}, {"coefficient": 0.46006, "height_scale": 0.13812}
+    ridge = ground.along_ridge(pin, found, [{"coefficient": 0.50479, "height_scale": 0.13181},
+                                            {"coefficient": 0.45100, "height_scale": 0.14015}])
+    # ra016's range along the ridge (its folds): neither truth inside (0.4 < 0.4153, 0.1505 > 0.1465)
+    assert ridge["coefficient_range"] == pytest.approx([0.4153, 0.5048], abs=2e-4)
+    assert ridge["height_scale_range_m"] == pytest.approx([0.1297, 0.1465], abs=2e-4)
+
+
 def test_a_confined_change_is_judged_on_the_blocks_it_carries():
     # x033 (Crazyflie, figure-eight, CoM offset + ground effect 0.4 / 0.15): the ground effect changes 4 held-out
     # blocks (take-off and landing) by 0.02-0.06 and reaches 5 more at 1/50 of that, where its gain is noise (3 of

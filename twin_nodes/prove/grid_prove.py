@@ -36,6 +36,17 @@ def _members(effect: dict) -> list[tuple[str, dict]]:
     return out
 
 
+def _stands_for(member: str, finding: str, truth: str) -> bool:
+    """Whether a finding's member ``member`` (the finding itself, or its pair partner) names the true effect
+    ``truth``: one of its class, except that a pair partner in the drag class names only its own law.  A pair
+    partner is read from the channel its finding explains: a rotor drag that is a yaw moment's rival is its hub
+    yaw damping (RotorPy ra020: k_d 5.2e-7, below the nominal 1.03e-6), which says nothing of a body drag's force
+    (no moment; 96 % off as a k_eq).  On every seen batch a drag truth named through a partner was its own law."""
+    if effect_class(member) != effect_class(truth):
+        return False
+    return member == finding or effect_class(truth) != "drag" or member == truth
+
+
 def score_grid_flight(flight: str, truths: list[Truth], result: dict, nominal, drag=None, **facts) -> dict:
     """One row: top finding right, every true effect named, parameters, held-out cut, pass."""
     found = findings(result)
@@ -52,7 +63,7 @@ def score_grid_flight(flight: str, truths: list[Truth], result: dict, nominal, d
         row.update(passed=not found, right_class=False, named=[], n_named=0, param_errors={})
         return row
     classes = {effect_class(t.hidden.name): t for t in real}
-    right = bool(top) and any(effect_class(n) in classes for n, _ in _members(top))
+    right = bool(top) and any(_stands_for(n, top["name"], t.hidden.name) for n, _ in _members(top) for t in real)
     right_by_pair = bool(top) and right and effect_class(top["name"]) not in classes
     named, errs, texts = [], {}, {}
     other_reading = None    # a yaw pair's other reading (its damping and partner), where a truth was read from it
@@ -63,7 +74,8 @@ def score_grid_flight(flight: str, truths: list[Truth], result: dict, nominal, d
         # a finding of the effect's own class first, a pair partner only where none names it (RotorPy w023: the
         # battery sag's pair partner thrust_coefficient 0.712 read for the mass confirmed on its own, 1.150)
         for e in sorted(found, key=lambda e, c=c: effect_class(e["name"]) != c):
-            hit = sorted(((n, p) for n, p in _members(e) if effect_class(n) == c), key=lambda m: m[0] != e["name"])
+            hit = sorted(((n, p) for n, p in _members(e) if _stands_for(n, e["name"], t.hidden.name)),
+                         key=lambda m: m[0] != e["name"])
             if hit:
                 named.append(t.hidden.name)
                 # the finding's own parameters it says the flight does not show (held at the model's value)
