@@ -132,3 +132,39 @@ def test_a_weakly_excited_yaw_is_not_read_by_the_equation_error(monkeypatch):
     assert entry["axis_readings"]["izz"]["uncertainty"] == pytest.approx(2 * 0.3 / 4.2 * 0.02815, abs=1e-6)
     assert abs(0.02815 - 0.030) < entry["axis_readings"]["izz"]["uncertainty"]
     assert entry["params"]["ixx"] == pytest.approx(0.0407, abs=1e-6) and entry["own_params"]["ixx"] == 0.0424
+
+
+def test_a_weak_yaw_whose_value_is_the_equation_errors_reading_goes_with_it(monkeypatch):
+    """PX4 SIH sa008 (batch 14, take-off and land M5, 4 ms; SIH_L_PITCH 0.2 -> 0.15, Izz unchanged 0.030; yaw
+    visibility 2.69): the likely equation-error finding's Izz 0.01804 (x0.60) is the equation error's reading,
+    set aside on a weakly excited yaw, and the output error held Izz: no reading remains, so Izz is not read (the
+    model's 0.030, held; it was reported 39.9 % off with an uncertainty of 0).  Pitch (4.53): the midpoint of
+    output 0.03521, equation 0.03152 and rate loop 0.03115 +- 0.0014: 0.03318 (truth x1/0.75: 0.03333, 0.5 %).
+    Where the output error read Izz (m004's 0.02815), a finding whose Izz is the equation error's takes it."""
+    nominal = load_params(NOMINAL)
+    monkeypatch.setattr(vis_mod, "visibility", lambda data, vp: {"ixx": 4.54, "iyy": 4.53, "izz": 2.69, "km": 2.24})
+    sa008 = {"ixx": 0.025, "iyy": 0.031516, "izz": 0.018035}
+
+    def entry(output_izz: float) -> tuple[dict, dict]:
+        return ({"name": "inertia", "verdict": "likely", "verdict_note": "", "params": dict(sa008),
+                 "held_at_nominal": {"ixx": "rate loop"},
+                 "residuals": {"equation": {"params": {"ixx": 0.023104, "iyy": 0.031516, "izz": 0.018035}},
+                               "output": {"params": {"ixx": 0.026446, "iyy": 0.035207, "izz": output_izz}},
+                               "rate_loop": {"params": {"ixx": 0.025, "iyy": 0.031149, "izz": 0.03}}}},
+                {"axes": {"roll": {"scale": 0.9889, "scale_se": 0.0351}, "pitch": {"scale": 1.2213, "scale_se": 0.0532}}})
+
+    e, iv = entry(0.03)
+    assert ih.read_weak_axes(None, nominal, [e], nominal, iv, lambda vp: None) is None     # likely: no vehicle
+    assert e["params"]["izz"] == 0.03 and e["own_params"]["izz"] == 0.018035
+    assert "not read" in e["held_at_nominal"]["izz"] and "the equation error's 0.0180" in e["held_at_nominal"]["izz"]
+    izz = e["axis_readings"]["izz"]
+    assert not izz["read"] and izz["readings"] == {} and izz["set_aside"] == "equation 0.018035"
+    assert e["params"]["iyy"] == pytest.approx(0.033178, abs=1e-6)
+    assert abs(e["params"]["iyy"] - 0.025 / 0.75) / (0.025 / 0.75) < 0.01
+    e, iv = entry(0.02815)
+    ih.read_weak_axes(None, nominal, [e], nominal, iv, lambda vp: None)
+    assert e["params"]["izz"] == 0.02815 and e["axis_readings"]["izz"]["read"] and "izz" not in e["held_at_nominal"]
+    assert e["axis_readings"]["izz"]["uncertainty"] == pytest.approx(2 * 0.3 / 2.69 * 0.02815, abs=1e-6)
+    # an excited yaw keeps the equation error's reading and the finding's value (no set-aside)
+    r = ih.weak_axis(0.018035, {"equation": (0.018035, 0.0)}, 20.0, 0.03)
+    assert r["value"] == 0.018035 and r["read"] and "set_aside" not in r

@@ -132,7 +132,8 @@ def axis_readings(entry: dict, nominal_inertia: np.ndarray, iv: dict | None) -> 
     return out
 
 
-def weak_axis(value: float, readings: dict[str, tuple[float, float]], vis: float, nominal: float) -> dict:
+def weak_axis(value: float, readings: dict[str, tuple[float, float]], vis: float, nominal: float,
+              dropped: str | None = None) -> dict:
     """An axis' report from its readings (:func:`axis_readings`), ``vis`` its visibility and ``nominal`` the model's
     value: ``value``, ``uncertainty`` (kg m^2: the half width about the value that holds every reading +- 2 of its
     standard errors; a fit's, which has none of its own, the flight's: ``(STEP - 1) / vis`` of the reading, a 30 %
@@ -140,15 +141,25 @@ def weak_axis(value: float, readings: dict[str, tuple[float, float]], vis: float
     once, the value is the midpoint of the readings: no one of them is known better there (the module's
     measurements).  Not read (``read`` False, the value the model's) where the readings themselves lie more than
     ``MAX_SPREAD`` of their midpoint either side of it, or where a barely excited axis (< ``MIN_SNR``) has no
-    reading of its own (the finding carries the model's value).  Elsewhere the value stands."""
+    reading of its own (the finding carries the model's value).  Elsewhere the value stands.  ``dropped``: the
+    kind of the reading the finding's ``value`` is, where that reading was set aside as no reading on this axis
+    (:func:`read_weak_axes`' weakly excited yaw): the value is not the finding's to keep, a weakly excited axis
+    takes its one remaining reading, or is not read where none remains (m517)."""
     vals = [v for v, _ in readings.values()]
     out = {"visibility": round(float(vis), 2), "readings": {k: round(v, 6) for k, (v, _) in readings.items()},
            "value": float(value), "read": True}
     weak = bool(np.isfinite(vis) and vis < WEAK_SNR)
+    if dropped is not None:
+        out["set_aside"] = f"{dropped} {value:.6g}"
     if weak:
         out["weakly_excited"] = True
         if len(vals) >= 2:
             out["value"] = float(0.5 * (min(vals) + max(vals)))
+        elif dropped is not None and vals:
+            out["value"] = float(vals[0])
+        elif dropped is not None:
+            out.update(value=float(nominal), read=False, why=(
+                f"its one reading, the {dropped} error's {value:.4g}, is no reading here and none other remains"))
         elif not vals and vis < MIN_SNR and abs(value - nominal) <= 1e-9 * nominal:
             out.update(read=False, why="no reading of its own (the finding carries the model's value)")
     mid = out["value"]
@@ -190,8 +201,14 @@ def read_weak_axes(data, nominal, effects_out: list[dict], current, iv: dict | N
         if k == "izz" and not vis.get(k, math.nan) >= WEAK_SNR:
             # the equation error's Izz where the flight barely turns in yaw is pulled low by the differentiated gyro's
             # noise (PX4 SIH M5, Izz unchanged: m004 x0.82, m018 x0.84, f008 x0.52; :func:`hold_yaw_not_borne_out`)
+            # m517: and where the finding's Izz is that reading (an equation-error finding), the value goes with it
+            # (PX4 SIH sa008, M5, SIH_L_PITCH 0.15: Izz 0.01804, x0.60, kept with no reading, 39.9 % off)
+            eq = readings.get("equation")
+            dropped = "equation" if eq is not None and abs(eq[0] - entry["params"][k]) <= 1e-9 * I0[j] else None
             readings = {kind: r for kind, r in readings.items() if kind != "equation"}
-        r = numbers[k] = weak_axis(float(entry["params"][k]), readings, vis.get(k, math.nan), float(I0[j]))
+        else:
+            dropped = None
+        r = numbers[k] = weak_axis(float(entry["params"][k]), readings, vis.get(k, math.nan), float(I0[j]), dropped)
         moved = abs(r["value"] - entry["params"][k]) > 1e-12 * I0[j]
         if r["read"] and not moved:
             continue
