@@ -225,12 +225,20 @@ def test_lockstep_is_paced_to_real_time_times_speed_factor(speed):
     """Never faster than speed x real time; at 1x (250 steps/s, easy on any machine) close to it, unless the
     machine, loaded by other jobs, cannot run even the unpaced loop that fast (measured right after: the
     pacing must then cost at most 10 % of what the machine gives).
-    (At 3x a loaded 2-core machine may not keep up, so only the upper bound is checked there.)"""
+    (At 3x a loaded 2-core machine may not keep up, so only the upper bound is checked there.)
+    The load of other jobs moves between the two runs of a pair, so up to three pairs are measured: pacing that
+    costs more than 10 % fails all three; a load spike during one pair does not fail the test."""
     ratio, pst = _lockstep_ratio(speed, 0.6 * speed)
     assert ratio <= speed * 1.03
-    if speed == 1.0 and ratio < 0.9:
+    pairs = []
+    while speed == 1.0 and ratio < 0.9:
         unpaced, _ = _lockstep_ratio(0.0, 0.6)
-        assert ratio >= 0.9 * min(1.0, unpaced), (ratio, unpaced)
+        pairs.append((ratio, unpaced))
+        if ratio >= 0.9 * min(1.0, unpaced):
+            break
+        assert len(pairs) < 3, pairs            # pacing cost more than 10 % in three pairs running
+        ratio, pst = _lockstep_ratio(speed, 0.6 * speed)
+        assert ratio <= speed * 1.03
     np.testing.assert_array_equal(np.diff(pst.sensor_time_usec), STEP_US)
 
 
