@@ -202,7 +202,7 @@ MIN_STEP_STAMPS = 100
 
 def stamp_step_s(*stamps_s: np.ndarray) -> float:
     """The one fixed step [s] every stamp sits on, else 0: the greatest common divisor of the stamps' whole
-    microseconds from the first, where it lies in :data:`STAMP_STEP_S` over at least :data:`MIN_STEP_STAMPS`
+    microseconds from the earliest, where it lies in :data:`STAMP_STEP_S` over at least :data:`MIN_STEP_STAMPS`
     stamps.  A simulator that steps its controller at a fixed rate stamps every logged sample on that step
     (RotorPy's and our own 250 Hz records: 4 ms, the IMU 8/12 ms apart and the motors every 20 ms); a flight
     controller's clock stamps with microsecond jitter, whose divisor is about 1 us (0 here)."""
