@@ -90,26 +90,26 @@ def _held(t: np.ndarray) -> np.ndarray:
     return 0.2 + U_SLOPE * np.floor(t / DT + 1e-9) * DT
 
 
-def _command_late_s(log) -> float:
+def _command_late_s(log, hold: float | None = None) -> float:
     """How much later the commands act in RotorPy than the log's reader has them act: the held staircase
     against the logged 50 Hz commands, linear between samples and moved by the log's stated hold
     (``residuals._fine_commands``' reading), on a 0.1 ms grid over the airborne span."""
     ms = log.require("motors")
-    hold = px4_params.sensor_timing(log.params).command_hold_s
+    hold = px4_params.sensor_timing(log.params).command_hold_s if hold is None else hold
     tau = 2.1 + (np.arange(158_000) + 0.5) * 1e-4
     fin = np.isfinite(ms.values[:, 0])
     read = np.interp(tau - hold, ms.t_s[fin], ms.values[fin, 0])
     return float(-np.mean(_held(tau) - read) / U_SLOPE)
 
 
-def _fine_step_late_s(log) -> float:
+def _fine_step_late_s(log, hold: float | None = None) -> float:
     """The same for what the model applies over each step of its fine grid (``residuals.lag_states`` holds
     ``u_fine`` over the step), against RotorPy's command averaged over that step."""
     ms = log.require("motors")
     t = _grid(log)
     up = 10
     step = (t[1] - t[0]) / up
-    hold = px4_params.sensor_timing(log.params).command_hold_s
+    hold = px4_params.sensor_timing(log.params).command_hold_s if hold is None else hold
     u_fine, motor_dt = residuals._fine_commands(ms, float(t[0]), len(t), t[1] - t[0], up, hold)
     assert motor_dt == pytest.approx(0.02)
     t_fine = t[0] + np.arange(len(t) * up) * step
@@ -161,3 +161,39 @@ def test_the_grid_flights_key_covers_the_writer():
 
     src = inspect.getsource(grid_rotorpy.key)
     assert "rf.write_record" in src and "simflight.record_to_topics" in src
+
+
+def _stepped_late_s(log) -> tuple[float, float]:
+    """:func:`_command_late_s` and :func:`_fine_step_late_s` with the hold ``residuals.prepare`` takes (the log's
+    stated one, else half the step its stamps sit on)."""
+    hold = residuals._stepped_hold(px4_params.sensor_timing(log.params), log).command_hold_s
+    return _command_late_s(log, hold), _fine_step_late_s(log, hold)
+
+
+def test_a_log_stating_no_rate_holds_each_command_over_the_step_its_stamps_sit_on(logs):
+    _, new, old = logs
+    # the old writer's stamps (IMU 8/12 ms apart, motors every 20 ms) all sit on RotorPy's 4 ms control step
+    assert time_sync.stamp_step_s(old.require("motors").t_s, old.require("specific_force_flu").t_s) == \
+        pytest.approx(0.004, abs=1e-9)
+    held = residuals._stepped_hold(px4_params.sensor_timing(old.params), old)
+    assert held.command_hold_s == pytest.approx(0.002, abs=1e-9)
+    assert "4 ms step every stamp sits on" in held.describe()
+    # with it the old log's commands act where RotorPy's do (the 2 ms above gone), on the reader and the fine grid
+    command, fine = _stepped_late_s(old)
+    assert abs(command) < 1e-5 and abs(fine) < 1e-5
+    # a log that states its rate keeps the stated hold
+    stated = px4_params.sensor_timing(new.params)
+    assert residuals._stepped_hold(stated, new) is stated
+
+
+def test_stamps_on_no_fixed_step_give_no_step():
+    rng = np.random.default_rng(3)
+    lattice = 20.0 + np.arange(500) * 0.004
+    assert time_sync.stamp_step_s(lattice[::3], lattice[::5]) == pytest.approx(0.004, abs=1e-9)
+    # a flight controller's clock: microsecond jitter on the same rate (divisor ~1 us)
+    jittered = lattice + rng.integers(-40, 41, len(lattice)) * 1e-6
+    assert time_sync.stamp_step_s(jittered) == 0.0
+    # a step outside 0.5-5 ms (PX4 SIH's lockstep range), or too few stamps, is no step
+    assert time_sync.stamp_step_s(20.0 + np.arange(500) * 0.02) == 0.0
+    assert time_sync.stamp_step_s(20.0 + np.arange(500) * 0.0002) == 0.0
+    assert time_sync.stamp_step_s(lattice[:time_sync.MIN_STEP_STAMPS - 1]) == 0.0

@@ -23,7 +23,7 @@ separate regression formula.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numba import njit
@@ -189,6 +189,18 @@ def _ground_contact(vp: VehicleParams, data: EquationData, height: np.ndarray, r
     return contact_pads(contact, rate_hz, data.v[:, 2] >= CLIMB_OUT_M_S)
 
 
+def _stepped_hold(timing: px4_params.SensorTiming, log) -> px4_params.SensorTiming:
+    """``timing`` where the log states its command hold; else, where the log stamps every motor and IMU sample
+    on one fixed step (:func:`time_sync.stamp_step_s`), each command held over that step, half a step later
+    than its stamp (RotorPy's writer before tim13 and our generator: 250 Hz commands held 4 ms, no rate stated)."""
+    step = 0.0 if timing.command_hold_s else time_sync.stamp_step_s(
+        log.require("motors").t_s, log.require("specific_force_flu").t_s)
+    if not step:
+        return timing
+    return replace(timing, command_hold_s=0.5 * step, sources=timing.sources + (
+        f"motor commands {0.5e3 * step:.2f} ms later (held for the {1e3 * step:g} ms step every stamp sits on)",))
+
+
 def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample: int = 10) -> EquationData:
     """Resample what equation error needs onto one grid and mark the usable samples."""
     need = ["position_enu", "velocity_enu", "attitude_q", "motors", "specific_force_flu"]
@@ -213,7 +225,7 @@ def prepare(log, vp: VehicleParams, rate_hz: float = DEFAULT_RATE_HZ, oversample
     # integration interval, the command held for a rate-loop step): each is re-timed by what the
     # log's own parameters say (px4_params.sensor_timing), else a fit would take PX4's sensor
     # latency for the motors' (on no-effect PX4 SIH flights: a 6-9 ms delay, tau_up 0.063 for 0.05)
-    timing = px4_params.sensor_timing(log.params)
+    timing = _stepped_hold(px4_params.sensor_timing(log.params), log)
     late = {"specific_force_flu": timing.imu_average_s,
             rates_name: timing.gyro_filter_s if rates_name == "body_rates_flu" else timing.imu_average_s}
     for name in ("specific_force_flu", rates_name):

@@ -194,6 +194,26 @@ def interp_to(
     return out[:, 0] if squeeze else out
 
 
+#: the fixed step [s] :func:`stamp_step_s` reports (a simulator's 0.5-5 ms control step, PX4 SIH's lockstep range)
+STAMP_STEP_S = (5e-4, 5e-3)
+#: the fewest stamps :func:`stamp_step_s` reads a step from
+MIN_STEP_STAMPS = 100
+
+
+def stamp_step_s(*stamps_s: np.ndarray) -> float:
+    """The one fixed step [s] every stamp sits on, else 0: the greatest common divisor of the stamps' whole
+    microseconds from the earliest, where it lies in :data:`STAMP_STEP_S` over at least :data:`MIN_STEP_STAMPS`
+    stamps.  A simulator that steps its controller at a fixed rate stamps every logged sample on that step
+    (RotorPy's and our own 250 Hz records: 4 ms, the IMU 8/12 ms apart and the motors every 20 ms); a flight
+    controller's clock stamps with microsecond jitter, whose divisor is about 1 us (0 here)."""
+    us = np.concatenate([np.round(np.asarray(s, dtype=float) * 1e6) for s in stamps_s])
+    us = us[np.isfinite(us)].astype(np.int64)
+    if len(us) < MIN_STEP_STAMPS:
+        return 0.0
+    step = float(np.gcd.reduce(us - us.min())) * 1e-6
+    return step if STAMP_STEP_S[0] <= step <= STAMP_STEP_S[1] else 0.0
+
+
 def bin_mean_to(t_src: np.ndarray, values: np.ndarray, t_dst: np.ndarray) -> np.ndarray:
     """Resample onto a uniform grid ``t_dst`` by averaging, for a signal sampled faster than the grid.
 

@@ -520,7 +520,8 @@ class SensorTiming:
     late.  ``command_hold_s``: the logged motor command is held until the next rate-loop step
     (PX4 runs it on every filtered gyro sample, at most ``IMU_GYRO_RATEMAX``): against commands
     interpolated between samples that is half a step later.  A parameter the log does not carry
-    counts zero (not a PX4 log: our own and RotorPy logs have unfiltered rates and exact commands)."""
+    counts zero (not a PX4 log: our own and RotorPy logs have unfiltered rates; where such a log states no
+    rate, ``residuals.prepare`` reads the command hold from the step its stamps sit on)."""
 
     gyro_filter_s: float = 0.0
     imu_average_s: float = 0.0
