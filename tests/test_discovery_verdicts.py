@@ -925,7 +925,7 @@ def test_a_likely_lag_beside_a_likely_delay_is_its_pair_unless_it_adds_given_it(
     vehicle with the lag added), the lag's held-out cut is -141 % at t -2.8: it is the delay's not-told-apart
     pair (with rate doublets to separate them), not a finding.  A lag still cutting >= 10 % at t > 1.5 given the
     delay is kept beside it; a lag fitted on top of the delay (its base carries it) is not looked at."""
-    from twin_nodes.discovery.stages import joint, verdicts as V
+    from twin_nodes.discovery.stages import verdicts as V
     vp0 = shipped("px4_sih_quadx")
     with_delay = vp0.with_effect("actuator_delay", delay=0.02407)
     seen = []
@@ -934,7 +934,7 @@ def test_a_likely_lag_beside_a_likely_delay_is_its_pair_unless_it_adds_given_it(
         seen.append(({n: dict(p) for n, p in vp.effects}, [f.candidate.name for f in fits]))
         return {len(fits) - 1: {**given, "residual": "equation"}}
 
-    monkeypatch.setattr(joint, "contributions", fake)
+    monkeypatch.setattr(V, "contributions", fake)
     d = _md_fit("actuator_delay", 0.02407, 0.9123, with_delay, vp0)
     lag = _md_fit("motor_time_constant", 0.0736, 0.4623, vp0.with_effect("motor_time_constant", tau_up=0.0736,
                                                                             tau_down=0.0736), vp0)

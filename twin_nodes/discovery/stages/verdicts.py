@@ -16,8 +16,8 @@ from twin_nodes.discovery.judging import (MIN_REL_IMPROVEMENT, MOTOR_DYNAMICS, T
 from twin_nodes.discovery.output_error import projected_view
 from twin_nodes.discovery.stages.prepare import PreparedFlight
 from twin_nodes.discovery.stages.provisional import is_provisional
-from twin_nodes.discovery.stages.joint import COLLECTIVE_SHAPES
-from twin_nodes.discovery.verdicts import grade
+from twin_nodes.discovery.stages.joint import COLLECTIVE_SHAPES, contributions
+from twin_nodes.discovery.verdicts import LIKELY_MIN_T, grade
 from twin_nodes.physics.effects import EFFECTS
 from twin_nodes.base.errors import ParamsError
 from twin_nodes.vehicle.params import VehicleParams
@@ -136,13 +136,10 @@ def lag_delay_pair(v: Verdicts, eq: Judge, accepted: list[Fit]) -> list[dict]:
     that separates them, and rejected as a finding of its own.  RotorPy o032 (sag + a 24 ms delay): the delay's
     joint variant cut 91 %, a lag's (tau 0.074 s) 46 %, both ``likely``, the lag adding nothing given the delay.
     Returns what was judged (one row per pair)."""
-    from twin_nodes.discovery.stages.joint import contributions
-    from twin_nodes.discovery.verdicts import LIKELY_MIN_T
-
     by = {f.candidate.name: (f, e) for f, e in zip(v.ranked, v.effects)
           if f.candidate.name in MOTOR_DYNAMICS and e["verdict"] == "likely" and not f.accepted and f.kind == "equation"}
-    if len(by) < 2 or any(n in dict((f.base_vp.effects if f.base_vp is not None else ())) for f, _ in by.values()
-                          for n in MOTOR_DYNAMICS):
+    in_a_base = {n for f, _ in by.values() if f.base_vp is not None for n, _ in f.base_vp.effects}
+    if len(by) < 2 or in_a_base & set(MOTOR_DYNAMICS):
         return []
     (strong, es), (weak, ew) = sorted(by.values(), key=lambda fe: -fe[0].rel_improvement)
     own = {k: x for k, x in weak.candidate.params_dict(weak.theta).items()
