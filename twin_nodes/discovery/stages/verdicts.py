@@ -118,8 +118,6 @@ def told_apart(effects_out: list[dict]) -> None:
 def given_the_others(v: Verdicts, eq: Judge, vp: VehicleParams, accepted: list[Fit]) -> None:
     """Each accepted equation-error effect's held-out contribution given all the others as well
     (:func:`~twin_nodes.discovery.stages.joint.contributions`), in its ``heldout_contribution``."""
-    from twin_nodes.discovery.stages.joint import contributions
-
     by_index = contributions(eq, vp, accepted)
     for f, e in zip(v.ranked, v.effects):
         if f in accepted and accepted.index(f) in by_index and "heldout_contribution" in e:
