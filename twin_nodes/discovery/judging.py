@@ -121,7 +121,11 @@ class Fit:
     own_cut: float | None = None
     #: in the model as the provisional base of one more round, not as an accepted effect (stages.provisional)
     provisional: bool = False
-    given_others: dict | None = None   # an output-error inertia's cut and t given the others (inertia_given)
+    given_others: dict | None = None   # its cut and t given the other accepted effects (inertia_given, stand_in)
+
+    def at_nominal(self, vp: VehicleParams) -> VehicleParams:
+        """``vp`` with this fit's effect back at its nominal (the candidate's start, within its bounds)."""
+        return self.candidate.apply(vp, np.clip(self.candidate.x0, self.candidate.lower, self.candidate.upper))
 
     @property
     def explains(self) -> float:

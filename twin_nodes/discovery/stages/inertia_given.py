@@ -30,7 +30,7 @@ def contribution(oe: Judge, vp: VehicleParams, f: Fit) -> dict:
     open-loop roll diverge in three windows (block change 200-600, elsewhere 0.1-60), so the confined-change
     selection keeps 3 blocks and the t read 0.0, which dropped an inertia with a 99.6 % cut."""
     test = np.logical_or.reduce([t for _, t in oe.folds])   # both folds' held-out rows
-    full, without = oe.residual(vp), oe.residual(_at_nominal(vp, f))
+    full, without = oe.residual(vp), oe.residual(f.at_nominal(vp))
     ok = np.isfinite(full).all(axis=1) & np.isfinite(without).all(axis=1)
     r0 = float(np.sqrt(np.mean(without[test & ok] ** 2)))
     r1 = float(np.sqrt(np.mean(full[test & ok] ** 2)))
@@ -91,11 +91,6 @@ def refit_given(judge: Judge, vp: VehicleParams, f: Fit) -> VehicleParams:
     return vp_new
 
 
-def _at_nominal(vp: VehicleParams, f: Fit) -> VehicleParams:
-    c = f.candidate
-    return c.apply(vp, np.clip(c.x0, c.lower, c.upper))
-
-
 def run(oe: Judge | None, accepted: list[Fit], vp: VehicleParams,
         eq: Judge | None = None) -> tuple[list[Fit], VehicleParams]:
     """Each output-error inertia refitted given the other accepted effects, then dropped where it does not pass
@@ -112,7 +107,7 @@ def run(oe: Judge | None, accepted: list[Fit], vp: VehicleParams,
                  and a.kind == "equation" and "izz" in f.candidate.param_names and eq is not None]
         trial = vp
         for a in later:      # fitted against the inertia's izz as it stood: at nominal while the inertia is refitted
-            trial = _at_nominal(trial, a)
+            trial = a.at_nominal(trial)
         refit = refit_given(oe, trial, f) if later else trial
         if refit is trial:   # no later yaw moment, or the inertia does not take the yaw back: refitted beside it
             vp = refit_given(oe, vp, f)
@@ -122,13 +117,13 @@ def run(oe: Judge | None, accepted: list[Fit], vp: VehicleParams,
                 vp = refit_given(eq, vp, a)
                 a.given_others = {**contribution(eq, vp, a), "residual": "equation"}
                 if dropped(a.given_others):
-                    vp = _at_nominal(vp, a)
+                    vp = a.at_nominal(vp)
                     a.accepted = False
                     kept.remove(a)
         g = contribution(oe, vp, f)
         f.given_others = g
         if dropped(g):
-            vp = _at_nominal(vp, f)
+            vp = f.at_nominal(vp)
             f.accepted = False
             kept.remove(f)
     return kept, vp

@@ -26,7 +26,6 @@ cut >= 10 %."""
 from __future__ import annotations
 
 from twin_nodes.discovery.judging import MIN_REL_IMPROVEMENT, T_CRIT, Fit, Judge
-from twin_nodes.discovery.stages.inertia_given import _at_nominal
 from twin_nodes.discovery.stages.joint import contributions
 from twin_nodes.discovery.stages.provisional import is_provisional
 from twin_nodes.vehicle.params import VehicleParams
@@ -51,7 +50,7 @@ def run(eq: Judge | None, accepted: list[Fit], vp: VehicleParams) -> tuple[list[
         if not rows:
             break
         g, f = min(rows, key=lambda gf: gf[0]["t"])
-        vp = _at_nominal(vp, f)
+        vp = f.at_nominal(vp)
         f.accepted = False
         f.given_others = dict(g)
         kept.remove(f)

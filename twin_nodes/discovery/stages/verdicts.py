@@ -61,6 +61,9 @@ def run(inp: GradeInput) -> Verdicts:
         if not f.accepted and f.passes and acc_labels and f.closed_loop is None:
             expl = ", ".join(acc_labels)
         grade(f, T_CRIT, MIN_REL_IMPROVEMENT, S.excitation, expl)
+        g = f.given_others
+        if expl and g and g.get("t") is not None and g.get("cut") is not None:   # dropped given the others
+            f.verdict_note += f" (given them: block t {g['t']:.2f}, held-out cut {100 * g['cut']:.1f} %)"
         if f.other is None:
             # the other residual's view of this fit, for the report
             judge = oe if f.kind == "equation" else eq
@@ -262,6 +265,9 @@ def _effect_json(f: Fit, names: list[str], base_held: np.ndarray) -> dict:
     }
     if f.candidate.held:
         out["held_at_nominal"] = dict(f.candidate.held)
+    if f.given_others:   # judged again given the other accepted effects (stages.inertia_given, .stand_in)
+        out["given_others"] = {k: (round(float(v), 4) if isinstance(v, (int, float)) and not isinstance(v, bool)
+                                   else v) for k, v in f.given_others.items()}
     if f.closed_loop:
         out["closed_loop"] = f.closed_loop
     if getattr(f, "closed_loop_note", None):
