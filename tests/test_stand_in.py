@@ -96,3 +96,18 @@ def test_two_stand_ins_for_each_other_lose_only_the_weaker(monkeypatch):
     monkeypatch.setattr(stand_in, "contributions", fake)
     kept, _ = stand_in.run(object(), [a, b, c], c.vp)
     assert [f.candidate.name for f in kept] == ["mass", "yaw_moment"]
+
+
+def test_a_dropped_stand_in_carries_its_numbers_given_the_others_into_the_result():
+    from twin_nodes.discovery.stages.verdicts import _effect_json
+    vp = load_params(PARAMS)
+    f = _fit(vp, "thrust_coefficient", "kt_scale", 1.0, 0.9988)
+    f.judged, f.accepted = ("throttle", 0.02, 0.0199), False
+    f.given_others = {"t": 1.59, "cut": 0.03, "residual": "equation", "blocks": 12}
+    out = _effect_json(f, ["throttle", "roll", "pitch", "yaw"], np.full(4, 0.01))
+    assert out["given_others"] == {"t": 1.59, "cut": 0.03, "residual": "equation", "blocks": 12}
+    assert not out["accepted"]
+    f.given_others = None
+    assert "given_others" not in _effect_json(f, ["throttle", "roll", "pitch", "yaw"], np.full(4, 0.01))
+    # back at nominal: the candidate's start value, whatever it was fitted to
+    assert dict(dict(f.at_nominal(f.vp).effects)["thrust_coefficient"])["kt_scale"] == 1.0
