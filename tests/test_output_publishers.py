@@ -170,3 +170,42 @@ def test_rfly_3539_refused_with_the_reason_not_failed():
         F.check_flyable(log, horizontal=False)
     assert F.NOT_PX4_MOTORS in str(e.value) and any(k in str(e.value) for k in LEFT_OUT_KINDS)
     assert "\n" not in str(e.value)
+
+
+def _disarm_mid_topics():
+    """One publisher, 100 s at 50 Hz, armed 10-90 s: four motors 1100..1900 us while armed resting at
+    1500 us disarmed (a reversible ESC or a PWM_DISARMED set mid-range); channel 4 a servo that moves while
+    armed and rests at 2000 us."""
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 100.0, 0.02)
+    armed = (t >= 10.0) & (t < 90.0)
+    o = np.zeros((t.size, 16))
+    o[:, :4] = np.where(armed[:, None], 1400.0 + 100.0 * np.sin(0.3 * t)[:, None]
+                        + rng.normal(0.0, 30.0, (t.size, 4)), 1500.0)
+    o[:, 4] = np.where(armed, 1500.0 + 300.0 * np.sin(0.2 * t), 2000.0)
+    ao = U._Topic("actuator_outputs", 0, (t * 1e6).astype(np.int64), {f"output[{i}]": o[:, i] for i in range(16)})
+    st = np.array([0.0, 10.0, 90.0])
+    vs = U._Topic("vehicle_status", 0, (st * 1e6).astype(np.int64),
+                  {"arming_state": np.array([1, 2, 1]), "nav_state": np.array([2, 2, 2])})
+    return {("actuator_outputs", 0): ao, ("vehicle_status", 0): vs}
+
+
+def test_motors_resting_at_the_logs_own_disarmed_value_are_motors_whatever_it_is():
+    topics = _disarm_mid_topics()
+    aos = {0: topics[("actuator_outputs", 0)]}
+    # without parameters the rest-low rule alone: 1500 us is above their armed 5th percentile, refused
+    assert U._guess_motor_stream(aos, 4, topics)[0] is None
+    # PWM_DISARMED 1500 (PX4 1.8-1.11 MAIN): the driver writes 1500 disarmed, so resting there is no evidence
+    inst, _, _, chans = U._guess_motor_stream(aos, 4, topics, 800.0, {"PWM_DISARMED": 1500.0})
+    assert (inst, chans) == (0, [0, 1, 2, 3])
+    # the same through a per-channel PWM_MAIN_DISn, and the 1.12 name; the servo parked at 2000 stays out
+    p = {"PWM_DISARMED": 900.0, **{f"PWM_MAIN_DIS{i}": 1500.0 for i in range(1, 5)}, "PWM_MAIN_DIS5": -1.0}
+    assert U._guess_motor_stream(aos, 4, topics, 800.0, p)[3] == [0, 1, 2, 3]
+    assert U._guess_motor_stream(aos, 5, topics, 800.0, p)[0] is None
+    assert U._guess_motor_stream(aos, 4, topics, 800.0, {"PWM_MAIN_DISARM": 1500.0})[3] == [0, 1, 2, 3]
+    # a disarmed value the outputs do not rest at says nothing
+    assert U._guess_motor_stream(aos, 4, topics, 800.0, {"PWM_DISARMED": 900.0})[0] is None
+    dis, how = L.disarmed_pwm(p, "MAIN", 6)
+    assert dis.tolist() == [1500.0, 1500.0, 1500.0, 1500.0, 900.0, 900.0]  # DIS5 -1 and DIS6 unset: PWM_DISARMED
+    assert np.isnan(L.disarmed_pwm({}, "AUX", 2)[0]).all()
+    assert how == "PWM_DISARMED/PWM_MAIN_DISn"

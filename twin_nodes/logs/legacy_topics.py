@@ -238,6 +238,26 @@ def tap_esc(params: dict[str, float], disarmed: np.ndarray) -> str | None:
     return None
 
 
+def disarmed_pwm(params: dict[str, float], bank: str, n: int = 16) -> tuple[np.ndarray, str]:
+    """Each of ``n`` channels' disarmed PWM [us] as PX4's mixer-era driver writes it (``pwm_limit``: INIT and
+    OFF states), NaN where the log does not say, and the names used: ``PWM_{bank}_DISn`` when set (>= 0),
+    else the bank's ``PWM_{bank}_DISARM`` (1.12-1.13) or ``PWM_{bank}_DISARMED`` (AUX, 1.8-1.11), else for
+    MAIN ``PWM_DISARMED`` (1.8-1.11)."""
+    names = [f"PWM_{bank}_DISARM", f"PWM_{bank}_DISARMED"] + (["PWM_DISARMED"] if bank == "MAIN" else [])
+    glob, gname = next(((v, k) for k in names if (v := _param(params, k)) is not None and v >= 0), (np.nan, ""))
+    out, used = [], set()
+    for c in range(n):
+        v = _param(params, f"PWM_{bank}_DIS{c + 1}")
+        if v is not None and v >= 0:
+            out.append(v)
+            used.add(f"PWM_{bank}_DISn")
+        else:
+            out.append(glob)
+            if gname:
+                used.add(gname)
+    return np.array(out, float), "/".join(sorted(used))
+
+
 def armed_floor(params: dict[str, float]) -> float:
     """The lowest armed value a motor channel may have in this log's outputs (see PWM_ARMED_FLOOR)."""
     return PWM_ARMED_FLOOR if output_protocol(params) == "pwm" else 1.0

@@ -912,7 +912,7 @@ def _motors_from_pwm(
         how = (f"PWM_{bank}_FUNCn; PWM_{bank}_MINn/MAXn "
                f"{'/'.join(f'{v:.0f}' for v in lo)}-{'/'.join(f'{v:.0f}' for v in hi)} us")
     else:
-        inst, lab, tp, chans = _guess_motor_stream(aos, n, topics, legacy_topics.armed_floor(params))
+        inst, lab, tp, chans = _guess_motor_stream(aos, n, topics, legacy_topics.armed_floor(params), params)
         if inst is None or tp is None:
             warnings.append(f"motors: no actuator_outputs instance has {n} motor-like channels "
                             "(varying while armed, disarm value when disarmed); no motors series")
@@ -1074,13 +1074,16 @@ def _channels_vary(tp: _Topic, chans: list[int], topics: dict[tuple[str, int], _
 
 
 def _guess_motor_stream(
-    aos: dict[int, _Topic], n: int, topics: dict[tuple[str, int], _Topic], floor: float = 800.0
+    aos: dict[int, _Topic], n: int, topics: dict[tuple[str, int], _Topic], floor: float = 800.0,
+    params: dict[str, float] | None = None,
 ) -> tuple[int | None, str, _Topic | None, list[int]]:
     """The mixer era's motor channels: in the first ``actuator_outputs`` publisher (:func:`_output_streams`)
     that has ``n`` of them, the first ``n`` channels that keep moving while armed (:func:`_keeps_moving`),
     stay at or above ``floor`` while armed and rest, while disarmed, at or below their armed range (the
     disarmed/idle value: 900 or 1000 us PWM_DISARMED, 1190 us on tap_esc; any value, not a fixed
-    threshold).  Returns ``(instance, publisher label, its samples, channels)``."""
+    threshold) or exactly (1 us) at the disarmed value the log's parameters give PX4's driver for that
+    channel (:func:`legacy_topics.disarmed_pwm`: a PWM_DISARMED set mid-range, a reversible ESC's 1500 us),
+    wherever that lies.  Returns ``(instance, publisher label, its samples, channels)``."""
     for inst, lab, tp in _output_streams(aos):
         if not tp.has("output[15]"):
             continue
@@ -1097,6 +1100,10 @@ def _guess_motor_stream(
             armed_low = np.nanpercentile(oa, 5, axis=0) if oa.size else np.full(16, np.nan)
             rest_high = np.nanmax(od, axis=0) if od.shape[0] else np.full(16, -np.inf)
             rests_low = ~(rest_high > armed_low + 5.0)
+            if params is not None and od.shape[0]:
+                dis = legacy_topics.disarmed_pwm(params, "MAIN" if inst == 0 else "AUX")[0]
+                rest_low_v = np.nanmin(od, axis=0)
+                rests_low |= (np.abs(rest_high - dis) <= 1.0) & (np.abs(rest_low_v - dis) <= 1.0)
         good = np.flatnonzero(moving & in_range & rests_low)
         if good.size >= n:
             return inst, lab, tp, [int(c) for c in good[:n]]
