@@ -121,57 +121,6 @@ def test_rfly_3539_real_motors_from_the_second_publisher():
     assert np.mean(v[cut, 1:] == 0.0) < 0.3
 
 
-class _Log:
-    def __init__(self, series):
-        self._s = series
-
-    def get(self, name):
-        return self._s.get(name)
-
-
-def _follow_log(motors_follow: bool, seed: int = 1):
-    """60 s at 50 Hz: a thrust that varies (s.d. about 0.07); the motors' mean is the thrust (PX4's mixer)
-    or an unrelated command of the same size (another controller)."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(0.0, 60.0, 0.02)
-    thr = 0.45 + 0.1 * np.sin(0.5 * t)
-    other = 0.45 + 0.1 * np.sin(1.3 * t + 1.0)
-    base = thr if motors_follow else other
-    wiggle = np.array([0.03, -0.03, 0.02, -0.02]) * np.sin(3.0 * t)[:, None]  # attitude control, mean 0
-    m = base[:, None] + wiggle + rng.normal(0, 0.005, (t.size, 4))
-    return _Log({"motors": U.Series(t, m, "-", "PX4 motor order", "test", "linear"),
-                 "throttle": U.Series(t, thr[:, None], "-", "-", "test", "linear")})
-
-
-def test_motors_that_follow_px4s_thrust_pass_and_others_are_named():
-    from twin_nodes.logs import flyable as F
-
-    c, s, n = F.motors_follow_thrust(_follow_log(True), [(0.0, 60.0)])
-    assert c > 0.99 and abs(s - 1.0) < 0.02 and n == 2799  # 2 s trimmed at each end, ends excluded
-    c, s, n = F.motors_follow_thrust(_follow_log(False), [(0.0, 60.0)])
-    assert c < F.FOLLOW_MIN_CORR and s < F.FOLLOW_MIN_SLOPE
-    flat = _follow_log(True)
-    flat._s["throttle"] = U.Series(flat._s["throttle"].t_s, np.full((3000, 1), 0.45), "-", "-", "test", "linear")
-    assert F.motors_follow_thrust(flat, [(0.0, 60.0)]) is None  # a thrust that never varies says nothing
-
-
-def test_rfly_3539_refused_with_the_reason_not_failed():
-    from twin_nodes.base.errors import LogError
-    from twin_nodes.discovery.survey import LEFT_OUT_KINDS
-    from twin_nodes.logs import flyable as F
-
-    p = cf.cache_path(_tuning_row("rfly_3539_07_03_18"))
-    if not p.is_file():
-        pytest.skip(f"corpus cache absent ({p}): run tools/corpus_fetch.py")
-    log = U.read_ulog(p)
-    c, s, n = F.motors_follow_thrust(log, log.airborne_intervals())
-    assert (round(c, 2), round(s, 2), n) == (-0.23, -0.09, 2580)
-    with pytest.raises(LogError) as e:
-        F.check_flyable(log, horizontal=False)
-    assert F.NOT_PX4_MOTORS in str(e.value) and any(k in str(e.value) for k in LEFT_OUT_KINDS)
-    assert "\n" not in str(e.value)
-
-
 def _disarm_mid_topics():
     """One publisher, 100 s at 50 Hz, armed 10-90 s: four motors 1100..1900 us while armed resting at
     1500 us disarmed (a reversible ESC or a PWM_DISARMED set mid-range); channel 4 a servo that moves while

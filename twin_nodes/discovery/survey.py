@@ -14,7 +14,6 @@ import time
 from pathlib import Path
 
 from twin_nodes.base.errors import LogError, TwinError, one_line
-from twin_nodes.logs.flyable import NOT_PX4_MOTORS
 from twin_nodes.logs.ulog_io import NO_MOTOR_OUTPUTS
 
 #: the reference paper's Table 2 (Búho Negro twin vs real): the bar a real-vehicle twin is judged by
@@ -31,10 +30,9 @@ ROW_KEYS = ("throttle_rmse", "motor_p75_mean", "xy_rmse_m", "z_rmse_m", "throttl
             "divergence", "estimate_failed_s", "motor_real_hf_p75_mean")
 #: a LogError naming one of these is a flight left out (no flight to fit, or no motor outputs to compare the
 #: twin's with), not a failure; "usable airborne data": it flew, but less than 5 s are left once ground
-#: contact is taken out (a hop, a held take-off); ulog_io.NO_MOTOR_OUTPUTS: no output channel moves while armed;
-#: flyable.NOT_PX4_MOTORS: the motors follow a controller other than PX4's
+#: contact is taken out (a hop, a held take-off); ulog_io.NO_MOTOR_OUTPUTS: no output channel moves while armed
 LEFT_OUT_KINDS = ("never airborne", "never left the ground", "too short", "usable airborne data",
-                  NO_MOTOR_OUTPUTS, NOT_PX4_MOTORS)
+                  NO_MOTOR_OUTPUTS)
 
 
 def survey_flight(path: str | Path, params: str | Path | None = None) -> dict:

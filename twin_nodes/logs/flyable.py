@@ -16,10 +16,7 @@ the logs that load but are no usable flight:
 - **without GPS** / **without horizontal velocity**: the EKF's horizontal position and/or velocity
   (``vehicle_local_position.xy_valid`` / ``v_xy_valid``) invalid in more than
   ``1 - MIN_HORIZONTAL_FRACTION`` of the airborne samples (the fleet's 21 Jun log_59 and log_65:
-  no GPS, ``v_xy_valid`` false all flight).
-- **motors driven outside PX4's thrust chain**: the mean logged motor command does not follow the logged
-  collective thrust as PX4's mixer makes it (:func:`motors_follow_thrust`; a lab's own controller writing
-  ``actuator_outputs``): the twin flies PX4's controller, so it cannot stand for that vehicle.  The twin flies the horizontal setpoints against the real
+  no GPS, ``v_xy_valid`` false all flight).  The twin flies the horizontal setpoints against the real
   horizontal state, and the identification fits horizontal forces: neither exists without it.
 
 :func:`read_flight` is :func:`~twin_nodes.logs.ulog_io.read_ulog` followed by this check: what
@@ -31,7 +28,6 @@ a bench test is fine) ask only for ``airborne=False, horizontal=False`` (the len
 from __future__ import annotations
 
 import os
-import warnings
 
 import numpy as np
 
@@ -39,8 +35,7 @@ from twin_nodes.base.errors import LogError
 from twin_nodes.logs.ulog_io import FlightLog, read_ulog
 
 __all__ = ["check_flyable", "read_flight", "tilt_sd_deg", "MIN_LOG_S", "MIN_AIRBORNE_S", "MIN_RISE_M",
-           "HELD_TILT_SD_DEG", "HELD_RISE_M", "MIN_HORIZONTAL_FRACTION", "NOT_PX4_MOTORS",
-           "motors_follow_thrust"]
+           "HELD_TILT_SD_DEG", "HELD_RISE_M", "MIN_HORIZONTAL_FRACTION"]
 
 #: a log whose position samples span less than this [s] is too short for any command
 MIN_LOG_S = 5.0
@@ -119,46 +114,6 @@ def _finite_fraction(log: FlightLog, name: str, cols: slice, intervals: list[tup
     return float(np.mean(np.all(np.isfinite(s.values[inside][:, cols]), axis=1)))
 
 
-#: the words a LogError starts with when the logged motors do not follow PX4's thrust (see check_flyable)
-NOT_PX4_MOTORS = "motors driven outside PX4's thrust chain"
-#: PX4's mixer makes the mean motor command the collective thrust (slope 1, corr 1 where nothing saturates;
-#: 44 PX4 flights of the tuning half and ../shared measure corr 0.87-1.00, slope 0.62-1.02, the lowest on
-#: climb35m's saturated climb).  Below both, another controller wrote the motors (RflyBUAA's degraded-control
-#: module on rfly_3539_07_03_18: corr -0.23, slope -0.09)
-FOLLOW_MIN_CORR = 0.5
-FOLLOW_MIN_SLOPE = 0.5
-#: the check needs the thrust to vary by this much (s.d.) over at least FOLLOW_MIN_SAMPLES
-FOLLOW_MIN_THRUST_SD = 0.02
-FOLLOW_MIN_SAMPLES = 50
-#: airborne-interval ends left out [s] (spool-up, touchdown)
-FOLLOW_TRIM_S = 2.0
-
-
-def motors_follow_thrust(log: FlightLog, intervals: list[tuple[float, float]]
-                         ) -> tuple[float, float, int] | None:
-    """How the mean of the logged motor commands follows the logged collective thrust (``throttle``) while
-    airborne, ends trimmed by FOLLOW_TRIM_S: ``(corr, least-squares slope, samples)``, None where either
-    series is missing, there are under FOLLOW_MIN_SAMPLES samples or the thrust varies too little."""
-    m, thr = log.get("motors"), log.get("throttle")
-    if m is None or thr is None or len(m) == 0 or len(thr) == 0:
-        return None
-    t = m.t_s
-    k = np.zeros(t.size, bool)
-    for a, b in intervals:
-        k |= (t > a + FOLLOW_TRIM_S) & (t < b - FOLLOW_TRIM_S)
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        y = np.nanmean(m.values[k], axis=1)
-    x = thr.at(t[k])[:, 0]
-    ok = np.isfinite(x) & np.isfinite(y)
-    if ok.sum() < FOLLOW_MIN_SAMPLES or np.std(x[ok]) < FOLLOW_MIN_THRUST_SD:
-        return None
-    x, y = x[ok], y[ok]
-    corr = float(np.corrcoef(x, y)[0, 1]) if np.std(y) > 0 else 0.0
-    slope = float(np.polyfit(x, y, 1)[0])
-    return corr, slope, int(ok.sum())
-
-
 def check_flyable(log: FlightLog, *, airborne: bool = True, horizontal: bool = True) -> FlightLog:
     """``log`` if it is a usable flight, else a one-line :class:`LogError` saying which kind it is not
     (too short, never airborne, without GPS, without horizontal velocity; see the module docstring).
@@ -198,13 +153,6 @@ def check_flyable(log: FlightLog, *, airborne: bool = True, horizontal: bool = T
                        f"varied by {tilt:.2f} deg (s.d.; flights measure 0.46 deg and more) over the {air:.1f} s "
                        f"'{_airborne_source(log)[0]}' calls airborne, and it rose "
                        f"{'an unknown height' if rise is None else f'{rise:.2f} m'} (a stand, tether or held motor run)")
-    follow = motors_follow_thrust(log, iv)
-    if follow is not None and follow[0] < FOLLOW_MIN_CORR and follow[1] < FOLLOW_MIN_SLOPE:
-        raise LogError(path, "motors", f"{NOT_PX4_MOTORS}: expected the mean motor command to follow PX4's "
-                       f"collective thrust as PX4's mixer makes it (corr >= {FOLLOW_MIN_CORR:g} or slope >= "
-                       f"{FOLLOW_MIN_SLOPE:g}; PX4 flights measure corr 0.87-1.00, slope 0.62-1.02), it has corr "
-                       f"{follow[0]:.2f}, slope {follow[1]:.2f} over {follow[2]} airborne samples (a controller "
-                       "outside PX4's chain drives the motors; the twin flies PX4's)")
     if not horizontal:
         return log
     p_ok = _finite_fraction(log, "position_enu", slice(0, 2), iv)
