@@ -59,7 +59,7 @@ def survey_flight(path: str | Path, params: str | Path | None = None) -> dict:
     res.pop("_series", None)
     before = res["baseline"]["closed_loop_heldout"]
     after = res["after"]["closed_loop_heldout"]
-    _check_scored(path, before)
+    _check_scored(path, before, log)
     eq_b = res["baseline"]["equation_error_heldout"]
     eq_a = res["after"]["equation_error_heldout"]
 
@@ -83,13 +83,19 @@ def survey_flight(path: str | Path, params: str | Path | None = None) -> dict:
     }
 
 
-def _check_scored(path, m: dict) -> None:
+def _check_scored(path, m: dict, log=None) -> None:
     """A held-out window with nothing scored in it (all of it take-off or touchdown: a hop whose last 35 %
-    is its landing) is a flight too short for the survey, said as such rather than a row of blanks."""
+    is its landing) is a flight too short for the survey, said as such rather than a row of blanks.  A log
+    without a throttle series has no throttle to score however long it flew: that is said instead (a
+    failure, not a flight left out)."""
     from twin_nodes.discovery.judging import HELDOUT_FRACTION
+    from twin_nodes.logs.legacy_topics import PX4_SOURCES
     from twin_nodes.twin.compare import GROUND_MARGIN_M
 
     x = m.get("throttle_rmse")
+    if not (isinstance(x, (int, float)) and math.isfinite(x)) and log is not None and log.get("throttle") is None:
+        raise LogError(path, "throttle", f"expected {PX4_SOURCES['throttle']} to score the held-out throttle, "
+                       "none in this log")
     if not (isinstance(x, (int, float)) and math.isfinite(x)):
         a, b = (m.get("interval_s") or (math.nan, math.nan))[:2]
         raise LogError(path, "held-out window", f"too short: expected airborne samples to score in the held-out "
@@ -116,7 +122,7 @@ def _nominal_only_row(path, log, vp, params_file, note, t_start: float, why: str
     a, b = iv[0][0], iv[-1][1]
     t_split = a + (1.0 - HELDOUT_FRACTION) * (b - a)
     m = _closed_loop_twin(log, vp, t_split, b)
-    _check_scored(path, m)
+    _check_scored(path, m, log)
     row_m = {k: m.get(k) for k in ROW_KEYS}
     return {"flight": Path(path).stem, "path": str(path), "status": "ok", "params": params_file.name,
             "params_note": note or "given", "accepted": [],

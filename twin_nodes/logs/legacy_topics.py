@@ -175,7 +175,8 @@ PX4_SOURCES: dict[str, str] = {
                       "yawspeed (PX4 <= 1.9)",
     "motors": "actuator_motors.control (PX4 >= 1.13 with control allocation) or actuator_outputs.output "
               "(PWM, motor channels moving while armed)",
-    "throttle": "vehicle_thrust_setpoint.xyz[2] (PX4 >= 1.12) or actuator_controls_0.control[3]",
+    "throttle": ("vehicle_thrust_setpoint.xyz[2] (PX4 >= 1.12) or actuator_controls_0.control[3], else "
+                 "vehicle_rates_setpoint.thrust (PX4 1.8-1.9, MC_BAT_SCALE_EN 0)"),
     "torque_setpoint_flu": "vehicle_torque_setpoint.xyz (PX4 >= 1.12) or actuator_controls_0.control[0..2]",
     "setpoint_position_enu": "trajectory_setpoint.position or .x,y,z (PX4 >= 1.9) or "
                              "vehicle_local_position_setpoint.x,y,z (PX4 1.8)",
@@ -237,6 +238,26 @@ def tap_esc(params: dict[str, float], disarmed: np.ndarray) -> str | None:
     return None
 
 
+def disarmed_pwm(params: dict[str, float], bank: str, n: int = 16) -> tuple[np.ndarray, str]:
+    """Each of ``n`` channels' disarmed PWM [us] as PX4's mixer-era driver writes it (``pwm_limit``: INIT and
+    OFF states), NaN where the log does not say, and the names used: ``PWM_{bank}_DISn`` when set (>= 0),
+    else the bank's ``PWM_{bank}_DISARM`` (1.12-1.13) or ``PWM_{bank}_DISARMED`` (AUX, 1.8-1.11), else for
+    MAIN ``PWM_DISARMED`` (1.8-1.11)."""
+    names = [f"PWM_{bank}_DISARM", f"PWM_{bank}_DISARMED"] + (["PWM_DISARMED"] if bank == "MAIN" else [])
+    glob, gname = next(((v, k) for k in names if (v := _param(params, k)) is not None and v >= 0), (np.nan, ""))
+    out, used = [], set()
+    for c in range(n):
+        v = _param(params, f"PWM_{bank}_DIS{c + 1}")
+        if v is not None and v >= 0:
+            out.append(v)
+            used.add(f"PWM_{bank}_DISn")
+        else:
+            out.append(glob)
+            if gname:
+                used.add(gname)
+    return np.array(out, float), "/".join(sorted(used))
+
+
 def armed_floor(params: dict[str, float]) -> float:
     """The lowest armed value a motor channel may have in this log's outputs (see PWM_ARMED_FLOOR)."""
     return PWM_ARMED_FLOOR if output_protocol(params) == "pwm" else 1.0
@@ -264,6 +285,32 @@ def output_limits(params: dict[str, float], bank: str, chans: list[int], armed: 
         return (np.full(k, lo), np.full(k, DSHOT_MAX),
                 f"DShot throttle {lo:.0f}-{DSHOT_MAX:.0f} (DSHOT_MIN {dmin if dmin is not None else 'unset'})")
     return pwm_limits(params, bank, chans)
+
+
+#: share of armed samples above a channel's PWM maximum that shows the outputs were not clamped by it
+ABOVE_MAX_FRACTION = 0.002
+
+
+def not_driver_scaled(armed: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> str | None:
+    """Why motor outputs were not written by PX4's PWM driver with the limits ``lo``..``hi`` (per channel,
+    us), or None.  PX4's ``pwm_limit_calc`` clamps every armed output to ``[min_pwm, max_pwm]``, so a
+    channel above its maximum (by more than 1 us, on at least ABOVE_MAX_FRACTION of the armed samples) was
+    scaled by something else: a module that publishes ``actuator_outputs`` itself (a second publisher, see
+    ``ulog_io._output_publishers``).  When every armed value then lies within PX4's default 1000..2000 us
+    the outputs are read on that scale.  ``armed``: (n, channels) armed values."""
+    a = np.asarray(armed, float)
+    if a.size == 0:
+        return None
+    with np.errstate(invalid="ignore"):
+        above = np.nanmean(a > hi[None, :] + 1.0, axis=0)
+    fin = a[np.isfinite(a)]
+    if not np.any(above >= ABOVE_MAX_FRACTION) or fin.size == 0:
+        return None
+    if fin.min() < PWM_DEFAULT[0] - 1.0 or fin.max() > PWM_DEFAULT[1] + 1.0:
+        return None
+    return (f"armed outputs above the PWM maximum {hi.max():.0f} us on up to {100 * above.max():.1f} % of "
+            f"samples (PX4's driver clamps there): read on PX4's default {PWM_DEFAULT[0]:.0f}-"
+            f"{PWM_DEFAULT[1]:.0f} us")
 
 
 def mixer_idle(motors: Any, throttle: Any, airborne: list[tuple[float, float]]) -> tuple[float, str] | None:

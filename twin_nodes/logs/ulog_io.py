@@ -908,28 +908,36 @@ def _motors_from_pwm(
             warnings.append(f"motors: expected PWM_{bank} on actuator_outputs[{inst}], "
                             f"used instance {alt[0]} whose channels {chans} vary")
             inst = alt[0]
+        tp, lab = aos[inst], ""
         how = (f"PWM_{bank}_FUNCn; PWM_{bank}_MINn/MAXn "
                f"{'/'.join(f'{v:.0f}' for v in lo)}-{'/'.join(f'{v:.0f}' for v in hi)} us")
     else:
-        inst, chans = _guess_motor_channels(aos, n, topics, legacy_topics.armed_floor(params))
-        if inst is None:
+        inst, lab, tp, chans = _guess_motor_stream(aos, n, topics, legacy_topics.armed_floor(params), params)
+        if inst is None or tp is None:
             warnings.append(f"motors: no actuator_outputs instance has {n} motor-like channels "
                             "(varying while armed, disarm value when disarmed); no motors series")
             return None
         bank = "MAIN" if inst == 0 else "AUX"
-        armed = _armed_at(topics, aos[inst].t_s)
-        o = aos[inst].arr("output", 16)[:, chans]
+        armed = _armed_at(topics, tp.t_s)
+        o = tp.arr("output", 16)[:, chans]
         # the mixer era's limits: PWM per PX4 version, or UAVCAN/DShot units
         lo, hi, how = legacy_topics.output_limits(params, bank, chans, o[armed] if armed is not None else o)
         tap = legacy_topics.tap_esc(params, o[~armed] if armed is not None else o[:0])
         if tap is not None and how.startswith("PX4 default"):
             lo, hi = (np.full(len(chans), v) for v in legacy_topics.TAP_ESC_RANGE)
             how = f"tap_esc RPMMIN-RPMMAX 1200-1900 ({tap})"
+        unscaled = legacy_topics.not_driver_scaled(o[armed] if armed is not None else o, lo, hi)
+        if unscaled is not None:
+            lo, hi = (np.full(len(chans), v) for v in legacy_topics.PWM_DEFAULT)
+            how = unscaled + f" (not {how})"
+            warnings.append(f"motors: {unscaled}")
         why = (f"output-function parameters map only {len(mapping)} of {n} motors" if mapping
                else "no output-function parameters")
-        warnings.append(f"motors: {why}; channels {chans} of actuator_outputs[{inst}] chosen "
+        warnings.append(f"motors: {why}; channels {chans} of actuator_outputs[{inst}]{lab} chosen "
                         f"as the {n} motor-like channels")
-    tp = aos[inst]
+        if lab:
+            warnings.append(f"motors: actuator_outputs[{inst}] carries interleaved publishers (noutputs "
+                            f"differs); the motors are the samples{lab}")
     pwm = tp.arr("output", 16)[:, chans]
     u = (pwm - lo) / (hi - lo)
     stopped = (pwm < lo - 1.0) | (pwm > hi + 1.0) | ~np.isfinite(pwm)
@@ -944,7 +952,7 @@ def _motors_from_pwm(
         u = fac * u * u + (1.0 - fac) * u
         how += f"; THR_MDL_FAC {fac:g} undone"
     u = np.where(stopped, np.nan, u)
-    src = f"actuator_outputs[{inst}].output[{','.join(str(c) for c in chans)}] ({how})"
+    src = f"actuator_outputs[{inst}]{lab}.output[{','.join(str(c) for c in chans)}] ({how})"
     return _series("motors", tp.t_s, u, src)
 
 
@@ -968,6 +976,40 @@ def _undo_mixer_idle(out: dict[str, Series], warnings: list[str]) -> None:
     warnings.append(f"motors: {how}")
 
 
+# Two modules publishing one topic instance: uORB's ``orb_advertise`` is ``orb_advertise_multi`` with
+# instance 0, and "any number of advertisers may publish to a topic" (uORB.h), so a custom control module
+# that advertises ``actuator_outputs`` shares instance 0 with PX4's output driver and the logger writes
+# both, interleaved.  PX4's drivers fill ``noutputs``; a second publisher that leaves it 0 (RflyBUAA's
+# PX4 1.8 degraded-control build: its motor commands at noutputs 0 between the driver's constant
+# 1500 us at noutputs 4) is told apart by it.  A publisher is a ``noutputs`` value held by at least
+# PUBLISHER_MIN_FRACTION of the samples; the instance is split when such publishers alternate at least
+# PUBLISHER_MIN_SWITCHES times (a driver whose noutputs changes once, at mixer load, is one publisher).
+PUBLISHER_MIN_FRACTION = 0.1
+PUBLISHER_MIN_SWITCHES = 10
+
+
+def _output_publishers(tp: _Topic) -> list[tuple[str, _Topic]]:
+    """An ``actuator_outputs`` instance as its publishers: ``[("", tp)]`` for one publisher, else one
+    ``(" (noutputs k)", samples)`` per interleaved publisher (see PUBLISHER_MIN_SWITCHES)."""
+    if not tp.has("noutputs") or tp.t_us.size < 2:
+        return [("", tp)]
+    n = tp.col("noutputs")
+    vals, counts = np.unique(n[np.isfinite(n)], return_counts=True)
+    pubs = vals[counts >= PUBLISHER_MIN_FRACTION * n.size]
+    if pubs.size < 2:
+        return [("", tp)]
+    main = np.isin(n, pubs)
+    if int(np.sum(np.diff(n[main]) != 0)) < PUBLISHER_MIN_SWITCHES:
+        return [("", tp)]
+    return [(f" (noutputs {int(v)})", tp.subset(n == v)) for v in pubs]
+
+
+def _output_streams(aos: dict[int, _Topic]) -> list[tuple[int, str, _Topic]]:
+    """Every publisher of every ``actuator_outputs`` instance, lowest instance first:
+    ``(instance, label, samples)`` (:func:`_output_publishers`)."""
+    return [(inst, lab, sub) for inst in sorted(aos) for lab, sub in _output_publishers(aos[inst])]
+
+
 def moving_motor_outputs(topics: dict[tuple[str, int], _Topic]) -> tuple[int, str] | None:
     """How many motor outputs move while armed: ``actuator_motors.control[0..11]`` channels whose
     armed values range (max - min) over more than 0.001 (PX4 >= 1.13 with control allocation), else the
@@ -982,13 +1024,14 @@ def moving_motor_outputs(topics: dict[tuple[str, int], _Topic]) -> tuple[int, st
     # the mixer era: the instance whose channels move most (MAIN is instance 0 on most boards, but on
     # Pixhawks with an IO co-processor or UAVCAN ESCs the mixer's outputs may be another instance)
     best: tuple[int, str] | None = None
-    for (name, mid), ao in sorted(topics.items()):
-        if name != "actuator_outputs" or not ao.has("output[0]"):
+    aos = {mid: tp for (name, mid), tp in topics.items() if name == "actuator_outputs"}
+    for mid, lab, ao in _output_streams(aos):
+        if not ao.has("output[0]"):
             continue
         k = next(i for i in range(17) if i == 16 or not ao.has(f"output[{i}]"))
         m = _count_moving(topics, ao.t_s, ao.arr("output", k), 5.0)
         if best is None or m > best[0]:
-            best = (m, f"actuator_outputs[{mid}].output")
+            best = (m, f"actuator_outputs[{mid}].output{lab}")
     return best
 
 
@@ -1030,15 +1073,18 @@ def _channels_vary(tp: _Topic, chans: list[int], topics: dict[tuple[str, int], _
     return bool(o.shape[0] > 1 and np.all(_keeps_moving(o, 5.0)))
 
 
-def _guess_motor_channels(
-    aos: dict[int, _Topic], n: int, topics: dict[tuple[str, int], _Topic], floor: float = 800.0
-) -> tuple[int | None, list[int]]:
-    """The mixer era's motor channels: in the first ``actuator_outputs`` instance that has ``n`` of them,
-    the first ``n`` channels that keep moving while armed (:func:`_keeps_moving`), stay at or above
-    ``floor`` while armed and rest, while disarmed, at or below their armed range (the disarmed/idle
-    value: 900 or 1000 us PWM_DISARMED, 1190 us on tap_esc; any value, not a fixed threshold)."""
-    for inst in sorted(aos):
-        tp = aos[inst]
+def _guess_motor_stream(
+    aos: dict[int, _Topic], n: int, topics: dict[tuple[str, int], _Topic], floor: float = 800.0,
+    params: dict[str, float] | None = None,
+) -> tuple[int | None, str, _Topic | None, list[int]]:
+    """The mixer era's motor channels: in the first ``actuator_outputs`` publisher (:func:`_output_streams`)
+    that has ``n`` of them, the first ``n`` channels that keep moving while armed (:func:`_keeps_moving`),
+    stay at or above ``floor`` while armed and rest, while disarmed, at or below their armed range (the
+    disarmed/idle value: 900 or 1000 us PWM_DISARMED, 1190 us on tap_esc; any value, not a fixed
+    threshold) or exactly (1 us) at the disarmed value the log's parameters give PX4's driver for that
+    channel (:func:`legacy_topics.disarmed_pwm`: a PWM_DISARMED set mid-range, a reversible ESC's 1500 us),
+    wherever that lies.  Returns ``(instance, publisher label, its samples, channels)``."""
+    for inst, lab, tp in _output_streams(aos):
         if not tp.has("output[15]"):
             continue
         o = tp.arr("output", 16)
@@ -1054,10 +1100,22 @@ def _guess_motor_channels(
             armed_low = np.nanpercentile(oa, 5, axis=0) if oa.size else np.full(16, np.nan)
             rest_high = np.nanmax(od, axis=0) if od.shape[0] else np.full(16, -np.inf)
             rests_low = ~(rest_high > armed_low + 5.0)
+            if params is not None and od.shape[0]:
+                dis = legacy_topics.disarmed_pwm(params, "MAIN" if inst == 0 else "AUX")[0]
+                rest_low_v = np.nanmin(od, axis=0)
+                rests_low |= (np.abs(rest_high - dis) <= 1.0) & (np.abs(rest_low_v - dis) <= 1.0)
         good = np.flatnonzero(moving & in_range & rests_low)
         if good.size >= n:
-            return inst, [int(c) for c in good[:n]]
-    return None, []
+            return inst, lab, tp, [int(c) for c in good[:n]]
+    return None, "", None, []
+
+
+def _guess_motor_channels(
+    aos: dict[int, _Topic], n: int, topics: dict[tuple[str, int], _Topic], floor: float = 800.0
+) -> tuple[int | None, list[int]]:
+    """:func:`_guess_motor_stream`'s instance and channels."""
+    inst, _, _, chans = _guess_motor_stream(aos, n, topics, floor)
+    return inst, chans
 
 
 _EARTH_R_M = 6371000.0
@@ -1357,6 +1415,13 @@ def _build_series(
     elif ac0 is not None and ac0.has("control[3]"):
         out["throttle"] = _series("throttle", ac0.t_s, ac0.col("control[3]"),
                                   "actuator_controls_0.control[3]")
+    elif ((rsp := get("vehicle_rates_setpoint")) is not None and rsp.has("thrust")
+          and float(params.get("MC_BAT_SCALE_EN", 0.0)) == 0.0):
+        # PX4 1.8-1.9 without actuator_controls_0 logged: mc_att_control writes control[3] = the rate
+        # setpoint's thrust, times the battery scale only where MC_BAT_SCALE_EN is set
+        out["throttle"] = _series("throttle", rsp.t_s, rsp.col("thrust"),
+                                  "vehicle_rates_setpoint.thrust (= actuator_controls_0.control[3], "
+                                  "MC_BAT_SCALE_EN 0; actuator_controls_0 not logged)")
     else:
         missing("vehicle_thrust_setpoint/actuator_controls_0", "throttle")
     tq = get("vehicle_torque_setpoint")
