@@ -65,6 +65,35 @@ def test_linear_drag_terminal_velocity_is_mg_over_k(sih):
     assert X[-1, 5] == pytest.approx(-9.80665, rel=1e-8)
 
 
+def test_a_horizontal_only_linear_drag_leaves_the_fall_free(sih):
+    """``vertical`` 0 (a drag identified from the horizontal specific force alone): falling from rest in a
+    horizontal wind, v_z(t) = -g t exactly while v_xy(t) = wind (1 - exp(-k t / m)) as with SIH's isotropic drag
+    (k = 1 N/(m/s), m = 1 kg)."""
+    vp = sih.with_effect("linear_drag", k_n_s_m=1.0, vertical=0.0)
+    m = Multirotor(vp)
+    wind = np.array([3.0, -1.0, 0.0])
+    x0 = m.initial_state(position_enu=(0.0, 0.0, 5000.0))
+    X = m.simulate(x0, np.tile(NAN4, (2_000, 1)), 0.001, ext_of(wind=wind))
+    t = np.arange(2_001) * 0.001
+    np.testing.assert_allclose(X[:, 5], -G * t, atol=1e-9)
+    np.testing.assert_allclose(X[:, 3:5], wind[:2] * (1 - np.exp(-t))[:, None], atol=1e-9)
+    # a vertical share other than none or all is refused in one line
+    with pytest.raises(ParamsError, match="vertical.*expected 0 .horizontal only. or 1"):
+        sih.with_effect("linear_drag", k_n_s_m=1.0, vertical=0.5)
+    # a params file without it keeps SIH's isotropic drag
+    assert EFFECTS["linear_drag"](k_n_s_m=1.0).params["vertical"] == 1.0
+
+
+def test_a_refitted_linear_drag_stays_horizontal_only(sih):
+    """Discovery's refit of a nominal law's size (stages.selection.nominal_refits) keeps its other parameters:
+    a horizontal-only linear drag refitted is still horizontal only."""
+    from twin_nodes.discovery.stages.selection import nominal_refits
+
+    nominal = sih.with_effect("linear_drag", k_n_s_m=0.4, vertical=0.0)
+    (c,) = [c for c in nominal_refits(nominal, nominal) if c.name == "linear_drag"]
+    assert c.build(np.array([0.9])).effect_dict["linear_drag"] == {"k_n_s_m": 0.9, "vertical": 0.0}
+
+
 @pytest.mark.parametrize("axis, inertia", [(0, 0.025), (1, 0.025), (2, 0.030)])
 def test_angular_damping_decays_rates_at_k_over_i(sih, axis, inertia):
     m = Multirotor(sih)
@@ -429,7 +458,8 @@ def test_effects_from_yaml_equal_programmatic(buho, tmp_path):
     path = tmp_path / "with_effects.yaml"
     path.write_text(yaml.safe_dump({"/**": {"ros__parameters": d}}))
     loaded = load_params(path)
-    prog = (buho.with_effect("linear_drag", k_n_s_m=0.7).with_effect("battery_sag", v_ref=16.0, exponent=1.2)
+    # a file that does not name the linear drag's ``vertical`` gets its default, SIH's isotropic drag
+    prog = (buho.with_effect("linear_drag", k_n_s_m=0.7, vertical=1.0).with_effect("battery_sag", v_ref=16.0, exponent=1.2)
             .with_effect("wind", vx=1.5, vy=-0.5, gust_std=0.3).with_effect("mass", mass=6.2))
     assert loaded.effects == prog.effects
     ml, mp = Multirotor(loaded), Multirotor(prog)

@@ -558,7 +558,8 @@ def test_drag_offered_with_the_accepted_thrust_refitted():
     assert ld.label == "linear_drag (nominal refitted) (+thrust_coefficient refitted)"
     v = ld.build(np.array([1.28, 0.87]))
     eff = {n: dict(p) for n, p in v.effects}
-    assert eff["linear_drag"] == {"k_n_s_m": 1.28} and eff["thrust_coefficient"] == {"kt_scale": 0.87}
+    # SIH's drag stays isotropic (the shipped params' ``vertical`` 1 kept through the refit)
+    assert eff["linear_drag"] == {"k_n_s_m": 1.28, "vertical": 1.0} and eff["thrust_coefficient"] == {"kt_scale": 0.87}
     # the effects in the plain candidate's order (the compiled stepper is the one the round already uses)
     plain = cands["linear_drag (nominal refitted)"].build(np.array([1.28]))
     assert [n for n, _ in v.effects] == [n for n, _ in plain.effects]

@@ -56,13 +56,13 @@ def test_generated_hooks_dispatch_on_the_effect_table():
     src = model._generate_source(registry)
     code = {cls: i for i, cls in enumerate(registry)}
     assert f"    if c == {code[EFFECTS['battery_sag']]}:\n            _k_battery_sag(P[s:s + 2], ext, sref)" in src
-    assert (f"if c == {code[EFFECTS['linear_drag']]}:\n            _k_linear_drag(P[s:s + 1], x, R, ext, omega, T, "
+    assert (f"if c == {code[EFFECTS['linear_drag']]}:\n            _k_linear_drag(P[s:s + 2], x, R, ext, omega, T, "
             "Fb, Mb, Fw)") in src
     assert f"N_KINDS = {len(registry)}\nCOMMAND_HOOKS, ROTOR_HOOKS, WRENCH_HOOKS = True, True, True\n" in src
     assert m._mod is Multirotor(shipped("buho_negro"))._mod  # one module for every set of effects
-    assert m.E == () and list(m.P[-3:]) == [12.6, 1.0, 0.1]
+    assert m.E == () and list(m.P[-4:]) == [12.6, 1.0, 0.1, 1.0]  # linear_drag's k and ``vertical`` (default 1)
     # the table: three counts and two (code, start) entries, then the two parameter vectors
-    assert len(m.P) == len(Multirotor(shipped("buho_negro")).P) + 4 + 3
+    assert len(m.P) == len(Multirotor(shipped("buho_negro")).P) + 4 + 4
 
 
 # ----------------------------------------------------------------------------- cache file

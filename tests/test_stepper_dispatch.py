@@ -151,6 +151,7 @@ def test_effect_table_layout():
     assert list(m.P[b:b + 3]) == [1, 1, 1]
     start = b + 3 + 6
     assert list(m.P[b + 3:start]) == [code[EFFECTS["battery_sag"]], start,
-                                      code[EFFECTS["motor_efficiency"]], start + 3,
+                                      code[EFFECTS["motor_efficiency"]], start + 4,
                                       code[EFFECTS["linear_drag"]], start + 2]
-    assert list(m.P[start:]) == [12.6, 1.0, 0.1, 2.0, 0.8]
+    # linear_drag's k and its ``vertical`` (1: SIH's isotropic drag, the default)
+    assert list(m.P[start:]) == [12.6, 1.0, 0.1, 1.0, 2.0, 0.8]

@@ -164,7 +164,7 @@ def _k_linear_drag(p, x, R, ext, omega, T, Fb, Mb, Fw):
     k = p[0]
     Fw[0] -= k * (x[3] - ext[1])
     Fw[1] -= k * (x[4] - ext[2])
-    Fw[2] -= k * (x[5] - ext[3])
+    Fw[2] -= p[1] * k * (x[5] - ext[3])
 
 
 @njit(cache=True)
@@ -292,12 +292,22 @@ def _k_state_term(p, x, ext, omega, T, Q):
 
 class LinearDrag(Effect):
     name = "linear_drag"
-    param_names = ("k_n_s_m",)
-    defaults = {"k_n_s_m": 0.0}
-    units = {"k_n_s_m": "N/(m/s)"}
-    ranges = {"k_n_s_m": (0.0, 1e4)}
-    description = "isotropic drag linear in air-relative velocity, world frame (PX4 SIH_KDV)"
+    param_names = ("k_n_s_m", "vertical")
+    defaults = {"k_n_s_m": 0.0, "vertical": 1.0}
+    units = {"k_n_s_m": "N/(m/s)", "vertical": "0 or 1"}
+    ranges = {"k_n_s_m": (0.0, 1e4), "vertical": (0.0, 1.0)}
+    description = ("drag linear in air-relative velocity, world frame: isotropic as PX4 SIH_KDV (``vertical`` 1, the "
+                   "default), or horizontal only (``vertical`` 0: a drag identified from the horizontal specific "
+                   "force alone, which says nothing of the vertical)")
     wrench_kernel = staticmethod(_k_linear_drag)
+    discrete = ("vertical",)
+
+    @classmethod
+    def check_params(cls, params, n_rotors=None):
+        bad = super().check_params(params, n_rotors)
+        if bad is None and "vertical" in params and float(params["vertical"]) not in (0.0, 1.0):
+            return "vertical", f"expected 0 (horizontal only) or 1 (isotropic, PX4 SIH_KDV), got {float(params['vertical']):g}"
+        return bad
 
 
 class AngularDamping(Effect):

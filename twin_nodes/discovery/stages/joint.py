@@ -72,8 +72,9 @@ def merged(params: dict, names: tuple, values: np.ndarray, tied: dict) -> dict:
 
 
 def in_place(vp: VehicleParams, name: str, params: dict) -> VehicleParams:
-    """``vp`` with effect ``name``'s parameters replaced where it stands in the effect order."""
-    new = vp.with_effect(name, **params)
+    """``vp`` with effect ``name``'s parameters replaced where it stands in the effect order (its parameters not in
+    ``params`` kept: a horizontal-only linear drag refitted stays horizontal only)."""
+    new = vp.with_effect(name, **{**vp.effect_dict.get(name, {}), **params})
     eff = dict(new.effects)
     return new.replace(effects=tuple((n, eff[n]) for n, _ in vp.effects))
 

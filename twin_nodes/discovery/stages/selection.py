@@ -447,8 +447,9 @@ def nominal_refits(nominal: VehicleParams, current: VehicleParams, data=None) ->
         if k0 <= 0 or now[name][key] != k0:
             continue
 
-        def build(theta, name=name, key=key, base=current):
-            return base.with_effect(name, **{key: float(theta[0])})
+        def build(theta, name=name, key=key, base=current, kept=now[name]):
+            # the law's other parameters kept (a horizontal-only linear drag stays horizontal)
+            return base.with_effect(name, **{**kept, key: float(theta[0])})
 
         out.append(Candidate(name, (key,), np.array([k0]), np.array([0.2 * k0]), np.array([5.0 * k0]), build, {},
                              lambda th, k0=k0: abs(th[0] - k0) > REFIT_FLOOR * k0, f"{name} (nominal refitted)"))
