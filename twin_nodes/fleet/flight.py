@@ -63,8 +63,9 @@ _WARM: list[bool] = []
 def warm_compiled() -> None:
     """Compile, or load, the numba code a flight's twin and discovery call (the effect registry's stepper
     and discovery's kernels, :func:`~twin_nodes.discovery.kernels.warm_steps`), once per process, each
-    entry point under an exclusive lock of its own in the cache folder (``$ROTORTWIN_CACHE``,
-    ``compile.<entry point>.lock``): on a cold start the first worker compiles the stepper's step (and with
+    entry point under an exclusive lock of its own in the code cache folder (``$ROTORTWIN_CODE_CACHE``, or
+    ``$ROTORTWIN_CACHE`` where that is read-only: ``compile.<entry point>.lock``); after ``make setup`` (which
+    fills the code cache) each entry point is only loaded: on a cold start the first worker compiles the stepper's step (and with
     it the functions every entry point calls) while another waits, then the two compile the other entry
     points side by side (one whose lock another worker holds is left for later) and each loads what the other
     wrote, waiting for an entry point still being compiled (waiting costs no CPU) instead of compiling the
@@ -76,8 +77,8 @@ def warm_compiled() -> None:
     try:
         import fcntl  # POSIX; elsewhere each flight compiles what it needs, as before
 
-        from twin_nodes.base.io import cache_dir
         from twin_nodes.discovery.kernels import warm_steps
+        from twin_nodes.physics.codecache import lock_dir
 
         # each pass waits for its first entry point (the first of all, the stepper's step, compiles the functions
         # every other one calls: those are then loaded, not compiled by both), then takes each other one no
@@ -86,7 +87,7 @@ def warm_compiled() -> None:
         while todo:
             left = []
             for k, (name, step) in enumerate(todo):
-                with open(cache_dir() / f"compile.{name}.lock", "a") as f:  # released when closed, or on death
+                with open(lock_dir() / f"compile.{name}.lock", "a") as f:  # released when closed, or on death
                     try:
                         fcntl.flock(f, fcntl.LOCK_EX | (fcntl.LOCK_NB if k else 0))
                     except BlockingIOError:  # another worker compiles it: its cache file, loaded later
