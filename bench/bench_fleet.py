@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 os.environ["ROTORTWIN_CODE_CACHE"] = installed_code
             rate[mode, w] = _run_once(a, flights, tmp, kw, mode, w)
-    label = {"cold": "cold (empty code cache)", "installed": "as installed (code cache warm)"}
+    label = {"cold": "empty code cache", "installed": "as installed: code cache warm"}
     for mode in modes:
         if (mode, 1) in rate and (mode, 2) in rate:
             print(f"scaling 2 workers / 1 worker{'' if mode == 'installed' else ', ' + mode}: "

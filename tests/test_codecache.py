@@ -8,7 +8,8 @@
   data cache folder; where nothing can be written (a full disk) the code is compiled in this process, with
   no error; two processes writing the same entry at once both run and leave a loadable entry;
 * the stepper and discovery's kernels give the same bytes compiled, loaded from the cache, and compiled
-  with no disk cache at all.
+  with no disk cache at all;
+* after ``rotortwin fleet warm`` (what ``make setup`` runs) a fleet flight compiles none of our code (slow).
 """
 
 from __future__ import annotations
@@ -281,3 +282,39 @@ def test_results_identical_with_and_without_the_cache(tmp_path):
     assert cold["generated_compiled"] > 0 and warm["generated_compiled"] == 0 and none["generated_compiled"] > 0
     assert Path(cold["file"]).parent == tmp_path / "code"
     assert cold["hash"] == warm["hash"] == none["hash"]
+
+
+_FLIGHT = """
+import json, sys
+from numba.core import event
+compiled = []
+class L(event.Listener):
+    def on_start(self, e):
+        pass
+    def on_end(self, e):
+        compiled.append(e.data["dispatcher"].py_func.__module__)
+event.register("numba:compile", L())
+from twin_nodes.fleet.flight import analyse
+row = analyse(sys.argv[1], "discover", None, None, True)
+print(json.dumps({"kind": row.get("flight_kind"), "ours": sorted({c for c in compiled
+                  if c.startswith(("rotortwin_", "twin_nodes."))})}))
+"""
+
+
+@pytest.mark.slow
+def test_a_flight_after_fleet_warm_compiles_nothing(tmp_path):
+    """What ``make setup`` runs (``rotortwin fleet warm``) leaves nothing of ours for a fleet flight to compile."""
+    fleet = ROOT.parent / "shared" / "flightlogs" / "fleet_quadx_v6c"
+    flight = fleet / "ZweiterFlugtag" / "log_19_2023-6-7-10-51-18.ulg"  # a short free flight
+    if not flight.is_file():
+        from conftest import missing_shared
+        missing_shared("flightlogs/fleet_quadx_v6c")
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "ROTORTWIN_CODE_CACHE": str(tmp_path / "code"),
+           "ROTORTWIN_CACHE": str(tmp_path / "data")}
+    r = subprocess.run([sys.executable, "-m", "twin_nodes", "fleet", "warm"], env=env, cwd=ROOT, capture_output=True,
+                       text=True, timeout=900)
+    assert r.returncode == 0 and str(tmp_path / "code") in r.stdout, r.stderr
+    r = subprocess.run([sys.executable, "-c", _FLIGHT, str(flight)], env=env, cwd=ROOT, capture_output=True,
+                       text=True, timeout=900)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout.strip().splitlines()[-1]) == {"kind": "free flight", "ours": []}

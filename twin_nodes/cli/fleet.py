@@ -156,11 +156,11 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 def _cmd_warm(args: argparse.Namespace) -> int:
     import time
 
-    from twin_nodes.discovery.kernels import warm_all
+    from twin_nodes.fleet.flight import warm_installed
     from twin_nodes.physics.codecache import code_dir
 
     t0 = time.perf_counter()
-    names = warm_all()
+    names = warm_installed()
     d = code_dir()
     where = "not cached (no usable code cache folder)" if d is None else f"{d[0]}{'' if d[1] else ' (read-only)'}"
     print(f"compiled code of {', '.join(names)}: {where} ({time.perf_counter() - t0:.1f} s)")

@@ -101,6 +101,32 @@ def warm_compiled() -> None:
         logging.getLogger("rotortwin.fleet").warning("compiling ahead failed (%s: %s)", type(exc).__name__, exc)
 
 
+def warm_installed() -> list[str]:
+    """Compile ahead, as ``make setup`` does (``rotortwin fleet warm``), the numba code a fleet flight runs: the
+    generated stepper and discovery's kernels into the per-user code cache
+    (:func:`~twin_nodes.discovery.kernels.warm_all`), and the package's own numba functions a flight calls
+    directly (the low-pass filter, the unhooked rotor states, the motor lag) into numba's cache beside their
+    files, each with the argument types a flight calls it with.  Returns the generated modules' names."""
+    import numpy as np
+
+    from twin_nodes.discovery.kernels import warm_all
+    from twin_nodes.discovery.lowpass import lowpass
+    from twin_nodes.discovery.residuals import lag_states
+    from twin_nodes.identify.step_response import simulate_lag
+    from twin_nodes.physics.model import Multirotor
+    from twin_nodes.vehicle.params import load_params, params_dir
+
+    names = warm_all()
+    lowpass(np.zeros((64, 3)), 100.0, 10.0)
+    m = Multirotor(load_params(params_dir() / "px4_sih_quadx.yaml"))
+    u = np.full((4, m.n_rotors), 0.5)
+    u.setflags(write=False)  # discovery's command series are read-only views
+    lag_states(m.P, u, 0.002, 0, np.zeros(m.n_rotors), 1, 2)
+    t = np.linspace(0.0, 1.0, 11)
+    simulate_lag(t, np.where(t < 0.5, 0.2, 0.6), t, tau_up_s=0.05)
+    return names
+
+
 class NotAFlight(Exception):
     """The log is no free flight (a ground/bench test, too short, no GPS): its row so far, kind and reason."""
 

@@ -9,8 +9,9 @@ suite's plant-only effects), registered when a model first uses one, together wi
 kernel effect of its module.  So an effect is still added by writing a kernel, never by editing
 the core; the stepper is compiled once per registry (not once per combination of effects) and
 cached on disk: the module is written to the per-user code cache (:mod:`.codecache`) so numba's
-on-disk cache works across processes and runs; what runs is the generated text itself, never what that file holds.  A kind
-from outside physics makes another registry, hence one more module (compiled once, cached too).
+on-disk cache works across processes and runs; what runs is the generated text itself, never what
+that file holds.  A kind from outside physics makes another registry, hence one more module
+(compiled once, cached too).
 
 Commands ``u`` are PX4 ``actuator_motors`` values: normalised 0..1 per motor in
 PX4 order, NaN = stopped.  ``ext`` is ``[battery_v, wind_e, wind_n, wind_u]``.
