@@ -113,8 +113,14 @@ def lock_dir() -> Path:
 
 
 # ------------------------------------------------------------------------ numba's cache, made safe
+from numba.core.caching import NullCache
+
 try:
-    from numba.core.caching import CacheImpl, CompileResultCacheImpl, FunctionCache, NullCache, _CacheLocator
+    from numba.core.caching import CompileResultCacheImpl, FunctionCache, _CacheLocator
+    try:
+        from numba.core.caching import CacheImpl
+    except ImportError:  # numba < 0.61 names it _CacheImpl
+        from numba.core.caching import _CacheImpl as CacheImpl
 except ImportError:  # pragma: no cover - another numba: its own cache, unguarded
     _SafeCache = None
 else:
@@ -187,7 +193,10 @@ def adopt(mod: types.ModuleType, on_disk: bool) -> None:
 
     for v in vars(mod).values():
         if isinstance(v, Dispatcher) and v.py_func.__module__ == mod.__name__ and not isinstance(v._cache, NullCache):
-            v._cache = _SafeCache(v.py_func) if on_disk and _SafeCache is not None else NullCache()
+            if not on_disk:
+                v._cache = NullCache()
+            elif _SafeCache is not None:  # else numba's own cache, as it made it
+                v._cache = _SafeCache(v.py_func)
 
 
 __all__ = ["adopt", "code_dir", "code_root", "env_key", "lock_dir", "register"]
