@@ -1,4 +1,5 @@
 # rotortwin: two commands on a fresh machine (see README)
+#   make setup  the venv, then the generated numba code compiled into ~/.cache/rotortwin/numba (fleet warm)
 #   make demo   set up, then run the main job on the shipped flight in bags/
 #   make test   set up, then run the test suite (what .ci/run calls)
 PYTHON ?= python3
@@ -16,6 +17,7 @@ $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q -e '.[ros,dev]'
+	$(BIN)/rotortwin fleet warm || echo "rotortwin: compiling ahead failed; the first run compiles instead"
 	touch $@
 
 demo: setup

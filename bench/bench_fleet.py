@@ -6,9 +6,12 @@
     .venv/bin/python bench/bench_fleet.py --synthetic [--n 8] [--task-s 3]  # a CPU-bound stand-in task
 
 Each run writes a fresh catalog (nothing skipped) on an embedded LocalCluster (one-thread worker
-processes) with an empty cache of its own (``ROTORTWIN_CACHE``; ``--warm`` shares the user's); the time includes
-starting the cluster.  Prints flights/min per worker count and the
-2-worker / 1-worker scaling ratio (both measured in the same run), and the flight-minutes analysed (the logs'
+processes) with an empty data cache of its own (``ROTORTWIN_CACHE``: built nominals; ``--warm`` shares the user's);
+the time includes starting the cluster.  Each worker count runs twice (``--modes``): **cold**, with an empty code
+cache of its own (``ROTORTWIN_CODE_CACHE``: every generated numba module compiled, as on a machine's first run),
+and **as installed**, with the user's code cache as ``make setup`` leaves it (``rotortwin fleet warm`` runs first,
+untimed).  Prints flights/min per run, the 2-worker / 1-worker scaling ratio of each mode and the
+as-installed / cold ratio (all measured in the same run), and the flight-minutes analysed (the logs'
 durations, from the catalog rows) per wall-minute per worker core; beside them the CPU seconds of the run (this
 process and its ended worker processes: comparable on a shared machine, where wall time is not) and the load
 average before and after it.  Without ``--params`` each flight flies the
@@ -65,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--params", default=None, help="one params file for every flight (default: per flight)")
     ap.add_argument("--no-closed-loop", action="store_true")
     ap.add_argument("--workers", default="1,2")
+    ap.add_argument("--modes", default="cold,installed",
+                    help="cold: an empty code cache (every generated module compiled); installed: the user's code "
+                         "cache as make setup leaves it (warmed first, not timed); default both")
     ap.add_argument("--warm", action="store_true", help="share the user's cache between the runs (default: each run "
                     "starts with an empty cache, so the second does not reuse the nominals the first built)")
     a = ap.parse_args(argv)
@@ -72,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         print("bench_fleet: no FLIGHTS_DIR given: the synthetic task (--synthetic)", flush=True)
         a.synthetic = True
 
-    from twin_nodes.fleet.run import find_flights, run_fleet
+    from twin_nodes.fleet.run import find_flights
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_fleet_"))
     kw = {}
@@ -91,32 +97,69 @@ def main(argv: list[str] | None = None) -> int:
         kw.update(params=a.params, closed_loop_metrics=not a.no_closed_loop)
     else:
         ap.error("give FLIGHTS_DIR or --synthetic")
-    rate = {}
+    import os
+    import subprocess
+
+    modes = [m.strip() for m in a.modes.split(",") if m.strip()]
+    bad = [m for m in modes if m not in ("cold", "installed")]
+    if bad or not modes:
+        ap.error(f"--modes: expected cold and/or installed, got {a.modes!r}")
+    installed_code = os.environ.get("ROTORTWIN_CODE_CACHE")  # the user's code cache (unset: the default one)
+    if "installed" in modes and not a.synthetic:  # as make setup leaves it: the code cache warm (not timed)
+        t0 = time.perf_counter()
+        r = subprocess.run([sys.executable, "-m", "twin_nodes", "fleet", "warm"], capture_output=True, text=True,
+                           cwd=Path(__file__).resolve().parents[1])
+        print(f"code cache warmed as make setup does (not timed, {time.perf_counter() - t0:.1f} s): "
+              f"{(r.stdout or r.stderr).strip().splitlines()[-1] if (r.stdout or r.stderr).strip() else r.returncode}",
+              flush=True)
+    rate: dict[tuple[str, int], float] = {}
+    for w in [int(x) for x in a.workers.split(",")]:
+        for mode in modes:
+            if not a.warm:  # each run starts with an empty data cache (nominals), as a user's first run
+                os.environ["ROTORTWIN_CACHE"] = str(tmp / f"cache_{mode}_w{w}")
+            if mode == "cold":  # nothing compiled: an empty code cache (the tree's own numba caches stay)
+                os.environ["ROTORTWIN_CODE_CACHE"] = str(tmp / f"code_cold_w{w}")
+            elif installed_code is None:
+                os.environ.pop("ROTORTWIN_CODE_CACHE", None)
+            else:
+                os.environ["ROTORTWIN_CODE_CACHE"] = installed_code
+            rate[mode, w] = _run_once(a, flights, tmp, kw, mode, w)
+    label = {"cold": "empty code cache", "installed": "as installed: code cache warm"}
+    for mode in modes:
+        if (mode, 1) in rate and (mode, 2) in rate:
+            print(f"scaling 2 workers / 1 worker{'' if mode == 'installed' else ', ' + mode}: "
+                  f"{rate[mode, 2] / rate[mode, 1]:.2f}x ({label[mode]})")
+    for w in sorted({w for _, w in rate}):
+        if ("cold", w) in rate and ("installed", w) in rate:
+            print(f"ratio as installed / cold, {w} worker(s): {rate['installed', w] / rate['cold', w]:.2f}x "
+                  "(flights/min, same run)")
+    return 0
+
+
+def _run_once(a, flights, tmp: Path, kw: dict, mode: str, w: int) -> float:
+    """One timed ``run_fleet`` with ``w`` workers into a fresh catalog; prints its line, returns flights/min."""
     import os
 
-    for w in [int(x) for x in a.workers.split(",")]:
-        if not a.warm:  # each worker count starts cold, as a user's first run: its own empty cache (numba, nominals)
-            os.environ["ROTORTWIN_CACHE"] = str(tmp / f"cache_w{w}")
-        load0 = os.getloadavg()[0]
-        cpu0 = _cpu_s()
-        t0 = time.perf_counter()
-        res = run_fleet(flights, tmp / f"cat_w{w}", workers=w, progress=False, **kw)
-        dt = time.perf_counter() - t0
-        cpu = _cpu_s() - cpu0
-        ok = sum(d["status"] == "ok" for d in res["done"])
-        rate[w] = len(flights) / dt * 60
-        fmin = 0.0
-        if not a.synthetic:
-            from twin_nodes.fleet.catalog import load
-            fmin = sum(float(r.get("duration_s") or 0.0) for r in load(tmp / f"cat_w{w}")) / 60.0
-        print(f"workers={w}: {len(flights)} flights ({ok} ok) in {dt:.1f} s -> {rate[w]:.2f} flights/min"
-              + (f"; {fmin:.1f} flight-minutes of logs -> {fmin / (dt / 60.0) / w:.1f} flight-min per wall-min "
-                 f"per core" if fmin else "")
-              + f"; {cpu:.1f} CPU s (this process and its workers); load average {load0:.2f} before, "
-                f"{os.getloadavg()[0]:.2f} after", flush=True)
-    if 1 in rate and 2 in rate:
-        print(f"scaling 2 workers / 1 worker: {rate[2] / rate[1]:.2f}x")
-    return 0
+    from twin_nodes.fleet.run import run_fleet
+
+    load0 = os.getloadavg()[0]
+    cpu0 = _cpu_s()
+    t0 = time.perf_counter()
+    res = run_fleet(flights, tmp / f"cat_{mode}_w{w}", workers=w, progress=False, **kw)
+    dt = time.perf_counter() - t0
+    cpu = _cpu_s() - cpu0
+    ok = sum(d["status"] == "ok" for d in res["done"])
+    rate = len(flights) / dt * 60
+    fmin = 0.0
+    if not a.synthetic:
+        from twin_nodes.fleet.catalog import load
+        fmin = sum(float(r.get("duration_s") or 0.0) for r in load(tmp / f"cat_{mode}_w{w}")) / 60.0
+    print(f"{mode} workers={w}: {len(flights)} flights ({ok} ok) in {dt:.1f} s -> {rate:.2f} flights/min"
+          + (f"; {fmin:.1f} flight-minutes of logs -> {fmin / (dt / 60.0) / w:.1f} flight-min per wall-min "
+             f"per core" if fmin else "")
+          + f"; {cpu:.1f} CPU s (this process and its workers); load average {load0:.2f} before, "
+            f"{os.getloadavg()[0]:.2f} after", flush=True)
+    return rate
 
 
 if __name__ == "__main__":

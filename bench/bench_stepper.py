@@ -5,8 +5,8 @@
     .venv/bin/python bench/bench_stepper.py [--combos 12] [--paths before,after] [--hot-seconds 5] [--repeat 5]
 
 **Compile time.**
-Each path runs in a fresh process with an empty ``ROTORTWIN_CACHE`` (so numba compiles the model's
-generated modules, as in a user's first run or a cold ``bench_fleet.py`` worker), then once more in
+Each path runs in a fresh process with an empty ``ROTORTWIN_CACHE`` and ``ROTORTWIN_CODE_CACHE`` (so numba
+compiles the model's generated modules, as in a user's first run or a cold ``bench_fleet.py`` worker), then once more in
 another fresh process on that cache (loading what the first compiled).  Each process builds
 ``--combos`` vehicles, ``params/px4_sih_quadx.yaml`` (linear drag, angular damping) plus one or two
 kernel effects each (what discovery's candidates add), and for each calls what a flight's discovery
@@ -91,7 +91,7 @@ def child(path: str, n: int) -> dict:
 
 
 def run(path: str, n: int, cache: Path) -> dict:
-    env = dict(os.environ, ROTORTWIN_CACHE=str(cache))
+    env = dict(os.environ, ROTORTWIN_CACHE=str(cache), ROTORTWIN_CODE_CACHE=str(cache))  # data and code cache: cold
     r = subprocess.run([sys.executable, __file__, "--child", path, "--combos", str(n)], env=env, cwd=ROOT,
                        capture_output=True, text=True)
     if r.returncode != 0:

@@ -23,7 +23,8 @@ BENCHES = sorted(p.name for p in (ROOT / "bench").glob("bench_*.py"))
 RATIO_LINES = {
     "bench_model.py": [r"ours, step\(\) per 1 ms\s+[\d.]+x\s+[\d.]+\s+[\d.]+x", r"RotorPy step\(\)\s+[\d.]+x"],
     "bench_lockstep.py": [r"ratio vs the first case run \(median, this run\):\s+[\d.]+x"],
-    "bench_fleet.py": [r"scaling 2 workers / 1 worker: [\d.]+x"],
+    "bench_fleet.py": [r"scaling 2 workers / 1 worker: [\d.]+x", r"scaling 2 workers / 1 worker, cold: [\d.]+x",
+                       r"ratio as installed / cold, 1 worker\(s\): [\d.]+x"],
     "bench_stepper.py": [r"ratio before/after \(cold, all combinations\): [\d.]+x"],
     "bench_replay.py": [r"ratio graph / offline\s+[\d.]+", r"dropped messages\s+0\b"],
     "bench_discover.py": [r"ratio before/after: wall [\d.]+x, cpu [\d.]+x", r"same result: True"],

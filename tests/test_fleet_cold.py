@@ -3,7 +3,7 @@
 - one flight's nominal is built once, for its facts and for the params it flies (``nominal.nominal_once``),
   with the same values and the same params file as the two builds before;
 - a worker compiles the numba code of a free flight's discovery ahead (``flight.warm_compiled``,
-  ``kernels.warm_steps``), once per process, each entry point under its own lock in the cache folder the
+  ``kernels.warm_steps``), once per process, each entry point under its own lock in the code cache folder the
   workers share: another process compiles the entry points nobody holds, waits for the others, then loads
   that code (no compile); a log that is no free flight compiles nothing;
 - the flights go to the workers largest file first (``run.longest_first``, the tasks' priorities).
@@ -137,7 +137,8 @@ print(json.dumps({"compiled": sorted(c for c in compiled if c.startswith("rotort
 
 @pytest.mark.slow
 def test_code_compiled_ahead_is_loaded_not_compiled_by_another_process(tmp_path):
-    env = {**os.environ, "ROTORTWIN_CACHE": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT)}
+    env = {**os.environ, "ROTORTWIN_CACHE": str(tmp_path / "data"), "ROTORTWIN_CODE_CACHE": str(tmp_path / "cache"),
+           "PYTHONPATH": str(ROOT)}
 
     def probe():
         r = subprocess.run([sys.executable, "-c", _PROBE], env=env, cwd=ROOT, capture_output=True, text=True,
@@ -161,7 +162,7 @@ def test_warm_compiled_holds_the_lock_while_it_compiles(tmp_path, monkeypatch):
 
     from twin_nodes.discovery import kernels
 
-    monkeypatch.setenv("ROTORTWIN_CACHE", str(tmp_path))
+    monkeypatch.setenv("ROTORTWIN_CODE_CACHE", str(tmp_path))  # the locks live in the code cache
     monkeypatch.setattr(fleet_flight, "_WARM", [])
     calls = []
 
@@ -198,7 +199,7 @@ def _warm_in_thread(tmp_path, monkeypatch, hold: str):
 
     from twin_nodes.discovery import kernels
 
-    monkeypatch.setenv("ROTORTWIN_CACHE", str(tmp_path))
+    monkeypatch.setenv("ROTORTWIN_CODE_CACHE", str(tmp_path))  # the locks live in the code cache
     monkeypatch.setattr(fleet_flight, "_WARM", [])
     other = open(tmp_path / f"compile.{hold}.lock", "a")
     fcntl.flock(other, fcntl.LOCK_EX)

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from twin_nodes.base import io
-from twin_nodes.physics import model, stepper
+from twin_nodes.physics import codecache, model, stepper
 from twin_nodes.physics.effects import EFFECTS
 from twin_nodes.physics.model import Multirotor, MultirotorBatch
 from twin_nodes.vehicle.params import shipped
@@ -34,10 +34,13 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture
 def private_cache(tmp_path, monkeypatch):
-    """A fresh $ROTORTWIN_CACHE; the model's module/folder memos are restored afterwards."""
+    """A fresh $ROTORTWIN_CACHE, also the code cache ($ROTORTWIN_CODE_CACHE, where generated modules go); the
+    model's module/folder memos are restored afterwards."""
     cache = tmp_path / "cache"
     monkeypatch.setenv("ROTORTWIN_CACHE", str(cache))
+    monkeypatch.setenv("ROTORTWIN_CODE_CACHE", str(cache))
     monkeypatch.setattr(io, "_CACHE_DIRS", {})
+    monkeypatch.setattr(codecache, "_CODE_DIRS", {})
     monkeypatch.setattr(model, "_MODULES", {})
     return cache
 
@@ -91,6 +94,7 @@ def test_tampered_cache_file_is_not_run(private_cache, tmp_path, monkeypatch):
     monkeypatch.setattr(model, "_MODULES", {})
     monkeypatch.delitem(sys.modules, name)
     monkeypatch.delenv("ROTORTWIN_CACHE")
+    monkeypatch.delenv("ROTORTWIN_CODE_CACHE")
     ref = Multirotor(vp)
     assert ref._mod is not m._mod
     np.testing.assert_array_equal(x1, ref.step(x0, np.full(4, 0.6), 0.004, n_substeps=5))
@@ -166,7 +170,7 @@ def test_numba_cache_of_generated_module_is_reused_across_processes(tmp_path):
             "m = Multirotor(shipped('buho_negro').with_effect('angular_damping', k_nm_s_rad=0.01))\n"
             "x = m.step(m.initial_state(position_enu=(0, 0, 5), rotor_state='hover'), np.full(4, 0.5))\n"
             "print(sum(m._mod.step_n.stats.cache_hits.values()), repr(float(x[2])))\n")
-    env = dict(os.environ, ROTORTWIN_CACHE=str(tmp_path / "cache"))
+    env = dict(os.environ, ROTORTWIN_CACHE=str(tmp_path / "data"), ROTORTWIN_CODE_CACHE=str(tmp_path / "cache"))
     runs = [subprocess.run([sys.executable, "-c", code], env=env, cwd=REPO, capture_output=True, text=True,
                            check=True).stdout.split() for _ in range(2)]
     assert runs[0][0] == "0" and int(runs[1][0]) >= 1
@@ -197,8 +201,10 @@ def test_unsafe_fallback_cache_dir_is_not_used(how, tmp_path, monkeypatch):
     blocker = tmp_path / "a-file"
     blocker.write_text("")
     monkeypatch.setenv("ROTORTWIN_CACHE", str(blocker / "cache"))  # cannot be made, even by root
+    monkeypatch.setenv("ROTORTWIN_CODE_CACHE", str(blocker / "code"))  # nor the code cache: modules go to the data one
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     monkeypatch.setattr(io, "_CACHE_DIRS", {})
+    monkeypatch.setattr(codecache, "_CODE_DIRS", {})
     unsafe = tmp_path / f"rotortwin-cache-{os.getuid()}"
     _make(unsafe, how)
 

@@ -7,6 +7,11 @@
     rotortwin fleet query CATALOG "SELECT ... FROM flights ..."
     rotortwin fleet report CATALOG --out DIR
     rotortwin fleet simulate OUT_DIR [--vehicles 5] [--flights 10] [--workers N]
+    rotortwin fleet warm
+
+``warm`` compiles the generated numba code a fleet flight runs into the per-user code cache
+(``$ROTORTWIN_CODE_CACHE``, else ``~/.cache/rotortwin/numba``); ``make setup`` runs it, so that a run
+after installing loads that code instead of compiling it.
 
 ``discover``/``compare`` run one Dask task per flight (an embedded LocalCluster of N one-thread
 worker processes, or the scheduler at ADDRESS); flights with an ok row for the same file content
@@ -59,6 +64,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     q.add_argument("--flights", type=positive_int(10000), default=10, help="flights per vehicle")
     q.add_argument("--workers", type=WORKERS, default=2)
     q.set_defaults(func=_cmd_simulate)
+    q = sub.add_parser("warm", help="compile the fleet's generated numba code into the per-user code cache "
+                       "(make setup runs it)")
+    q.set_defaults(func=_cmd_warm)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
 
 
@@ -142,4 +150,18 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         if f.effect != "none":
             print(f"{f.name}: {f.effect} {dict(f.params)}")
     print(f"simulated {len(paths)} flights into {shown(args.out)}")
+    return 0
+
+
+def _cmd_warm(args: argparse.Namespace) -> int:
+    import time
+
+    from twin_nodes.fleet.flight import warm_installed
+    from twin_nodes.physics.codecache import code_dir
+
+    t0 = time.perf_counter()
+    names = warm_installed()
+    d = code_dir()
+    where = "not cached (no usable code cache folder)" if d is None else f"{d[0]}{'' if d[1] else ' (read-only)'}"
+    print(f"compiled code of {', '.join(names)}: {where} ({time.perf_counter() - t0:.1f} s)")
     return 0

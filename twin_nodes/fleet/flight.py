@@ -63,8 +63,9 @@ _WARM: list[bool] = []
 def warm_compiled() -> None:
     """Compile, or load, the numba code a flight's twin and discovery call (the effect registry's stepper
     and discovery's kernels, :func:`~twin_nodes.discovery.kernels.warm_steps`), once per process, each
-    entry point under an exclusive lock of its own in the cache folder (``$ROTORTWIN_CACHE``,
-    ``compile.<entry point>.lock``): on a cold start the first worker compiles the stepper's step (and with
+    entry point under an exclusive lock of its own in the code cache folder (``$ROTORTWIN_CODE_CACHE``, or
+    ``$ROTORTWIN_CACHE`` where that is read-only: ``compile.<entry point>.lock``); after ``make setup`` (which
+    fills the code cache) each entry point is only loaded: on a cold start the first worker compiles the stepper's step (and with
     it the functions every entry point calls) while another waits, then the two compile the other entry
     points side by side (one whose lock another worker holds is left for later) and each loads what the other
     wrote, waiting for an entry point still being compiled (waiting costs no CPU) instead of compiling the
@@ -76,8 +77,8 @@ def warm_compiled() -> None:
     try:
         import fcntl  # POSIX; elsewhere each flight compiles what it needs, as before
 
-        from twin_nodes.base.io import cache_dir
         from twin_nodes.discovery.kernels import warm_steps
+        from twin_nodes.physics.codecache import lock_dir
 
         # each pass waits for its first entry point (the first of all, the stepper's step, compiles the functions
         # every other one calls: those are then loaded, not compiled by both), then takes each other one no
@@ -86,7 +87,7 @@ def warm_compiled() -> None:
         while todo:
             left = []
             for k, (name, step) in enumerate(todo):
-                with open(cache_dir() / f"compile.{name}.lock", "a") as f:  # released when closed, or on death
+                with open(lock_dir() / f"compile.{name}.lock", "a") as f:  # released when closed, or on death
                     try:
                         fcntl.flock(f, fcntl.LOCK_EX | (fcntl.LOCK_NB if k else 0))
                     except BlockingIOError:  # another worker compiles it: its cache file, loaded later
@@ -98,6 +99,32 @@ def warm_compiled() -> None:
         import logging
 
         logging.getLogger("rotortwin.fleet").warning("compiling ahead failed (%s: %s)", type(exc).__name__, exc)
+
+
+def warm_installed() -> list[str]:
+    """Compile ahead, as ``make setup`` does (``rotortwin fleet warm``), the numba code a fleet flight runs: the
+    generated stepper and discovery's kernels into the per-user code cache
+    (:func:`~twin_nodes.discovery.kernels.warm_all`), and the package's own numba functions a flight calls
+    directly (the low-pass filter, the unhooked rotor states, the motor lag) into numba's cache beside their
+    files, each with the argument types a flight calls it with.  Returns the generated modules' names."""
+    import numpy as np
+
+    from twin_nodes.discovery.kernels import warm_all
+    from twin_nodes.discovery.lowpass import lowpass
+    from twin_nodes.discovery.residuals import lag_states
+    from twin_nodes.identify.step_response import simulate_lag
+    from twin_nodes.physics.model import Multirotor
+    from twin_nodes.vehicle.params import load_params, params_dir
+
+    names = warm_all()
+    lowpass(np.zeros((64, 3)), 100.0, 10.0)
+    m = Multirotor(load_params(params_dir() / "px4_sih_quadx.yaml"))
+    u = np.full((4, m.n_rotors), 0.5)
+    u.setflags(write=False)  # discovery's command series are read-only views
+    lag_states(m.P, u, 0.002, 0, np.zeros(m.n_rotors), 1, 2)
+    t = np.linspace(0.0, 1.0, 11)
+    simulate_lag(t, np.where(t < 0.5, 0.2, 0.6), t, tau_up_s=0.05)
+    return names
 
 
 class NotAFlight(Exception):

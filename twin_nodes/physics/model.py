@@ -8,9 +8,10 @@ The codes come from a registry of effect kinds with kernels: every such kind of
 suite's plant-only effects), registered when a model first uses one, together with every other
 kernel effect of its module.  So an effect is still added by writing a kernel, never by editing
 the core; the stepper is compiled once per registry (not once per combination of effects) and
-cached on disk: the module is written to a private cache folder so numba's on-disk cache works
-across processes; what runs is the generated text itself, never what that file holds.  A kind
-from outside physics makes another registry, hence one more module (compiled once, cached too).
+cached on disk: the module is written to the per-user code cache (:mod:`.codecache`) so numba's
+on-disk cache works across processes and runs; what runs is the generated text itself, never what
+that file holds.  A kind from outside physics makes another registry, hence one more module
+(compiled once, cached too).
 
 Commands ``u`` are PX4 ``actuator_motors`` values: normalised 0..1 per motor in
 PX4 order, NaN = stopped.  ``ext`` is ``[battery_v, wind_e, wind_n, wind_u]``.
@@ -25,12 +26,13 @@ import sys
 import tempfile
 import time
 import types
+from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
 from twin_nodes.base.io import cache_dir
-from twin_nodes.physics import core, effects as effects_mod, stepper
+from twin_nodes.physics import codecache, core, effects as effects_mod, stepper
 from twin_nodes.physics.core import NX_BODY, pack
 from twin_nodes.physics.effects import EXT_SIZE, Effect, centre_of_mass, default_ext, effects_from_params
 
@@ -92,8 +94,9 @@ def _generate_source(registry: Sequence[type[Effect]]) -> str:
 
 
 def _module_name(src: str) -> str:
-    """A digest of the generated text and of the kernels it calls: numba's cache checks only the
-    file it compiles, so an edited kernel must give another file."""
+    """A digest of the generated text, of the kernels it calls and of what else the compiled code depends on
+    (:func:`.codecache.env_key`): numba's cache checks only the file it compiles (and its own version), so an
+    edited kernel, another numpy or another CPU must give another file."""
     h = hashlib.sha256(src.encode())
     for mod in (core, effects_mod):
         h.update(inspect.getsource(mod).encode())
@@ -103,6 +106,7 @@ def _module_name(src: str) -> str:
             name = line.split()[1]
             if name.startswith("twin_nodes.") and name not in (core.__name__, effects_mod.__name__):
                 h.update(inspect.getsource(sys.modules[name]).encode())
+    h.update(codecache.env_key().encode())  # the versions and the CPU the compiled code is for
     return f"rotortwin_gen_{h.hexdigest()[:16]}"
 
 
@@ -157,37 +161,68 @@ def prune_generated(folder, keep_days: float, now: float, keep: str = "") -> lis
 
 
 def _import_source(name: str, src: str) -> types.ModuleType:
-    """Module ``name`` run from ``src``, with its file in the cache folder.
+    """Module ``name`` run from ``src``, with its file in the code cache folder.
 
-    The file exists for numba's on-disk cache (keyed on that file's path and time stamp): it is
-    replaced, atomically, only when its bytes differ from ``src``; what runs is ``src``.  Writing a
-    new one prunes the modules not used for ``KEEP_DAYS`` (``prune_generated``)."""
-    path = cache_dir() / f"{name}.py"
+    The file exists for numba's on-disk cache (keyed on that file's bytes, :mod:`.codecache`): it is
+    used only when its bytes are ``src``, and replaced, atomically, when they differ; what runs is ``src``.
+    Writing a new one prunes the modules not used for ``KEEP_DAYS`` (``prune_generated``).  Where the
+    code cache (``$ROTORTWIN_CODE_CACHE``) is read-only or unusable the file goes to the data cache
+    (``$ROTORTWIN_CACHE``), as before that cache existed; where neither can be written the module is
+    compiled in this process only."""
     data = src.encode()
+    folders = [d for d in (codecache.code_dir(),) if d is not None]
     try:
-        same = path.read_bytes() == data
+        folders.append((cache_dir(), True))
     except OSError:
-        same = False
-    _mark_used(path)
-    if not same:
-        prune_generated(path.parent, _keep_days(), time.time(), keep=name)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{name}.", suffix=".tmp")
+        pass
+    path = None
+    for folder, writable in folders:
+        p = folder / f"{name}.py"
         try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-            os.replace(tmp, path)
-        except BaseException:
-            os.unlink(tmp)
-            raise
+            same = p.read_bytes() == data
+        except OSError:
+            same = False
+        if not same and writable:
+            try:
+                _write_module(p, data, name)
+                same = True
+            except OSError:
+                pass
+        if same:
+            path = p
+            _mark_used(p)
+            break
+    on_disk = path is not None
+    if path is None:  # never written: its functions compile in this process, with no disk cache
+        path = (folders[0][0] if folders else Path(tempfile.gettempdir())) / f"{name}.py"
+    codecache.register(path.parent)
     mod = types.ModuleType(name)
     mod.__file__ = str(path)
     sys.modules[name] = mod
     try:
         exec(compile(data, str(path), "exec"), mod.__dict__)
+        codecache.adopt(mod, on_disk)
     except BaseException:
         del sys.modules[name]
         raise
     return mod
+
+
+def _write_module(path: Path, data: bytes, name: str) -> None:
+    """``data`` into ``path`` through a temporary file and a rename (concurrent writers: one whole file wins);
+    prunes the folder's modules unused for ``KEEP_DAYS`` first."""
+    prune_generated(path.parent, _keep_days(), time.time(), keep=name)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
 
 
 def _has_kernel(cls) -> bool:
