@@ -80,6 +80,10 @@ def test_a_horizontal_only_linear_drag_leaves_the_fall_free(sih):
     # a vertical share other than none or all is refused in one line
     with pytest.raises(ParamsError, match="vertical.*expected 0 .horizontal only. or 1"):
         sih.with_effect("linear_drag", k_n_s_m=1.0, vertical=0.5)
+    # every form switch (Effect.switches) is checked the same way: body drag's norm form too
+    with pytest.raises(ParamsError, match=r"norm.*expected 0 \(per axis\) or 1 \(RotorPy's norm form\), got 0.3"):
+        EFFECTS["body_drag"](c_dx=0.1, norm=0.3)
+    assert EFFECTS["body_drag"](c_dx=0.1, norm=1).params["norm"] == 1.0
     # a params file without it keeps SIH's isotropic drag
     assert EFFECTS["linear_drag"](k_n_s_m=1.0).params["vertical"] == 1.0
 

@@ -74,6 +74,8 @@ class Effect:
     kernel_reads_vehicle: ClassVar[bool] = False
     #: parameters that are whole numbers (an index, a bit mask): chosen, never varied by a fit
     discrete: ClassVar[tuple[str, ...]] = ()
+    #: parameters that are a form's switch, 0 or 1 -> (what 0 means, what 1 means), checked by :meth:`check_params`
+    switches: ClassVar[dict[str, tuple[str, str]]] = {}
 
     def __init__(self, **params: float):
         unknown = set(params) - set(self.param_names)
@@ -113,6 +115,9 @@ class Effect:
                 return k, f"expected {want}, got an integer of {len(str(v))} digits"
             if not (math.isfinite(f) and lo <= f <= hi):
                 return k, f"expected {want}, got {f:g}"
+            if k in cls.switches and f not in (0.0, 1.0):
+                off, on = cls.switches[k]
+                return k, f"expected 0 ({off}) or 1 ({on}), got {f:g}"
         return None
 
     def vector(self) -> np.ndarray:
@@ -301,13 +306,7 @@ class LinearDrag(Effect):
                    "force alone, which says nothing of the vertical)")
     wrench_kernel = staticmethod(_k_linear_drag)
     discrete = ("vertical",)
-
-    @classmethod
-    def check_params(cls, params, n_rotors=None):
-        bad = super().check_params(params, n_rotors)
-        if bad is None and "vertical" in params and float(params["vertical"]) not in (0.0, 1.0):
-            return "vertical", f"expected 0 (horizontal only) or 1 (isotropic, PX4 SIH_KDV), got {float(params['vertical']):g}"
-        return bad
+    switches = {"vertical": ("horizontal only", "isotropic, PX4 SIH_KDV")}
 
 
 class AngularDamping(Effect):
@@ -341,13 +340,7 @@ class BodyDrag(Effect):
     description = ("parasitic drag quadratic in air-relative velocity per body axis: -c_i |v_i| v_i, or with "
                    "norm 1 RotorPy's form -c_i |v| v_i (the airspeed's norm times the component)")
     wrench_kernel = staticmethod(_k_body_drag)
-
-    @classmethod
-    def check_params(cls, params, n_rotors=None):
-        bad = super().check_params(params, n_rotors)
-        if bad is None and "norm" in params and float(params["norm"]) not in (0.0, 1.0):
-            return "norm", f"expected 0 (per axis) or 1 (RotorPy's norm form), got {float(params['norm']):g}"
-        return bad
+    switches = {"norm": ("per axis", "RotorPy's norm form")}
 
 
 class BatterySag(Effect):
