@@ -52,9 +52,9 @@ def test_sih_motor_lag_and_drag(sih_nominal):
     effects = dict(sih_nominal.params.effects)
     assert "linear_drag" in effects                           # SIH_KDV 1.0 N/(m/s)
     assert dict(effects["linear_drag"])["k_n_s_m"] == pytest.approx(1.0, rel=0.2)
-    # identified from the horizontal specific force: horizontal only (the vertical one is the body-z fit's)
-    assert dict(effects["linear_drag"])["vertical"] == 0.0
-    assert "horizontal only" in sih_nominal.sources["effects.linear_drag"]
+    # isotropic, as SIH's (pm18's horizontal-only nominal drag was taken back: it moved the twin's yaw split on
+    # real_cubeorange_takeoff_land to 0.23 % of full output, test_static_trims' bar is 0.1 %; docs/corpus.md)
+    assert dict(effects["linear_drag"]).get("vertical", 1.0) == 1.0
     # SIH's drag acts at the centre of mass on the ground velocity, in still air: no drag height, no wind
     assert "rotor_drag" not in effects and "wind" not in effects
     assert list(r.z_flu_m) == [0.0] * r.count

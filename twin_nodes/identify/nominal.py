@@ -354,15 +354,6 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
                                      f"the hubs (k_d {k_d:.3g} N/((rad/s)(m/s)) at hover); {drag_h_note}")
         src["rotors.z_flu_m"] = (f"identified: {drag_h * 1000:.0f} mm, the height of the drag's line of action "
                                  f"above the centre of mass (hub height and blade flapping together)")
-    elif use_drag:
-        # horizontal only: the fit saw the body x/y specific force, which says nothing of a vertical drag (an
-        # isotropic one pushed the twin's collective by k v_z in every climb and descent: the eighteenth session)
-        effects["enabled"].append("linear_drag")
-        effects["linear_drag"] = {"k_n_s_m": drag, "vertical": 0.0}
-        src["effects.linear_drag"] = (f"identified: {drag:.3f} N/(m/s) (body x/y specific force vs air speed), "
-                                      f"horizontal only, at the centre of mass: {drag_h_note}")
-    if use_drag:
-        # the vertical drag is what the body-z equation says, whichever law carries the horizontal one
         if c_dz > 0:
             effects["enabled"].append("body_drag")
             effects["body_drag"] = {"c_dx": 0.0, "c_dy": 0.0, "c_dz": c_dz}
@@ -370,6 +361,11 @@ def nominal_from_log(log: FlightLog, *, mass_kg: float | None = None, arm_m: flo
                                         f"N/(m/s)^2 (body z specific force vs |v_z| v_z)")
         else:
             src["effects.body_drag"] = "not included: no significant vertical drag"
+    elif use_drag:
+        effects["enabled"].append("linear_drag")
+        effects["linear_drag"] = {"k_n_s_m": drag}
+        src["effects.linear_drag"] = (f"identified: {drag:.3f} N/(m/s) (body x/y specific force vs air speed), at the "
+                                      f"centre of mass: {drag_h_note}")
     if wind is not None:
         effects["enabled"].append("wind")
         effects["wind"] = {"vx": wind[0], "vy": wind[1], "gust_std": 0.0}
