@@ -11,6 +11,12 @@ from twin_nodes.logs import ulog_io as U
 from twin_nodes.vehicle.px4_params import CLASS_ARM_M, rotor_layout
 
 
+
+def _channels(aos, n, topics):
+    """:func:`ulog_io._guess_motor_stream`'s instance and channels."""
+    inst, _, _, chans = U._guess_motor_stream(aos, n, topics)
+    return inst, chans
+
 def _outputs(pwm: np.ndarray, t_s: np.ndarray, inst: int = 0) -> U._Topic:
     data = {f"output[{i}]": (pwm[:, i] if i < pwm.shape[1] else np.zeros(len(t_s))) for i in range(16)}
     return U._Topic("actuator_outputs", inst, (t_s * 1e6).astype(np.int64), data)
@@ -43,7 +49,7 @@ def test_motor_channels_found_whatever_the_idle_output(idle):
     """C3: PWM_DISARMED 900 or 1000, tap_esc's 1190 us (Typhoon H480): the four motors are found."""
     topics = _flight(idle, servo=False)
     aos = {0: topics[("actuator_outputs", 0)]}
-    assert U._guess_motor_channels(aos, 4, topics) == (0, [0, 1, 2, 3])
+    assert _channels(aos, 4, topics) == (0, [0, 1, 2, 3])
     assert U.moving_motor_outputs(topics) == (4, "actuator_outputs[0].output")
 
 
@@ -52,8 +58,8 @@ def test_servo_channels_stepped_to_centre_are_no_motors():
     topics = _flight(900.0, servo=True)
     assert U.moving_motor_outputs(topics) == (4, "actuator_outputs[0].output")
     aos = {0: topics[("actuator_outputs", 0)]}
-    assert U._guess_motor_channels(aos, 6, topics) == (None, [])
-    assert U._guess_motor_channels(aos, 4, topics) == (0, [0, 1, 2, 3])
+    assert _channels(aos, 6, topics) == (None, [])
+    assert _channels(aos, 4, topics) == (0, [0, 1, 2, 3])
 
 
 def test_a_channel_resting_above_its_armed_range_is_no_motor():
@@ -63,7 +69,7 @@ def test_a_channel_resting_above_its_armed_range_is_no_motor():
     o = tp.data["output[1]"].copy()
     o[tp.t_s < 10.0] = 2000.0
     tp.data["output[1]"] = o
-    assert U._guess_motor_channels({0: tp}, 3, topics) == (0, [0, 2, 3])
+    assert _channels({0: tp}, 3, topics) == (0, [0, 2, 3])
 
 
 def _normalised_params(autostart: int) -> dict[str, float]:

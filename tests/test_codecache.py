@@ -229,9 +229,8 @@ def test_concurrent_writers_of_one_entry(caches):
     assert r.stdout.split() == ["7.0", "1"], r.stderr  # loaded
 
 
-_SAME = """
-import hashlib, json, sys
-import numpy as np
+#: a subprocess header recording the module of every function numba compiles (``compiled``)
+_COMPILED = """
 from numba.core import event
 compiled = []
 class L(event.Listener):
@@ -240,7 +239,12 @@ class L(event.Listener):
     def on_end(self, e):
         compiled.append(e.data["dispatcher"].py_func.__module__)
 event.register("numba:compile", L())
-if sys.argv[1] == "none":  # no disk cache at all: every write refused
+"""
+
+_SAME = """
+import hashlib, json, sys
+import numpy as np
+""" + _COMPILED + """if sys.argv[1] == "none":  # no disk cache at all: every write refused
     from numba.core import caching
     from twin_nodes.physics import codecache, model
     def refuse(*a, **k):
@@ -286,15 +290,7 @@ def test_results_identical_with_and_without_the_cache(tmp_path):
 
 _FLIGHT = """
 import json, sys
-from numba.core import event
-compiled = []
-class L(event.Listener):
-    def on_start(self, e):
-        pass
-    def on_end(self, e):
-        compiled.append(e.data["dispatcher"].py_func.__module__)
-event.register("numba:compile", L())
-from twin_nodes.fleet.flight import analyse
+""" + _COMPILED + """from twin_nodes.fleet.flight import analyse
 row = analyse(sys.argv[1], "discover", None, None, True)
 print(json.dumps({"kind": row.get("flight_kind"), "ours": sorted({c for c in compiled
                   if c.startswith(("rotortwin_", "twin_nodes."))})}))

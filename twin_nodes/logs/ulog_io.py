@@ -1110,14 +1110,6 @@ def _guess_motor_stream(
     return None, "", None, []
 
 
-def _guess_motor_channels(
-    aos: dict[int, _Topic], n: int, topics: dict[tuple[str, int], _Topic], floor: float = 800.0
-) -> tuple[int | None, list[int]]:
-    """:func:`_guess_motor_stream`'s instance and channels."""
-    inst, _, _, chans = _guess_motor_stream(aos, n, topics, floor)
-    return inst, chans
-
-
 _EARTH_R_M = 6371000.0
 
 

@@ -170,7 +170,8 @@ def _import_source(name: str, src: str) -> types.ModuleType:
     (``$ROTORTWIN_CACHE``), as before that cache existed; where neither can be written the module is
     compiled in this process only."""
     data = src.encode()
-    folders = [d for d in (codecache.code_dir(),) if d is not None]
+    code = codecache.code_dir()
+    folders = [code] if code is not None else []
     try:
         folders.append((cache_dir(), True))
     except OSError:
