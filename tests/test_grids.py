@@ -65,7 +65,7 @@ def test_third_batches_are_their_declarations_new_ids_all_judging():
 
 
 @pytest.mark.parametrize("batch", ["judge4", "judge5", "judge6", "judge7", "judge8", "judge9", "judge10",
-                                   "judge11", "judge12", "judge13", "judge14", "judge15"])
+                                   "judge11", "judge12", "judge13", "judge14", "judge15", "judge16"])
 def test_later_batches_are_their_declarations_new_ids_all_judging(batch):
     names = list(grid_rotorpy.BATCHES)
     before = ["all", *names[:names.index(batch)]]

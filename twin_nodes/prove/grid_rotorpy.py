@@ -70,6 +70,8 @@ BATCHES = {
                 "2026-11-28 22:36 UTC, before the seventeenth session changed anything"),
     "judge15": (4040, Path(__file__).resolve().parent / "grids" / "rotorpy_grid_batch15.yaml", "rb",
                 "2026-11-29 01:56 UTC, before the eighteenth session changed anything"),
+    "judge16": (4141, Path(__file__).resolve().parent / "grids" / "rotorpy_grid_batch16.yaml", "rc",
+                "2026-11-29 05:00 UTC, before the nineteenth session changed anything"),
 }
 VEHICLES = ("crazyflie", "px4_sihsim_quadx")   # RotorPy's Crazyflie (30 g) and its 1.0 kg PX4 SIH quad preset
 MISSION_KINDS = {"RP1": "waypoints", "RP2": "figure-eight", "RP3": "circle", "RP4": "hover with yaw",

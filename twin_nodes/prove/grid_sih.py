@@ -50,6 +50,8 @@ BATCHES = {
                 "2026-11-28 22:36 UTC, before the seventeenth session changed anything"),
     "judge15": (4040, REPO / "missions" / "sih_grid" / "batch15.yaml", "sb",
                 "2026-11-29 01:56 UTC, before the eighteenth session changed anything"),
+    "judge16": (4141, REPO / "missions" / "sih_grid" / "batch16.yaml", "sc",
+                "2026-11-29 05:00 UTC, before the nineteenth session changed anything"),
 }
 #: the halves ``prove --grid`` takes: batch 1's two, each judging-only batch (the same names in both grids:
 #: grid_rotorpy.BATCHES, tests/test_grids.py), or all
