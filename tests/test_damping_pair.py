@@ -266,6 +266,9 @@ L016 = dict(reading=[0.02971, 0.03087, 0.03103], k=0.01957, other=0.025, dt=0.02
 L009 = dict(reading=[0.10145, 0.10156, 0.10073], k=0.10017, other=0.025, dt=0.02)        # KDW x4
 SB001 = dict(reading=[0.050572, 0.050919, 0.050379], k=0.050066, other=0.025, dt=0.004)  # KDW x2, 4 ms
 SB013 = dict(reading=[0.035464, 0.038948, 0.026382], k=0.049278, other=0.025, dt=0.02)   # KDW x2 + T_TAU: t +2.51
+F017 = dict(reading=[0.02665, 0.02669, 0.02616], k=0.019386, other=0.025, dt=0.004)      # the class at 4 ms: t +4.34
+P019 = dict(reading=[0.02529, 0.02557, 0.02573], k=0.019362, other=0.025, dt=0.004)      # the class at 4 ms: t +5.87
+J007 = dict(reading=[0.04154, 0.03991, 0.04081], k=0.05004, other=0.025, dt=0.02)        # KDW x2, M2: t -1.6, pair
 
 
 def _choice(case):
@@ -275,13 +278,13 @@ def _choice(case):
 
 def test_the_roll_pitch_damping_scatter_is_the_measured_table_by_log_interval():
     from twin_nodes.discovery.stages import yaw_pair as Y
-    assert Y.rp_damping_scatter(0.004) == 0.113 and Y.rp_damping_scatter(0.01) == 0.113
-    assert Y.rp_damping_scatter(0.02) == 0.366 and Y.rp_damping_scatter(0.1) == 0.366
-    # two scatters of PX4 SIH's 0.025 at 20 ms: 0.0183; a Q_MAX x IZZ x1.3 pair's gap is 0.0056 (23 % of k0)
+    assert Y.rp_damping_scatter(0.004) == 0.105 and Y.rp_damping_scatter(0.01) == 0.105
+    assert Y.rp_damping_scatter(0.02) == 0.356 and Y.rp_damping_scatter(0.1) == 0.356
+    # two scatters of PX4 SIH's 0.025 at 20 ms: 0.0178; a Q_MAX x IZZ x1.3 pair's gap is 0.0056 (23 % of k0)
     c = _choice(SB016)
-    assert c["needed"] == pytest.approx(0.0183) and c["gap"] == pytest.approx(0.005647, abs=1e-6)
-    # at 4 ms two scatters are 0.00565: the class's gap (f017 0.005614, p019 0.005638) falls just under them
-    assert _choice({**SB016, "k": 0.019386, "dt": 0.004, "reading": [0.0251, 0.0262, 0.0244]})["choice"] == "pair"
+    assert c["needed"] == pytest.approx(0.0178) and c["gap"] == pytest.approx(0.005647, abs=1e-6)
+    # at 4 ms two scatters are 0.00525: the class's gap (f017 0.005614, p019 0.005638) clears them, by 7 %
+    assert _choice(F017)["needed"] == pytest.approx(0.00525) and _choice(F017)["gap"] > _choice(F017)["needed"]
 
 
 def test_one_truth_gives_one_answer_the_yaw_pair_is_not_told_apart_at_20_ms():
@@ -290,8 +293,15 @@ def test_one_truth_gives_one_answer_the_yaw_pair_is_not_told_apart_at_20_ms():
     assert _choice(SB016)["choice"] == "pair" and _choice(L016)["choice"] == "pair"
 
 
+def test_the_yaw_pair_is_taken_at_4_ms_where_roll_and_pitch_read_the_model_s_damping():
+    """f017 and p019 (the same truth, 4 ms logs): roll/pitch read 0.0267 and 0.0253 (both folds too), nearer SIH's
+    0.025 than the damping's 0.0194 -> switch to the yaw moment + inertia, as the block test had it (t +4.3, +5.9)."""
+    assert _choice(F017)["choice"] == "switch" and _choice(P019)["choice"] == "switch"
+
+
 def test_a_true_damping_stays_told_apart_where_its_reading_resolves_it():
     assert _choice(L009)["choice"] == "kept"           # x4 at 20 ms: gap 0.075 >> 0.018
+    assert _choice(J007)["choice"] == "kept"           # x2 at 20 ms, reading 0.0415 (20 % low): the block t had a pair
     assert _choice(SB001)["choice"] == "kept"          # x2 at 4 ms: gap 0.025 >> 0.0056
     # x2 at 20 ms beside a motor lag: fold 2 reads 0.0264, nearer 0.025 than 0.049 -> pair (as the block test had it)
     c = _choice(SB013)
@@ -345,14 +355,14 @@ def test_on_a_px4_log_the_reading_decides_and_the_block_t_does_not(monkeypatch, 
     truths = grid_prove._sih_truths({"sih": {"SIH_Q_MAX": [0.1, 0.13], "SIH_IZZ": [0.03, 0.039]}}, sih)
     r = grid_prove.score_grid_flight("sb016", truths, result, sih)
     assert r["passed"] and r["n_named"] == 2
-    # a larger yaw-scale change (damping read 0.0180, km and Izz x1.39) logged every 4 ms with a reading at SIH's
-    # 0.025: the gap 0.007 clears two scatters (0.00565) -> switch
-    monkeypatch.setattr(Y, "roll_pitch_damping", lambda *a: [0.0251, 0.0262, 0.0244])
+    # f017, logged every 4 ms, roll/pitch reading 0.02665: switch to km 0.025792 and Izz 0.038687, both named
+    monkeypatch.setattr(Y, "roll_pitch_damping", lambda *a: list(F017["reading"]))
     result = _f017(sih)
-    result["refit_params"] = sih.with_effect("angular_damping", k_nm_s_rad=0.018).to_ros_dict()
     assert D.apply(result, _px4_flight(sih, 0.004)) is not None and result["accepted"] == ["yaw_moment", "inertia"]
-    assert "0.0251" in result["effects"][0]["verdict_note"]
-    assert result["effects"][0]["params"]["km"] == pytest.approx(0.02 * 0.025 / 0.018)
+    assert "0.02665" in result["effects"][0]["verdict_note"]
+    assert result["effects"][0]["params"]["km"] == pytest.approx(0.025792, rel=1e-4)
+    r = grid_prove.score_grid_flight("f017", truths, result, sih)
+    assert r["passed"] and r["n_named"] == 2 and not r["right_by_pair"]
     # not a PX4 log (our own, RotorPy): the block test decides, as before
     result = _f017(sih)
     flight = _px4_flight(sih, 0.02)

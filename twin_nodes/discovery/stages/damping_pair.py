@@ -22,8 +22,8 @@ has two stand-ins there that act on nothing else the flight shows:
 Roll and pitch choose (the damping acts there at its own value; the hub damping, a yaw moment and a yaw inertia do
 not).  On a PX4 log they choose by their own damping reading (``yaw_pair.calibrated_choice``): the other reading
 is taken, or the damping kept, only where the two readings' roll/pitch dampings differ by more than twice that
-reading's measured between-flight scatter (``yaw_pair.RP_DAMPING_SCATTER``: 37 % of the model's damping at 20 ms,
-11 % at 4 ms) and the reading and both folds fall nearer that side; a block t over the flight's blocks is not a
+reading's measured between-flight scatter (``yaw_pair.RP_DAMPING_SCATTER``: 36 % of the model's damping at 20 ms,
+10.5 % at 4 ms) and the reading and both folds fall nearer that side; a block t over the flight's blocks is not a
 calibrated test there (the reading of one truth scatters 35 % between flights, a bias the blocks share: PX4 SIH
 sb016 and l016, one truth, read t -3.3 and +4.1).  On other logs the block test decides: the other reading is
 taken where it lowers the roll + pitch equation error beyond ``T_CRIT`` over the flight's blocks and on the
