@@ -269,22 +269,25 @@ SB013 = dict(reading=[0.035464, 0.038948, 0.026382], k=0.049278, other=0.025, dt
 F017 = dict(reading=[0.02665, 0.02669, 0.02616], k=0.019386, other=0.025, dt=0.004)      # the class at 4 ms: t +4.34
 P019 = dict(reading=[0.02529, 0.02557, 0.02573], k=0.019362, other=0.025, dt=0.004)      # the class at 4 ms: t +5.87
 J007 = dict(reading=[0.04154, 0.03991, 0.04081], k=0.05004, other=0.025, dt=0.02)        # KDW x2, M2: t -1.6, pair
+D012 = dict(reading=[0.030906, 0.033127, 0.026795], k=0.049317, other=0.025, dt=0.02)    # KDW x2 + T_TAU: t +1.6
 
 
 def _choice(case):
     from twin_nodes.discovery.stages import yaw_pair as Y
-    return Y.damping_choice(case["k"], case["other"], case["reading"], Y.rp_damping_scatter(case["dt"]), 0.025)
+    bias, scatter = Y.rp_damping_law(case["dt"])
+    return Y.damping_choice(case["k"], case["other"], case["reading"], scatter, 0.025, bias)
 
 
-def test_the_roll_pitch_damping_scatter_is_the_measured_table_by_log_interval():
+def test_the_roll_pitch_damping_law_is_the_measured_table_by_log_interval():
     from twin_nodes.discovery.stages import yaw_pair as Y
-    assert Y.rp_damping_scatter(0.004) == 0.105 and Y.rp_damping_scatter(0.01) == 0.105
-    assert Y.rp_damping_scatter(0.02) == 0.356 and Y.rp_damping_scatter(0.1) == 0.356
-    # two scatters of PX4 SIH's 0.025 at 20 ms: 0.0178; a Q_MAX x IZZ x1.3 pair's gap is 0.0056 (23 % of k0)
+    assert Y.rp_damping_law(0.004) == (0.989, 0.106) and Y.rp_damping_law(0.01) == (0.989, 0.106)
+    assert Y.rp_damping_law(0.02) == (0.802, 0.369) and Y.rp_damping_law(0.1) == (0.802, 0.369)
+    # two scatters of PX4 SIH's 0.025 at 20 ms: 0.01845; a Q_MAX x IZZ x1.3 pair's gap is 0.0056 (23 % of k0)
     c = _choice(SB016)
-    assert c["needed"] == pytest.approx(0.0178) and c["gap"] == pytest.approx(0.005647, abs=1e-6)
-    # at 4 ms two scatters are 0.00525: the class's gap (f017 0.005614, p019 0.005638) clears them, by 7 %
-    assert _choice(F017)["needed"] == pytest.approx(0.00525) and _choice(F017)["gap"] > _choice(F017)["needed"]
+    assert c["needed"] == pytest.approx(0.01845) and c["gap"] == pytest.approx(0.005647, abs=1e-6)
+    assert c["corrected"][0] == pytest.approx(0.0135 / 0.802, abs=1e-6)
+    # at 4 ms two scatters are 0.0053: the class's gap (f017 0.005614, p019 0.005638) clears them, by 6 %
+    assert _choice(F017)["needed"] == pytest.approx(0.0053) and _choice(F017)["gap"] > _choice(F017)["needed"]
 
 
 def test_one_truth_gives_one_answer_the_yaw_pair_is_not_told_apart_at_20_ms():
@@ -303,9 +306,14 @@ def test_a_true_damping_stays_told_apart_where_its_reading_resolves_it():
     assert _choice(L009)["choice"] == "kept"           # x4 at 20 ms: gap 0.075 >> 0.018
     assert _choice(J007)["choice"] == "kept"           # x2 at 20 ms, reading 0.0415 (20 % low): the block t had a pair
     assert _choice(SB001)["choice"] == "kept"          # x2 at 4 ms: gap 0.025 >> 0.0056
-    # x2 at 20 ms beside a motor lag: fold 2 reads 0.0264, nearer 0.025 than 0.049 -> pair (as the block test had it)
+    # x2 at 20 ms beside a motor lag: fold 2 reads 0.0264 (0.0329 with the bias out), nearer 0.025 than 0.049 -> pair
     c = _choice(SB013)
     assert c["gap"] > c["needed"] and c["choice"] == "pair"
+    # d012 (x2 + T_TAU, the lag not in the model read): 0.0309 (folds 0.0331 / 0.0268) is nearer 0.025 as read, a
+    # wrong switch; with the 20 ms bias out, 0.0385 / 0.0413 / 0.0334 disagree -> pair (the block t +1.6 had a pair)
+    assert _choice(D012)["choice"] == "pair"
+    from twin_nodes.discovery.stages import yaw_pair as Y
+    assert Y.damping_choice(D012["k"], 0.025, D012["reading"], 0.369, 0.025)["choice"] == "switch"
     # the same reading with both folds on the damping's side is kept; a reading on the other side is a switch
     assert _choice({**SB013, "reading": [0.0436, 0.0465, 0.0400]})["choice"] == "kept"
     assert _choice({**SB001, "reading": [0.0251, 0.0262, 0.0244]})["choice"] == "switch"
@@ -355,11 +363,11 @@ def test_on_a_px4_log_the_reading_decides_and_the_block_t_does_not(monkeypatch, 
     truths = grid_prove._sih_truths({"sih": {"SIH_Q_MAX": [0.1, 0.13], "SIH_IZZ": [0.03, 0.039]}}, sih)
     r = grid_prove.score_grid_flight("sb016", truths, result, sih)
     assert r["passed"] and r["n_named"] == 2
-    # f017, logged every 4 ms, roll/pitch reading 0.02665: switch to km 0.025792 and Izz 0.038687, both named
+    # f017, logged every 4 ms, roll/pitch reading 0.02665 (0.02695 with the bias out): switch to km 0.025792 and Izz 0.038687, both named
     monkeypatch.setattr(Y, "roll_pitch_damping", lambda *a: list(F017["reading"]))
     result = _f017(sih)
     assert D.apply(result, _px4_flight(sih, 0.004)) is not None and result["accepted"] == ["yaw_moment", "inertia"]
-    assert "0.02665" in result["effects"][0]["verdict_note"]
+    assert "0.02695" in result["effects"][0]["verdict_note"]         # 0.02665 / 0.989
     assert result["effects"][0]["params"]["km"] == pytest.approx(0.025792, rel=1e-4)
     r = grid_prove.score_grid_flight("f017", truths, result, sih)
     assert r["passed"] and r["n_named"] == 2 and not r["right_by_pair"]

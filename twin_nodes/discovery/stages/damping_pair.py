@@ -20,16 +20,16 @@ has two stand-ins there that act on nothing else the flight shows:
   A damping moved alone was confirmed at ``k0 / 1.29`` there (0.0194 for 0.025), and neither flown effect was named.
 
 Roll and pitch choose (the damping acts there at its own value; the hub damping, a yaw moment and a yaw inertia do
-not).  On a PX4 log they choose by their own damping reading (``yaw_pair.calibrated_choice``): the other reading
-is taken, or the damping kept, only where the two readings' roll/pitch dampings differ by more than twice that
-reading's measured between-flight scatter (``yaw_pair.RP_DAMPING_SCATTER``: 36 % of the model's damping at 20 ms,
-10.5 % at 4 ms) and the reading and both folds fall nearer that side; a block t over the flight's blocks is not a
-calibrated test there (the reading of one truth scatters 35 % between flights, a bias the blocks share: PX4 SIH
-sb016 and l016, one truth, read t -3.3 and +4.1).  On other logs the block test decides: the other reading is
-taken where it lowers the roll + pitch equation error beyond ``T_CRIT`` over the flight's blocks and on the
-held-out part, the damping is kept (told apart) where the other reading is worse beyond ``T_CRIT``.  Otherwise
-the damping is reported with the other reading as the pair the flight does not tell apart (``not_told_apart``;
-the yaw pair's second member under ``also``), with the manoeuvre that separates them:
+not).  On a PX4 log they choose by their own damping reading (``yaw_pair.calibrated_choice``): the other reading is
+taken, or the damping kept, only where the two readings' roll/pitch dampings differ by more than twice that
+reading's measured between-flight scatter (``yaw_pair.RP_DAMPING_READING``: 37 % of the model's damping at 20 ms,
+10.6 % at 4 ms; the reading divided by its measured bias, x0.80 at 20 ms) and the reading and both folds fall nearer
+that side; a block t over the flight's blocks is not a calibrated test there (the reading of one truth scatters 35 %
+between flights, a bias the blocks share: PX4 SIH sb016 and l016, one truth, read t -3.3 and +4.1).  On other logs
+the block test decides: the other reading is taken where it lowers the roll + pitch equation error beyond ``T_CRIT``
+over the flight's blocks and on the held-out part, the damping is kept (told apart) where the other reading is worse
+beyond ``T_CRIT``.  Otherwise the damping is reported with the other reading as the pair the flight does not tell
+apart (``not_told_apart``; the yaw pair's second member under ``also``), with the manoeuvre that separates them:
 fast legs for the rotor drag (its force grows with the airspeed, a damping has none), roll/pitch rate doublets for
 the yaw pair.  The result's ``damping_pair`` holds the numbers either way.  A damping beside a confirmed yaw moment
 or yaw inertia is stage 10's (``stages.yaw_pair``); one that already names a rival is left as it is, unless that
@@ -161,9 +161,9 @@ def _switch(result: dict, entry: dict, kind: str, alt: VehicleParams, test: dict
     """The damping's entry takes the other reading (the first member; a second one is added beside it)."""
     members = _members(kind, alt)
     cal = test.get("roll_pitch_damping")
-    why = (f"roll/pitch read the damping {cal['reading'][0]:.4g} (folds {cal['reading'][1]:.4g} / "
-           f"{cal['reading'][2]:.4g}), nearer {cal['k_other']:.4g} than {cal['k_reported']:.4g}, a gap beyond "
-           f"{cal['needed']:.4g}" if cal else
+    why = (f"roll/pitch read the damping {cal['corrected'][0]:.4g} (folds {cal['corrected'][1]:.4g} / "
+           f"{cal['corrected'][2]:.4g}, bias {cal['bias']} taken out), nearer {cal['k_other']:.4g} than "
+           f"{cal['k_reported']:.4g}, a gap beyond {cal['needed']:.4g}" if cal else
            f"t={test['t']:.1f} over {test['blocks']} blocks, held-out {100 * test['heldout_cut']:.1f} %")
     note = (f"read on roll/pitch (the yaw axis alone does not tell it from {kind.replace('+', ' + ')}): "
             f"{kind.replace('+', ' + ')} with the damping at the model's fits the roll+pitch equation error "
