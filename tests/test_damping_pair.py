@@ -254,3 +254,126 @@ def test_a_yaw_scale_rival_is_dropped_on_a_switch_and_kept_where_roll_and_pitch_
         result["effects"][0]["not_told_apart"]["with"] = {"name": rival, "params": {}}
         assert _apply(monkeypatch, result, sih, {"t": 0.9, "blocks": 150, "heldout_cut": 0.0}) is None
         assert "damping_pair" not in result
+
+
+# --- st19: the yaw pair against a damping decided by the roll/pitch damping reading's measured scatter ------------
+
+#: roll + pitch damping readings ([whole, fold 1, fold 2]) measured on seen PX4 SIH flights (docs/discovery.md,
+#: "Nineteenth session (st19)"): each with the stage's two readings' dampings, the log interval and what the
+#: block test said
+SB016 = dict(reading=[0.0135, 0.013884, 0.015243], k=0.019353, other=0.025, dt=0.02)     # block t -3.30: kept
+L016 = dict(reading=[0.02971, 0.03087, 0.03103], k=0.01957, other=0.025, dt=0.02)        # block t +4.13: switch
+L009 = dict(reading=[0.10145, 0.10156, 0.10073], k=0.10017, other=0.025, dt=0.02)        # KDW x4
+SB001 = dict(reading=[0.050572, 0.050919, 0.050379], k=0.050066, other=0.025, dt=0.004)  # KDW x2, 4 ms
+SB013 = dict(reading=[0.035464, 0.038948, 0.026382], k=0.049278, other=0.025, dt=0.02)   # KDW x2 + T_TAU: t +2.51
+F017 = dict(reading=[0.02665, 0.02669, 0.02616], k=0.019386, other=0.025, dt=0.004)      # the class at 4 ms: t +4.34
+P019 = dict(reading=[0.02529, 0.02557, 0.02573], k=0.019362, other=0.025, dt=0.004)      # the class at 4 ms: t +5.87
+J007 = dict(reading=[0.04154, 0.03991, 0.04081], k=0.05004, other=0.025, dt=0.02)        # KDW x2, M2: t -1.6, pair
+D012 = dict(reading=[0.030906, 0.033127, 0.026795], k=0.049317, other=0.025, dt=0.02)    # KDW x2 + T_TAU: t +1.6
+
+
+def _choice(case):
+    from twin_nodes.discovery.stages import yaw_pair as Y
+    bias, scatter = Y.rp_damping_law(case["dt"])
+    return Y.damping_choice(case["k"], case["other"], case["reading"], scatter, 0.025, bias)
+
+
+def test_the_roll_pitch_damping_law_is_the_measured_table_by_log_interval():
+    from twin_nodes.discovery.stages import yaw_pair as Y
+    assert Y.rp_damping_law(0.004) == (0.989, 0.106) and Y.rp_damping_law(0.01) == (0.989, 0.106)
+    assert Y.rp_damping_law(0.02) == (0.802, 0.369) and Y.rp_damping_law(0.1) == (0.802, 0.369)
+    # two scatters of PX4 SIH's 0.025 at 20 ms: 0.01845; a Q_MAX x IZZ x1.3 pair's gap is 0.0056 (23 % of k0)
+    c = _choice(SB016)
+    assert c["needed"] == pytest.approx(0.01845) and c["gap"] == pytest.approx(0.005647, abs=1e-6)
+    assert c["corrected"][0] == pytest.approx(0.0135 / 0.802, abs=1e-6)
+    # at 4 ms two scatters are 0.0053: the class's gap (f017 0.005614, p019 0.005638) clears them, by 6 %
+    assert _choice(F017)["needed"] == pytest.approx(0.0053) and _choice(F017)["gap"] > _choice(F017)["needed"]
+
+
+def test_one_truth_gives_one_answer_the_yaw_pair_is_not_told_apart_at_20_ms():
+    """sb016 and l016 (the same truth, M6, 20 ms): the block test said kept (wrong) and switch (right); the roll/pitch
+    readings 0.0135 and 0.0297 are within two scatters of both readings' 0.0194 / 0.025 gap -> both pairs."""
+    assert _choice(SB016)["choice"] == "pair" and _choice(L016)["choice"] == "pair"
+
+
+def test_the_yaw_pair_is_taken_at_4_ms_where_roll_and_pitch_read_the_model_s_damping():
+    """f017 and p019 (the same truth, 4 ms logs): roll/pitch read 0.0267 and 0.0253 (both folds too), nearer SIH's
+    0.025 than the damping's 0.0194 -> switch to the yaw moment + inertia, as the block test had it (t +4.3, +5.9)."""
+    assert _choice(F017)["choice"] == "switch" and _choice(P019)["choice"] == "switch"
+
+
+def test_a_true_damping_stays_told_apart_where_its_reading_resolves_it():
+    assert _choice(L009)["choice"] == "kept"           # x4 at 20 ms: gap 0.075 >> 0.018
+    assert _choice(J007)["choice"] == "kept"           # x2 at 20 ms, reading 0.0415 (20 % low): the block t had a pair
+    assert _choice(SB001)["choice"] == "kept"          # x2 at 4 ms: gap 0.025 >> 0.0056
+    # x2 at 20 ms beside a motor lag: fold 2 reads 0.0264 (0.0329 with the bias out), nearer 0.025 than 0.049 -> pair
+    c = _choice(SB013)
+    assert c["gap"] > c["needed"] and c["choice"] == "pair"
+    # d012 (x2 + T_TAU, the lag not in the model read): 0.0309 (folds 0.0331 / 0.0268) is nearer 0.025 as read, a
+    # wrong switch; with the 20 ms bias out, 0.0385 / 0.0413 / 0.0334 disagree -> pair (the block t +1.6 had a pair)
+    assert _choice(D012)["choice"] == "pair"
+    from twin_nodes.discovery.stages import yaw_pair as Y
+    assert Y.damping_choice(D012["k"], 0.025, D012["reading"], 0.369, 0.025)["choice"] == "switch"
+    # the same reading with both folds on the damping's side is kept; a reading on the other side is a switch
+    assert _choice({**SB013, "reading": [0.0436, 0.0465, 0.0400]})["choice"] == "kept"
+    assert _choice({**SB001, "reading": [0.0251, 0.0262, 0.0244]})["choice"] == "switch"
+    # a gap under two scatters is a pair whatever the reading says
+    assert _choice({**SB001, "k": 0.0300, "reading": [0.0301, 0.0302, 0.0300]})["choice"] == "pair"
+
+
+def test_the_roll_pitch_damping_reading_is_the_affine_least_squares_on_both_folds(monkeypatch, sih):
+    """roll + pitch modes affine in k (a column c, the truth k_t; fold 1 before t_split2 reads 0.021, fold 2
+    after it 0.031): the reading recovers each part's own k to 1e-9."""
+    from twin_nodes.discovery.stages import yaw_pair as Y
+    t = np.arange(0.0, 100.0, 0.02)
+    rng = np.random.default_rng(3)
+    c = rng.normal(size=(t.size, 2))
+    k_t = np.where(t < 50.0, 0.021, 0.031)
+    monkeypatch.setattr(Y, "residual_channels", lambda data, vp, nom: Y.effect_value(vp, "angular_damping",
+                                                                                     "k_nm_s_rad"))
+    monkeypatch.setattr(Y, "modes", lambda k, nom: (np.column_stack([0 * t, c * (k - k_t)[:, None], 0 * t]),))
+    data = SimpleNamespace(t=t, valid=np.ones(t.size, bool))
+    cur = sih.with_effect("angular_damping", k_nm_s_rad=0.019)
+    whole, f1, f2 = Y.roll_pitch_damping(data, sih, cur, t < 60.0, 40.0)
+    assert f1 == pytest.approx((0.021 * 2500 + 0.031 * 500) / 3000, abs=2e-4)   # 50 s at 0.021, 10 s at 0.031
+    assert f2 == pytest.approx((0.021 * 500 + 0.031 * 2500) / 3000, abs=2e-4)
+    assert whole == pytest.approx(0.026, abs=2e-4)
+
+
+def _px4_flight(nominal, dt, data=None, fit=None):
+    return SimpleNamespace(nominal=nominal, data=data or SimpleNamespace(motor_dt_s=dt), fit_mask=fit,
+                           held_mask=None, t_split2=0.0, log_params={"MC_ROLLRATE_P": 0.15})
+
+
+def test_on_a_px4_log_the_reading_decides_and_the_block_t_does_not(monkeypatch, sih):
+    """sb016 as the stage saw it: block t -3.30 (kept, neither truth named); with its roll/pitch reading the yaw pair
+    is reported not told apart, and prove names both (km 0.6 %, Izz 0.6 % off)."""
+    from twin_nodes.discovery.stages import yaw_pair as Y
+    monkeypatch.setattr(D, "roll_pitch_test", lambda *a: {"t": -3.30, "blocks": 156, "heldout_cut": -0.0055})
+    monkeypatch.setattr(Y, "roll_pitch_damping", lambda *a: list(SB016["reading"]))
+    result = _f017(sih)
+    result["effects"][0]["params"] = {"k_nm_s_rad": 0.019353}
+    result["refit_params"] = sih.with_effect("angular_damping", k_nm_s_rad=0.019353).to_ros_dict()
+    assert D.apply(result, _px4_flight(sih, 0.02)) is None
+    note = result["damping_pair"][0]
+    assert note["choice"] == "pair" and note["roll_pitch_damping"]["reading"] == SB016["reading"]
+    pair = result["effects"][0]["not_told_apart"]
+    assert pair["with"]["params"]["km"] == pytest.approx(0.025836, rel=1e-4)
+    assert pair["also"][0]["params"]["izz"] == pytest.approx(0.038754, rel=1e-4)
+    truths = grid_prove._sih_truths({"sih": {"SIH_Q_MAX": [0.1, 0.13], "SIH_IZZ": [0.03, 0.039]}}, sih)
+    r = grid_prove.score_grid_flight("sb016", truths, result, sih)
+    assert r["passed"] and r["n_named"] == 2
+    # f017, logged every 4 ms, roll/pitch reading 0.02665 (0.02695 with the bias out): switch to km 0.025792 and Izz 0.038687, both named
+    monkeypatch.setattr(Y, "roll_pitch_damping", lambda *a: list(F017["reading"]))
+    result = _f017(sih)
+    assert D.apply(result, _px4_flight(sih, 0.004)) is not None and result["accepted"] == ["yaw_moment", "inertia"]
+    assert "0.02695" in result["effects"][0]["verdict_note"]         # 0.02665 / 0.989
+    assert result["effects"][0]["params"]["km"] == pytest.approx(0.025792, rel=1e-4)
+    r = grid_prove.score_grid_flight("f017", truths, result, sih)
+    assert r["passed"] and r["n_named"] == 2 and not r["right_by_pair"]
+    # not a PX4 log (our own, RotorPy): the block test decides, as before
+    result = _f017(sih)
+    flight = _px4_flight(sih, 0.02)
+    flight.log_params = {}
+    assert D.apply(result, flight) is None and result["damping_pair"][0]["choice"] == "kept"
+    assert "roll_pitch_damping" not in result["damping_pair"][0]

@@ -246,3 +246,37 @@ def test_the_damping_s_rotor_drag_partner_is_given_at_the_other_reading(nominal)
     damp = next(e for e in result["effects"] if e["name"] == "angular_damping")
     assert damp["params"]["k_nm_s_rad"] == pytest.approx(0.0084692, rel=1e-4)
     assert damp["not_told_apart"]["with"]["params"]["k_d"] == pytest.approx(5.2509e-5, rel=1e-4)
+
+
+def test_on_a_px4_log_the_roll_pitch_damping_reading_decides_the_yaw_pair(monkeypatch, nominal):
+    """st19: y012's two readings ask roll/pitch for the damping 0.038957 (yaw moment) or 0.050172 (inertia): a gap of
+    0.0112, under two scatters of the roll/pitch reading at 20 ms (0.01845), so the pair is reported whatever the
+    block t says (t +5.0 would have switched); at 4 ms (needed 0.0053) a reading at 0.0502 (folds 0.0507 / 0.0497; / 0.989)
+    takes the inertia with k_d 0.050172."""
+    from types import SimpleNamespace
+
+    from twin_nodes.discovery.stages import yaw_pair as Y
+    monkeypatch.setattr(Y, "roll_pitch_test", lambda *a: {"t": 5.0, "blocks": 133, "heldout_cut": 0.02})
+    monkeypatch.setattr(Y, "roll_pitch_damping", lambda *a: [0.0502, 0.0507, 0.0497])
+
+    def flight(dt, params=None):
+        return SimpleNamespace(nominal=nominal, data=SimpleNamespace(motor_dt_s=dt), fit_mask=None, held_mask=None,
+                               t_split2=0.0, log_params={"MC_ROLLRATE_P": 0.15} if params is None else params)
+
+    result = _y012_result(nominal)
+    assert Y.apply(result, flight(0.02)) is None and result["yaw_pair"]["pair"] is True
+    cal = result["yaw_pair"]["roll_pitch_damping"]
+    assert cal["gap"] == pytest.approx(0.011215, abs=2e-6) and cal["needed"] == pytest.approx(0.01845)
+    km = next(e for e in result["effects"] if e["name"] == "yaw_moment")
+    assert km["not_told_apart"]["damping_with_it"]["k_nm_s_rad"] == pytest.approx(0.050172, rel=1e-4)
+    result = _y012_result(nominal)
+    assert Y.apply(result, flight(0.004)) is not None and result["yaw_pair"]["switched"]
+    assert result["accepted"] == ["angular_damping", "inertia"]
+    damp = next(e for e in result["effects"] if e["name"] == "angular_damping")
+    assert damp["params"]["k_nm_s_rad"] == pytest.approx(0.050172, rel=1e-4) and "0.05076" in damp["verdict_note"]
+    # a reading on the yaw moment's side at 4 ms keeps it (told apart, no pair); not a PX4 log: the block t decides
+    monkeypatch.setattr(Y, "roll_pitch_damping", lambda *a: [0.0392, 0.0401, 0.0385])
+    result = _y012_result(nominal)
+    assert Y.apply(result, flight(0.004)) is None and result["yaw_pair"]["pair"] is False
+    result = _y012_result(nominal)
+    assert Y.apply(result, flight(0.02, {})) is not None and "roll_pitch_damping" not in result["yaw_pair"]

@@ -20,9 +20,15 @@ has two stand-ins there that act on nothing else the flight shows:
   A damping moved alone was confirmed at ``k0 / 1.29`` there (0.0194 for 0.025), and neither flown effect was named.
 
 Roll and pitch choose (the damping acts there at its own value; the hub damping, a yaw moment and a yaw inertia do
-not): the other reading is taken where it lowers the roll + pitch equation error beyond ``T_CRIT`` over the flight's
-blocks and on the held-out part, the damping is kept (told apart) where the other reading is worse beyond
-``T_CRIT``, and otherwise the damping is reported with the other reading as the pair the flight does not tell
+not).  On a PX4 log they choose by their own damping reading (``yaw_pair.calibrated_choice``): the other reading is
+taken, or the damping kept, only where the two readings' roll/pitch dampings differ by more than twice that
+reading's measured between-flight scatter (``yaw_pair.RP_DAMPING_READING``: 37 % of the model's damping at 20 ms,
+10.6 % at 4 ms; the reading divided by its measured bias, x0.80 at 20 ms) and the reading and both folds fall nearer
+that side; a block t over the flight's blocks is not a calibrated test there (the reading of one truth scatters 35 %
+between flights, a bias the blocks share: PX4 SIH sb016 and l016, one truth, read t -3.3 and +4.1).  On other logs
+the block test decides: the other reading is taken where it lowers the roll + pitch equation error beyond ``T_CRIT``
+over the flight's blocks and on the held-out part, the damping is kept (told apart) where the other reading is worse
+beyond ``T_CRIT``.  Otherwise the damping is reported with the other reading as the pair the flight does not tell
 apart (``not_told_apart``; the yaw pair's second member under ``also``), with the manoeuvre that separates them:
 fast legs for the rotor drag (its force grows with the airspeed, a damping has none), roll/pitch rate doublets for
 the yaw pair.  The result's ``damping_pair`` holds the numbers either way.  A damping beside a confirmed yaw moment
@@ -36,7 +42,8 @@ import numpy as np
 
 from twin_nodes.discovery.residuals import modes, residual_channels
 from twin_nodes.discovery.stages.yaw_pair import SEPARATING as ROLL_PITCH_RATES
-from twin_nodes.discovery.stages.yaw_pair import effect_value, keeps_reported, roll_pitch_test, takes_other
+from twin_nodes.discovery.stages.yaw_pair import (calibrated_choice, effect_value, keeps_reported, roll_pitch_test,
+                                                  takes_other)
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 
 #: the yaw mode of :func:`~twin_nodes.discovery.residuals.modes`
@@ -153,9 +160,14 @@ def _pair(entry: dict, kind: str, alt: VehicleParams, separating: tuple[str, str
 def _switch(result: dict, entry: dict, kind: str, alt: VehicleParams, test: dict) -> None:
     """The damping's entry takes the other reading (the first member; a second one is added beside it)."""
     members = _members(kind, alt)
+    cal = test.get("roll_pitch_damping")
+    why = (f"roll/pitch read the damping {cal['corrected'][0]:.4g} (folds {cal['corrected'][1]:.4g} / "
+           f"{cal['corrected'][2]:.4g}, bias {cal['bias']} taken out), nearer {cal['k_other']:.4g} than "
+           f"{cal['k_reported']:.4g}, a gap beyond {cal['needed']:.4g}" if cal else
+           f"t={test['t']:.1f} over {test['blocks']} blocks, held-out {100 * test['heldout_cut']:.1f} %")
     note = (f"read on roll/pitch (the yaw axis alone does not tell it from {kind.replace('+', ' + ')}): "
-            f"{kind.replace('+', ' + ')} with the damping at the model's lowers the roll+pitch equation error "
-            f"(t={test['t']:.1f} over {test['blocks']} blocks, held-out {100 * test['heldout_cut']:.1f} %)")
+            f"{kind.replace('+', ' + ')} with the damping at the model's fits the roll+pitch equation error "
+            f"better ({why})")
     entry["read_as"] = {"was": "angular_damping", "params": entry.get("params")}
     entry.pop("not_told_apart", None)     # a yaw-scale rival fitted alone: the reading taken holds it whole
     entry["name"], entry["params"] = members[0]["name"], members[0]["params"]
@@ -181,14 +193,17 @@ def apply(result: dict, flight) -> VehicleParams | None:
     notes = []
     for kind, alt, separating in _readings(result, flight, current):
         test = roll_pitch_test(flight.data, flight.nominal, flight.held_mask, current, alt)
-        choice = "switch" if takes_other(test) else "kept" if keeps_reported(test) else "pair"
+        cal = calibrated_choice(flight, current, alt)
+        choice = cal["choice"] if cal else "switch" if takes_other(test) else "kept" if keeps_reported(test) \
+            else "pair"
         notes.append({"other": kind, "params": {m["name"]: m["params"] for m in _members(kind, alt)},
-                      "roll_pitch": test, "choice": choice})
+                      "roll_pitch": test, "choice": choice, **({"roll_pitch_damping": cal} if cal else {})})
         if choice == "switch":
             result["damping_pair"] = notes
-            _switch(result, entry, kind, alt, test)
+            _switch(result, entry, kind, alt, {**test, **({"roll_pitch_damping": cal} if cal else {})})
             return alt
-        if choice == "pair" and _pair(entry, kind, alt, separating, test):
+        if choice == "pair" and _pair(entry, kind, alt, separating,
+                                      {**test, **({"roll_pitch_damping": cal} if cal else {})}):
             break
     if notes:
         result["damping_pair"] = notes

@@ -8,7 +8,12 @@ model's) accepted, the joint refit gives one of two readings that fit yaw equall
 
 and the damping it reports is the truth's only if it picked the vehicle's reading (PX4 SIH u017, SIH_Q_MAX x1.3 +
 SIH_KDW x2: Izz x0.746 with k_d 0.0385 for km x1.34 with 0.0517; the truth 0.026 and 0.05).  Roll and pitch carry
-k_d alone (their inertia and arms are the model's), so they choose: the other reading is taken when it lowers the
+k_d alone (their inertia and arms are the model's), so they choose.  On a PX4 log by their own damping reading
+(:func:`calibrated_choice`: least squares on the roll + pitch modes, the whole flight and both folds): a reading is
+taken only where the two readings' dampings differ by more than twice the reading's measured between-flight
+scatter (:data:`RP_DAMPING_READING`, by the motor log interval; the reading divided by its measured bias) and the
+reading and both folds fall nearer it.
+Elsewhere the other reading is taken when it lowers the
 roll + pitch equation error over the flight's blocks beyond ``T_CRIT`` (the choice fits nothing on roll/pitch) and
 also on the held-out part.  Where roll and pitch choose neither (the other reading not better beyond ``T_CRIT``
 and the reported one not either: PX4 SIH y012 at 50 Hz, t -1.6), the confirmed yaw-scale finding is reported
@@ -80,6 +85,83 @@ def roll_pitch_test(data, nominal: VehicleParams, held_mask: np.ndarray, current
     return {"t": round(float(st["t"]), 2), "blocks": int(st["n"]),
             "heldout_before": round(r0, 6), "heldout_after": round(r1, 6),
             "heldout_cut": round(1.0 - r1 / r0, 4) if r0 > 0 else 0.0}
+
+
+#: the roll + pitch damping reading (:func:`roll_pitch_damping`) on PX4 logs, by the motor log interval [s] up to
+#: which a row holds: ``(interval, bias, scatter)``, the reading's mean over the truth (``k / k0``) and the RMS of
+#: ``k / (bias k0) - 1`` between flights, over the seen PX4 SIH flights whose roll/pitch damping is SIH's
+#: (``SIH_KDW`` at 0.025; their other SIH changes in the model, arm-length flights left out), every mission pooled
+#: (docs/discovery.md, "Nineteenth session (st19)").  At 4 ms (rate-loop logging) 12 flights on M1-M6 read
+#: 0.0172-0.0270 (mean 0.0247); at 20 ms (PX4's default) 19 flights on M1-M4 and M6 read 0.0050-0.0334 (mean
+#: 0.0201, 20 % low; true dampings x2 and x4 read 0.70-1.04 of theirs): a flight-level bias the folds share, not
+#: noise.  A discovery run does not know the mission; the log interval is what sets the scatter (every 20 ms
+#: mission 0.0028-0.0127 RMS about 0.025, every 4 ms one 0.0002-0.0014 but the take-off-and-land M5's 0.0059).
+RP_DAMPING_READING = ((0.01, 0.989, 0.106), (math.inf, 0.802, 0.369))
+#: the two readings are told apart on roll/pitch only where their roll/pitch dampings differ by more than this many
+#: scatters (about 95 % of the readings of one truth fall within)
+SCATTER_TIMES = 2.0
+
+
+def is_px4_log(log_params: dict | None) -> bool:
+    """Whether the log carries PX4's rate-loop parameters (``MC_ROLLRATE_P``): the logs the scatter was measured on;
+    our own and RotorPy logs keep the block test."""
+    return "MC_ROLLRATE_P" in (log_params or {})
+
+
+def rp_damping_law(motor_dt_s: float) -> tuple[float, float]:
+    """(bias, scatter) of the roll + pitch damping reading at this motor log interval (:data:`RP_DAMPING_READING`)."""
+    return next((b, f) for dt, b, f in RP_DAMPING_READING if motor_dt_s <= dt + 1e-9)
+
+
+def roll_pitch_damping(data, nominal: VehicleParams, current: VehicleParams, fit_mask: np.ndarray,
+                       t_split2: float) -> list[float]:
+    """The angular damping k that roll and pitch alone ask for, ``current`` otherwise as it is: least squares over
+    the roll + pitch modes (affine in k, two evaluations), on the whole flight and on both folds' fit parts
+    (``[whole, fold 1, fold 2]``; fold 2 fits after ``t_split2``)."""
+    k = effect_value(current, "angular_damping", "k_nm_s_rad")
+    k0 = effect_value(nominal, "angular_damping", "k_nm_s_rad")
+    step = -0.5 * max(k, k0, 1e-9)
+    m0 = modes(residual_channels(data, current.with_effect("angular_damping", k_nm_s_rad=k), nominal),
+               nominal)[0][:, ROLL_PITCH]
+    m1 = modes(residual_channels(data, current.with_effect("angular_damping", k_nm_s_rad=k + step), nominal),
+               nominal)[0][:, ROLL_PITCH]
+    col = (m1 - m0) / step
+    out = []
+    for mask in (data.valid, fit_mask & data.valid, data.valid & (data.t >= t_split2)):
+        y, c = m0[mask].ravel(), col[mask].ravel()
+        cc = float(c @ c)
+        out.append(round(k - float(c @ y) / cc, 6) if cc > 0 else math.nan)
+    return out
+
+
+def damping_choice(k_reported: float, k_other: float, reading: list[float], scatter: float, k0: float,
+                   bias: float = 1.0) -> dict:
+    """Which reading roll and pitch choose, from their own damping ``reading`` ([whole, fold 1, fold 2], divided by
+    its measured ``bias``): ``kept`` (the reported reading's damping ``k_reported``) or ``switch`` (``k_other``) only
+    where the two differ by more than :data:`SCATTER_TIMES` x ``scatter`` x k0 and the reading and both folds fall
+    nearer that side; else ``pair``."""
+    need = SCATTER_TIMES * scatter * k0
+    gap = abs(k_reported - k_other)
+    read = [round(r / bias, 6) for r in reading]
+    near = {"kept" if abs(r - k_reported) < abs(r - k_other) else "switch" for r in read if math.isfinite(r)}
+    resolved = gap > need and len(near) == 1 and all(math.isfinite(r) for r in read)
+    return {"k_reported": round(k_reported, 6), "k_other": round(k_other, 6), "reading": reading, "bias": bias,
+            "corrected": read, "gap": round(gap, 6), "needed": round(need, 6), "scatter": scatter,
+            "choice": next(iter(near)) if resolved else "pair"}
+
+
+def calibrated_choice(flight, current: VehicleParams, alt: VehicleParams) -> dict | None:
+    """:func:`damping_choice` for a flight on a PX4 log (:func:`is_px4_log`); None elsewhere (the block test
+    decides there, as before)."""
+    if not is_px4_log(getattr(flight, "log_params", None)):
+        return None
+    k0 = effect_value(flight.nominal, "angular_damping", "k_nm_s_rad")
+    if k0 <= 0:
+        return None
+    reading = roll_pitch_damping(flight.data, flight.nominal, current, flight.fit_mask, flight.t_split2)
+    bias, scatter = rp_damping_law(float(flight.data.motor_dt_s))
+    return damping_choice(effect_value(current, "angular_damping", "k_nm_s_rad"),
+                          effect_value(alt, "angular_damping", "k_nm_s_rad"), reading, scatter, k0, bias)
 
 
 def takes_other(test: dict) -> bool:
@@ -160,17 +242,24 @@ def apply(result: dict, flight) -> VehicleParams | None:
         return None
     alt, was, becomes, s = other
     test = roll_pitch_test(flight.data, flight.nominal, flight.held_mask, current, alt)
-    switched = takes_other(test)
+    cal = calibrated_choice(flight, current, alt)
+    choice = cal["choice"] if cal else "switch" if takes_other(test) else "kept" if keeps_reported(test) else "pair"
+    switched = choice == "switch"
     result["yaw_pair"] = {"reported": was, "other": becomes, "yaw_scale": round(s, 4), "roll_pitch": test,
                           "switched": switched}
+    if cal:
+        result["yaw_pair"]["roll_pitch_damping"] = cal
     if not switched:
         # neither reading chosen: the flight does not tell them apart, and the finding says so (as stage 11 does)
-        result["yaw_pair"]["pair"] = (not keeps_reported(test)
-                                      and report_pair(result, was, becomes, alt, flight.nominal))
+        result["yaw_pair"]["pair"] = choice == "pair" and report_pair(result, was, becomes, alt, flight.nominal)
         return None
+    why = (f"roll/pitch read the damping {cal['corrected'][0]:.4g} (folds {cal['corrected'][1]:.4g} / "
+           f"{cal['corrected'][2]:.4g}, bias {cal['bias']} taken out), nearer {cal['k_other']:.4g} than "
+           f"{cal['k_reported']:.4g}, a gap beyond {cal['needed']:.4g}" if cal else
+           f"t={test['t']:.1f} over {test['blocks']} blocks, held-out {100 * test['heldout_cut']:.1f} %")
     note = (f"read on roll/pitch (the yaw axis gives km/Izz and k_d/Izz only): {becomes} with the damping x"
-            f"{s if becomes == 'yaw_moment' else 1 / s:.3f} lowers the roll+pitch equation error (t={test['t']:.1f} "
-            f"over {test['blocks']} blocks, held-out {100 * test['heldout_cut']:.1f} %) against {was}")
+            f"{s if becomes == 'yaw_moment' else 1 / s:.3f} fits the roll+pitch equation error better ({why}) "
+            f"against {was}")
     new = alt.effect_dict
     partner = damping_partner_in_reading(result, float(new["angular_damping"]["k_nm_s_rad"]), flight.nominal)
     for e in result["effects"]:
@@ -214,5 +303,7 @@ def damping_at_model(result: dict, alt: VehicleParams, nominal: VehicleParams) -
     return alt.with_effect("angular_damping", k_nm_s_rad=float(k0))
 
 
-__all__ = ["ROLL_PITCH", "SEPARATING", "apply", "damping_at_model", "damping_partner_in_reading", "drag_in_reading",
-           "keeps_reported", "other_reading", "report_pair", "roll_pitch_test", "takes_other"]
+__all__ = ["ROLL_PITCH", "RP_DAMPING_READING", "SCATTER_TIMES", "SEPARATING", "apply", "calibrated_choice",
+           "damping_at_model", "damping_choice", "damping_partner_in_reading", "drag_in_reading", "is_px4_log",
+           "keeps_reported", "other_reading", "report_pair", "roll_pitch_damping", "roll_pitch_test",
+           "rp_damping_law", "takes_other"]
