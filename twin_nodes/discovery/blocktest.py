@@ -69,8 +69,9 @@ def _block_stats(R0: np.ndarray, R1: np.ndarray, blocks: list[np.ndarray], min_c
     own term changes the prediction, when that is not ``R1 - R0`` (a joint variant, whose refitted partners
     re-balance every block a little: :func:`judging.own_change`).  A confined change (it reaches ``NEGLIGIBLE`` of
     its largest block change in under ``CONFINED_SHARE`` of the blocks) takes its 90th percentile over the blocks
-    it reaches, not over every block: otherwise the zeros pull the threshold down to blocks it moves at the
-    noise's size, whose gains are coin flips (x033's ground effect: 9 active blocks, 6 improved)."""
+    it reaches, not over every block, as an observed block's change (:func:`_reference`): otherwise the zeros pull
+    the threshold down to blocks it moves at the noise's size, whose gains are coin flips (x033's ground effect: 9
+    active blocks, 6 improved)."""
     delta = np.array([np.sqrt(np.mean((R1[b] - R0[b]) ** 2)) for b in blocks])
     if change is not None:
         own = np.array([np.sqrt(np.mean(change[b] ** 2)) for b in blocks])
