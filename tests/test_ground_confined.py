@@ -138,3 +138,38 @@ def test_an_untestable_block_comparison_says_so():
     st = _block_stats(R0, R1, blocks)
     assert st["tested"] and st["n"] == 5 and st["t"] > 2.0
     assert not_significant(1.23, 7) == "not significant on held-out blocks (t=1.2 over 7)"
+
+
+def _take_off_and_tail(n_tail: int, rows: int = 25, n_blocks: int = 60):
+    """rb035's held-out blocks (yp18, 1e-4 of full output): the take-off block changed by 375.4, ``n_tail`` blocks of
+    the ground effect's tail at cruise height by 11.0 down to 9.7, every other block untouched; every changed block
+    improved (the nominal's miss taken out)."""
+    blocks = [np.arange(k * rows, (k + 1) * rows) for k in range(n_blocks)]
+    rng = np.random.default_rng(7)
+    R0 = 1e-5 * rng.standard_normal((n_blocks * rows, 1))
+    R1 = R0.copy()
+    for k, c in zip(range(1 + n_tail), [375.4e-4, *np.linspace(11.0e-4, 9.7e-4, n_tail)]):
+        R0[blocks[3 * k]] += c
+    return R0, R1, blocks
+
+
+def test_one_dominant_block_does_not_set_a_confined_changes_reference_rb035(monkeypatch):
+    from twin_nodes.discovery import blocktest
+
+    ten, eleven = _take_off_and_tail(9), _take_off_and_tail(10)
+    # k016's shape (eleven reached blocks) and rb035's (ten: one tail block fell under the partner's re-balance)
+    assert blocktest.CONFINED_METHOD == "lower"
+    assert _block_stats(*eleven)["n"] == 11 and _block_stats(*ten)["n"] == 10
+    assert _block_stats(*ten)["n_pos"] == 10 and _block_stats(*ten)["tested"]
+    # the reference is the second largest block's change, an observed one: 11.0e-4 on both
+    delta10 = np.array([np.sqrt(np.mean((ten[1][b] - ten[0][b]) ** 2)) for b in ten[2]])
+    assert blocktest._reference(delta10) == pytest.approx(11.0e-4, rel=1e-3)
+    # the linear 90th percentile (before): 10 % of the way from the tail to the take-off block on ten values
+    # (11.0 + 0.1 x 364.4 = 47.4), a quarter of which only the take-off block clears; the tenth value on eleven
+    monkeypatch.setattr(blocktest, "CONFINED_METHOD", "linear")
+    assert blocktest._reference(delta10) == pytest.approx(47.44e-4, rel=1e-3)
+    assert _block_stats(*ten)["n"] == 1 and _block_stats(*eleven)["n"] == 11
+    # an effect reaching most blocks keeps the linear percentile over every block (unchanged by the method)
+    monkeypatch.setattr(blocktest, "CONFINED_METHOD", "lower")
+    wide = np.linspace(1.0, 2.0, 50)
+    assert blocktest._reference(wide) == pytest.approx(np.percentile(wide, 90))
