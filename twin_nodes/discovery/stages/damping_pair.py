@@ -42,8 +42,7 @@ import numpy as np
 
 from twin_nodes.discovery.residuals import modes, residual_channels
 from twin_nodes.discovery.stages.yaw_pair import SEPARATING as ROLL_PITCH_RATES
-from twin_nodes.discovery.stages.yaw_pair import (calibrated_choice, effect_value, keeps_reported, roll_pitch_test,
-                                                  takes_other)
+from twin_nodes.discovery.stages.yaw_pair import choice_evidence, effect_value, roll_pitch_choice, roll_pitch_test
 from twin_nodes.vehicle.params import VehicleParams, from_ros_dict
 
 #: the yaw mode of :func:`~twin_nodes.discovery.residuals.modes`
@@ -160,11 +159,7 @@ def _pair(entry: dict, kind: str, alt: VehicleParams, separating: tuple[str, str
 def _switch(result: dict, entry: dict, kind: str, alt: VehicleParams, test: dict) -> None:
     """The damping's entry takes the other reading (the first member; a second one is added beside it)."""
     members = _members(kind, alt)
-    cal = test.get("roll_pitch_damping")
-    why = (f"roll/pitch read the damping {cal['corrected'][0]:.4g} (folds {cal['corrected'][1]:.4g} / "
-           f"{cal['corrected'][2]:.4g}, bias {cal['bias']} taken out), nearer {cal['k_other']:.4g} than "
-           f"{cal['k_reported']:.4g}, a gap beyond {cal['needed']:.4g}" if cal else
-           f"t={test['t']:.1f} over {test['blocks']} blocks, held-out {100 * test['heldout_cut']:.1f} %")
+    why = choice_evidence(test, test.get("roll_pitch_damping"))
     note = (f"read on roll/pitch (the yaw axis alone does not tell it from {kind.replace('+', ' + ')}): "
             f"{kind.replace('+', ' + ')} with the damping at the model's fits the roll+pitch equation error "
             f"better ({why})")
@@ -193,9 +188,7 @@ def apply(result: dict, flight) -> VehicleParams | None:
     notes = []
     for kind, alt, separating in _readings(result, flight, current):
         test = roll_pitch_test(flight.data, flight.nominal, flight.held_mask, current, alt)
-        cal = calibrated_choice(flight, current, alt)
-        choice = cal["choice"] if cal else "switch" if takes_other(test) else "kept" if keeps_reported(test) \
-            else "pair"
+        choice, cal = roll_pitch_choice(flight, current, alt, test)
         notes.append({"other": kind, "params": {m["name"]: m["params"] for m in _members(kind, alt)},
                       "roll_pitch": test, "choice": choice, **({"roll_pitch_damping": cal} if cal else {})})
         if choice == "switch":

@@ -164,6 +164,24 @@ def calibrated_choice(flight, current: VehicleParams, alt: VehicleParams) -> dic
                           effect_value(alt, "angular_damping", "k_nm_s_rad"), reading, scatter, k0, bias)
 
 
+def roll_pitch_choice(flight, current: VehicleParams, alt: VehicleParams, test: dict) -> tuple[str, dict | None]:
+    """``switch``, ``kept`` or ``pair`` for ``alt`` against ``current``, with the calibrated reading it came from: on a
+    PX4 log :func:`calibrated_choice`, elsewhere the block ``test`` (:func:`roll_pitch_test`)."""
+    cal = calibrated_choice(flight, current, alt)
+    if cal:
+        return cal["choice"], cal
+    return ("switch" if takes_other(test) else "kept" if keeps_reported(test) else "pair"), None
+
+
+def choice_evidence(test: dict, cal: dict | None) -> str:
+    """The numbers a switch stood on, for the finding's note: the calibrated reading or the block test."""
+    if cal:
+        return (f"roll/pitch read the damping {cal['corrected'][0]:.4g} (folds {cal['corrected'][1]:.4g} / "
+                f"{cal['corrected'][2]:.4g}, bias {cal['bias']} taken out), nearer {cal['k_other']:.4g} than "
+                f"{cal['k_reported']:.4g}, a gap beyond {cal['needed']:.4g}")
+    return f"t={test['t']:.1f} over {test['blocks']} blocks, held-out {100 * test['heldout_cut']:.1f} %"
+
+
 def takes_other(test: dict) -> bool:
     """Whether roll/pitch choose the other reading: beyond ``T_CRIT`` over the flight, and lower on the held-out part."""
     return test["t"] > T_CRIT and test["heldout_cut"] > 0.0
@@ -242,8 +260,7 @@ def apply(result: dict, flight) -> VehicleParams | None:
         return None
     alt, was, becomes, s = other
     test = roll_pitch_test(flight.data, flight.nominal, flight.held_mask, current, alt)
-    cal = calibrated_choice(flight, current, alt)
-    choice = cal["choice"] if cal else "switch" if takes_other(test) else "kept" if keeps_reported(test) else "pair"
+    choice, cal = roll_pitch_choice(flight, current, alt, test)
     switched = choice == "switch"
     result["yaw_pair"] = {"reported": was, "other": becomes, "yaw_scale": round(s, 4), "roll_pitch": test,
                           "switched": switched}
@@ -253,10 +270,7 @@ def apply(result: dict, flight) -> VehicleParams | None:
         # neither reading chosen: the flight does not tell them apart, and the finding says so (as stage 11 does)
         result["yaw_pair"]["pair"] = choice == "pair" and report_pair(result, was, becomes, alt, flight.nominal)
         return None
-    why = (f"roll/pitch read the damping {cal['corrected'][0]:.4g} (folds {cal['corrected'][1]:.4g} / "
-           f"{cal['corrected'][2]:.4g}, bias {cal['bias']} taken out), nearer {cal['k_other']:.4g} than "
-           f"{cal['k_reported']:.4g}, a gap beyond {cal['needed']:.4g}" if cal else
-           f"t={test['t']:.1f} over {test['blocks']} blocks, held-out {100 * test['heldout_cut']:.1f} %")
+    why = choice_evidence(test, cal)
     note = (f"read on roll/pitch (the yaw axis gives km/Izz and k_d/Izz only): {becomes} with the damping x"
             f"{s if becomes == 'yaw_moment' else 1 / s:.3f} fits the roll+pitch equation error better ({why}) "
             f"against {was}")
@@ -304,6 +318,6 @@ def damping_at_model(result: dict, alt: VehicleParams, nominal: VehicleParams) -
 
 
 __all__ = ["ROLL_PITCH", "RP_DAMPING_READING", "SCATTER_TIMES", "SEPARATING", "apply", "calibrated_choice",
-           "damping_at_model", "damping_choice", "damping_partner_in_reading", "drag_in_reading", "is_px4_log",
-           "keeps_reported", "other_reading", "report_pair", "roll_pitch_damping", "roll_pitch_test",
-           "rp_damping_law", "takes_other"]
+           "choice_evidence", "damping_at_model", "damping_choice", "damping_partner_in_reading", "drag_in_reading",
+           "is_px4_log", "keeps_reported", "other_reading", "report_pair", "roll_pitch_choice", "roll_pitch_damping",
+           "roll_pitch_test", "rp_damping_law", "takes_other"]
