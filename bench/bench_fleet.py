@@ -109,9 +109,9 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         r = subprocess.run([sys.executable, "-m", "twin_nodes", "fleet", "warm"], capture_output=True, text=True,
                            cwd=Path(__file__).resolve().parents[1])
+        said = (r.stdout or r.stderr).strip().splitlines()
         print(f"code cache warmed as make setup does (not timed, {time.perf_counter() - t0:.1f} s): "
-              f"{(r.stdout or r.stderr).strip().splitlines()[-1] if (r.stdout or r.stderr).strip() else r.returncode}",
-              flush=True)
+              f"{said[-1] if said else f'exit {r.returncode}'}", flush=True)
     rate: dict[tuple[str, int], float] = {}
     for w in [int(x) for x in a.workers.split(",")]:
         for mode in modes:

@@ -363,7 +363,8 @@ def test_on_a_px4_log_the_reading_decides_and_the_block_t_does_not(monkeypatch, 
     truths = grid_prove._sih_truths({"sih": {"SIH_Q_MAX": [0.1, 0.13], "SIH_IZZ": [0.03, 0.039]}}, sih)
     r = grid_prove.score_grid_flight("sb016", truths, result, sih)
     assert r["passed"] and r["n_named"] == 2
-    # f017, logged every 4 ms, roll/pitch reading 0.02665 (0.02695 with the bias out): switch to km 0.025792 and Izz 0.038687, both named
+    # f017, logged every 4 ms, roll/pitch reading 0.02665 (0.02695 with the bias out): switch to km 0.025792 and
+    # Izz 0.038687, both named
     monkeypatch.setattr(Y, "roll_pitch_damping", lambda *a: list(F017["reading"]))
     result = _f017(sih)
     assert D.apply(result, _px4_flight(sih, 0.004)) is not None and result["accepted"] == ["yaw_moment", "inertia"]

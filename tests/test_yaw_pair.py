@@ -251,8 +251,8 @@ def test_the_damping_s_rotor_drag_partner_is_given_at_the_other_reading(nominal)
 def test_on_a_px4_log_the_roll_pitch_damping_reading_decides_the_yaw_pair(monkeypatch, nominal):
     """st19: y012's two readings ask roll/pitch for the damping 0.038957 (yaw moment) or 0.050172 (inertia): a gap of
     0.0112, under two scatters of the roll/pitch reading at 20 ms (0.01845), so the pair is reported whatever the
-    block t says (t +5.0 would have switched); at 4 ms (needed 0.0053) a reading at 0.0502 (folds 0.0507 / 0.0497; / 0.989)
-    takes the inertia with k_d 0.050172."""
+    block t says (t +5.0 would have switched); at 4 ms (needed 0.0053) a reading at 0.0502 (folds 0.0507 / 0.0497;
+    / 0.989) takes the inertia with k_d 0.050172."""
     from types import SimpleNamespace
 
     from twin_nodes.discovery.stages import yaw_pair as Y

@@ -65,8 +65,9 @@ def warm_compiled() -> None:
     and discovery's kernels, :func:`~twin_nodes.discovery.kernels.warm_steps`), once per process, each
     entry point under an exclusive lock of its own in the code cache folder (``$ROTORTWIN_CODE_CACHE``, or
     ``$ROTORTWIN_CACHE`` where that is read-only: ``compile.<entry point>.lock``); after ``make setup`` (which
-    fills the code cache) each entry point is only loaded: on a cold start the first worker compiles the stepper's step (and with
-    it the functions every entry point calls) while another waits, then the two compile the other entry
+    fills the code cache) each entry point is only loaded: on a cold start the first worker compiles the
+    stepper's step (and with it the functions every entry point calls) while another waits, then the two compile
+    the other entry
     points side by side (one whose lock another worker holds is left for later) and each loads what the other
     wrote, waiting for an entry point still being compiled (waiting costs no CPU) instead of compiling the
     same code a second time; until a worker reaches a free flight it handles logs that need no compiled code.  A
